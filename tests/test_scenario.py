@@ -1,0 +1,55 @@
+"""Scenario files: the shipped ones load with the papers' numbers; bad files give clear errors."""
+import numpy as np
+import pytest
+
+from hil import scenario
+
+
+def test_shipped_scenarios_carry_the_papers_numbers():
+    assert {"isoi", "aist2d", "amds"} <= set(scenario.scenario_names())
+    a = scenario.load("aist2d")
+    np.testing.assert_array_equal(np.diag(a.inertia_kgm2), [175, 200, 285])   # sedelnikov2023
+    assert a.mass_kg == 530
+    assert max(np.abs(p.moment_Nm).max() for p in a.torques) == pytest.approx(0.2)
+    m = scenario.load("amds")
+    np.testing.assert_array_equal(np.diag(m.inertia_kgm2), [17.995, 20.711, 15.269])  # lapkhanov2019
+    assert m.altitude_m == pytest.approx(600e3)
+    i = scenario.load("isoi")
+    assert i.altitude_m == pytest.approx(485e3) and i.inclination_deg == 97.5          # sedelnikov2024
+    assert i.noise_T == pytest.approx(1.5e-6)
+    assert 8.0 < np.degrees(np.linalg.norm(i.omega0_radps)) < 12.0                    # ~10 deg/s
+
+
+def test_torque_schedule_sums_active_pulses():
+    a = scenario.load("aist2d")
+    np.testing.assert_array_equal(a.moment_Nm(0.0), 0.0)
+    np.testing.assert_array_equal(a.moment_Nm(61.0), [0.2, 0, 0])
+    np.testing.assert_array_equal(a.moment_Nm(120.0), 0.0)   # the pulse ends at start + duration
+
+
+BASE = (scenario.SCENARIO_DIR / "isoi.toml").read_text()
+
+
+@pytest.mark.parametrize("edit,message", [
+    (("inertia_kgm2 = [[0.058, 0.0, 0.0], [0.0, 0.058, 0.0], [0.0, 0.0, 0.011]]",
+      "inertia_kgm2 = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 3.0]]"), "triangle"),
+    (("inertia_kgm2 = [[0.058, 0.0, 0.0], [0.0, 0.058, 0.0], [0.0, 0.0, 0.011]]",
+      "inertia_kgm2 = [[0.058, 0.01, 0.0], [0.0, 0.058, 0.0], [0.0, 0.0, 0.011]]"), "symmetric"),
+    (("bandwidth_hz = 100", "bandwidth_hz = 150"), "bandwidth_hz"),
+    (("sample_rate_hz = 1.0", "sample_rate_hz = 2000.0"), "sample_rate_hz"),
+    (("noise_uT = 1.5", "noise_ut = 1.5"), "unknown key"),
+    (("altitude_km = 485.0", "altitude_km = \"high\""), "altitude_km"),
+    (("omega_dps = [6.0, -5.0, 6.5]", "omega_dps = [6.0, -5.0]"), "omega_dps"),
+])
+def test_bad_scenarios_rejected_with_the_key_named(tmp_path, edit, message):
+    p = tmp_path / "bad.toml"
+    assert edit[0] in BASE
+    p.write_text(BASE.replace(edit[0], edit[1]))
+    with pytest.raises(scenario.ScenarioError, match=message) as e:
+        scenario.load(str(p))
+    assert str(p) in str(e.value)
+
+
+def test_unknown_name_lists_the_shipped_ones():
+    with pytest.raises(scenario.ScenarioError, match="isoi"):
+        scenario.load("no-such-scenario")

@@ -1,0 +1,60 @@
+"""The fixed-step scheduler with an injected clock and an injected work timer."""
+import pytest
+
+from fsw.scheduler import Scheduler, Task
+
+
+class FakeTimer:
+    """Work timer that advances by a scripted cost each time a task runs."""
+
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self):
+        return self.now
+
+
+def test_task_rates_follow_the_table():
+    calls = {"fast": [], "slow": [], "hb": []}
+    tasks = [Task("fast", lambda t: calls["fast"].append(t), 100, 1e-3),
+             Task("slow", lambda t: calls["slow"].append(t), 10, 1e-3),
+             Task("hb", lambda t: calls["hb"].append(t), 1, 1e-3)]
+    s = Scheduler(100, tasks)
+    for k in range(200):
+        s.tick(k / 100)
+    assert len(calls["fast"]) == 200
+    assert calls["slow"] == pytest.approx([k / 10 for k in range(20)])
+    assert calls["hb"] == pytest.approx([0.0, 1.0])
+    assert s.stats.ticks == 200
+
+
+def test_overruns_counted_per_tick_and_per_task():
+    timer = FakeTimer()
+
+    def cost(seconds):
+        def fn(_t):
+            timer.now += seconds
+        return fn
+
+    tasks = [Task("sensor", cost(0.004), 50, budget_s=0.005),
+             Task("estimator", cost(0.012), 25, budget_s=0.010)]
+    s = Scheduler(50, tasks, work_timer=timer)   # period 20 ms
+    for k in range(10):
+        s.tick(k * 0.02)
+    # estimator runs on even ticks: 12 ms > 10 ms budget, tick work 16 ms < 20 ms period
+    assert s.task("estimator").overruns == 5
+    assert s.task("sensor").overruns == 0
+    assert s.stats.overruns == 0
+    s.task("sensor").fn = cost(0.010)
+    s.tick(0.2)  # 10 + 12 = 22 ms > 20 ms
+    assert s.stats.overruns == 1
+    mean, p50, p99, mx = s.stats.summary_us()
+    assert mx == pytest.approx(22_000)
+    assert p50 == pytest.approx(16_000)
+
+
+def test_bad_rates_rejected():
+    with pytest.raises(ValueError):
+        Scheduler(0, [])
+    with pytest.raises(ValueError):
+        Scheduler(10, [Task("x", lambda t: None, 20, 1e-3)])
