@@ -1,0 +1,424 @@
+"""MMC5983MA driver: a non-blocking state machine on a register bus, time injected.
+
+Shaped like the PX4 / ArduPilot drivers (fact sheet `spec/mmc5983ma.md` section 4) with their known
+defects avoided; [DS pN] cites the MMC5983MA datasheet Rev A.
+
+States (values = DEBRIS_MAG_STATE in fsw/telemetry/debris.xml):
+
+- PROBE: read Product ID 1 (0x2F), expect 0x30, retry every 5 ms up to `probe_retries` attempts
+  (ArduPilot retries 10x because SPI reads sometimes return 0xFF). Wrong ids count in `bad_id`.
+- RESET: SW_RST is bit 7 of Internal Control 1 = 0x0A [DS p13-16] (PX4 writes 0x80 to 0x0B, which
+  sets En_prd_set instead). Wait 15 ms (power-on time 10 ms).
+- CONFIGURE: write BW. Control registers are write-only [DS p13-16]: the driver keeps a shadow of
+  each and always writes whole bytes; it never reads them (SparkFun issues #8/#9).
+- CALIBRATE: SET/RESET offset removal [DS p18]. RESET, measure R1; SET, measure S; RESET, measure
+  R2; SET. With R = (R1 + R2) / 2, the brackets of the DS formulas,
+      H = (S - R) / 2,   offset = (S + R) / 2,
+  with R1 and R2 taken symmetrically around S, so a field that changes linearly in time (a
+  tumbling body) leaves no first-order error in the offset; with only R1 it would be biased by
+  half the field change between the two measurements. Every TM_M follows a SET/RESET pulse by
+  >= 1 ms. It ends in SET polarity, where the package axis signs hold. S - offset = H is delivered
+  as a sample.
+- MEASURE, single measurement mode: at each sample time write TM_M; from TM_M + t_meas poll
+  Status for Meas_M_Done (TM_M clears it [DS p13-16], so no clearing write is needed), read the
+  7-byte burst from 0x00, decode, subtract the offset. No data-ready within 4 t_meas + 1 ms
+  (SparkFun's timeout) counts a timeout and re-triggers.
+  Continuous mode (`continuous` != OFF): clear Meas_M_Done (the calibration left it set), write
+  Cmm_en + Cm_freq to Internal Control 2, poll Status at every update, read when Meas_M_Done is
+  set, then clear it by writing 1; no data within 4 periods + 1 ms counts a timeout and rewrites
+  Internal Control 2. To recalibrate, continuous mode is stopped for one measurement time first.
+  CALIBRATE runs again every `calibration_interval` samples (0: only after initialisation).
+- BACKOFF: after `max_consecutive_errors` failed transfers in a row, wait 100 ms (doubling up to
+  1 s on repeated back-offs, back to 100 ms after a good sample), then PROBE again.
+
+A failed transfer raises BusError in the bus; `update` catches it (and any other exception from
+the bus), counts it and retries the same step at the next call. Nothing raises out of `update`.
+
+Sample time: `sample_time_s` is the time TM_M was issued plus half the measurement time, the centre
+of the decimation window. In continuous mode the chip's schedule is not visible, so it is the
+middle of the interval in which Meas_M_Done was seen to rise, minus half the measurement time.
+
+The MEASURE path allocates no numpy arrays: `b_body_T` and `offset_T` are preallocated and
+overwritten in place (keep a copy if the previous sample is needed).
+"""
+
+from __future__ import annotations
+
+import math
+from enum import IntEnum
+
+import numpy as np
+
+from fsw.bus import BusError, RegisterBus
+from fsw.drivers.mmc5983ma_regs import (
+    OUTPUT_BYTES,
+    PRODUCT_ID,
+    SET_RESET_SETTLE_S,
+    Bandwidth,
+    ContinuousFrequency,
+    InternalControl0,
+    InternalControl1,
+    InternalControl2,
+    Register,
+    Status,
+    decode_field_T,
+)
+
+PROBE_INTERVAL_S = 0.005
+"""Spacing of product-id reads (ArduPilot: 10 tries, 5 ms apart)."""
+RESET_WAIT_S = 0.015
+"""Wait after SW_RST; power-on time is 10 ms [DS p13-16], drivers wait 15-20 ms."""
+BACKOFF_INITIAL_S = 0.1
+BACKOFF_MAX_S = 1.0
+TIMEOUT_MARGIN_S = 0.001
+"""Data-ready timeout = 4 t_meas + 1 ms (SparkFun v1.1.3)."""
+
+_TM_M = int(InternalControl0.TM_M)
+_SET = int(InternalControl0.SET)
+_RESET = int(InternalControl0.RESET)
+_MEAS_M_DONE = int(Status.MEAS_M_DONE)
+_CAL_PULSES = (_RESET, _SET, _RESET)  # then a final SET
+_MAX_STEPS = 8  # state-machine steps chained within one update()
+_EPS_S = 1e-6  # schedule slack, so that float rounding of the caller's clock cannot slip a tick
+
+
+class MagState(IntEnum):
+    """Driver state; the values are DEBRIS_MAG_STATE of the telemetry dialect."""
+
+    PROBE = 0
+    RESET = 1
+    CONFIGURE = 2
+    CALIBRATE = 3
+    MEASURE = 4
+    BACKOFF = 5
+
+
+class _Phase(IntEnum):
+    START = 0  # issue the state's first command
+    SETTLE = 1  # after a SET/RESET pulse, before TM_M
+    WAIT = 2  # TM_M issued, waiting for Meas_M_Done
+    IDLE = 3  # waiting for the next sample time (single) / polling (continuous)
+    CLEAR = 4  # continuous: data read, Meas_M_Done to be cleared
+    FINAL = 5  # calibration: final SET pulse
+
+
+class Mmc5983ma:
+    """MMC5983MA on a `RegisterBus`; call `update(now_s)` often (at least at the sample rate).
+
+    Outputs: `b_body_T` (latest field, tesla, sensor axes = body axes, SET polarity, offset
+    removed; NaN before the first sample), `sample_time_s`, `state`, `offset_T` and the counters
+    `samples`, `bus_errors`, `timeouts`, `bad_id`, `resets`, `calibrations`.
+    """
+
+    def __init__(
+        self,
+        bus: RegisterBus,
+        bandwidth: Bandwidth = Bandwidth.BW_100HZ,
+        sample_period_s: float = 0.01,
+        calibration_interval: int = 1000,
+        probe_retries: int = 10,
+        continuous: ContinuousFrequency = ContinuousFrequency.OFF,
+        max_consecutive_errors: int = 5,
+    ) -> None:
+        self.bandwidth = Bandwidth(bandwidth)
+        self.continuous = ContinuousFrequency(continuous)
+        t_meas = self.bandwidth.measurement_time_s
+        if self.continuous is ContinuousFrequency.OFF:
+            if not sample_period_s >= t_meas:
+                raise ValueError(
+                    f"sample period {sample_period_s} s shorter than the {t_meas} s measurement "
+                    f"time of {self.bandwidth.name}"
+                )
+            self.sample_period_s = float(sample_period_s)
+            period = self.sample_period_s
+        else:
+            if not self.continuous.fits(self.bandwidth):
+                raise ValueError(
+                    f"{self.continuous.name} needs a measurement time <= "
+                    f"{1.0 / self.continuous.rate_hz} s, {self.bandwidth.name} takes {t_meas} s"
+                )
+            period = 1.0 / self.continuous.rate_hz
+            self.sample_period_s = period
+        if probe_retries < 1 or max_consecutive_errors < 1 or calibration_interval < 0:
+            raise ValueError("probe_retries, max_consecutive_errors >= 1, calibration_interval >= 0")
+        self._bus = bus
+        self.calibration_interval = int(calibration_interval)
+        self.probe_retries = int(probe_retries)
+        self.max_consecutive_errors = int(max_consecutive_errors)
+        self._t_meas = t_meas
+        self._timeout_s = 4.0 * t_meas + TIMEOUT_MARGIN_S
+        self._cm_timeout_s = 4.0 * max(period, t_meas) + TIMEOUT_MARGIN_S
+
+        self.b_body_T = np.full(3, np.nan)
+        self.offset_T = np.zeros(3)
+        self.sample_time_s = math.nan
+        self.samples = 0
+        self.bus_errors = 0
+        self.timeouts = 0
+        self.bad_id = 0
+        self.resets = 0
+        self.calibrations = 0
+        self.last_error = ""
+
+        self._shadow = bytearray(4)  # Internal Control 0..3 as last written (ctrl0: lasting bits)
+        self._cal_T = np.zeros((3, 3))  # R1, S, R2
+        self._cal_trigger_s = [0.0, 0.0, 0.0]
+        self._cal_index = 0
+        self._samples_since_cal = 0
+        self._probe_attempts = 0
+        self._consecutive_errors = 0
+        self._backoff_s = BACKOFF_INITIAL_S
+        self._t_next = -math.inf  # when the current phase may act
+        self._t_grid = math.nan  # next sample time in single measurement mode
+        self._t_trigger = 0.0
+        self._t_poll = 0.0
+        self._t_data = 0.0
+        self._new_sample = False
+        self.state = MagState.PROBE
+        self._phase = _Phase.START
+
+    @property
+    def shadow(self) -> bytes:
+        """Shadow copies of Internal Control 0..3 (Internal Control 0 without self-clearing bits)."""
+        return bytes(self._shadow)
+
+    # --- public step ----------------------------------------------------------------------------
+
+    def update(self, now_s: float) -> bool:
+        """Advance the state machine to `now_s`; True when a new sample is in `b_body_T`."""
+        self._new_sample = False
+        try:
+            for _ in range(_MAX_STEPS):
+                if not self._step(now_s):
+                    break
+        except Exception as error:  # noqa: BLE001 - a driver must survive any bus failure
+            self.bus_errors += 1
+            self.last_error = f"{type(error).__name__}: {error}"
+            if not isinstance(error, BusError):
+                self.last_error = "unexpected " + self.last_error
+            if self.state is not MagState.PROBE:
+                self._consecutive_errors += 1
+                if self._consecutive_errors >= self.max_consecutive_errors:
+                    self._enter_backoff(now_s)
+        else:
+            self._consecutive_errors = 0
+        return self._new_sample
+
+    # --- state machine --------------------------------------------------------------------------
+
+    def _step(self, now: float) -> bool:
+        """One step of the current state; True if the next step may follow at once."""
+        state = self.state
+        if state is MagState.MEASURE:
+            if self.continuous is ContinuousFrequency.OFF:
+                return self._measure_single(now)
+            return self._measure_continuous(now)
+        if state is MagState.CALIBRATE:
+            return self._calibrate(now)
+        if state is MagState.PROBE:
+            return self._probe(now)
+        if state is MagState.RESET:
+            return self._reset(now)
+        if state is MagState.CONFIGURE:
+            return self._configure(now)
+        return self._backoff(now)
+
+    def _enter(self, state: MagState, t_next: float) -> None:
+        self.state = state
+        self._phase = _Phase.START
+        self._t_next = t_next
+
+    def _enter_backoff(self, now: float) -> None:
+        self._enter(MagState.BACKOFF, now + self._backoff_s)
+        self._backoff_s = min(2.0 * self._backoff_s, BACKOFF_MAX_S)
+        self._consecutive_errors = 0
+
+    def _probe(self, now: float) -> bool:
+        if now + _EPS_S < self._t_next:
+            return False
+        self._t_next = now + PROBE_INTERVAL_S
+        self._probe_attempts += 1
+        try:
+            raw = self._read(Register.PRODUCT_ID_1, 1)
+        except BusError as error:
+            self.bus_errors += 1
+            self.last_error = f"BusError: {error}"
+            raw = None
+        if raw is not None and raw[0] == PRODUCT_ID:
+            self._probe_attempts = 0
+            self._enter(MagState.RESET, now)
+            return True
+        if raw is not None:
+            self.bad_id += 1
+        if self._probe_attempts >= self.probe_retries:
+            self._probe_attempts = 0
+            self._enter_backoff(now)
+        return False
+
+    def _reset(self, now: float) -> bool:
+        if self._phase is _Phase.START:
+            self._bus.write_register(Register.INTERNAL_CONTROL_1, int(InternalControl1.SW_RST))
+            self.resets += 1
+            self._shadow[:] = b"\x00\x00\x00\x00"  # SW_RST returns every register to 0x00
+            self._phase = _Phase.WAIT
+            self._t_next = now + RESET_WAIT_S
+            return False
+        if now + _EPS_S < self._t_next:
+            return False
+        self._enter(MagState.CONFIGURE, now)
+        return True
+
+    def _configure(self, now: float) -> bool:
+        self._write_ctrl(1, int(self.bandwidth))
+        self._enter(MagState.CALIBRATE, now)
+        self._cal_index = 0
+        return True
+
+    def _calibrate(self, now: float) -> bool:
+        phase = self._phase
+        if phase is _Phase.START:
+            if now + _EPS_S < self._t_next:
+                return False
+            self._write_ctrl(0, self._shadow[0] | _CAL_PULSES[self._cal_index])
+            self._phase = _Phase.SETTLE
+            self._t_next = now + SET_RESET_SETTLE_S
+            return True
+        if phase is _Phase.SETTLE:
+            if now + _EPS_S < self._t_next:
+                return False
+            self._trigger(now)
+            return False
+        if phase is _Phase.WAIT:
+            if not self._data_ready(now):
+                return False
+            decode_field_T(self._read(Register.XOUT0, OUTPUT_BYTES), self._cal_T[self._cal_index])
+            self._cal_trigger_s[self._cal_index] = self._t_trigger
+            self._cal_index += 1
+            if self._cal_index < len(_CAL_PULSES):
+                self._phase = _Phase.START
+                self._t_next = now
+            else:
+                self._phase = _Phase.FINAL
+            return True
+        # FINAL: back to SET polarity, then solve [DS p18]
+        self._write_ctrl(0, self._shadow[0] | _SET)
+        r1, s, r2 = self._cal_T
+        np.add(r1, r2, out=self.offset_T)
+        self.offset_T *= 0.5  # R, centred on S
+        np.subtract(s, self.offset_T, out=self.b_body_T)
+        self.b_body_T *= 0.5  # H = (S - R) / 2
+        np.add(s, self.offset_T, out=self.offset_T)
+        self.offset_T *= 0.5  # offset = (S + R) / 2
+        self._deliver(self._cal_trigger_s[1] + 0.5 * self._t_meas)
+        self.calibrations += 1
+        self._samples_since_cal = 0
+        t_ready = now + SET_RESET_SETTLE_S
+        if math.isnan(self._t_grid):
+            self._t_grid = t_ready
+        elif self._t_grid < t_ready:
+            self._t_grid += math.ceil((t_ready - self._t_grid) / self.sample_period_s) * self.sample_period_s
+        self._enter(MagState.MEASURE, t_ready)
+        self._phase = _Phase.IDLE if self.continuous is ContinuousFrequency.OFF else _Phase.START
+        return True
+
+    def _measure_single(self, now: float) -> bool:
+        if self._phase is _Phase.WAIT:
+            if not self._data_ready(now):
+                return False
+            self._read_sample(self._t_trigger + 0.5 * self._t_meas)
+            self._phase = _Phase.IDLE
+            if self._calibration_due():
+                self._enter(MagState.CALIBRATE, now)
+                self._cal_index = 0
+            return True
+        if now + _EPS_S < self._t_grid:
+            return False
+        self._trigger(now)
+        period = self.sample_period_s
+        self._t_grid += (math.floor((now + _EPS_S - self._t_grid) / period) + 1) * period
+        return False
+
+    def _measure_continuous(self, now: float) -> bool:
+        phase = self._phase
+        if phase is _Phase.START:
+            if now + _EPS_S < self._t_next:
+                return False
+            self._bus.write_register(Register.STATUS, _MEAS_M_DONE)  # left set by the calibration
+            self._write_ctrl(2, int(InternalControl2.CMM_EN) | int(self.continuous))
+            self._t_poll = self._t_data = now
+            self._phase = _Phase.IDLE
+            return False
+        if phase is _Phase.CLEAR:
+            self._bus.write_register(Register.STATUS, _MEAS_M_DONE)
+            self._phase = _Phase.IDLE
+            if self._calibration_due():
+                self._write_ctrl(2, 0)  # stop, let a running measurement end, then calibrate
+                self._enter(MagState.CALIBRATE, now + self._t_meas)
+                self._cal_index = 0
+            return False
+        status = self._read(Register.STATUS, 1)[0]
+        t_previous_poll, self._t_poll = self._t_poll, now
+        if status & _MEAS_M_DONE:
+            self._read_sample(0.5 * (t_previous_poll + now) - 0.5 * self._t_meas)
+            self._t_data = now
+            self._phase = _Phase.CLEAR
+            return True
+        if now - self._t_data > self._cm_timeout_s:
+            self.timeouts += 1
+            self._phase = _Phase.START
+            self._t_next = now
+            return True
+        return False
+
+    def _backoff(self, now: float) -> bool:
+        if now + _EPS_S < self._t_next:
+            return False
+        self._probe_attempts = 0
+        self._enter(MagState.PROBE, now)
+        return True
+
+    # --- helpers --------------------------------------------------------------------------------
+
+    def _read(self, address: int, count: int) -> bytes:
+        raw = self._bus.read_registers(address, count)
+        if len(raw) != count:
+            raise BusError(f"short read: {len(raw)} of {count} bytes at {address:#04x}")
+        return raw
+
+    def _write_ctrl(self, index: int, value: int) -> None:
+        """Write Internal Control `index` as a whole byte and keep its shadow."""
+        self._bus.write_register(Register.INTERNAL_CONTROL_0 + index, value)
+        if index == 0:
+            value &= int(InternalControl0.INT_MEAS_DONE_EN | InternalControl0.AUTO_SR_EN)
+        self._shadow[index] = value
+
+    def _trigger(self, now: float) -> None:
+        self._write_ctrl(0, self._shadow[0] | _TM_M)
+        self._t_trigger = now
+        self._phase = _Phase.WAIT
+
+    def _data_ready(self, now: float) -> bool:
+        """Poll Meas_M_Done once the measurement can be done; on timeout count it and re-trigger."""
+        if now < self._t_trigger + self._t_meas:
+            return False
+        if self._read(Register.STATUS, 1)[0] & _MEAS_M_DONE:
+            return True
+        if now >= self._t_trigger + self._timeout_s:
+            self._trigger(now)
+            self.timeouts += 1
+        return False
+
+    def _read_sample(self, sample_time_s: float) -> None:
+        decode_field_T(self._read(Register.XOUT0, OUTPUT_BYTES), self.b_body_T)
+        self.b_body_T -= self.offset_T
+        self._deliver(sample_time_s)
+
+    def _deliver(self, sample_time_s: float) -> None:
+        self.sample_time_s = sample_time_s
+        self.samples += 1
+        self._samples_since_cal += 1
+        self._new_sample = True
+        self._backoff_s = BACKOFF_INITIAL_S
+
+    def _calibration_due(self) -> bool:
+        return 0 < self.calibration_interval <= self._samples_since_cal
