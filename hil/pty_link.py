@@ -155,3 +155,78 @@ class PtyBridge:
             frame[i] ^= 1 << int(self._rng.integers(8))
             return bytes(frame)
         return response
+
+
+class RealTimeDevice:
+    """The simulator's chip in wall-clock time: before each transfer the simulation is advanced to
+    the time elapsed since `start`, so a driver on the other side of the pty sees a live sensor."""
+
+    def __init__(self, sim, clock=None) -> None:
+        import time
+
+        self.sim = sim
+        self._clock = clock or time.monotonic
+        self._t0 = self._clock()
+
+    def _sync(self) -> None:
+        self.sim.advance_to(max(self.sim.t_s, self._clock() - self._t0))
+
+    def read_registers(self, address: int, count: int) -> bytes:
+        self._sync()
+        return self.sim.sensor.read_registers(address, count)
+
+    def write_register(self, address: int, value: int) -> None:
+        self._sync()
+        self.sim.sensor.write_register(address, value)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m hil.pty_link`: the simulated debris and its MMC5983MA behind a pty, in real time.
+
+    Prints the pty path; run the flight software against it with
+    `python -m fsw.main --mag-serial PATH`.
+    """
+    import argparse
+    import signal
+    import sys
+    import time
+
+    from .scenario import ScenarioError, load
+    from .sim import Simulator
+
+    ap = argparse.ArgumentParser(prog="python -m hil.pty_link", description=main.__doc__.splitlines()[0])
+    ap.add_argument("--scenario", default="isoi", metavar="NAME|FILE", help="scenario (default isoi)")
+    ap.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    ap.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    ap.add_argument("--corrupt-rate", type=float, default=0.0, help="probability a response is corrupted")
+    ap.add_argument("--drop-rate", type=float, default=0.0, help="probability a response is dropped")
+    ap.add_argument("--quiet", action="store_true", help="print only the pty path")
+    args = ap.parse_args(argv)
+    try:
+        scn = load(args.scenario)
+    except ScenarioError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    sim = Simulator(scn, seed=args.seed, max_step_s=0.005)
+    bridge = PtyBridge(RealTimeDevice(sim), rng=np.random.default_rng(args.seed))
+    bridge.corrupt_rate, bridge.drop_rate = args.corrupt_rate, args.drop_rate
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *a: stop.set())
+    signal.signal(signal.SIGTERM, lambda *a: stop.set())
+    with bridge:
+        print(bridge.port_name, flush=True)
+        t0 = time.monotonic()
+        while not stop.wait(1.0):
+            if not args.quiet:
+                w = np.degrees(sim.body.omega_radps)
+                print(f"t={sim.t_s:7.1f} s  true w=[{w[0]:7.2f} {w[1]:7.2f} {w[2]:7.2f}] dps  "
+                      f"requests={bridge.requests}", flush=True)
+            if args.duration is not None and time.monotonic() - t0 >= args.duration:
+                break
+    return 0
+
+
+if __name__ == "__main__":
+    import sys
+
+    sys.exit(main())

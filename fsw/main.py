@@ -1,0 +1,227 @@
+"""Run the flight software: `python -m fsw.main --sitl` (against the simulator) or on target.
+
+SITL runs in lockstep in one process: before each loop tick the simulator is advanced to the loop time,
+and the MMC5983MA driver talks to the register-level emulator through the same bus interface it uses on
+hardware. `--speed 1` paces the loop to real time; `--speed 0` runs as fast as possible.
+
+On target (`--mag-serial PORT`) the driver talks to the chip through a serial register bridge (the
+emulator can stand behind a pty: `python -m hil.pty_link`), on the monotonic clock.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import signal
+import sys
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .drivers.mmc5983ma import Mmc5983ma
+from .drivers.mmc5983ma_regs import Bandwidth
+from .flight import FlightSoftware
+from .telemetry.dialect import FSW_COMPID, FSW_SYSID, open_link
+from .telemetry.telemetry import Telemetry
+
+DEFAULT_LINK = "udpout:127.0.0.1:14550"
+RADIO_BYTES_PER_S = 57600 / 10  # 8N1
+#: RMS noise of the chip itself per bandwidth (MMC5983MA datasheet: 0.4/0.6/0.8/1.2 mG)
+CHIP_NOISE_T = {100: 0.04e-6, 200: 0.06e-6, 400: 0.08e-6, 800: 0.12e-6}
+BANDWIDTH = {100: Bandwidth.BW_100HZ, 200: Bandwidth.BW_200HZ, 400: Bandwidth.BW_400HZ,
+             800: Bandwidth.BW_800HZ}
+
+
+def _deg(v) -> np.ndarray:
+    return np.degrees(np.asarray(v, dtype=float))
+
+
+def _perp(w: np.ndarray, b: np.ndarray) -> np.ndarray:
+    bh = b / np.linalg.norm(b)
+    return w - np.dot(w, bh) * bh
+
+
+@dataclass
+class Score:
+    """Errors of the onboard estimates against the simulator's truth, at the sample times."""
+
+    boer_err: list = field(default_factory=list)
+    deriv_err: list = field(default_factory=list)
+    work_s: list = field(default_factory=list)
+
+    @staticmethod
+    def _rms_max(errs) -> tuple[float, float, int]:
+        if not errs:
+            return math.nan, math.nan, 0
+        a = np.asarray(errs)
+        return float(np.sqrt(np.mean(a**2))), float(a.max()), len(a)
+
+
+def build_sitl(args):
+    from hil import scenario as scenarios
+    from hil.sim import Simulator
+
+    scn = scenarios.load(args.scenario)
+    sim = Simulator(scn, seed=args.seed, max_step_s=min(0.02, 1.0 / args.rate))
+    driver = Mmc5983ma(sim.sensor, bandwidth=BANDWIDTH[scn.bandwidth_hz],
+                       sample_period_s=1.0 / scn.sample_rate_hz)
+    sigma_b = math.hypot(scn.noise_T, CHIP_NOISE_T[scn.bandwidth_hz])
+    return scn, sim, driver, sigma_b
+
+
+def parse_args(argv=None):
+    ap = argparse.ArgumentParser(prog="python -m fsw.main", description=__doc__.splitlines()[0])
+    mode = ap.add_mutually_exclusive_group(required=True)
+    mode.add_argument("--sitl", action="store_true", help="run against the in-process simulator (lockstep)")
+    mode.add_argument("--mag-serial", metavar="PORT",
+                      help="on target: MMC5983MA behind a serial register bridge (e.g. the pty of python -m hil.pty_link)")
+    ap.add_argument("--scenario", default="isoi", metavar="NAME|FILE",
+                    help="SITL scenario: a shipped name (isoi, aist2d, amds) or a TOML file (default: isoi)")
+    ap.add_argument("--duration", type=float, default=None, metavar="S",
+                    help="stop after S seconds of loop time (default: run until Ctrl-C)")
+    ap.add_argument("--speed", type=float, default=1.0, metavar="X",
+                    help="SITL pacing: 1 = real time (default), 10 = ten times faster, 0 = as fast as possible")
+    ap.add_argument("--rate", type=float, default=50.0, metavar="HZ", help="loop rate (default 50 Hz)")
+    ap.add_argument("--link", default=DEFAULT_LINK, metavar="URL",
+                    help=f"telemetry link, any pymavlink connection string (default {DEFAULT_LINK})")
+    ap.add_argument("--baud", type=int, default=57600, help="baud rate when --link is a serial port")
+    ap.add_argument("--seed", type=int, default=0, help="random seed of the simulator (default 0)")
+    ap.add_argument("--sample-rate", type=float, default=None, metavar="HZ",
+                    help="on target: magnetometer sample rate (default 1 Hz); SITL takes it from the scenario")
+    ap.add_argument("--sigma-uT", type=float, default=1.5,
+                    help="on target: 1-sigma field error per axis used by the estimators (default 1.5 uT)")
+    ap.add_argument("--max-sample-tlm-hz", type=float, default=20.0,
+                    help="at most this many magnetometer samples per second go out on the link (default 20)")
+    ap.add_argument("--quiet", action="store_true", help="no status line each second, only the summary")
+    args = ap.parse_args(argv)
+    if not 0 < args.rate <= 1000:
+        ap.error("--rate must be in (0, 1000] Hz")
+    if args.speed < 0:
+        ap.error("--speed must be >= 0")
+    if args.duration is not None and args.duration <= 0:
+        ap.error("--duration must be > 0")
+    if args.sigma_uT <= 0:
+        ap.error("--sigma-uT must be > 0")
+    return args
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    out = sys.stdout
+    truth = None
+    if args.sitl:
+        try:
+            scn, sim, source, sigma_b = build_sitl(args)
+        except ValueError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        truth = sim.truth
+        sample_rate = scn.sample_rate_hz
+        header = (f"SITL scenario {scn.name}: {scn.description}\n"
+                  f"loop {args.rate:g} Hz, sensor {sample_rate:g} Hz, speed "
+                  f"{'max' if args.speed == 0 else f'{args.speed:g}x'}, seed {args.seed}, link {args.link}")
+    else:
+        from .drivers.serial_bus import SerialBus
+        sim = None
+        sample_rate = args.sample_rate or 1.0
+        source = Mmc5983ma(SerialBus(args.mag_serial), sample_period_s=1.0 / sample_rate)
+        sigma_b = args.sigma_uT * 1e-6
+        header = f"target: MMC5983MA on {args.mag_serial}, loop {args.rate:g} Hz, link {args.link}"
+
+    link = open_link(args.link, source_system=FSW_SYSID, source_component=FSW_COMPID, baud=args.baud)
+    tlm = Telemetry(link)
+    fsw = FlightSoftware(source, tlm, rate_hz=args.rate, sigma_b_T=sigma_b, truth=truth,
+                         max_sample_tlm_hz=args.max_sample_tlm_hz, sample_rate_hz=sample_rate)
+    print(header, file=out, flush=True)
+
+    stop = False
+
+    def on_signal(signum, frame):
+        nonlocal stop
+        stop = True
+
+    old = signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    score = Score()
+    period = 1.0 / args.rate
+    wall0 = time.monotonic()
+    k = 0
+    next_status = 1.0
+    t = 0.0
+    try:
+        while not stop:
+            t = k * period
+            if args.duration is not None and t > args.duration + 1e-9:
+                break
+            if sim is not None:
+                sim.advance_to(t)
+                score.work_s.append(fsw.tick(t))
+            else:
+                t = time.monotonic() - wall0
+                score.work_s.append(fsw.tick(t))
+            if fsw.new_sample and truth is not None:
+                tr = truth(fsw.sample_t_s)
+                if fsw.new_estimate["boer"]:
+                    w = fsw.estimators["boer"].omega_radps
+                    score.boer_err.append(np.linalg.norm(w - _perp(tr.omega_radps, tr.b_body_T)))
+                if fsw.new_estimate["derivative"]:
+                    w = fsw.estimators["derivative"].omega_radps
+                    score.deriv_err.append(np.linalg.norm(w - tr.omega_radps))
+            if t >= next_status - 1e-9:
+                next_status += 1.0
+                if not args.quiet:
+                    print(status_line(t, fsw, truth), file=out, flush=True)
+            k += 1
+            if args.speed > 0 or sim is None:
+                wait = wall0 + (k * period) / (args.speed or 1.0) - time.monotonic()
+                if wait > 0:
+                    time.sleep(wait)
+    finally:
+        signal.signal(signal.SIGINT, old)
+    print(summary(args, fsw, tlm, score, t, time.monotonic() - wall0), file=out, flush=True)
+    return 0
+
+
+def status_line(t_s: float, fsw: FlightSoftware, truth) -> str:
+    b = fsw.sample_b_T
+    d = fsw.estimators["derivative"]
+    bo = fsw.estimators["boer"]
+    line = f"t={t_s:7.1f} s  |B|={np.linalg.norm(b) * 1e6:6.2f} uT"
+    if d.flags & d.NO_ESTIMATE:
+        return line + "  (waiting for samples)"
+    w = _deg(d.omega_radps)
+    line += f"  w_est=[{w[0]:7.2f} {w[1]:7.2f} {w[2]:7.2f}] dps"
+    if truth is not None:
+        tr = truth(fsw.sample_t_s)
+        wt = _deg(tr.omega_radps)
+        line += (f"  w_true=[{wt[0]:7.2f} {wt[1]:7.2f} {wt[2]:7.2f}] dps"
+                 f"  err={np.linalg.norm(w - wt):6.2f} dps"
+                 f"  boer_perp_err={np.degrees(np.linalg.norm(bo.omega_radps - _perp(tr.omega_radps, tr.b_body_T))):5.2f} dps")
+    return line
+
+
+def summary(args, fsw: FlightSoftware, tlm: Telemetry, score: Score, t_s: float, wall_s: float) -> str:
+    src = fsw.source
+    st = fsw.scheduler.stats
+    work = np.asarray(score.work_s) * 1e6 if score.work_s else np.zeros(1)
+    lines = [f"--- summary: {t_s:.1f} s of loop time in {wall_s:.1f} s wall "
+             f"({t_s / max(wall_s, 1e-9):.1f}x real time)",
+             f"magnetometer: {fsw.samples} samples, {getattr(src, 'bus_errors', 0)} bus errors, "
+             f"{getattr(src, 'timeouts', 0)} timeouts"]
+    if score.boer_err or score.deriv_err:
+        lines.append("rate error vs truth (deg/s)         RMS      max     n")
+        for name, errs in (("Boer (perpendicular part)", score.boer_err),
+                           ("derivative (full vector)", score.deriv_err)):
+            rms, mx, n = Score._rms_max(errs)
+            lines.append(f"  {name:<30s} {np.degrees(rms):7.3f}  {np.degrees(mx):7.3f}  {n:4d}")
+    lines.append(f"loop: {st.ticks} ticks at {fsw.scheduler.rate_hz:g} Hz; step time mean {work.mean():.0f} us, "
+                 f"p50 {np.percentile(work, 50):.0f} us, p99 {np.percentile(work, 99):.0f} us, "
+                 f"max {work.max():.0f} us; overruns {st.overruns}, task overruns {st.task_overruns}")
+    rate = tlm.bytes_sent / max(t_s, 1e-9)
+    lines.append(f"link: {tlm.frames_sent} frames, {tlm.bytes_sent} bytes ({rate:.0f} B/s = "
+                 f"{100 * rate / RADIO_BYTES_PER_S:.1f} % of a 57600-baud radio), send errors {tlm.send_errors}")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
