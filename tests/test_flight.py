@@ -1,0 +1,116 @@
+"""The flight software's task table with a stubbed field source and a captured link."""
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from fsw.estimation import rate_formulas as rf
+from fsw.flight import FlightSoftware
+from fsw.telemetry.dialect import FSW_COMPID, FSW_SYSID, mavlink
+from fsw.telemetry.telemetry import Telemetry
+
+W_RADPS = np.radians([6.0, -5.0, 6.5])
+B_I_T = np.array([20e-6, -15e-6, 35e-6])
+
+
+class StubSource:
+    """Delivers the field of a body spinning at constant ω, one sample every `period_s`."""
+
+    def __init__(self, period_s):
+        self.period_s = period_s
+        self.next_s = 0.0
+        self.b_body_T = np.zeros(3)
+        self.sample_time_s = float("nan")
+
+    def update(self, now_s):
+        if now_s + 1e-9 < self.next_s:
+            return False
+        self.sample_time_s = self.next_s
+        self.b_body_T[:] = Rotation.from_rotvec(-W_RADPS * self.next_s).apply(B_I_T)
+        self.next_s += self.period_s
+        return True
+
+
+class Capture:
+    """A link that keeps what is written, as pymavlink's mavfile would send it."""
+
+    def __init__(self):
+        self.buf = bytearray()
+        self.mav = mavlink.MAVLink(self, srcSystem=FSW_SYSID, srcComponent=FSW_COMPID)
+
+    def write(self, b):
+        self.buf += b
+
+    def messages(self):
+        parser = mavlink.MAVLink(None)
+        return parser.parse_buffer(bytes(self.buf)) or []
+
+
+def run(seconds, rate_hz=50.0, sample_period_s=0.1, **kw):
+    link = Capture()
+    fsw = FlightSoftware(StubSource(sample_period_s), Telemetry(link), rate_hz=rate_hz, sigma_b_T=0.05e-6,
+                         sample_rate_hz=1 / sample_period_s, **kw)
+    for k in range(int(round(seconds * rate_hz))):
+        fsw.tick(k / rate_hz)
+    return fsw, link.messages()
+
+
+def by_type(msgs, name):
+    return [m for m in msgs if m.get_type() == name]
+
+
+def test_message_rates_and_contents():
+    fsw, msgs = run(5.0)
+    assert len(by_type(msgs, "HEARTBEAT")) == 5
+    hb = by_type(msgs, "HEARTBEAT")[0]
+    assert hb.type == mavlink.MAV_TYPE_ONBOARD_CONTROLLER and hb.autopilot == mavlink.MAV_AUTOPILOT_INVALID
+    assert len(by_type(msgs, "SYS_STATUS")) == 5
+    assert len(by_type(msgs, "DEBRIS_LOOP_STATUS")) == 5
+    imu = by_type(msgs, "HIGHRES_IMU")
+    assert len(imu) == 50
+    assert imu[0].fields_updated == 0x1C0
+    np.testing.assert_allclose([imu[3].xmag, imu[3].ymag, imu[3].zmag],
+                               Rotation.from_rotvec(-W_RADPS * 0.3).apply(B_I_T) * 1e4, rtol=1e-6)
+    assert imu[3].time_usec == 300_000
+    assert all(m.get_header().srcSystem == FSW_SYSID for m in msgs)
+    est = by_type(msgs, "DEBRIS_RATE_ESTIMATE")
+    boer = [m for m in est if m.method == mavlink.DEBRIS_RATE_METHOD_BOER]
+    deriv = [m for m in est if m.method == mavlink.DEBRIS_RATE_METHOD_DERIVATIVE]
+    assert len(boer) == 49 and len(deriv) == 48
+    # the derivative formula on a constant-rate body: sin(θ)/Δt ω̂ (tests/test_rate_formulas.py)
+    wn = np.linalg.norm(W_RADPS)
+    expected = np.sin(wn * 0.1) / 0.1 * W_RADPS / wn
+    np.testing.assert_allclose([deriv[-1].wx, deriv[-1].wy, deriv[-1].wz], expected, rtol=1e-5)
+    assert boer[-1].flags == mavlink.DEBRIS_ESTIMATE_FLAGS_PERPENDICULAR_ONLY
+    assert all(np.isfinite([m.sx, m.sy, m.sz]).all() and m.sx > 0 for m in est)
+
+
+def test_sample_telemetry_is_decimated_to_the_link_budget():
+    fsw, msgs = run(2.0, rate_hz=100.0, sample_period_s=0.01, max_sample_tlm_hz=20.0)
+    assert fsw.samples == 200
+    imu = by_type(msgs, "HIGHRES_IMU")
+    assert len(imu) == 40
+    assert np.diff([m.time_usec for m in imu]) == pytest.approx(50_000)
+
+
+def test_link_errors_are_counted_not_raised():
+    class Broken(Capture):
+        def write(self, b):
+            raise OSError("port gone")
+
+    link = Broken()
+    fsw = FlightSoftware(StubSource(0.1), Telemetry(link), rate_hz=50, sigma_b_T=1e-7)
+    for k in range(100):
+        fsw.tick(k / 50)
+    assert fsw.tlm.send_errors > 0 and fsw.tlm.frames_sent == 0
+    assert fsw.samples == 20
+    assert fsw.scheduler.stats.ticks == 100
+
+
+def test_estimator_matches_pure_function_on_the_same_samples():
+    fsw, msgs = run(3.0)
+    imu = by_type(msgs, "HIGHRES_IMU")
+    t = np.array([m.time_usec for m in imu]) * 1e-6
+    b = np.array([[m.xmag, m.ymag, m.zmag] for m in imu]) * 1e-4
+    boer = [m for m in by_type(msgs, "DEBRIS_RATE_ESTIMATE") if m.method == mavlink.DEBRIS_RATE_METHOD_BOER]
+    np.testing.assert_allclose([[m.wx, m.wy, m.wz] for m in boer], rf.boer_rate(t, b)[1:], rtol=1e-4,
+                               atol=1e-6)
