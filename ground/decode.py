@@ -1,0 +1,357 @@
+"""Decode the box's MAVLink telemetry: live status, loss accounting, tlog and recording-format CSVs.
+
+    python -m ground.decode URL [--baud B] [--tlog FILE] [--csv FILE] [--rates-csv FILE]
+                                [--method boer|derivative|...] [--duration S] [--count N] [--quiet]
+
+URL is any pymavlink connection string: ``udpin:0.0.0.0:14550``, ``tcp:host:port``, a serial device
+(with ``--baud``) or a ``.tlog`` file (read to its end, on its recorded timeline).
+
+Parsing is pymavlink's robust parser bound to the project dialect: bytes that do not frame, frames
+with a bad CRC and frames of unknown message ids are rejected and counted (`ground.link_stats`), never
+fatal. About once a second a line shows the last magnetometer sample's time and |B|, the onboard rate
+estimate of the selected method, the simulator's true rate when DEBRIS_SIM_STATE arrives (SITL), and
+the loss so far. At the end a summary: frames by type, loss per source, rejected data.
+
+Outputs
+- ``--tlog``: every intact frame as received (pymavlink tlog: 8-byte big-endian µs time stamp, then
+  the raw frame), streamed while running so that a crash keeps what came before it.
+- ``--csv``: the magnetometer samples (HIGHRES_IMU with the mag bits in fields_updated, gauss → µT) in
+  recording format v1, time = the flight software's sample time; with DEBRIS_SIM_STATE present (SITL)
+  the reference rate w*_dps and the applied moment m*_Nm of the same sample (matched on time_usec;
+  NaN for a sample whose truth frame was lost).
+- ``--rates-csv``: the onboard estimates of the selected method, one row per magnetometer sample, NaN
+  where none arrived or the estimate is flagged DEBRIS_ESTIMATE_FLAGS_NO_ESTIMATE.
+The CSVs are written atomically when decoding stops: duration or count reached, end of a tlog, or
+Ctrl-C. Frames with non-finite values (or a negative σ) are counted and left out, never
+written. Samples are taken from one source, the first that sends magnetometer samples. When the
+flight software restarts (sample time jumps back), a new segment begins; the CSVs hold the last one.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import struct
+import sys
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from fsw.telemetry import dialect
+from fsw.telemetry.dialect import mavlink
+from pymavlink import mavutil  # after dialect: it selects MAVLink 2
+
+from .link_stats import MAG_FIELDS, LinkStats
+from .recording import RateEstimates, Recording, write_rate_estimates, write_recording
+
+#: DEBRIS_RATE_METHOD values by their short lower-case name (boer, derivative, ...).
+METHODS: dict[str, int] = {
+    entry.name.removeprefix("DEBRIS_RATE_METHOD_").lower(): value
+    for value, entry in mavlink.enums["DEBRIS_RATE_METHOD"].items()
+    if not entry.name.endswith("_ENUM_END")}
+METHOD_NAMES = {value: name for name, value in METHODS.items()}
+
+T_PER_GAUSS = 1e-4
+#: Sample time going back by more than this means the flight software restarted.
+RESTART_BACKSTEP_S = 1.0
+#: Messages whose time_usec is the magnetometer sample time.
+SAMPLE_MESSAGES = frozenset({"HIGHRES_IMU", "DEBRIS_RATE_ESTIMATE", "DEBRIS_SIM_STATE"})
+
+
+def f32(*values: float) -> tuple[float, ...]:
+    """MAVLink float fields as the shortest decimals that round to the same float32: 0.1 sent as
+    float32 reads 0.1, not 0.10000000149011612 (both are within the float32 rounding the sender
+    applied; this one is what the sender most likely meant)."""
+    return tuple(float(str(np.float32(v))) for v in values)
+
+
+@dataclass
+class _Segment:
+    """Samples of one run of the flight software, keyed by sample time (µs)."""
+
+    mag_gauss: dict[int, tuple[float, float, float]] = field(default_factory=dict)
+    estimate: dict[int, tuple[tuple[float, ...], tuple[float, ...], int]] = field(default_factory=dict)
+    truth: dict[int, tuple[tuple[float, ...], tuple[float, ...]]] = field(default_factory=dict)
+    latest_us: int = -1
+
+
+class Decoder:
+    """Stateful decoding of a telemetry stream; feed it every message pymavlink returns."""
+
+    def __init__(self, method: int = mavlink.DEBRIS_RATE_METHOD_BOER,
+                 source: tuple[int, int] | None = None,
+                 on_line: Callable[[str], None] | None = None, origin: str = "",
+                 line_period_s: float = 1.0) -> None:
+        """`method`: the DEBRIS_RATE_METHOD exported and shown; `source`: (sysid, compid) to record
+        from, None = the first to send samples; `on_line`: receives the live line about every
+        `line_period_s` of `now_s`; `origin`: the link, for the CSVs' ``# source:``."""
+        if method not in METHOD_NAMES:
+            raise ValueError(f"unknown DEBRIS_RATE_METHOD {method}")
+        self.method = method
+        self.source = source
+        self.on_line = on_line
+        self.origin = origin
+        self.line_period_s = line_period_s
+        self.stats = LinkStats()
+        self.frames_by_type: Counter[str] = Counter()
+        #: Intact frames whose values cannot be a sample (NaN/inf field, negative σ), by type.
+        self.invalid: Counter[str] = Counter()
+        self.segments: list[_Segment] = [_Segment()]
+        self._next_line_s: float | None = None
+        self._last_est: tuple[float, ...] | None = None
+        self._last_truth: tuple[float, ...] | None = None
+        self.interrupted = False
+
+    # --- input -------------------------------------------------------------------------------
+
+    def handle(self, msg, now_s: float) -> None:
+        """Account and decode one message (any type, including BAD_DATA / UNKNOWN_*)."""
+        kind = msg.get_type()
+        self.frames_by_type[kind] += 1
+        self.stats.on_frame(msg, now_s)
+        if msg.get_msgId() >= 0 and self.stats.last_verdict != "duplicate" and kind in SAMPLE_MESSAGES:
+            self._sample_message(kind, msg)
+        self.tick(now_s)
+
+    def _sample_message(self, kind: str, msg) -> None:
+        src = (msg.get_srcSystem(), msg.get_srcComponent())
+        if kind == "HIGHRES_IMU" and msg.fields_updated & MAG_FIELDS != MAG_FIELDS:
+            return
+        if self.source is None:
+            self.source = src
+        if src != self.source:
+            return
+        t_us = int(msg.time_usec)
+        seg = self.segments[-1]
+        if t_us < seg.latest_us - RESTART_BACKSTEP_S * 1e6:
+            self._say(f"sample time went back from {seg.latest_us * 1e-6:.3f} s to {t_us * 1e-6:.3f} s: "
+                      "flight software restarted, new recording segment")
+            seg = _Segment()
+            self.segments.append(seg)
+        seg.latest_us = max(seg.latest_us, t_us)
+        if kind == "HIGHRES_IMU":
+            b = f32(msg.xmag, msg.ymag, msg.zmag)
+            if not all(map(math.isfinite, b)):
+                self.invalid[kind] += 1
+                return
+            seg.mag_gauss[t_us] = b
+        elif kind == "DEBRIS_RATE_ESTIMATE":
+            if msg.method == self.method:
+                w, sigma = f32(msg.wx, msg.wy, msg.wz), f32(msg.sx, msg.sy, msg.sz)
+                if not all(map(math.isfinite, w + sigma)) or min(sigma) < 0:
+                    self.invalid[kind] += 1
+                    return
+                seg.estimate[t_us] = (w, sigma, msg.flags)
+                if not msg.flags & mavlink.DEBRIS_ESTIMATE_FLAGS_NO_ESTIMATE:
+                    self._last_est = w
+        else:
+            w, m = f32(msg.wx, msg.wy, msg.wz), f32(msg.mx, msg.my, msg.mz)
+            if not all(map(math.isfinite, w + m)):
+                self.invalid[kind] += 1
+                return
+            seg.truth[t_us] = (w, m)
+            self._last_truth = w
+
+    def tick(self, now_s: float) -> None:
+        """Emit the live line when one is due (call also when nothing arrives)."""
+        if self._next_line_s is None:
+            self._next_line_s = now_s + self.line_period_s
+        elif now_s >= self._next_line_s:
+            self._next_line_s = max(self._next_line_s + self.line_period_s, now_s)
+            self._say(self.status_line())
+
+    def _say(self, line: str) -> None:
+        if self.on_line is not None:
+            self.on_line(line)
+
+    # --- views -------------------------------------------------------------------------------
+
+    def _recorded(self) -> _Segment:
+        """The last segment that holds magnetometer samples (or the current one)."""
+        return next((s for s in reversed(self.segments) if s.mag_gauss), self.segments[-1])
+
+    def status_line(self) -> str:
+        seg = self._recorded()
+        parts = []
+        if seg.mag_gauss:
+            t_us = max(seg.mag_gauss)
+            b_uT = math.sqrt(sum(x * x for x in seg.mag_gauss[t_us])) * T_PER_GAUSS * 1e6
+            parts.append(f"t {t_us * 1e-6:9.3f} s  |B| {b_uT:6.2f} µT")
+        else:
+            parts.append("no magnetometer samples yet")
+        name = METHOD_NAMES[self.method]
+        if self._last_est is not None:
+            w = np.rad2deg(self._last_est)
+            parts.append(f"ω[{name}] ({w[0]:+7.2f} {w[1]:+7.2f} {w[2]:+7.2f}) |{np.linalg.norm(w):6.2f}| °/s")
+        else:
+            parts.append(f"ω[{name}] —")
+        if self._last_truth is not None:
+            parts.append(f"true |ω| {np.linalg.norm(np.rad2deg(self._last_truth)):6.2f} °/s")
+        received, lost = self.stats.received(), self.stats.lost()
+        pct = 100.0 * lost / (received + lost) if received + lost else 0.0
+        parts.append(f"frames {received} lost {lost} ({pct:.1f} %)")
+        return "  ".join(parts)
+
+    def _metadata(self) -> dict[str, str]:
+        where = f" from {self.origin}" if self.origin else ""
+        who = f", system {self.source[0]} component {self.source[1]}" if self.source else ""
+        meta = {"source": f"MAVLink telemetry{where}{who}, decoded by ground.decode",
+                "time": "flight software sample time (HIGHRES_IMU time_usec) since it started"}
+        if len(self.segments) > 1:
+            meta["segment"] = (f"last of {len(self.segments)} runs of the flight software "
+                               "(restarts seen in the stream)")
+        return meta
+
+    def recording(self) -> Recording:
+        """The magnetometer samples as a Recording (SI), with simulation truth where it arrived."""
+        seg = self._recorded()
+        times = sorted(seg.mag_gauss)
+        t_s = np.array(times, dtype=float) / 1e6
+        b_T = np.array([seg.mag_gauss[t] for t in times], dtype=float).reshape(-1, 3) * T_PER_GAUSS
+        meta = self._metadata()
+        if not seg.truth:
+            return Recording(t_s=t_s, b_T=b_T, metadata=meta)
+        nan3 = ((math.nan,) * 3, (math.nan,) * 3)
+        truth = [seg.truth.get(t, nan3) for t in times]
+        w = np.array([x[0] for x in truth], dtype=float).reshape(-1, 3)
+        m = np.array([x[1] for x in truth], dtype=float).reshape(-1, 3)
+        meta["reference"] = "DEBRIS_SIM_STATE: simulation truth, for scoring only"
+        return Recording(t_s=t_s, b_T=b_T, m_Nm=m, w_ref_radps=w, metadata=meta)
+
+    def rate_estimates(self) -> RateEstimates:
+        """Onboard estimates of the selected method, one row per magnetometer sample (NaN where
+        none arrived or the estimate is flagged NO_ESTIMATE)."""
+        seg = self._recorded()
+        times = sorted(seg.mag_gauss)
+        w = np.full((len(times), 3), np.nan)
+        s = np.full((len(times), 3), np.nan)
+        for i, t in enumerate(times):
+            est = seg.estimate.get(t)
+            if est is not None and not est[2] & mavlink.DEBRIS_ESTIMATE_FLAGS_NO_ESTIMATE:
+                w[i], s[i] = est[0], est[1]
+        meta = self._metadata()
+        meta["method"] = f"{METHOD_NAMES[self.method]} (onboard, DEBRIS_RATE_ESTIMATE)"
+        return RateEstimates(t_s=np.array(times, dtype=float) / 1e6, w_radps=w, sigma_radps=s,
+                             metadata=meta)
+
+    def summary_text(self) -> str:
+        """Frames by type, loss per source, rejected data: the end-of-run report."""
+        out = ["frames by type: " + (", ".join(f"{k} {n}" for k, n in sorted(self.frames_by_type.items()))
+                                     or "none")]
+        summary = self.stats.summary()
+        for (sysid, compid), s in summary["sources"].items():
+            out.append(f"source {sysid}/{compid}: received {s['received']}, lost {s['lost']} "
+                       f"({100 * s['loss_fraction']:.2f} %), duplicates {s['duplicates']}, late {s['late']}, "
+                       f"out of sequence {s['out_of_sequence']}, unknown ids {s['unknown']}; "
+                       f"magnetometer samples {s['samples']}, missing {s['samples_missing']}")
+        out.append(f"rejected: {summary['garbage_bytes']} garbage bytes in {summary['garbage_chunks']} runs, "
+                   f"{summary['bad_crc']} bad CRC, {summary['malformed']} malformed, "
+                   f"{summary['unknown']} unknown message ids")
+        if self.invalid:
+            out.append("not recorded, non-finite values: "
+                       + ", ".join(f"{k} {n}" for k, n in sorted(self.invalid.items())))
+        if len(self.segments) > 1:
+            out.append(f"flight software restarts seen: {len(self.segments) - 1}; CSVs hold the last run")
+        return "\n".join(out)
+
+    def write(self, csv: str | Path | None = None, rates_csv: str | Path | None = None) -> None:
+        """Write the recording and/or rate-estimate CSVs (atomically)."""
+        if csv is not None:
+            write_recording(csv, self.recording())
+        if rates_csv is not None:
+            write_rate_estimates(rates_csv, self.rate_estimates())
+
+
+def tlog_record(msg, now_s: float) -> bytes:
+    """One tlog record: big-endian µs time stamp (low 2 bits: link id 0, as pymavlink writes it),
+    then the frame's bytes as received."""
+    return struct.pack(">Q", int(now_s * 1e6) & ~3) + bytes(msg.get_msgbuf())
+
+
+def run(url: str, *, duration_s: float | None = None, count: int | None = None,
+        tlog: str | Path | None = None, csv: str | Path | None = None,
+        rates_csv: str | Path | None = None, method: int = mavlink.DEBRIS_RATE_METHOD_BOER,
+        quiet: bool = False, on_line: Callable[[str], None] = print, baud: int = 115200,
+        clock: Callable[[], float] = time.time) -> Decoder:
+    """Decode `url` until `duration_s` (of the link's time line: `clock` for live links, the
+    recorded time stamps for a tlog) or `count` intact frames, the end of a tlog, or Ctrl-C; then
+    write the CSVs. Waits on the link in 0.1 s slices, never spins."""
+    if tlog is not None and Path(tlog).resolve() == Path(url).resolve():
+        raise ValueError("--tlog would overwrite the input")
+    decoder = Decoder(method=method, on_line=None if quiet else on_line, origin=url)
+    conn = dialect.open_link(url, source_system=dialect.GCS_SYSID, source_component=dialect.GCS_COMPID,
+                             input=True, baud=baud)
+    conn.first_byte = False  # the dialect is bound already: no protocol auto-switch by pymavlink
+    is_log = isinstance(conn, mavutil.mavlogfile)
+    log_out = None
+    frames = 0
+    start_s = flushed_s = None
+    try:
+        log_out = open(tlog, "wb") if tlog is not None else None
+        while True:
+            msg = conn.recv_match(blocking=not is_log, timeout=None if is_log else 0.1)
+            if msg is None and is_log:
+                break
+            now_s = msg._timestamp if is_log else clock()
+            if start_s is None:
+                start_s = flushed_s = now_s
+            if msg is None:
+                decoder.tick(now_s)
+            else:
+                decoder.handle(msg, now_s)
+                if msg.get_type() != "BAD_DATA":
+                    frames += 1
+                    if log_out is not None:
+                        log_out.write(tlog_record(msg, now_s))
+            if log_out is not None and now_s - flushed_s >= 1.0:
+                log_out.flush()
+                flushed_s = now_s
+            if count is not None and frames >= count:
+                break
+            if duration_s is not None and now_s - start_s >= duration_s:
+                break
+    except KeyboardInterrupt:
+        decoder.interrupted = True
+    finally:
+        conn.close()
+        if log_out is not None:
+            log_out.close()
+        decoder.write(csv=csv, rates_csv=rates_csv)
+    return decoder
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m ground.decode", description=__doc__.splitlines()[0])
+    ap.add_argument("url", help="pymavlink connection string: udpin:0.0.0.0:14550, tcp:HOST:PORT, "
+                                "a serial device, or a .tlog file")
+    ap.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
+    ap.add_argument("--tlog", help="record every intact frame to this tlog")
+    ap.add_argument("--csv", help="write the magnetometer samples as a recording-format CSV")
+    ap.add_argument("--rates-csv", help="write the onboard rate estimates of --method as CSV")
+    ap.add_argument("--method", choices=sorted(METHODS, key=METHODS.get), default="boer",
+                    help="onboard estimator to show and export (default boer)")
+    ap.add_argument("--duration", type=float, help="stop after this many seconds")
+    ap.add_argument("--count", type=int, help="stop after this many intact frames")
+    ap.add_argument("--quiet", action="store_true", help="no live lines, only the summary")
+    args = ap.parse_args(argv)
+    try:
+        decoder = run(args.url, duration_s=args.duration, count=args.count, tlog=args.tlog, csv=args.csv,
+                      rates_csv=args.rates_csv, method=METHODS[args.method], quiet=args.quiet,
+                      baud=args.baud)
+    except (OSError, ValueError) as e:
+        print(f"ground.decode: {e}", file=sys.stderr)
+        return 1
+    if decoder.interrupted:
+        print("interrupted")
+    print(decoder.summary_text())
+    for what, path in (("recording", args.csv), ("rate estimates", args.rates_csv), ("tlog", args.tlog)):
+        if path:
+            print(f"wrote {what}: {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

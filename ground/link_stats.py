@@ -1,0 +1,202 @@
+"""Link quality from MAVLink sequence numbers and sample times, per source (sysid, compid).
+
+Every MAVLink frame carries an 8-bit sequence number that its sender increments per frame
+(MAVLink 2 serialization, "seq"). For each source the next frame is expected to carry
+``expected = (last + 1) mod 256``; a frame with seq s means ``(s − expected) mod 256`` frames were
+lost in between. pymavlink's own counter (`mavfile.mav_loss`) applies that formula to every frame,
+so a frame received twice (a radio or a UDP relay repeating it) counts as 255 lost frames, one
+frame arriving a place late (seq 0, 1, 3, 2, 4) as 256, and a frame of a message id the dialect
+does not know as lost. Here:
+
+- duplicate: the same frame (same bytes, so same seq and payload) as one of the last
+  `REORDER_WINDOW` frames from that source: counted in ``duplicates``, not as loss;
+- late: a frame whose seq was counted lost a moment ago (within `REORDER_WINDOW`): the loss is
+  taken back and the frame counted in ``late``;
+- out of sequence: any other frame whose seq lies within `REORDER_WINDOW` behind the last one (a
+  second sender using the same ids, or the sender restarting its counter): counted in
+  ``out_of_sequence``, neither loss nor a jump of the expected seq;
+- frames of unknown message ids from a known source are counted (``unknown``) and keep the sequence.
+
+Limits, by construction of an 8-bit counter: a gap of n ≥ 256 frames reads as n mod 256; a gap of
+256 − `REORDER_WINDOW` … 255 frames reads as out-of-sequence; a restart of the sender's counter
+reads as a gap. To see long outages the stream's own clock is used where the rate is known from the
+stream itself: magnetometer samples (HIGHRES_IMU with the mag bits in fields_updated) carry
+time_usec, and a step of k median sample periods means k − 1 missing samples (``samples_missing``).
+That assumes a steady sample rate; a deliberate rate change shows as missing samples.
+
+Bytes that pymavlink's robust parser could not frame (BAD_DATA "Bad prefix") are counted as
+``garbage_bytes``; frames that fail their CRC as ``bad_crc`` (the frame is lost: its seq shows up as
+a gap); other rejected frames (bad length, incompatibility flags, signature) as ``malformed``.
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fsw.telemetry.dialect import mavlink
+
+#: How far back (in frames) duplicates and late frames are recognised.
+REORDER_WINDOW = 16
+#: HIGHRES_IMU fields_updated bits of a magnetometer sample.
+MAG_FIELDS = (mavlink.HIGHRES_IMU_UPDATED_XMAG | mavlink.HIGHRES_IMU_UPDATED_YMAG
+              | mavlink.HIGHRES_IMU_UPDATED_ZMAG)
+
+
+def frames_lost(seq: int, expected: int) -> int:
+    """Frames missing between the expected sequence number and the one received (MAVLink seq is
+    8-bit and wraps at 256)."""
+    return (seq - expected) % 256
+
+
+def samples_missing(t_us: np.ndarray) -> int:
+    """Samples missing from a stream sampled at a steady rate: with T the median step, a step Δt
+    means round(Δt / T) − 1 samples absent. Times are sorted first; repeated times are ignored."""
+    t = np.unique(np.asarray(t_us, dtype=np.int64))
+    if t.size < 3:
+        return 0
+    dt = np.diff(t)
+    period = float(np.median(dt))
+    return int(np.sum(np.maximum(np.rint(dt / period) - 1, 0)))
+
+
+@dataclass
+class SourceStats:
+    """Counters of one (sysid, compid) source."""
+
+    received: int = 0
+    unknown: int = 0
+    lost: int = 0
+    duplicates: int = 0
+    late: int = 0
+    out_of_sequence: int = 0
+    first_s: float | None = None
+    last_s: float | None = None
+    expected: int | None = None  # position of the next frame, sequence number unwrapped
+    recent: deque = field(default_factory=lambda: deque(maxlen=REORDER_WINDOW))
+    missing: deque = field(default_factory=lambda: deque(maxlen=REORDER_WINDOW))
+    sample_times_us: list[int] = field(default_factory=list)
+
+    def account(self, seq: int, frame: bytes) -> str:
+        """Classify one frame by its sequence number: 'new', 'duplicate', 'late' or
+        'out_of_sequence'; updates the loss counters (the caller counts received/unknown)."""
+        if self.expected is None:
+            self.expected = seq + 1
+            self.recent.append(frame)
+            return "new"
+        if frame in self.recent:
+            self.duplicates += 1
+            return "duplicate"
+        self.recent.append(frame)
+        behind = (self.expected - 1 - seq) % 256
+        if behind < REORDER_WINDOW:
+            position = self.expected - 1 - behind
+            if position in self.missing:
+                self.missing.remove(position)
+                self.lost -= 1
+                self.late += 1
+                return "late"
+            self.out_of_sequence += 1
+            return "out_of_sequence"
+        gap = frames_lost(seq, self.expected % 256)
+        self.missing.extend(range(self.expected + gap - min(gap, REORDER_WINDOW), self.expected + gap))
+        self.lost += gap
+        self.expected += gap + 1
+        return "new"
+
+    def as_dict(self) -> dict:
+        expected = self.received + self.unknown + self.lost
+        return {"received": self.received, "unknown": self.unknown, "lost": self.lost,
+                "duplicates": self.duplicates, "late": self.late,
+                "out_of_sequence": self.out_of_sequence,
+                "loss_fraction": self.lost / expected if expected else 0.0,
+                "samples": len(self.sample_times_us),
+                "samples_missing": samples_missing(np.array(self.sample_times_us)),
+                "first_s": self.first_s, "last_s": self.last_s}
+
+
+class LinkStats:
+    """Loss, duplicate and garbage accounting for everything received on one link."""
+
+    def __init__(self) -> None:
+        self.sources: dict[tuple[int, int], SourceStats] = {}
+        self.garbage_bytes = 0
+        self.garbage_chunks = 0
+        self.bad_crc = 0
+        self.malformed = 0
+        self.unknown = 0
+        self.last_verdict = ""
+
+    def on_frame(self, msg, now_s: float) -> None:
+        """Account one message from pymavlink (BAD_DATA and UNKNOWN_* are passed to on_bad_data).
+        `last_verdict` tells what the frame was: 'new', 'duplicate', 'late', 'out_of_sequence'."""
+        if msg.get_msgId() < 0:
+            self.on_bad_data(msg)
+            return
+        key = (msg.get_srcSystem(), msg.get_srcComponent())
+        src = self.sources.get(key)
+        if src is None:
+            src = self.sources[key] = SourceStats(first_s=now_s)
+        src.last_s = now_s
+        self.last_verdict = src.account(msg.get_seq(), bytes(msg.get_msgbuf()))
+        if self.last_verdict == "duplicate":
+            return
+        src.received += 1
+        if msg.get_type() == "HIGHRES_IMU" and msg.fields_updated & MAG_FIELDS == MAG_FIELDS:
+            src.sample_times_us.append(int(msg.time_usec))
+
+    def on_bad_data(self, msg) -> None:
+        """Account pymavlink's BAD_DATA (unframeable bytes, bad CRC, malformed frame) or UNKNOWN_*
+        (a well-formed frame of a message id the dialect lacks; its CRC cannot be checked)."""
+        kind = msg.get_type()
+        data = bytes(getattr(msg, "data", b"") or b"")
+        self.last_verdict = kind
+        if kind.startswith("UNKNOWN"):
+            self.unknown += 1
+            header = _header(data)
+            if header is not None and header[1:] in self.sources:
+                src = self.sources[header[1:]]
+                self.last_verdict = src.account(header[0], data)
+                if self.last_verdict != "duplicate":
+                    src.unknown += 1
+            return
+        reason = str(getattr(msg, "reason", ""))
+        if reason.startswith("Bad prefix"):
+            self.garbage_bytes += len(data)
+            self.garbage_chunks += 1
+        elif "CRC" in reason:
+            self.bad_crc += 1
+        else:
+            self.malformed += 1
+
+    def lost(self) -> int:
+        """Frames lost so far, all sources (cheap; for live display)."""
+        return sum(s.lost for s in self.sources.values())
+
+    def received(self) -> int:
+        """Intact frames of known messages received so far, all sources."""
+        return sum(s.received for s in self.sources.values())
+
+    def summary(self) -> dict:
+        """Per source and total counters, plus the link-level rejects:
+        ``{"sources": {(sysid, compid): {...}}, "totals": {...}, "garbage_bytes", "garbage_chunks",
+        "bad_crc", "malformed", "unknown"}``."""
+        per = {k: s.as_dict() for k, s in sorted(self.sources.items())}
+        totals = {name: sum(d[name] for d in per.values())
+                  for name in ("received", "unknown", "lost", "duplicates", "late", "out_of_sequence",
+                               "samples", "samples_missing")}
+        expected = totals["received"] + totals["unknown"] + totals["lost"]
+        totals["loss_fraction"] = totals["lost"] / expected if expected else 0.0
+        return {"sources": per, "totals": totals, "garbage_bytes": self.garbage_bytes,
+                "garbage_chunks": self.garbage_chunks, "bad_crc": self.bad_crc,
+                "malformed": self.malformed, "unknown": self.unknown}
+
+
+def _header(frame: bytes) -> tuple[int, int, int] | None:
+    """(seq, sysid, compid) from a raw MAVLink 1 or 2 frame, None if too short."""
+    if len(frame) >= 10 and frame[0] == mavlink.PROTOCOL_MARKER_V2:
+        return frame[4], frame[5], frame[6]
+    if len(frame) >= 6 and frame[0] == mavlink.PROTOCOL_MARKER_V1:
+        return frame[2], frame[3], frame[4]
+    return None
