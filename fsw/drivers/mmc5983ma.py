@@ -158,6 +158,7 @@ class Mmc5983ma:
         self.bad_id = 0
         self.resets = 0
         self.calibrations = 0
+        self.chip_resets_detected = 0
         self.last_error = ""
 
         self._shadow = bytearray(4)  # Internal Control 0..3 as last written (ctrl0: lasting bits)
@@ -309,13 +310,19 @@ class Mmc5983ma:
         self.b_body_T *= 0.5  # H = (S - R) / 2
         np.add(s, self.offset_T, out=self.offset_T)
         self.offset_T *= 0.5  # offset = (S + R) / 2
-        self._deliver(self._cal_trigger_s[1] + 0.5 * self._t_meas)
+        # The SET reading is a sample too. It is delivered when it does not crowd the previous one
+        # (at start-up always, and then the sample grid starts from it); a periodic re-calibration
+        # just after a sample would otherwise add an off-grid sample with a tiny time step.
+        t_cal = self._cal_trigger_s[1] + 0.5 * self._t_meas
+        first = math.isnan(self._t_grid)
+        if first or not t_cal - self.sample_time_s < 0.5 * self.sample_period_s:
+            self._deliver(t_cal)
         self.calibrations += 1
         self._samples_since_cal = 0
         t_ready = now + SET_RESET_SETTLE_S
-        if math.isnan(self._t_grid):
-            self._t_grid = t_ready
-        elif self._t_grid < t_ready:
+        if first:
+            self._t_grid = t_cal + self.sample_period_s
+        if self._t_grid < t_ready:
             self._t_grid += math.ceil((t_ready - self._t_grid) / self.sample_period_s) * self.sample_period_s
         self._enter(MagState.MEASURE, t_ready)
         self._phase = _Phase.IDLE if self.continuous is ContinuousFrequency.OFF else _Phase.START
@@ -333,6 +340,14 @@ class Mmc5983ma:
             return True
         if now + _EPS_S < self._t_grid:
             return False
+        # Meas_M_Done stays 1 after the last measurement until the next command [DS p15]; a chip that
+        # reset behind the driver's back (brown-out) reads 0 here, has lost its bandwidth and is in
+        # RESET polarity (inverted axes): configure and calibrate again.
+        if not self._read(Register.STATUS, 1)[0] & _MEAS_M_DONE:
+            self.chip_resets_detected += 1
+            self.last_error = "chip reset detected (Meas_M_Done lost)"
+            self._enter(MagState.CONFIGURE, now)
+            return True
         self._trigger(now)
         period = self.sample_period_s
         self._t_grid += (math.floor((now + _EPS_S - self._t_grid) / period) + 1) * period
@@ -404,8 +419,11 @@ class Mmc5983ma:
         if self._read(Register.STATUS, 1)[0] & _MEAS_M_DONE:
             return True
         if now >= self._t_trigger + self._timeout_s:
-            self._trigger(now)
+            # No data-ready: a glitch, or a chip that reset and lost the measurement (and with it
+            # bandwidth and polarity). Configure and calibrate again rather than trust it.
             self.timeouts += 1
+            self.last_error = "data-ready timeout"
+            self._enter(MagState.CONFIGURE, now)
         return False
 
     def _read_sample(self, sample_time_s: float) -> None:
