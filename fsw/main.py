@@ -13,6 +13,7 @@ import argparse
 import math
 import signal
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -48,6 +49,14 @@ class Score:
     boer_err: list = field(default_factory=list)
     deriv_err: list = field(default_factory=list)
     work_s: list = field(default_factory=list)
+
+    def add(self, fsw: FlightSoftware, tr) -> None:
+        if fsw.new_estimate["boer"]:
+            w = fsw.estimators["boer"].omega_radps
+            self.boer_err.append(np.linalg.norm(w - _perp(tr.omega_radps, tr.b_body_T)))
+        if fsw.new_estimate["derivative"]:
+            w = fsw.estimators["derivative"].omega_radps
+            self.deriv_err.append(np.linalg.norm(w - tr.omega_radps))
 
     @staticmethod
     def _rms_max(errs) -> tuple[float, float, int]:
@@ -105,16 +114,22 @@ def parse_args(argv=None):
     return args
 
 
-def main(argv=None) -> int:
-    args = parse_args(argv)
-    out = sys.stdout
+@dataclass
+class Run:
+    """What a run leaves behind: the flight software, its telemetry, the score, the times."""
+
+    fsw: FlightSoftware
+    tlm: Telemetry
+    score: Score
+    t_s: float
+    wall_s: float
+
+
+def run(args, out=sys.stdout) -> Run:
+    """Build the flight software for SITL or target from parsed `args` and run the loop."""
     truth = None
     if args.sitl:
-        try:
-            scn, sim, source, sigma_b = build_sitl(args)
-        except ValueError as e:
-            print(f"error: {e}", file=sys.stderr)
-            return 2
+        scn, sim, source, sigma_b = build_sitl(args)
         truth = sim.truth
         sample_rate = scn.sample_rate_hz
         header = (f"SITL scenario {scn.name}: {scn.description}\n"
@@ -140,8 +155,9 @@ def main(argv=None) -> int:
         nonlocal stop
         stop = True
 
-    old = signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    if in_main_thread:
+        old = signal.signal(signal.SIGINT, on_signal), signal.signal(signal.SIGTERM, on_signal)
     score = Score()
     period = 1.0 / args.rate
     wall0 = time.monotonic()
@@ -150,23 +166,16 @@ def main(argv=None) -> int:
     t = 0.0
     try:
         while not stop:
-            t = k * period
-            if args.duration is not None and t > args.duration + 1e-9:
+            if args.duration is not None and k * period > args.duration + 1e-9:
                 break
+            t = k * period
             if sim is not None:
                 sim.advance_to(t)
-                score.work_s.append(fsw.tick(t))
             else:
                 t = time.monotonic() - wall0
-                score.work_s.append(fsw.tick(t))
+            score.work_s.append(fsw.tick(t))
             if fsw.new_sample and truth is not None:
-                tr = truth(fsw.sample_t_s)
-                if fsw.new_estimate["boer"]:
-                    w = fsw.estimators["boer"].omega_radps
-                    score.boer_err.append(np.linalg.norm(w - _perp(tr.omega_radps, tr.b_body_T)))
-                if fsw.new_estimate["derivative"]:
-                    w = fsw.estimators["derivative"].omega_radps
-                    score.deriv_err.append(np.linalg.norm(w - tr.omega_radps))
+                score.add(fsw, truth(fsw.sample_t_s))
             if t >= next_status - 1e-9:
                 next_status += 1.0
                 if not args.quiet:
@@ -177,8 +186,24 @@ def main(argv=None) -> int:
                 if wait > 0:
                     time.sleep(wait)
     finally:
-        signal.signal(signal.SIGINT, old)
-    print(summary(args, fsw, tlm, score, t, time.monotonic() - wall0), file=out, flush=True)
+        if in_main_thread:
+            signal.signal(signal.SIGINT, old[0])
+            signal.signal(signal.SIGTERM, old[1])
+        link.close()
+    return Run(fsw, tlm, score, t, time.monotonic() - wall0)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    try:
+        r = run(args)
+    except ValueError as e:  # a bad scenario file, an impossible sensor setting
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:  # a serial port or link that cannot be opened
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    print(summary(r), flush=True)
     return 0
 
 
@@ -200,7 +225,8 @@ def status_line(t_s: float, fsw: FlightSoftware, truth) -> str:
     return line
 
 
-def summary(args, fsw: FlightSoftware, tlm: Telemetry, score: Score, t_s: float, wall_s: float) -> str:
+def summary(r: Run) -> str:
+    fsw, tlm, score, t_s, wall_s = r.fsw, r.tlm, r.score, r.t_s, r.wall_s
     src = fsw.source
     st = fsw.scheduler.stats
     work = np.asarray(score.work_s) * 1e6 if score.work_s else np.zeros(1)

@@ -37,7 +37,7 @@ BASE = (scenario.SCENARIO_DIR / "isoi.toml").read_text()
       "inertia_kgm2 = [[0.058, 0.01, 0.0], [0.0, 0.058, 0.0], [0.0, 0.0, 0.011]]"), "symmetric"),
     (("bandwidth_hz = 100", "bandwidth_hz = 150"), "bandwidth_hz"),
     (("sample_rate_hz = 1.0", "sample_rate_hz = 2000.0"), "sample_rate_hz"),
-    (("noise_uT = 1.5", "noise_ut = 1.5"), "unknown key"),
+    (("noise_uT = 0.0", "noise_ut = 0.0"), "unknown key"),
     (("altitude_km = 485.0", "altitude_km = \"high\""), "altitude_km"),
     (("omega_dps = [6.0, -5.0, 6.5]", "omega_dps = [6.0, -5.0]"), "omega_dps"),
 ])
