@@ -15,7 +15,8 @@ from hypothesis import strategies as st
 from ground.recording import (RateEstimates, Recording, RecordingError, read_rate_estimates,
                               read_recording, write_rate_estimates, write_recording)
 
-DATA = Path("/work/shared/data")
+# the project's shared data folder sits beside the repository (../shared/data)
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 HEADER = "t_s,bx_uT,by_uT,bz_uT"
 
 
@@ -31,7 +32,7 @@ def _data_lines(text: str) -> int:
     return max(0, sum(1 for ln in lines if ln.strip() and not ln.startswith("#")) - 1)
 
 
-# --- the real recordings in /work/shared/data ----------------------------------------------------
+# --- the real recordings in ../shared/data --------------------------------------------------------
 
 REAL = [("broad_02_undisturbed_slow_rotation_B.csv", 202.0),
         ("broad_09_undisturbed_fast_rotation_with_breaks_B.csv", 202.0),
