@@ -159,6 +159,7 @@ def run(args, out=sys.stdout) -> Run:
     if in_main_thread:
         old = signal.signal(signal.SIGINT, on_signal), signal.signal(signal.SIGTERM, on_signal)
     score = Score()
+    sample_truth = None  # the simulator's truth at the latest sample's time
     period = 1.0 / args.rate
     wall0 = time.monotonic()
     k = 0
@@ -175,11 +176,12 @@ def run(args, out=sys.stdout) -> Run:
                 t = time.monotonic() - wall0
             score.work_s.append(fsw.tick(t))
             if fsw.new_sample and truth is not None:
-                score.add(fsw, truth(fsw.sample_t_s))
+                sample_truth = truth(fsw.sample_t_s)
+                score.add(fsw, sample_truth)
             if t >= next_status - 1e-9:
                 next_status += 1.0
                 if not args.quiet:
-                    print(status_line(t, fsw, truth), file=out, flush=True)
+                    print(status_line(t, fsw, sample_truth), file=out, flush=True)
             k += 1
             if args.speed > 0 or sim is None:
                 wait = wall0 + (k * period) / (args.speed or 1.0) - time.monotonic()
@@ -207,7 +209,9 @@ def main(argv=None) -> int:
     return 0
 
 
-def status_line(t_s: float, fsw: FlightSoftware, truth) -> str:
+def status_line(t_s: float, fsw: FlightSoftware, tr) -> str:
+    """One line: time, |B|, the derivative formula's estimate; with `tr` (truth at the sample time)
+    the true rate and the errors of both formulas."""
     b = fsw.sample_b_T
     d = fsw.estimators["derivative"]
     bo = fsw.estimators["boer"]
@@ -216,8 +220,7 @@ def status_line(t_s: float, fsw: FlightSoftware, truth) -> str:
         return line + "  (waiting for samples)"
     w = _deg(d.omega_radps)
     line += f"  w_est=[{w[0]:7.2f} {w[1]:7.2f} {w[2]:7.2f}] dps"
-    if truth is not None:
-        tr = truth(fsw.sample_t_s)
+    if tr is not None:
         wt = _deg(tr.omega_radps)
         line += (f"  w_true=[{wt[0]:7.2f} {wt[1]:7.2f} {wt[2]:7.2f}] dps"
                  f"  err={np.linalg.norm(w - wt):6.2f} dps"

@@ -8,6 +8,7 @@ lets the chip sample the field at its own measurement instant inside a loop peri
 """
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,7 +34,8 @@ class Truth:
 class Simulator:
     """Debris in orbit with its magnetometer; deterministic for a given scenario and seed."""
 
-    def __init__(self, scenario: Scenario, seed: int = 0, max_step_s: float = 0.02) -> None:
+    def __init__(self, scenario: Scenario, seed: int = 0, max_step_s: float = 0.02,
+                 history: int = 256) -> None:
         self.scenario = scenario
         self.max_step_s = float(max_step_s)
         self.rng = np.random.default_rng(seed)
@@ -44,8 +46,9 @@ class Simulator:
         self.field = DipoleField(epoch_year=scenario.epoch_year)
         self.t_s = 0.0
         self._moment = np.zeros(3)
-        self._now = self._snapshot()
-        self._prev = self._now
+        # recent truth snapshots, one per advance: the chip and the SITL telemetry ask for the truth
+        # at measurement instants up to a few loop periods back
+        self._history: deque[Truth] = deque([self._snapshot()], maxlen=history)
         self.sensor = EmulatedMmc5983ma(self.field_body_T, clock=lambda: self.t_s, rng=self.rng,
                                         bridge_offset_T=scenario.bridge_offset_T,
                                         extra_noise_T=scenario.noise_T)
@@ -62,22 +65,29 @@ class Simulator:
             raise ValueError(f"time runs forward only: at {self.t_s} s, asked for {t_s} s")
         if t_s - self.t_s <= 1e-12:
             return
-        prev = self._now
         while self.t_s < t_s - 1e-12:
             h = min(self.max_step_s, t_s - self.t_s)
             self.scenario.moment_Nm(self.t_s, out=self._moment)
             self.body.step(h, self._moment)
             self.t_s += h
         self.t_s = t_s
-        self._prev, self._now = prev, self._snapshot()
+        self._history.append(self._snapshot())
 
     def truth(self, t_s: float | None = None) -> Truth:
-        """Truth at `t_s` (default: now). Times inside the last advance are interpolated."""
-        a, b = self._prev, self._now
-        if t_s is None or t_s >= b.t_s or b.t_s <= a.t_s:
+        """Truth at `t_s` (default: now), interpolated between the recent snapshots.
+
+        Raises ValueError for a time older than the kept history rather than answer wrongly.
+        """
+        hist = self._history
+        b = hist[-1]
+        if t_s is None or t_s >= b.t_s:
             return b
-        if t_s <= a.t_s:
-            return a
+        if t_s < hist[0].t_s - 1e-12:
+            raise ValueError(f"truth at {t_s} s is older than the simulator's history ({hist[0].t_s} s)")
+        i = len(hist) - 1
+        while hist[i - 1].t_s > t_s:
+            i -= 1
+        a, b = hist[i - 1], hist[i]
         f = (t_s - a.t_s) / (b.t_s - a.t_s)
         qb = b.q_body_to_eci if np.dot(a.q_body_to_eci, b.q_body_to_eci) >= 0 else -b.q_body_to_eci
         q = (1 - f) * a.q_body_to_eci + f * qb

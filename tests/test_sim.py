@@ -77,3 +77,14 @@ def test_time_runs_forward_only():
     sim.advance_to(1.0)
     with pytest.raises(ValueError):
         sim.advance_to(0.5)
+
+
+def test_truth_history_interpolates_back_and_refuses_older():
+    scn = scenario.load("isoi")
+    sim, ref = Simulator(scn, history=8), Simulator(scn)
+    for k in range(1, 11):
+        sim.advance_to(k * 0.02)
+    ref.advance_to(0.15)
+    np.testing.assert_allclose(sim.truth(0.15).omega_radps, ref.truth().omega_radps, atol=1e-6)
+    with pytest.raises(ValueError, match="older"):
+        sim.truth(0.05)
