@@ -89,7 +89,7 @@ class FlightSoftware:
 
     def _status(self, now_s: float) -> None:
         st = self.scheduler.stats
-        mean_us, _p50, p99_us, max_us = st.summary_us()
+        mean_us, p50_us, p99_us, max_us = st.summary_us()
         src = self.source
         healthy = getattr(src, "state", None) is None or int(src.state) == mavlink.DEBRIS_MAG_STATE_MEASURE
         self.tlm.heartbeat()
@@ -97,7 +97,7 @@ class FlightSoftware:
                             load_permille=int(mean_us * 1e-3 / self.scheduler.period_s),
                             errors_comm=getattr(src, "bus_errors", 0) + self.tlm.send_errors)
         self.tlm.loop_status(now_s, ticks=st.ticks, overruns=st.overruns, task_overruns=st.task_overruns,
-                             period_s=self.scheduler.period_s, mean_us=mean_us, p99_us=p99_us,
+                             period_s=self.scheduler.period_s, mean_us=mean_us, p50_us=p50_us, p99_us=p99_us,
                              max_us=max_us)
         if hasattr(src, "offset_T"):
             self.tlm.mag_status(now_s, src)

@@ -406,784 +406,91 @@ enums["DEBRIS_MAG_STATE"][5] = EnumEntry("DEBRIS_MAG_STATE_BACKOFF", """Too many
 DEBRIS_MAG_STATE_ENUM_END = 6
 enums["DEBRIS_MAG_STATE"][6] = EnumEntry("DEBRIS_MAG_STATE_ENUM_END", """""")
 
-# HL_FAILURE_FLAG
-enums["HL_FAILURE_FLAG"] = Enum()
-enums["HL_FAILURE_FLAG"].bitmask = True
-HL_FAILURE_FLAG_GPS = 1
-enums["HL_FAILURE_FLAG"][1] = EnumEntry("HL_FAILURE_FLAG_GPS", """GPS failure.""")
-HL_FAILURE_FLAG_DIFFERENTIAL_PRESSURE = 2
-enums["HL_FAILURE_FLAG"][2] = EnumEntry("HL_FAILURE_FLAG_DIFFERENTIAL_PRESSURE", """Differential pressure sensor failure.""")
-HL_FAILURE_FLAG_ABSOLUTE_PRESSURE = 4
-enums["HL_FAILURE_FLAG"][4] = EnumEntry("HL_FAILURE_FLAG_ABSOLUTE_PRESSURE", """Absolute pressure sensor failure.""")
-HL_FAILURE_FLAG_3D_ACCEL = 8
-enums["HL_FAILURE_FLAG"][8] = EnumEntry("HL_FAILURE_FLAG_3D_ACCEL", """Accelerometer sensor failure.""")
-HL_FAILURE_FLAG_3D_GYRO = 16
-enums["HL_FAILURE_FLAG"][16] = EnumEntry("HL_FAILURE_FLAG_3D_GYRO", """Gyroscope sensor failure.""")
-HL_FAILURE_FLAG_3D_MAG = 32
-enums["HL_FAILURE_FLAG"][32] = EnumEntry("HL_FAILURE_FLAG_3D_MAG", """Magnetometer sensor failure.""")
-HL_FAILURE_FLAG_TERRAIN = 64
-enums["HL_FAILURE_FLAG"][64] = EnumEntry("HL_FAILURE_FLAG_TERRAIN", """Terrain subsystem failure.""")
-HL_FAILURE_FLAG_BATTERY = 128
-enums["HL_FAILURE_FLAG"][128] = EnumEntry("HL_FAILURE_FLAG_BATTERY", """Battery failure/critical low battery.""")
-HL_FAILURE_FLAG_RC_RECEIVER = 256
-enums["HL_FAILURE_FLAG"][256] = EnumEntry("HL_FAILURE_FLAG_RC_RECEIVER", """RC receiver failure/no RC connection.""")
-HL_FAILURE_FLAG_OFFBOARD_LINK = 512
-enums["HL_FAILURE_FLAG"][512] = EnumEntry("HL_FAILURE_FLAG_OFFBOARD_LINK", """Offboard link failure.""")
-HL_FAILURE_FLAG_ENGINE = 1024
-enums["HL_FAILURE_FLAG"][1024] = EnumEntry("HL_FAILURE_FLAG_ENGINE", """Engine failure.""")
-HL_FAILURE_FLAG_GEOFENCE = 2048
-enums["HL_FAILURE_FLAG"][2048] = EnumEntry("HL_FAILURE_FLAG_GEOFENCE", """Geofence violation.""")
-HL_FAILURE_FLAG_ESTIMATOR = 4096
-enums["HL_FAILURE_FLAG"][4096] = EnumEntry("HL_FAILURE_FLAG_ESTIMATOR", """Estimator failure, for example measurement rejection or large variances.""")
-HL_FAILURE_FLAG_MISSION = 8192
-enums["HL_FAILURE_FLAG"][8192] = EnumEntry("HL_FAILURE_FLAG_MISSION", """Mission failure.""")
-HL_FAILURE_FLAG_ENUM_END = 8193
-enums["HL_FAILURE_FLAG"][8193] = EnumEntry("HL_FAILURE_FLAG_ENUM_END", """""")
+# DEBRIS_IDENT_STATE
+enums["DEBRIS_IDENT_STATE"] = Enum()
+enums["DEBRIS_IDENT_STATE"].bitmask = False
+DEBRIS_IDENT_STATE_IDLE = 0
+enums["DEBRIS_IDENT_STATE"][0] = EnumEntry("DEBRIS_IDENT_STATE_IDLE", """No experiment.""")
+DEBRIS_IDENT_STATE_OBSERVE_FREE = 1
+enums["DEBRIS_IDENT_STATE"][1] = EnumEntry("DEBRIS_IDENT_STATE_OBSERVE_FREE", """Observing the torque-free motion.""")
+DEBRIS_IDENT_STATE_TORQUE = 2
+enums["DEBRIS_IDENT_STATE"][2] = EnumEntry("DEBRIS_IDENT_STATE_TORQUE", """The known torque is applied.""")
+DEBRIS_IDENT_STATE_OBSERVE_AFTER = 3
+enums["DEBRIS_IDENT_STATE"][3] = EnumEntry("DEBRIS_IDENT_STATE_OBSERVE_AFTER", """Observing after the torque.""")
+DEBRIS_IDENT_STATE_DONE = 4
+enums["DEBRIS_IDENT_STATE"][4] = EnumEntry("DEBRIS_IDENT_STATE_DONE", """Finished; the estimate is final.""")
+DEBRIS_IDENT_STATE_ABORTED = 5
+enums["DEBRIS_IDENT_STATE"][5] = EnumEntry("DEBRIS_IDENT_STATE_ABORTED", """Stopped by command or by a fault.""")
+DEBRIS_IDENT_STATE_ENUM_END = 6
+enums["DEBRIS_IDENT_STATE"][6] = EnumEntry("DEBRIS_IDENT_STATE_ENUM_END", """""")
 
-# MAV_GOTO
-enums["MAV_GOTO"] = Enum()
-enums["MAV_GOTO"].bitmask = False
-MAV_GOTO_DO_HOLD = 0
-enums["MAV_GOTO"][0] = EnumEntry("MAV_GOTO_DO_HOLD", """Hold at the current position.""")
-MAV_GOTO_DO_CONTINUE = 1
-enums["MAV_GOTO"][1] = EnumEntry("MAV_GOTO_DO_CONTINUE", """Continue with the next item in mission execution.""")
-MAV_GOTO_HOLD_AT_CURRENT_POSITION = 2
-enums["MAV_GOTO"][2] = EnumEntry("MAV_GOTO_HOLD_AT_CURRENT_POSITION", """Hold at the current position of the system""")
-MAV_GOTO_HOLD_AT_SPECIFIED_POSITION = 3
-enums["MAV_GOTO"][3] = EnumEntry("MAV_GOTO_HOLD_AT_SPECIFIED_POSITION", """Hold at the position specified in the parameters of the DO_HOLD action""")
-MAV_GOTO_ENUM_END = 4
-enums["MAV_GOTO"][4] = EnumEntry("MAV_GOTO_ENUM_END", """""")
+# DEBRIS_TORQUE_SOURCE
+enums["DEBRIS_TORQUE_SOURCE"] = Enum()
+enums["DEBRIS_TORQUE_SOURCE"].bitmask = False
+DEBRIS_TORQUE_SOURCE_TUG = 1
+enums["DEBRIS_TORQUE_SOURCE"][1] = EnumEntry("DEBRIS_TORQUE_SOURCE_TUG", """A tug force F at a known point r: M = r x F, given as a moment in body axes.""")
+DEBRIS_TORQUE_SOURCE_MAGNETS = 2
+enums["DEBRIS_TORQUE_SOURCE"][2] = EnumEntry("DEBRIS_TORQUE_SOURCE_MAGNETS", """The box's own magnets: M = p x B.""")
+DEBRIS_TORQUE_SOURCE_ENUM_END = 3
+enums["DEBRIS_TORQUE_SOURCE"][3] = EnumEntry("DEBRIS_TORQUE_SOURCE_ENUM_END", """""")
 
-# MAV_MODE
-enums["MAV_MODE"] = Enum()
-enums["MAV_MODE"].bitmask = False
-MAV_MODE_PREFLIGHT = 0
-enums["MAV_MODE"][0] = EnumEntry("MAV_MODE_PREFLIGHT", """System is not ready to fly, booting, calibrating, etc. No flag is set.""")
-MAV_MODE_MANUAL_DISARMED = 64
-enums["MAV_MODE"][64] = EnumEntry("MAV_MODE_MANUAL_DISARMED", """System is allowed to be active, under manual (RC) control, no stabilization (MAV_MODE_FLAG_MANUAL_INPUT_ENABLED)""")
-MAV_MODE_TEST_DISARMED = 66
-enums["MAV_MODE"][66] = EnumEntry("MAV_MODE_TEST_DISARMED", """UNDEFINED mode. This solely depends on the autopilot - use with caution, intended for developers only. (MAV_MODE_FLAG_MANUAL_INPUT_ENABLED, MAV_MODE_FLAG_TEST_ENABLED).""")
-MAV_MODE_STABILIZE_DISARMED = 80
-enums["MAV_MODE"][80] = EnumEntry("MAV_MODE_STABILIZE_DISARMED", """System is allowed to be active, under assisted RC control (MAV_MODE_FLAG_SAFETY_ARMED, MAV_MODE_FLAG_STABILIZE_ENABLED)""")
-MAV_MODE_GUIDED_DISARMED = 88
-enums["MAV_MODE"][88] = EnumEntry("MAV_MODE_GUIDED_DISARMED", """System is allowed to be active, under autonomous control, manual setpoint (MAV_MODE_FLAG_SAFETY_ARMED, MAV_MODE_FLAG_STABILIZE_ENABLED, MAV_MODE_FLAG_GUIDED_ENABLED)""")
-MAV_MODE_AUTO_DISARMED = 92
-enums["MAV_MODE"][92] = EnumEntry("MAV_MODE_AUTO_DISARMED", """System is allowed to be active, under autonomous control and navigation (the trajectory is decided onboard and not pre-programmed by waypoints). (MAV_MODE_FLAG_SAFETY_ARMED, MAV_MODE_FLAG_STABILIZE_ENABLED, MAV_MODE_FLAG_GUIDED_ENABLED, MAV_MODE_FLAG_AUTO_ENABLED).""")
-MAV_MODE_MANUAL_ARMED = 192
-enums["MAV_MODE"][192] = EnumEntry("MAV_MODE_MANUAL_ARMED", """System is allowed to be active, under manual (RC) control, no stabilization (MAV_MODE_FLAG_SAFETY_ARMED, MAV_MODE_FLAG_MANUAL_INPUT_ENABLED)""")
-MAV_MODE_TEST_ARMED = 194
-enums["MAV_MODE"][194] = EnumEntry("MAV_MODE_TEST_ARMED", """UNDEFINED mode. This solely depends on the autopilot - use with caution, intended for developers only (MAV_MODE_FLAG_SAFETY_ARMED, MAV_MODE_FLAG_MANUAL_INPUT_ENABLED, MAV_MODE_FLAG_TEST_ENABLED)""")
-MAV_MODE_STABILIZE_ARMED = 208
-enums["MAV_MODE"][208] = EnumEntry("MAV_MODE_STABILIZE_ARMED", """System is allowed to be active, under assisted RC control (MAV_MODE_FLAG_SAFETY_ARMED, MAV_MODE_FLAG_MANUAL_INPUT_ENABLED, MAV_MODE_FLAG_STABILIZE_ENABLED)""")
-MAV_MODE_GUIDED_ARMED = 216
-enums["MAV_MODE"][216] = EnumEntry("MAV_MODE_GUIDED_ARMED", """System is allowed to be active, under autonomous control, manual setpoint (MAV_MODE_FLAG_SAFETY_ARMED, MAV_MODE_FLAG_MANUAL_INPUT_ENABLED, MAV_MODE_FLAG_STABILIZE_ENABLED, MAV_MODE_FLAG_GUIDED_ENABLED)""")
-MAV_MODE_AUTO_ARMED = 220
-enums["MAV_MODE"][220] = EnumEntry("MAV_MODE_AUTO_ARMED", """System is allowed to be active, under autonomous control and navigation (the trajectory is decided onboard and not pre-programmed by waypoints). (MAV_MODE_FLAG_SAFETY_ARMED, MAV_MODE_FLAG_MANUAL_INPUT_ENABLED, MAV_MODE_FLAG_STABILIZE_ENABLED, MAV_MODE_FLAG_GUIDED_ENABLED,MAV_MODE_FLAG_AUTO_ENABLED).""")
-MAV_MODE_ENUM_END = 221
-enums["MAV_MODE"][221] = EnumEntry("MAV_MODE_ENUM_END", """""")
+# DEBRIS_CAPSULE_STATE
+enums["DEBRIS_CAPSULE_STATE"] = Enum()
+enums["DEBRIS_CAPSULE_STATE"].bitmask = False
+DEBRIS_CAPSULE_STATE_CLOSED = 0
+enums["DEBRIS_CAPSULE_STATE"][0] = EnumEntry("DEBRIS_CAPSULE_STATE_CLOSED", """Shutters closed: the magnet is screened, no torque.""")
+DEBRIS_CAPSULE_STATE_OPENING = 1
+enums["DEBRIS_CAPSULE_STATE"][1] = EnumEntry("DEBRIS_CAPSULE_STATE_OPENING", """The motor is opening the shutters.""")
+DEBRIS_CAPSULE_STATE_OPEN = 2
+enums["DEBRIS_CAPSULE_STATE"][2] = EnumEntry("DEBRIS_CAPSULE_STATE_OPEN", """Shutters open: the magnet acts.""")
+DEBRIS_CAPSULE_STATE_CLOSING = 3
+enums["DEBRIS_CAPSULE_STATE"][3] = EnumEntry("DEBRIS_CAPSULE_STATE_CLOSING", """The spring is closing the shutters.""")
+DEBRIS_CAPSULE_STATE_FAULT = 4
+enums["DEBRIS_CAPSULE_STATE"][4] = EnumEntry("DEBRIS_CAPSULE_STATE_FAULT", """Stuck or switches disagree.""")
+DEBRIS_CAPSULE_STATE_ENUM_END = 5
+enums["DEBRIS_CAPSULE_STATE"][5] = EnumEntry("DEBRIS_CAPSULE_STATE_ENUM_END", """""")
 
-# MAV_SYS_STATUS_SENSOR
-enums["MAV_SYS_STATUS_SENSOR"] = Enum()
-enums["MAV_SYS_STATUS_SENSOR"].bitmask = True
-MAV_SYS_STATUS_SENSOR_3D_GYRO = 1
-enums["MAV_SYS_STATUS_SENSOR"][1] = EnumEntry("MAV_SYS_STATUS_SENSOR_3D_GYRO", """0x01 3D gyro""")
-MAV_SYS_STATUS_SENSOR_3D_ACCEL = 2
-enums["MAV_SYS_STATUS_SENSOR"][2] = EnumEntry("MAV_SYS_STATUS_SENSOR_3D_ACCEL", """0x02 3D accelerometer""")
-MAV_SYS_STATUS_SENSOR_3D_MAG = 4
-enums["MAV_SYS_STATUS_SENSOR"][4] = EnumEntry("MAV_SYS_STATUS_SENSOR_3D_MAG", """0x04 3D magnetometer""")
-MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE = 8
-enums["MAV_SYS_STATUS_SENSOR"][8] = EnumEntry("MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE", """0x08 absolute pressure""")
-MAV_SYS_STATUS_SENSOR_DIFFERENTIAL_PRESSURE = 16
-enums["MAV_SYS_STATUS_SENSOR"][16] = EnumEntry("MAV_SYS_STATUS_SENSOR_DIFFERENTIAL_PRESSURE", """0x10 differential pressure""")
-MAV_SYS_STATUS_SENSOR_GPS = 32
-enums["MAV_SYS_STATUS_SENSOR"][32] = EnumEntry("MAV_SYS_STATUS_SENSOR_GPS", """0x20 GPS""")
-MAV_SYS_STATUS_SENSOR_OPTICAL_FLOW = 64
-enums["MAV_SYS_STATUS_SENSOR"][64] = EnumEntry("MAV_SYS_STATUS_SENSOR_OPTICAL_FLOW", """0x40 optical flow""")
-MAV_SYS_STATUS_SENSOR_VISION_POSITION = 128
-enums["MAV_SYS_STATUS_SENSOR"][128] = EnumEntry("MAV_SYS_STATUS_SENSOR_VISION_POSITION", """0x80 computer vision position""")
-MAV_SYS_STATUS_SENSOR_LASER_POSITION = 256
-enums["MAV_SYS_STATUS_SENSOR"][256] = EnumEntry("MAV_SYS_STATUS_SENSOR_LASER_POSITION", """0x100 laser based position""")
-MAV_SYS_STATUS_SENSOR_EXTERNAL_GROUND_TRUTH = 512
-enums["MAV_SYS_STATUS_SENSOR"][512] = EnumEntry("MAV_SYS_STATUS_SENSOR_EXTERNAL_GROUND_TRUTH", """0x200 external ground truth (Vicon or Leica)""")
-MAV_SYS_STATUS_SENSOR_ANGULAR_RATE_CONTROL = 1024
-enums["MAV_SYS_STATUS_SENSOR"][1024] = EnumEntry("MAV_SYS_STATUS_SENSOR_ANGULAR_RATE_CONTROL", """0x400 3D angular rate control""")
-MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION = 2048
-enums["MAV_SYS_STATUS_SENSOR"][2048] = EnumEntry("MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION", """0x800 attitude stabilization""")
-MAV_SYS_STATUS_SENSOR_YAW_POSITION = 4096
-enums["MAV_SYS_STATUS_SENSOR"][4096] = EnumEntry("MAV_SYS_STATUS_SENSOR_YAW_POSITION", """0x1000 yaw position""")
-MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL = 8192
-enums["MAV_SYS_STATUS_SENSOR"][8192] = EnumEntry("MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL", """0x2000 z/altitude control""")
-MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL = 16384
-enums["MAV_SYS_STATUS_SENSOR"][16384] = EnumEntry("MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL", """0x4000 x/y position control""")
-MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS = 32768
-enums["MAV_SYS_STATUS_SENSOR"][32768] = EnumEntry("MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS", """0x8000 motor outputs / control""")
-MAV_SYS_STATUS_SENSOR_RC_RECEIVER = 65536
-enums["MAV_SYS_STATUS_SENSOR"][65536] = EnumEntry("MAV_SYS_STATUS_SENSOR_RC_RECEIVER", """0x10000 RC receiver""")
-MAV_SYS_STATUS_SENSOR_3D_GYRO2 = 131072
-enums["MAV_SYS_STATUS_SENSOR"][131072] = EnumEntry("MAV_SYS_STATUS_SENSOR_3D_GYRO2", """0x20000 2nd 3D gyro""")
-MAV_SYS_STATUS_SENSOR_3D_ACCEL2 = 262144
-enums["MAV_SYS_STATUS_SENSOR"][262144] = EnumEntry("MAV_SYS_STATUS_SENSOR_3D_ACCEL2", """0x40000 2nd 3D accelerometer""")
-MAV_SYS_STATUS_SENSOR_3D_MAG2 = 524288
-enums["MAV_SYS_STATUS_SENSOR"][524288] = EnumEntry("MAV_SYS_STATUS_SENSOR_3D_MAG2", """0x80000 2nd 3D magnetometer""")
-MAV_SYS_STATUS_GEOFENCE = 1048576
-enums["MAV_SYS_STATUS_SENSOR"][1048576] = EnumEntry("MAV_SYS_STATUS_GEOFENCE", """0x100000 geofence""")
-MAV_SYS_STATUS_AHRS = 2097152
-enums["MAV_SYS_STATUS_SENSOR"][2097152] = EnumEntry("MAV_SYS_STATUS_AHRS", """0x200000 AHRS subsystem health""")
-MAV_SYS_STATUS_TERRAIN = 4194304
-enums["MAV_SYS_STATUS_SENSOR"][4194304] = EnumEntry("MAV_SYS_STATUS_TERRAIN", """0x400000 Terrain subsystem health""")
-MAV_SYS_STATUS_REVERSE_MOTOR = 8388608
-enums["MAV_SYS_STATUS_SENSOR"][8388608] = EnumEntry("MAV_SYS_STATUS_REVERSE_MOTOR", """0x800000 Motors are reversed""")
-MAV_SYS_STATUS_LOGGING = 16777216
-enums["MAV_SYS_STATUS_SENSOR"][16777216] = EnumEntry("MAV_SYS_STATUS_LOGGING", """0x1000000 Logging""")
-MAV_SYS_STATUS_SENSOR_BATTERY = 33554432
-enums["MAV_SYS_STATUS_SENSOR"][33554432] = EnumEntry("MAV_SYS_STATUS_SENSOR_BATTERY", """0x2000000 Battery""")
-MAV_SYS_STATUS_SENSOR_PROXIMITY = 67108864
-enums["MAV_SYS_STATUS_SENSOR"][67108864] = EnumEntry("MAV_SYS_STATUS_SENSOR_PROXIMITY", """0x4000000 Proximity""")
-MAV_SYS_STATUS_SENSOR_SATCOM = 134217728
-enums["MAV_SYS_STATUS_SENSOR"][134217728] = EnumEntry("MAV_SYS_STATUS_SENSOR_SATCOM", """0x8000000 Satellite Communication """)
-MAV_SYS_STATUS_PREARM_CHECK = 268435456
-enums["MAV_SYS_STATUS_SENSOR"][268435456] = EnumEntry("MAV_SYS_STATUS_PREARM_CHECK", """0x10000000 pre-arm check status. Always healthy when armed""")
-MAV_SYS_STATUS_OBSTACLE_AVOIDANCE = 536870912
-enums["MAV_SYS_STATUS_SENSOR"][536870912] = EnumEntry("MAV_SYS_STATUS_OBSTACLE_AVOIDANCE", """0x20000000 Avoidance/collision prevention""")
-MAV_SYS_STATUS_SENSOR_PROPULSION = 1073741824
-enums["MAV_SYS_STATUS_SENSOR"][1073741824] = EnumEntry("MAV_SYS_STATUS_SENSOR_PROPULSION", """0x40000000 propulsion (actuator, esc, motor or propellor)""")
-MAV_SYS_STATUS_EXTENSION_USED = 2147483648
-enums["MAV_SYS_STATUS_SENSOR"][2147483648] = EnumEntry("MAV_SYS_STATUS_EXTENSION_USED", """0x80000000 Extended bit-field are used for further sensor status bits (needs to be set in onboard_control_sensors_present only)""")
-MAV_SYS_STATUS_SENSOR_ENUM_END = 2147483649
-enums["MAV_SYS_STATUS_SENSOR"][2147483649] = EnumEntry("MAV_SYS_STATUS_SENSOR_ENUM_END", """""")
+# DEBRIS_MAGNET_STATE
+enums["DEBRIS_MAGNET_STATE"] = Enum()
+enums["DEBRIS_MAGNET_STATE"].bitmask = False
+DEBRIS_MAGNET_STATE_IDLE = 0
+enums["DEBRIS_MAGNET_STATE"][0] = EnumEntry("DEBRIS_MAGNET_STATE_IDLE", """At rest at a known position.""")
+DEBRIS_MAGNET_STATE_HOMING = 1
+enums["DEBRIS_MAGNET_STATE"][1] = EnumEntry("DEBRIS_MAGNET_STATE_HOMING", """Seeking the home switch.""")
+DEBRIS_MAGNET_STATE_TURNING = 2
+enums["DEBRIS_MAGNET_STATE"][2] = EnumEntry("DEBRIS_MAGNET_STATE_TURNING", """Stepping.""")
+DEBRIS_MAGNET_STATE_FAULT = 3
+enums["DEBRIS_MAGNET_STATE"][3] = EnumEntry("DEBRIS_MAGNET_STATE_FAULT", """Stall or lost position.""")
+DEBRIS_MAGNET_STATE_UNHOMED = 4
+enums["DEBRIS_MAGNET_STATE"][4] = EnumEntry("DEBRIS_MAGNET_STATE_UNHOMED", """Position unknown: needs homing.""")
+DEBRIS_MAGNET_STATE_ENUM_END = 5
+enums["DEBRIS_MAGNET_STATE"][5] = EnumEntry("DEBRIS_MAGNET_STATE_ENUM_END", """""")
 
-# MAV_SYS_STATUS_SENSOR_EXTENDED
-enums["MAV_SYS_STATUS_SENSOR_EXTENDED"] = Enum()
-enums["MAV_SYS_STATUS_SENSOR_EXTENDED"].bitmask = True
-MAV_SYS_STATUS_RECOVERY_SYSTEM = 1
-enums["MAV_SYS_STATUS_SENSOR_EXTENDED"][1] = EnumEntry("MAV_SYS_STATUS_RECOVERY_SYSTEM", """0x01 Recovery system (parachute, balloon, retracts etc)""")
-MAV_SYS_STATUS_SENSOR_LEAK = 2
-enums["MAV_SYS_STATUS_SENSOR_EXTENDED"][2] = EnumEntry("MAV_SYS_STATUS_SENSOR_LEAK", """0x02 Leak detection""")
-MAV_SYS_STATUS_SENSOR_EXTENDED_ENUM_END = 3
-enums["MAV_SYS_STATUS_SENSOR_EXTENDED"][3] = EnumEntry("MAV_SYS_STATUS_SENSOR_EXTENDED_ENUM_END", """""")
+# DEBRIS_CONTROLLER_STATE
+enums["DEBRIS_CONTROLLER_STATE"] = Enum()
+enums["DEBRIS_CONTROLLER_STATE"].bitmask = False
+DEBRIS_CONTROLLER_STATE_OFF = 0
+enums["DEBRIS_CONTROLLER_STATE"][0] = EnumEntry("DEBRIS_CONTROLLER_STATE_OFF", """Manual: commands only.""")
+DEBRIS_CONTROLLER_STATE_RUNNING = 1
+enums["DEBRIS_CONTROLLER_STATE"][1] = EnumEntry("DEBRIS_CONTROLLER_STATE_RUNNING", """The discrete controller drives the kit.""")
+DEBRIS_CONTROLLER_STATE_SAFE = 2
+enums["DEBRIS_CONTROLLER_STATE"][2] = EnumEntry("DEBRIS_CONTROLLER_STATE_SAFE", """Safe mode: capsules closed, no motion accepted but leaving safe mode.""")
+DEBRIS_CONTROLLER_STATE_ENUM_END = 3
+enums["DEBRIS_CONTROLLER_STATE"][3] = EnumEntry("DEBRIS_CONTROLLER_STATE_ENUM_END", """""")
 
-# MAV_FRAME
-enums["MAV_FRAME"] = Enum()
-enums["MAV_FRAME"].bitmask = False
-MAV_FRAME_GLOBAL = 0
-enums["MAV_FRAME"][0] = EnumEntry("MAV_FRAME_GLOBAL", """Global (WGS84) coordinate frame + altitude relative to mean sea level (MSL).""")
-MAV_FRAME_LOCAL_NED = 1
-enums["MAV_FRAME"][1] = EnumEntry("MAV_FRAME_LOCAL_NED", """NED local tangent frame (x: North, y: East, z: Down) with origin fixed relative to earth.""")
-MAV_FRAME_MISSION = 2
-enums["MAV_FRAME"][2] = EnumEntry("MAV_FRAME_MISSION", """NOT a coordinate frame, indicates a mission command.""")
-MAV_FRAME_GLOBAL_RELATIVE_ALT = 3
-enums["MAV_FRAME"][3] = EnumEntry(
-    "MAV_FRAME_GLOBAL_RELATIVE_ALT",
-    """
-          Global (WGS84) coordinate frame + altitude relative to the home position.
-        """,
-)
-MAV_FRAME_LOCAL_ENU = 4
-enums["MAV_FRAME"][4] = EnumEntry("MAV_FRAME_LOCAL_ENU", """ENU local tangent frame (x: East, y: North, z: Up) with origin fixed relative to earth.""")
-MAV_FRAME_GLOBAL_INT = 5
-enums["MAV_FRAME"][5] = EnumEntry("MAV_FRAME_GLOBAL_INT", """Global (WGS84) coordinate frame (scaled) + altitude relative to mean sea level (MSL).""")
-MAV_FRAME_GLOBAL_RELATIVE_ALT_INT = 6
-enums["MAV_FRAME"][6] = EnumEntry("MAV_FRAME_GLOBAL_RELATIVE_ALT_INT", """Global (WGS84) coordinate frame (scaled) + altitude relative to the home position. """)
-MAV_FRAME_LOCAL_OFFSET_NED = 7
-enums["MAV_FRAME"][7] = EnumEntry("MAV_FRAME_LOCAL_OFFSET_NED", """NED local tangent frame (x: North, y: East, z: Down) with origin that travels with the vehicle.""")
-MAV_FRAME_BODY_NED = 8
-enums["MAV_FRAME"][8] = EnumEntry("MAV_FRAME_BODY_NED", """Same as MAV_FRAME_LOCAL_NED when used to represent position values. Same as MAV_FRAME_BODY_FRD when used with velocity/acceleration values.""")
-MAV_FRAME_BODY_OFFSET_NED = 9
-enums["MAV_FRAME"][9] = EnumEntry("MAV_FRAME_BODY_OFFSET_NED", """This is the same as MAV_FRAME_BODY_FRD.""")
-MAV_FRAME_GLOBAL_TERRAIN_ALT = 10
-enums["MAV_FRAME"][10] = EnumEntry("MAV_FRAME_GLOBAL_TERRAIN_ALT", """Global (WGS84) coordinate frame with AGL altitude (altitude at ground level).""")
-MAV_FRAME_GLOBAL_TERRAIN_ALT_INT = 11
-enums["MAV_FRAME"][11] = EnumEntry("MAV_FRAME_GLOBAL_TERRAIN_ALT_INT", """Global (WGS84) coordinate frame (scaled) with AGL altitude (altitude at ground level).""")
-MAV_FRAME_BODY_FRD = 12
-enums["MAV_FRAME"][12] = EnumEntry("MAV_FRAME_BODY_FRD", """FRD local frame aligned to the vehicle's attitude (x: Forward, y: Right, z: Down) with an origin that travels with vehicle.""")
-MAV_FRAME_RESERVED_13 = 13
-enums["MAV_FRAME"][13] = EnumEntry("MAV_FRAME_RESERVED_13", """MAV_FRAME_BODY_FLU - Body fixed frame of reference, Z-up (x: Forward, y: Left, z: Up).""")
-MAV_FRAME_RESERVED_14 = 14
-enums["MAV_FRAME"][14] = EnumEntry("MAV_FRAME_RESERVED_14", """MAV_FRAME_MOCAP_NED - Odometry local coordinate frame of data given by a motion capture system, Z-down (x: North, y: East, z: Down).""")
-MAV_FRAME_RESERVED_15 = 15
-enums["MAV_FRAME"][15] = EnumEntry("MAV_FRAME_RESERVED_15", """MAV_FRAME_MOCAP_ENU - Odometry local coordinate frame of data given by a motion capture system, Z-up (x: East, y: North, z: Up).""")
-MAV_FRAME_RESERVED_16 = 16
-enums["MAV_FRAME"][16] = EnumEntry("MAV_FRAME_RESERVED_16", """MAV_FRAME_VISION_NED - Odometry local coordinate frame of data given by a vision estimation system, Z-down (x: North, y: East, z: Down).""")
-MAV_FRAME_RESERVED_17 = 17
-enums["MAV_FRAME"][17] = EnumEntry("MAV_FRAME_RESERVED_17", """MAV_FRAME_VISION_ENU - Odometry local coordinate frame of data given by a vision estimation system, Z-up (x: East, y: North, z: Up).""")
-MAV_FRAME_RESERVED_18 = 18
-enums["MAV_FRAME"][18] = EnumEntry("MAV_FRAME_RESERVED_18", """MAV_FRAME_ESTIM_NED - Odometry local coordinate frame of data given by an estimator running onboard the vehicle, Z-down (x: North, y: East, z: Down).""")
-MAV_FRAME_RESERVED_19 = 19
-enums["MAV_FRAME"][19] = EnumEntry("MAV_FRAME_RESERVED_19", """MAV_FRAME_ESTIM_ENU - Odometry local coordinate frame of data given by an estimator running onboard the vehicle, Z-up (x: East, y: North, z: Up).""")
-MAV_FRAME_LOCAL_FRD = 20
-enums["MAV_FRAME"][20] = EnumEntry("MAV_FRAME_LOCAL_FRD", """FRD local tangent frame (x: Forward, y: Right, z: Down) with origin fixed relative to earth. The forward axis is aligned to the front of the vehicle in the horizontal plane.""")
-MAV_FRAME_LOCAL_FLU = 21
-enums["MAV_FRAME"][21] = EnumEntry("MAV_FRAME_LOCAL_FLU", """FLU local tangent frame (x: Forward, y: Left, z: Up) with origin fixed relative to earth. The forward axis is aligned to the front of the vehicle in the horizontal plane.""")
-MAV_FRAME_ENUM_END = 22
-enums["MAV_FRAME"][22] = EnumEntry("MAV_FRAME_ENUM_END", """""")
-
-# MAVLINK_DATA_STREAM_TYPE
-enums["MAVLINK_DATA_STREAM_TYPE"] = Enum()
-enums["MAVLINK_DATA_STREAM_TYPE"].bitmask = False
-MAVLINK_DATA_STREAM_IMG_JPEG = 0
-enums["MAVLINK_DATA_STREAM_TYPE"][0] = EnumEntry("MAVLINK_DATA_STREAM_IMG_JPEG", """""")
-MAVLINK_DATA_STREAM_IMG_BMP = 1
-enums["MAVLINK_DATA_STREAM_TYPE"][1] = EnumEntry("MAVLINK_DATA_STREAM_IMG_BMP", """""")
-MAVLINK_DATA_STREAM_IMG_RAW8U = 2
-enums["MAVLINK_DATA_STREAM_TYPE"][2] = EnumEntry("MAVLINK_DATA_STREAM_IMG_RAW8U", """""")
-MAVLINK_DATA_STREAM_IMG_RAW32U = 3
-enums["MAVLINK_DATA_STREAM_TYPE"][3] = EnumEntry("MAVLINK_DATA_STREAM_IMG_RAW32U", """""")
-MAVLINK_DATA_STREAM_IMG_PGM = 4
-enums["MAVLINK_DATA_STREAM_TYPE"][4] = EnumEntry("MAVLINK_DATA_STREAM_IMG_PGM", """""")
-MAVLINK_DATA_STREAM_IMG_PNG = 5
-enums["MAVLINK_DATA_STREAM_TYPE"][5] = EnumEntry("MAVLINK_DATA_STREAM_IMG_PNG", """""")
-MAVLINK_DATA_STREAM_TYPE_ENUM_END = 6
-enums["MAVLINK_DATA_STREAM_TYPE"][6] = EnumEntry("MAVLINK_DATA_STREAM_TYPE_ENUM_END", """""")
-
-# FENCE_BREACH
-enums["FENCE_BREACH"] = Enum()
-enums["FENCE_BREACH"].bitmask = False
-FENCE_BREACH_NONE = 0
-enums["FENCE_BREACH"][0] = EnumEntry("FENCE_BREACH_NONE", """No last fence breach""")
-FENCE_BREACH_MINALT = 1
-enums["FENCE_BREACH"][1] = EnumEntry("FENCE_BREACH_MINALT", """Breached minimum altitude""")
-FENCE_BREACH_MAXALT = 2
-enums["FENCE_BREACH"][2] = EnumEntry("FENCE_BREACH_MAXALT", """Breached maximum altitude""")
-FENCE_BREACH_BOUNDARY = 3
-enums["FENCE_BREACH"][3] = EnumEntry("FENCE_BREACH_BOUNDARY", """Breached fence boundary""")
-FENCE_BREACH_ENUM_END = 4
-enums["FENCE_BREACH"][4] = EnumEntry("FENCE_BREACH_ENUM_END", """""")
-
-# FENCE_MITIGATE
-enums["FENCE_MITIGATE"] = Enum()
-enums["FENCE_MITIGATE"].bitmask = False
-FENCE_MITIGATE_UNKNOWN = 0
-enums["FENCE_MITIGATE"][0] = EnumEntry("FENCE_MITIGATE_UNKNOWN", """Unknown""")
-FENCE_MITIGATE_NONE = 1
-enums["FENCE_MITIGATE"][1] = EnumEntry("FENCE_MITIGATE_NONE", """No actions being taken""")
-FENCE_MITIGATE_VEL_LIMIT = 2
-enums["FENCE_MITIGATE"][2] = EnumEntry("FENCE_MITIGATE_VEL_LIMIT", """Velocity limiting active to prevent breach""")
-FENCE_MITIGATE_ENUM_END = 3
-enums["FENCE_MITIGATE"][3] = EnumEntry("FENCE_MITIGATE_ENUM_END", """""")
-
-# FENCE_TYPE
-enums["FENCE_TYPE"] = Enum()
-enums["FENCE_TYPE"].bitmask = True
-FENCE_TYPE_ALT_MAX = 1
-enums["FENCE_TYPE"][1] = EnumEntry("FENCE_TYPE_ALT_MAX", """Maximum altitude fence""")
-FENCE_TYPE_CIRCLE = 2
-enums["FENCE_TYPE"][2] = EnumEntry("FENCE_TYPE_CIRCLE", """Circle fence""")
-FENCE_TYPE_POLYGON = 4
-enums["FENCE_TYPE"][4] = EnumEntry("FENCE_TYPE_POLYGON", """Polygon fence""")
-FENCE_TYPE_ALT_MIN = 8
-enums["FENCE_TYPE"][8] = EnumEntry("FENCE_TYPE_ALT_MIN", """Minimum altitude fence""")
-FENCE_TYPE_ENUM_END = 9
-enums["FENCE_TYPE"][9] = EnumEntry("FENCE_TYPE_ENUM_END", """""")
-
-# MAV_MOUNT_MODE
-enums["MAV_MOUNT_MODE"] = Enum()
-enums["MAV_MOUNT_MODE"].bitmask = False
-MAV_MOUNT_MODE_RETRACT = 0
-enums["MAV_MOUNT_MODE"][0] = EnumEntry("MAV_MOUNT_MODE_RETRACT", """Load and keep safe position (Roll,Pitch,Yaw) from permanent memory and stop stabilization""")
-MAV_MOUNT_MODE_NEUTRAL = 1
-enums["MAV_MOUNT_MODE"][1] = EnumEntry("MAV_MOUNT_MODE_NEUTRAL", """Load and keep neutral position (Roll,Pitch,Yaw) from permanent memory.""")
-MAV_MOUNT_MODE_MAVLINK_TARGETING = 2
-enums["MAV_MOUNT_MODE"][2] = EnumEntry("MAV_MOUNT_MODE_MAVLINK_TARGETING", """Load neutral position and start MAVLink Roll,Pitch,Yaw control with stabilization""")
-MAV_MOUNT_MODE_RC_TARGETING = 3
-enums["MAV_MOUNT_MODE"][3] = EnumEntry("MAV_MOUNT_MODE_RC_TARGETING", """Load neutral position and start RC Roll,Pitch,Yaw control with stabilization""")
-MAV_MOUNT_MODE_GPS_POINT = 4
-enums["MAV_MOUNT_MODE"][4] = EnumEntry("MAV_MOUNT_MODE_GPS_POINT", """Load neutral position and start to point to Lat,Lon,Alt""")
-MAV_MOUNT_MODE_SYSID_TARGET = 5
-enums["MAV_MOUNT_MODE"][5] = EnumEntry("MAV_MOUNT_MODE_SYSID_TARGET", """Gimbal tracks system with specified system ID""")
-MAV_MOUNT_MODE_HOME_LOCATION = 6
-enums["MAV_MOUNT_MODE"][6] = EnumEntry("MAV_MOUNT_MODE_HOME_LOCATION", """Gimbal tracks home position""")
-MAV_MOUNT_MODE_WPNEXT_OFFSET = 7
-enums["MAV_MOUNT_MODE"][7] = EnumEntry("MAV_MOUNT_MODE_WPNEXT_OFFSET", """Gimbal tracks next waypoint location with offset""")
-MAV_MOUNT_MODE_ENUM_END = 8
-enums["MAV_MOUNT_MODE"][8] = EnumEntry("MAV_MOUNT_MODE_ENUM_END", """""")
-
-# GIMBAL_DEVICE_CAP_FLAGS
-enums["GIMBAL_DEVICE_CAP_FLAGS"] = Enum()
-enums["GIMBAL_DEVICE_CAP_FLAGS"].bitmask = True
-GIMBAL_DEVICE_CAP_FLAGS_HAS_RETRACT = 1
-enums["GIMBAL_DEVICE_CAP_FLAGS"][1] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_RETRACT", """Gimbal device supports a retracted position.""")
-GIMBAL_DEVICE_CAP_FLAGS_HAS_NEUTRAL = 2
-enums["GIMBAL_DEVICE_CAP_FLAGS"][2] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_NEUTRAL", """Gimbal device supports a horizontal, forward looking position, stabilized.""")
-GIMBAL_DEVICE_CAP_FLAGS_HAS_ROLL_AXIS = 4
-enums["GIMBAL_DEVICE_CAP_FLAGS"][4] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_ROLL_AXIS", """Gimbal device supports rotating around roll axis.""")
-GIMBAL_DEVICE_CAP_FLAGS_HAS_ROLL_FOLLOW = 8
-enums["GIMBAL_DEVICE_CAP_FLAGS"][8] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_ROLL_FOLLOW", """Gimbal device supports to follow a roll angle relative to the vehicle.""")
-GIMBAL_DEVICE_CAP_FLAGS_HAS_ROLL_LOCK = 16
-enums["GIMBAL_DEVICE_CAP_FLAGS"][16] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_ROLL_LOCK", """Gimbal device supports locking to a roll angle (generally that's the default with roll stabilized).""")
-GIMBAL_DEVICE_CAP_FLAGS_HAS_PITCH_AXIS = 32
-enums["GIMBAL_DEVICE_CAP_FLAGS"][32] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_PITCH_AXIS", """Gimbal device supports rotating around pitch axis.""")
-GIMBAL_DEVICE_CAP_FLAGS_HAS_PITCH_FOLLOW = 64
-enums["GIMBAL_DEVICE_CAP_FLAGS"][64] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_PITCH_FOLLOW", """Gimbal device supports to follow a pitch angle relative to the vehicle.""")
-GIMBAL_DEVICE_CAP_FLAGS_HAS_PITCH_LOCK = 128
-enums["GIMBAL_DEVICE_CAP_FLAGS"][128] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_PITCH_LOCK", """Gimbal device supports locking to a pitch angle (generally that's the default with pitch stabilized).""")
-GIMBAL_DEVICE_CAP_FLAGS_HAS_YAW_AXIS = 256
-enums["GIMBAL_DEVICE_CAP_FLAGS"][256] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_YAW_AXIS", """Gimbal device supports rotating around yaw axis.""")
-GIMBAL_DEVICE_CAP_FLAGS_HAS_YAW_FOLLOW = 512
-enums["GIMBAL_DEVICE_CAP_FLAGS"][512] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_YAW_FOLLOW", """Gimbal device supports to follow a yaw angle relative to the vehicle (generally that's the default).""")
-GIMBAL_DEVICE_CAP_FLAGS_HAS_YAW_LOCK = 1024
-enums["GIMBAL_DEVICE_CAP_FLAGS"][1024] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_YAW_LOCK", """Gimbal device supports locking to an absolute heading, i.e., yaw angle relative to North (earth frame, often this is an option available).""")
-GIMBAL_DEVICE_CAP_FLAGS_SUPPORTS_INFINITE_YAW = 2048
-enums["GIMBAL_DEVICE_CAP_FLAGS"][2048] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_SUPPORTS_INFINITE_YAW", """Gimbal device supports yawing/panning infinitely (e.g. using slip disk).""")
-GIMBAL_DEVICE_CAP_FLAGS_SUPPORTS_YAW_IN_EARTH_FRAME = 4096
-enums["GIMBAL_DEVICE_CAP_FLAGS"][4096] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_SUPPORTS_YAW_IN_EARTH_FRAME", """Gimbal device supports yaw angles and angular velocities relative to North (earth frame). This usually requires support by an autopilot via AUTOPILOT_STATE_FOR_GIMBAL_DEVICE. Support can go on and off during runtime, which is reported by the flag GIMBAL_DEVICE_FLAGS_CAN_ACCEPT_YAW_IN_EARTH_FRAME.""")
-GIMBAL_DEVICE_CAP_FLAGS_HAS_RC_INPUTS = 8192
-enums["GIMBAL_DEVICE_CAP_FLAGS"][8192] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_RC_INPUTS", """Gimbal device supports radio control inputs as an alternative input for controlling the gimbal orientation.""")
-GIMBAL_DEVICE_CAP_FLAGS_CAN_POINT_LOCATION_LOCAL = 65536
-enums["GIMBAL_DEVICE_CAP_FLAGS"][65536] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_CAN_POINT_LOCATION_LOCAL", """Gimbal device supports to point to a local position.""")
-GIMBAL_DEVICE_CAP_FLAGS_CAN_POINT_LOCATION_GLOBAL = 131072
-enums["GIMBAL_DEVICE_CAP_FLAGS"][131072] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_CAN_POINT_LOCATION_GLOBAL", """Gimbal device supports to point to a global latitude, longitude, altitude position.""")
-GIMBAL_DEVICE_CAP_FLAGS_ENUM_END = 131073
-enums["GIMBAL_DEVICE_CAP_FLAGS"][131073] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_ENUM_END", """""")
-
-# GIMBAL_MANAGER_CAP_FLAGS
-enums["GIMBAL_MANAGER_CAP_FLAGS"] = Enum()
-enums["GIMBAL_MANAGER_CAP_FLAGS"].bitmask = True
-GIMBAL_MANAGER_CAP_FLAGS_HAS_RETRACT = 1
-enums["GIMBAL_MANAGER_CAP_FLAGS"][1] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_RETRACT", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_RETRACT.""")
-GIMBAL_MANAGER_CAP_FLAGS_HAS_NEUTRAL = 2
-enums["GIMBAL_MANAGER_CAP_FLAGS"][2] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_NEUTRAL", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_NEUTRAL.""")
-GIMBAL_MANAGER_CAP_FLAGS_HAS_ROLL_AXIS = 4
-enums["GIMBAL_MANAGER_CAP_FLAGS"][4] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_ROLL_AXIS", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_ROLL_AXIS.""")
-GIMBAL_MANAGER_CAP_FLAGS_HAS_ROLL_FOLLOW = 8
-enums["GIMBAL_MANAGER_CAP_FLAGS"][8] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_ROLL_FOLLOW", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_ROLL_FOLLOW.""")
-GIMBAL_MANAGER_CAP_FLAGS_HAS_ROLL_LOCK = 16
-enums["GIMBAL_MANAGER_CAP_FLAGS"][16] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_ROLL_LOCK", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_ROLL_LOCK.""")
-GIMBAL_MANAGER_CAP_FLAGS_HAS_PITCH_AXIS = 32
-enums["GIMBAL_MANAGER_CAP_FLAGS"][32] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_PITCH_AXIS", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_PITCH_AXIS.""")
-GIMBAL_MANAGER_CAP_FLAGS_HAS_PITCH_FOLLOW = 64
-enums["GIMBAL_MANAGER_CAP_FLAGS"][64] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_PITCH_FOLLOW", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_PITCH_FOLLOW.""")
-GIMBAL_MANAGER_CAP_FLAGS_HAS_PITCH_LOCK = 128
-enums["GIMBAL_MANAGER_CAP_FLAGS"][128] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_PITCH_LOCK", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_PITCH_LOCK.""")
-GIMBAL_MANAGER_CAP_FLAGS_HAS_YAW_AXIS = 256
-enums["GIMBAL_MANAGER_CAP_FLAGS"][256] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_YAW_AXIS", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_YAW_AXIS.""")
-GIMBAL_MANAGER_CAP_FLAGS_HAS_YAW_FOLLOW = 512
-enums["GIMBAL_MANAGER_CAP_FLAGS"][512] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_YAW_FOLLOW", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_YAW_FOLLOW.""")
-GIMBAL_MANAGER_CAP_FLAGS_HAS_YAW_LOCK = 1024
-enums["GIMBAL_MANAGER_CAP_FLAGS"][1024] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_YAW_LOCK", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_YAW_LOCK.""")
-GIMBAL_MANAGER_CAP_FLAGS_SUPPORTS_INFINITE_YAW = 2048
-enums["GIMBAL_MANAGER_CAP_FLAGS"][2048] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_SUPPORTS_INFINITE_YAW", """Based on GIMBAL_DEVICE_CAP_FLAGS_SUPPORTS_INFINITE_YAW.""")
-GIMBAL_MANAGER_CAP_FLAGS_SUPPORTS_YAW_IN_EARTH_FRAME = 4096
-enums["GIMBAL_MANAGER_CAP_FLAGS"][4096] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_SUPPORTS_YAW_IN_EARTH_FRAME", """Based on GIMBAL_DEVICE_CAP_FLAGS_SUPPORTS_YAW_IN_EARTH_FRAME.""")
-GIMBAL_MANAGER_CAP_FLAGS_HAS_RC_INPUTS = 8192
-enums["GIMBAL_MANAGER_CAP_FLAGS"][8192] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_RC_INPUTS", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_RC_INPUTS.""")
-GIMBAL_MANAGER_CAP_FLAGS_CAN_POINT_LOCATION_LOCAL = 65536
-enums["GIMBAL_MANAGER_CAP_FLAGS"][65536] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_CAN_POINT_LOCATION_LOCAL", """Based on GIMBAL_DEVICE_CAP_FLAGS_CAN_POINT_LOCATION_LOCAL.""")
-GIMBAL_MANAGER_CAP_FLAGS_CAN_POINT_LOCATION_GLOBAL = 131072
-enums["GIMBAL_MANAGER_CAP_FLAGS"][131072] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_CAN_POINT_LOCATION_GLOBAL", """Based on GIMBAL_DEVICE_CAP_FLAGS_CAN_POINT_LOCATION_GLOBAL.""")
-GIMBAL_MANAGER_CAP_FLAGS_ENUM_END = 131073
-enums["GIMBAL_MANAGER_CAP_FLAGS"][131073] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_ENUM_END", """""")
-
-# GIMBAL_DEVICE_FLAGS
-enums["GIMBAL_DEVICE_FLAGS"] = Enum()
-enums["GIMBAL_DEVICE_FLAGS"].bitmask = True
-GIMBAL_DEVICE_FLAGS_RETRACT = 1
-enums["GIMBAL_DEVICE_FLAGS"][1] = EnumEntry("GIMBAL_DEVICE_FLAGS_RETRACT", """Set to retracted safe position (no stabilization), takes precedence over all other flags.""")
-GIMBAL_DEVICE_FLAGS_NEUTRAL = 2
-enums["GIMBAL_DEVICE_FLAGS"][2] = EnumEntry("GIMBAL_DEVICE_FLAGS_NEUTRAL", """Set to neutral/default position, taking precedence over all other flags except RETRACT. Neutral is commonly forward-facing and horizontal (roll=pitch=yaw=0) but may be any orientation.""")
-GIMBAL_DEVICE_FLAGS_ROLL_LOCK = 4
-enums["GIMBAL_DEVICE_FLAGS"][4] = EnumEntry("GIMBAL_DEVICE_FLAGS_ROLL_LOCK", """Lock roll angle to absolute angle relative to horizon (not relative to vehicle). This is generally the default with a stabilizing gimbal.""")
-GIMBAL_DEVICE_FLAGS_PITCH_LOCK = 8
-enums["GIMBAL_DEVICE_FLAGS"][8] = EnumEntry("GIMBAL_DEVICE_FLAGS_PITCH_LOCK", """Lock pitch angle to absolute angle relative to horizon (not relative to vehicle). This is generally the default with a stabilizing gimbal.""")
-GIMBAL_DEVICE_FLAGS_YAW_LOCK = 16
-enums["GIMBAL_DEVICE_FLAGS"][16] = EnumEntry("GIMBAL_DEVICE_FLAGS_YAW_LOCK", """Lock yaw angle to absolute angle relative to North (not relative to vehicle). If this flag is set, the yaw angle and z component of angular velocity are relative to North (earth frame, x-axis pointing North), else they are relative to the vehicle heading (vehicle frame, earth frame rotated so that the x-axis is pointing forward).""")
-GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME = 32
-enums["GIMBAL_DEVICE_FLAGS"][32] = EnumEntry("GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME", """Yaw angle and z component of angular velocity are relative to the vehicle heading (vehicle frame, earth frame rotated such that the x-axis is pointing forward).""")
-GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME = 64
-enums["GIMBAL_DEVICE_FLAGS"][64] = EnumEntry("GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME", """Yaw angle and z component of angular velocity are relative to North (earth frame, x-axis is pointing North).""")
-GIMBAL_DEVICE_FLAGS_ACCEPTS_YAW_IN_EARTH_FRAME = 128
-enums["GIMBAL_DEVICE_FLAGS"][128] = EnumEntry("GIMBAL_DEVICE_FLAGS_ACCEPTS_YAW_IN_EARTH_FRAME", """Gimbal device can accept yaw angle inputs relative to North (earth frame). This flag is only for reporting (attempts to set this flag are ignored).""")
-GIMBAL_DEVICE_FLAGS_RC_EXCLUSIVE = 256
-enums["GIMBAL_DEVICE_FLAGS"][256] = EnumEntry("GIMBAL_DEVICE_FLAGS_RC_EXCLUSIVE", """The gimbal orientation is set exclusively by the RC signals feed to the gimbal's radio control inputs. MAVLink messages for setting the gimbal orientation (GIMBAL_DEVICE_SET_ATTITUDE) are ignored.""")
-GIMBAL_DEVICE_FLAGS_RC_MIXED = 512
-enums["GIMBAL_DEVICE_FLAGS"][512] = EnumEntry("GIMBAL_DEVICE_FLAGS_RC_MIXED", """The gimbal orientation is determined by combining/mixing the RC signals feed to the gimbal's radio control inputs and the MAVLink messages for setting the gimbal orientation (GIMBAL_DEVICE_SET_ATTITUDE). How these two controls are combined or mixed is not defined by the protocol but is up to the implementation.""")
-GIMBAL_DEVICE_FLAGS_ENUM_END = 513
-enums["GIMBAL_DEVICE_FLAGS"][513] = EnumEntry("GIMBAL_DEVICE_FLAGS_ENUM_END", """""")
-
-# GIMBAL_MANAGER_FLAGS
-enums["GIMBAL_MANAGER_FLAGS"] = Enum()
-enums["GIMBAL_MANAGER_FLAGS"].bitmask = True
-GIMBAL_MANAGER_FLAGS_RETRACT = 1
-enums["GIMBAL_MANAGER_FLAGS"][1] = EnumEntry("GIMBAL_MANAGER_FLAGS_RETRACT", """Based on GIMBAL_DEVICE_FLAGS_RETRACT.""")
-GIMBAL_MANAGER_FLAGS_NEUTRAL = 2
-enums["GIMBAL_MANAGER_FLAGS"][2] = EnumEntry("GIMBAL_MANAGER_FLAGS_NEUTRAL", """Based on GIMBAL_DEVICE_FLAGS_NEUTRAL.""")
-GIMBAL_MANAGER_FLAGS_ROLL_LOCK = 4
-enums["GIMBAL_MANAGER_FLAGS"][4] = EnumEntry("GIMBAL_MANAGER_FLAGS_ROLL_LOCK", """Based on GIMBAL_DEVICE_FLAGS_ROLL_LOCK.""")
-GIMBAL_MANAGER_FLAGS_PITCH_LOCK = 8
-enums["GIMBAL_MANAGER_FLAGS"][8] = EnumEntry("GIMBAL_MANAGER_FLAGS_PITCH_LOCK", """Based on GIMBAL_DEVICE_FLAGS_PITCH_LOCK.""")
-GIMBAL_MANAGER_FLAGS_YAW_LOCK = 16
-enums["GIMBAL_MANAGER_FLAGS"][16] = EnumEntry("GIMBAL_MANAGER_FLAGS_YAW_LOCK", """Based on GIMBAL_DEVICE_FLAGS_YAW_LOCK.""")
-GIMBAL_MANAGER_FLAGS_YAW_IN_VEHICLE_FRAME = 32
-enums["GIMBAL_MANAGER_FLAGS"][32] = EnumEntry("GIMBAL_MANAGER_FLAGS_YAW_IN_VEHICLE_FRAME", """Based on GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME.""")
-GIMBAL_MANAGER_FLAGS_YAW_IN_EARTH_FRAME = 64
-enums["GIMBAL_MANAGER_FLAGS"][64] = EnumEntry("GIMBAL_MANAGER_FLAGS_YAW_IN_EARTH_FRAME", """Based on GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME.""")
-GIMBAL_MANAGER_FLAGS_ACCEPTS_YAW_IN_EARTH_FRAME = 128
-enums["GIMBAL_MANAGER_FLAGS"][128] = EnumEntry("GIMBAL_MANAGER_FLAGS_ACCEPTS_YAW_IN_EARTH_FRAME", """Based on GIMBAL_DEVICE_FLAGS_ACCEPTS_YAW_IN_EARTH_FRAME.""")
-GIMBAL_MANAGER_FLAGS_RC_EXCLUSIVE = 256
-enums["GIMBAL_MANAGER_FLAGS"][256] = EnumEntry("GIMBAL_MANAGER_FLAGS_RC_EXCLUSIVE", """Based on GIMBAL_DEVICE_FLAGS_RC_EXCLUSIVE.""")
-GIMBAL_MANAGER_FLAGS_RC_MIXED = 512
-enums["GIMBAL_MANAGER_FLAGS"][512] = EnumEntry("GIMBAL_MANAGER_FLAGS_RC_MIXED", """Based on GIMBAL_DEVICE_FLAGS_RC_MIXED.""")
-GIMBAL_MANAGER_FLAGS_ENUM_END = 513
-enums["GIMBAL_MANAGER_FLAGS"][513] = EnumEntry("GIMBAL_MANAGER_FLAGS_ENUM_END", """""")
-
-# GIMBAL_DEVICE_ERROR_FLAGS
-enums["GIMBAL_DEVICE_ERROR_FLAGS"] = Enum()
-enums["GIMBAL_DEVICE_ERROR_FLAGS"].bitmask = True
-GIMBAL_DEVICE_ERROR_FLAGS_AT_ROLL_LIMIT = 1
-enums["GIMBAL_DEVICE_ERROR_FLAGS"][1] = EnumEntry("GIMBAL_DEVICE_ERROR_FLAGS_AT_ROLL_LIMIT", """Gimbal device is limited by hardware roll limit.""")
-GIMBAL_DEVICE_ERROR_FLAGS_AT_PITCH_LIMIT = 2
-enums["GIMBAL_DEVICE_ERROR_FLAGS"][2] = EnumEntry("GIMBAL_DEVICE_ERROR_FLAGS_AT_PITCH_LIMIT", """Gimbal device is limited by hardware pitch limit.""")
-GIMBAL_DEVICE_ERROR_FLAGS_AT_YAW_LIMIT = 4
-enums["GIMBAL_DEVICE_ERROR_FLAGS"][4] = EnumEntry("GIMBAL_DEVICE_ERROR_FLAGS_AT_YAW_LIMIT", """Gimbal device is limited by hardware yaw limit.""")
-GIMBAL_DEVICE_ERROR_FLAGS_ENCODER_ERROR = 8
-enums["GIMBAL_DEVICE_ERROR_FLAGS"][8] = EnumEntry("GIMBAL_DEVICE_ERROR_FLAGS_ENCODER_ERROR", """There is an error with the gimbal encoders.""")
-GIMBAL_DEVICE_ERROR_FLAGS_POWER_ERROR = 16
-enums["GIMBAL_DEVICE_ERROR_FLAGS"][16] = EnumEntry("GIMBAL_DEVICE_ERROR_FLAGS_POWER_ERROR", """There is an error with the gimbal power source.""")
-GIMBAL_DEVICE_ERROR_FLAGS_MOTOR_ERROR = 32
-enums["GIMBAL_DEVICE_ERROR_FLAGS"][32] = EnumEntry("GIMBAL_DEVICE_ERROR_FLAGS_MOTOR_ERROR", """There is an error with the gimbal motors.""")
-GIMBAL_DEVICE_ERROR_FLAGS_SOFTWARE_ERROR = 64
-enums["GIMBAL_DEVICE_ERROR_FLAGS"][64] = EnumEntry("GIMBAL_DEVICE_ERROR_FLAGS_SOFTWARE_ERROR", """There is an error with the gimbal's software.""")
-GIMBAL_DEVICE_ERROR_FLAGS_COMMS_ERROR = 128
-enums["GIMBAL_DEVICE_ERROR_FLAGS"][128] = EnumEntry("GIMBAL_DEVICE_ERROR_FLAGS_COMMS_ERROR", """There is an error with the gimbal's communication.""")
-GIMBAL_DEVICE_ERROR_FLAGS_CALIBRATION_RUNNING = 256
-enums["GIMBAL_DEVICE_ERROR_FLAGS"][256] = EnumEntry("GIMBAL_DEVICE_ERROR_FLAGS_CALIBRATION_RUNNING", """Gimbal device is currently calibrating.""")
-GIMBAL_DEVICE_ERROR_FLAGS_NO_MANAGER = 512
-enums["GIMBAL_DEVICE_ERROR_FLAGS"][512] = EnumEntry("GIMBAL_DEVICE_ERROR_FLAGS_NO_MANAGER", """Gimbal device is not assigned to a gimbal manager.""")
-GIMBAL_DEVICE_ERROR_FLAGS_ENUM_END = 513
-enums["GIMBAL_DEVICE_ERROR_FLAGS"][513] = EnumEntry("GIMBAL_DEVICE_ERROR_FLAGS_ENUM_END", """""")
-
-# GRIPPER_ACTIONS
-enums["GRIPPER_ACTIONS"] = Enum()
-enums["GRIPPER_ACTIONS"].bitmask = False
-GRIPPER_ACTION_RELEASE = 0
-enums["GRIPPER_ACTIONS"][0] = EnumEntry("GRIPPER_ACTION_RELEASE", """Gripper release cargo.""")
-GRIPPER_ACTION_GRAB = 1
-enums["GRIPPER_ACTIONS"][1] = EnumEntry("GRIPPER_ACTION_GRAB", """Gripper grab onto cargo.""")
-GRIPPER_ACTION_HOLD = 2
-enums["GRIPPER_ACTIONS"][2] = EnumEntry("GRIPPER_ACTION_HOLD", """Gripper hold current grip state/position.""")
-GRIPPER_ACTIONS_ENUM_END = 3
-enums["GRIPPER_ACTIONS"][3] = EnumEntry("GRIPPER_ACTIONS_ENUM_END", """""")
-
-# WINCH_ACTIONS
-enums["WINCH_ACTIONS"] = Enum()
-enums["WINCH_ACTIONS"].bitmask = False
-WINCH_RELAXED = 0
-enums["WINCH_ACTIONS"][0] = EnumEntry("WINCH_RELAXED", """Allow motor to freewheel.""")
-WINCH_RELATIVE_LENGTH_CONTROL = 1
-enums["WINCH_ACTIONS"][1] = EnumEntry("WINCH_RELATIVE_LENGTH_CONTROL", """Wind or unwind specified length of line, optionally using specified rate.""")
-WINCH_RATE_CONTROL = 2
-enums["WINCH_ACTIONS"][2] = EnumEntry("WINCH_RATE_CONTROL", """Wind or unwind line at specified rate.""")
-WINCH_LOCK = 3
-enums["WINCH_ACTIONS"][3] = EnumEntry("WINCH_LOCK", """Perform the locking sequence to relieve motor while in the fully retracted position. Only action and instance command parameters are used, others are ignored.""")
-WINCH_DELIVER = 4
-enums["WINCH_ACTIONS"][4] = EnumEntry("WINCH_DELIVER", """Sequence of drop, slow down, touch down, reel up, lock. Only action and instance command parameters are used, others are ignored.""")
-WINCH_HOLD = 5
-enums["WINCH_ACTIONS"][5] = EnumEntry("WINCH_HOLD", """Engage motor and hold current position. Only action and instance command parameters are used, others are ignored.""")
-WINCH_RETRACT = 6
-enums["WINCH_ACTIONS"][6] = EnumEntry("WINCH_RETRACT", """Return the reel to the fully retracted position. Only action and instance command parameters are used, others are ignored.""")
-WINCH_LOAD_LINE = 7
-enums["WINCH_ACTIONS"][7] = EnumEntry("WINCH_LOAD_LINE", """Load the reel with line. The winch will calculate the total loaded length and stop when the tension exceeds a threshold. Only action and instance command parameters are used, others are ignored.""")
-WINCH_ABANDON_LINE = 8
-enums["WINCH_ACTIONS"][8] = EnumEntry("WINCH_ABANDON_LINE", """Spool out the entire length of the line. Only action and instance command parameters are used, others are ignored.""")
-WINCH_LOAD_PAYLOAD = 9
-enums["WINCH_ACTIONS"][9] = EnumEntry("WINCH_LOAD_PAYLOAD", """Spools out just enough to present the hook to the user to load the payload. Only action and instance command parameters are used, others are ignored""")
-WINCH_ACTIONS_ENUM_END = 10
-enums["WINCH_ACTIONS"][10] = EnumEntry("WINCH_ACTIONS_ENUM_END", """""")
-
-# UAVCAN_NODE_HEALTH
-enums["UAVCAN_NODE_HEALTH"] = Enum()
-enums["UAVCAN_NODE_HEALTH"].bitmask = False
-UAVCAN_NODE_HEALTH_OK = 0
-enums["UAVCAN_NODE_HEALTH"][0] = EnumEntry("UAVCAN_NODE_HEALTH_OK", """The node is functioning properly.""")
-UAVCAN_NODE_HEALTH_WARNING = 1
-enums["UAVCAN_NODE_HEALTH"][1] = EnumEntry("UAVCAN_NODE_HEALTH_WARNING", """A critical parameter went out of range or the node has encountered a minor failure.""")
-UAVCAN_NODE_HEALTH_ERROR = 2
-enums["UAVCAN_NODE_HEALTH"][2] = EnumEntry("UAVCAN_NODE_HEALTH_ERROR", """The node has encountered a major failure.""")
-UAVCAN_NODE_HEALTH_CRITICAL = 3
-enums["UAVCAN_NODE_HEALTH"][3] = EnumEntry("UAVCAN_NODE_HEALTH_CRITICAL", """The node has suffered a fatal malfunction.""")
-UAVCAN_NODE_HEALTH_ENUM_END = 4
-enums["UAVCAN_NODE_HEALTH"][4] = EnumEntry("UAVCAN_NODE_HEALTH_ENUM_END", """""")
-
-# UAVCAN_NODE_MODE
-enums["UAVCAN_NODE_MODE"] = Enum()
-enums["UAVCAN_NODE_MODE"].bitmask = False
-UAVCAN_NODE_MODE_OPERATIONAL = 0
-enums["UAVCAN_NODE_MODE"][0] = EnumEntry("UAVCAN_NODE_MODE_OPERATIONAL", """The node is performing its primary functions.""")
-UAVCAN_NODE_MODE_INITIALIZATION = 1
-enums["UAVCAN_NODE_MODE"][1] = EnumEntry("UAVCAN_NODE_MODE_INITIALIZATION", """The node is initializing; this mode is entered immediately after startup.""")
-UAVCAN_NODE_MODE_MAINTENANCE = 2
-enums["UAVCAN_NODE_MODE"][2] = EnumEntry("UAVCAN_NODE_MODE_MAINTENANCE", """The node is under maintenance.""")
-UAVCAN_NODE_MODE_SOFTWARE_UPDATE = 3
-enums["UAVCAN_NODE_MODE"][3] = EnumEntry("UAVCAN_NODE_MODE_SOFTWARE_UPDATE", """The node is in the process of updating its software.""")
-UAVCAN_NODE_MODE_OFFLINE = 7
-enums["UAVCAN_NODE_MODE"][7] = EnumEntry("UAVCAN_NODE_MODE_OFFLINE", """The node is no longer available online.""")
-UAVCAN_NODE_MODE_ENUM_END = 8
-enums["UAVCAN_NODE_MODE"][8] = EnumEntry("UAVCAN_NODE_MODE_ENUM_END", """""")
-
-# STORAGE_STATUS
-enums["STORAGE_STATUS"] = Enum()
-enums["STORAGE_STATUS"].bitmask = False
-STORAGE_STATUS_EMPTY = 0
-enums["STORAGE_STATUS"][0] = EnumEntry("STORAGE_STATUS_EMPTY", """Storage is missing (no microSD card loaded for example.)""")
-STORAGE_STATUS_UNFORMATTED = 1
-enums["STORAGE_STATUS"][1] = EnumEntry("STORAGE_STATUS_UNFORMATTED", """Storage present but unformatted.""")
-STORAGE_STATUS_READY = 2
-enums["STORAGE_STATUS"][2] = EnumEntry("STORAGE_STATUS_READY", """Storage present and ready.""")
-STORAGE_STATUS_NOT_SUPPORTED = 3
-enums["STORAGE_STATUS"][3] = EnumEntry("STORAGE_STATUS_NOT_SUPPORTED", """Camera does not supply storage status information. Capacity information in STORAGE_INFORMATION fields will be ignored.""")
-STORAGE_STATUS_ENUM_END = 4
-enums["STORAGE_STATUS"][4] = EnumEntry("STORAGE_STATUS_ENUM_END", """""")
-
-# STORAGE_TYPE
-enums["STORAGE_TYPE"] = Enum()
-enums["STORAGE_TYPE"].bitmask = False
-STORAGE_TYPE_UNKNOWN = 0
-enums["STORAGE_TYPE"][0] = EnumEntry("STORAGE_TYPE_UNKNOWN", """Storage type is not known.""")
-STORAGE_TYPE_USB_STICK = 1
-enums["STORAGE_TYPE"][1] = EnumEntry("STORAGE_TYPE_USB_STICK", """Storage type is USB device.""")
-STORAGE_TYPE_SD = 2
-enums["STORAGE_TYPE"][2] = EnumEntry("STORAGE_TYPE_SD", """Storage type is SD card.""")
-STORAGE_TYPE_MICROSD = 3
-enums["STORAGE_TYPE"][3] = EnumEntry("STORAGE_TYPE_MICROSD", """Storage type is microSD card.""")
-STORAGE_TYPE_CF = 4
-enums["STORAGE_TYPE"][4] = EnumEntry("STORAGE_TYPE_CF", """Storage type is CFast.""")
-STORAGE_TYPE_CFE = 5
-enums["STORAGE_TYPE"][5] = EnumEntry("STORAGE_TYPE_CFE", """Storage type is CFexpress.""")
-STORAGE_TYPE_XQD = 6
-enums["STORAGE_TYPE"][6] = EnumEntry("STORAGE_TYPE_XQD", """Storage type is XQD.""")
-STORAGE_TYPE_HD = 7
-enums["STORAGE_TYPE"][7] = EnumEntry("STORAGE_TYPE_HD", """Storage type is HD mass storage type.""")
-STORAGE_TYPE_OTHER = 254
-enums["STORAGE_TYPE"][254] = EnumEntry("STORAGE_TYPE_OTHER", """Storage type is other, not listed type.""")
-STORAGE_TYPE_ENUM_END = 255
-enums["STORAGE_TYPE"][255] = EnumEntry("STORAGE_TYPE_ENUM_END", """""")
-
-# STORAGE_USAGE_FLAG
-enums["STORAGE_USAGE_FLAG"] = Enum()
-enums["STORAGE_USAGE_FLAG"].bitmask = True
-STORAGE_USAGE_FLAG_SET = 1
-enums["STORAGE_USAGE_FLAG"][1] = EnumEntry("STORAGE_USAGE_FLAG_SET", """Always set to 1 (indicates STORAGE_INFORMATION.storage_usage is supported).""")
-STORAGE_USAGE_FLAG_PHOTO = 2
-enums["STORAGE_USAGE_FLAG"][2] = EnumEntry("STORAGE_USAGE_FLAG_PHOTO", """Storage for saving photos.""")
-STORAGE_USAGE_FLAG_VIDEO = 4
-enums["STORAGE_USAGE_FLAG"][4] = EnumEntry("STORAGE_USAGE_FLAG_VIDEO", """Storage for saving videos.""")
-STORAGE_USAGE_FLAG_LOGS = 8
-enums["STORAGE_USAGE_FLAG"][8] = EnumEntry("STORAGE_USAGE_FLAG_LOGS", """Storage for saving logs.""")
-STORAGE_USAGE_FLAG_ENUM_END = 9
-enums["STORAGE_USAGE_FLAG"][9] = EnumEntry("STORAGE_USAGE_FLAG_ENUM_END", """""")
-
-# ORBIT_YAW_BEHAVIOUR
-enums["ORBIT_YAW_BEHAVIOUR"] = Enum()
-enums["ORBIT_YAW_BEHAVIOUR"].bitmask = False
-ORBIT_YAW_BEHAVIOUR_HOLD_FRONT_TO_CIRCLE_CENTER = 0
-enums["ORBIT_YAW_BEHAVIOUR"][0] = EnumEntry("ORBIT_YAW_BEHAVIOUR_HOLD_FRONT_TO_CIRCLE_CENTER", """Vehicle front points to the center (default).""")
-ORBIT_YAW_BEHAVIOUR_HOLD_INITIAL_HEADING = 1
-enums["ORBIT_YAW_BEHAVIOUR"][1] = EnumEntry("ORBIT_YAW_BEHAVIOUR_HOLD_INITIAL_HEADING", """Vehicle front holds heading when message received.""")
-ORBIT_YAW_BEHAVIOUR_UNCONTROLLED = 2
-enums["ORBIT_YAW_BEHAVIOUR"][2] = EnumEntry("ORBIT_YAW_BEHAVIOUR_UNCONTROLLED", """Yaw uncontrolled.""")
-ORBIT_YAW_BEHAVIOUR_HOLD_FRONT_TANGENT_TO_CIRCLE = 3
-enums["ORBIT_YAW_BEHAVIOUR"][3] = EnumEntry("ORBIT_YAW_BEHAVIOUR_HOLD_FRONT_TANGENT_TO_CIRCLE", """Vehicle front follows flight path (tangential to circle).""")
-ORBIT_YAW_BEHAVIOUR_RC_CONTROLLED = 4
-enums["ORBIT_YAW_BEHAVIOUR"][4] = EnumEntry("ORBIT_YAW_BEHAVIOUR_RC_CONTROLLED", """Yaw controlled by RC input.""")
-ORBIT_YAW_BEHAVIOUR_UNCHANGED = 5
-enums["ORBIT_YAW_BEHAVIOUR"][5] = EnumEntry("ORBIT_YAW_BEHAVIOUR_UNCHANGED", """Vehicle uses current yaw behaviour (unchanged). The vehicle-default yaw behaviour is used if this value is specified when orbit is first commanded.""")
-ORBIT_YAW_BEHAVIOUR_ENUM_END = 6
-enums["ORBIT_YAW_BEHAVIOUR"][6] = EnumEntry("ORBIT_YAW_BEHAVIOUR_ENUM_END", """""")
-
-# ACTUATOR_CONFIGURATION
-enums["ACTUATOR_CONFIGURATION"] = Enum()
-enums["ACTUATOR_CONFIGURATION"].bitmask = False
-ACTUATOR_CONFIGURATION_NONE = 0
-enums["ACTUATOR_CONFIGURATION"][0] = EnumEntry("ACTUATOR_CONFIGURATION_NONE", """Do nothing.""")
-ACTUATOR_CONFIGURATION_BEEP = 1
-enums["ACTUATOR_CONFIGURATION"][1] = EnumEntry("ACTUATOR_CONFIGURATION_BEEP", """Command the actuator to beep now.""")
-ACTUATOR_CONFIGURATION_3D_MODE_ON = 2
-enums["ACTUATOR_CONFIGURATION"][2] = EnumEntry("ACTUATOR_CONFIGURATION_3D_MODE_ON", """Permanently set the actuator (ESC) to 3D mode (reversible thrust).""")
-ACTUATOR_CONFIGURATION_3D_MODE_OFF = 3
-enums["ACTUATOR_CONFIGURATION"][3] = EnumEntry("ACTUATOR_CONFIGURATION_3D_MODE_OFF", """Permanently set the actuator (ESC) to non 3D mode (non-reversible thrust).""")
-ACTUATOR_CONFIGURATION_SPIN_DIRECTION1 = 4
-enums["ACTUATOR_CONFIGURATION"][4] = EnumEntry("ACTUATOR_CONFIGURATION_SPIN_DIRECTION1", """Permanently set the actuator (ESC) to spin direction 1 (which can be clockwise or counter-clockwise).""")
-ACTUATOR_CONFIGURATION_SPIN_DIRECTION2 = 5
-enums["ACTUATOR_CONFIGURATION"][5] = EnumEntry("ACTUATOR_CONFIGURATION_SPIN_DIRECTION2", """Permanently set the actuator (ESC) to spin direction 2 (opposite of direction 1).""")
-ACTUATOR_CONFIGURATION_ENUM_END = 6
-enums["ACTUATOR_CONFIGURATION"][6] = EnumEntry("ACTUATOR_CONFIGURATION_ENUM_END", """""")
-
-# ACTUATOR_OUTPUT_FUNCTION
-enums["ACTUATOR_OUTPUT_FUNCTION"] = Enum()
-enums["ACTUATOR_OUTPUT_FUNCTION"].bitmask = False
-ACTUATOR_OUTPUT_FUNCTION_NONE = 0
-enums["ACTUATOR_OUTPUT_FUNCTION"][0] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_NONE", """No function (disabled).""")
-ACTUATOR_OUTPUT_FUNCTION_MOTOR1 = 1
-enums["ACTUATOR_OUTPUT_FUNCTION"][1] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR1", """Motor 1""")
-ACTUATOR_OUTPUT_FUNCTION_MOTOR2 = 2
-enums["ACTUATOR_OUTPUT_FUNCTION"][2] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR2", """Motor 2""")
-ACTUATOR_OUTPUT_FUNCTION_MOTOR3 = 3
-enums["ACTUATOR_OUTPUT_FUNCTION"][3] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR3", """Motor 3""")
-ACTUATOR_OUTPUT_FUNCTION_MOTOR4 = 4
-enums["ACTUATOR_OUTPUT_FUNCTION"][4] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR4", """Motor 4""")
-ACTUATOR_OUTPUT_FUNCTION_MOTOR5 = 5
-enums["ACTUATOR_OUTPUT_FUNCTION"][5] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR5", """Motor 5""")
-ACTUATOR_OUTPUT_FUNCTION_MOTOR6 = 6
-enums["ACTUATOR_OUTPUT_FUNCTION"][6] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR6", """Motor 6""")
-ACTUATOR_OUTPUT_FUNCTION_MOTOR7 = 7
-enums["ACTUATOR_OUTPUT_FUNCTION"][7] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR7", """Motor 7""")
-ACTUATOR_OUTPUT_FUNCTION_MOTOR8 = 8
-enums["ACTUATOR_OUTPUT_FUNCTION"][8] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR8", """Motor 8""")
-ACTUATOR_OUTPUT_FUNCTION_MOTOR9 = 9
-enums["ACTUATOR_OUTPUT_FUNCTION"][9] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR9", """Motor 9""")
-ACTUATOR_OUTPUT_FUNCTION_MOTOR10 = 10
-enums["ACTUATOR_OUTPUT_FUNCTION"][10] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR10", """Motor 10""")
-ACTUATOR_OUTPUT_FUNCTION_MOTOR11 = 11
-enums["ACTUATOR_OUTPUT_FUNCTION"][11] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR11", """Motor 11""")
-ACTUATOR_OUTPUT_FUNCTION_MOTOR12 = 12
-enums["ACTUATOR_OUTPUT_FUNCTION"][12] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR12", """Motor 12""")
-ACTUATOR_OUTPUT_FUNCTION_MOTOR13 = 13
-enums["ACTUATOR_OUTPUT_FUNCTION"][13] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR13", """Motor 13""")
-ACTUATOR_OUTPUT_FUNCTION_MOTOR14 = 14
-enums["ACTUATOR_OUTPUT_FUNCTION"][14] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR14", """Motor 14""")
-ACTUATOR_OUTPUT_FUNCTION_MOTOR15 = 15
-enums["ACTUATOR_OUTPUT_FUNCTION"][15] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR15", """Motor 15""")
-ACTUATOR_OUTPUT_FUNCTION_MOTOR16 = 16
-enums["ACTUATOR_OUTPUT_FUNCTION"][16] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR16", """Motor 16""")
-ACTUATOR_OUTPUT_FUNCTION_SERVO1 = 33
-enums["ACTUATOR_OUTPUT_FUNCTION"][33] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO1", """Servo 1""")
-ACTUATOR_OUTPUT_FUNCTION_SERVO2 = 34
-enums["ACTUATOR_OUTPUT_FUNCTION"][34] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO2", """Servo 2""")
-ACTUATOR_OUTPUT_FUNCTION_SERVO3 = 35
-enums["ACTUATOR_OUTPUT_FUNCTION"][35] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO3", """Servo 3""")
-ACTUATOR_OUTPUT_FUNCTION_SERVO4 = 36
-enums["ACTUATOR_OUTPUT_FUNCTION"][36] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO4", """Servo 4""")
-ACTUATOR_OUTPUT_FUNCTION_SERVO5 = 37
-enums["ACTUATOR_OUTPUT_FUNCTION"][37] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO5", """Servo 5""")
-ACTUATOR_OUTPUT_FUNCTION_SERVO6 = 38
-enums["ACTUATOR_OUTPUT_FUNCTION"][38] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO6", """Servo 6""")
-ACTUATOR_OUTPUT_FUNCTION_SERVO7 = 39
-enums["ACTUATOR_OUTPUT_FUNCTION"][39] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO7", """Servo 7""")
-ACTUATOR_OUTPUT_FUNCTION_SERVO8 = 40
-enums["ACTUATOR_OUTPUT_FUNCTION"][40] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO8", """Servo 8""")
-ACTUATOR_OUTPUT_FUNCTION_SERVO9 = 41
-enums["ACTUATOR_OUTPUT_FUNCTION"][41] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO9", """Servo 9""")
-ACTUATOR_OUTPUT_FUNCTION_SERVO10 = 42
-enums["ACTUATOR_OUTPUT_FUNCTION"][42] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO10", """Servo 10""")
-ACTUATOR_OUTPUT_FUNCTION_SERVO11 = 43
-enums["ACTUATOR_OUTPUT_FUNCTION"][43] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO11", """Servo 11""")
-ACTUATOR_OUTPUT_FUNCTION_SERVO12 = 44
-enums["ACTUATOR_OUTPUT_FUNCTION"][44] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO12", """Servo 12""")
-ACTUATOR_OUTPUT_FUNCTION_SERVO13 = 45
-enums["ACTUATOR_OUTPUT_FUNCTION"][45] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO13", """Servo 13""")
-ACTUATOR_OUTPUT_FUNCTION_SERVO14 = 46
-enums["ACTUATOR_OUTPUT_FUNCTION"][46] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO14", """Servo 14""")
-ACTUATOR_OUTPUT_FUNCTION_SERVO15 = 47
-enums["ACTUATOR_OUTPUT_FUNCTION"][47] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO15", """Servo 15""")
-ACTUATOR_OUTPUT_FUNCTION_SERVO16 = 48
-enums["ACTUATOR_OUTPUT_FUNCTION"][48] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO16", """Servo 16""")
-ACTUATOR_OUTPUT_FUNCTION_ENUM_END = 49
-enums["ACTUATOR_OUTPUT_FUNCTION"][49] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_ENUM_END", """""")
-
-# AUTOTUNE_AXIS
-enums["AUTOTUNE_AXIS"] = Enum()
-enums["AUTOTUNE_AXIS"].bitmask = True
-AUTOTUNE_AXIS_ROLL = 1
-enums["AUTOTUNE_AXIS"][1] = EnumEntry("AUTOTUNE_AXIS_ROLL", """Autotune roll axis.""")
-AUTOTUNE_AXIS_PITCH = 2
-enums["AUTOTUNE_AXIS"][2] = EnumEntry("AUTOTUNE_AXIS_PITCH", """Autotune pitch axis.""")
-AUTOTUNE_AXIS_YAW = 4
-enums["AUTOTUNE_AXIS"][4] = EnumEntry("AUTOTUNE_AXIS_YAW", """Autotune yaw axis.""")
-AUTOTUNE_AXIS_ENUM_END = 5
-enums["AUTOTUNE_AXIS"][5] = EnumEntry("AUTOTUNE_AXIS_ENUM_END", """""")
-
-# PREFLIGHT_STORAGE_PARAMETER_ACTION
-enums["PREFLIGHT_STORAGE_PARAMETER_ACTION"] = Enum()
-enums["PREFLIGHT_STORAGE_PARAMETER_ACTION"].bitmask = False
-PARAM_READ_PERSISTENT = 0
-enums["PREFLIGHT_STORAGE_PARAMETER_ACTION"][0] = EnumEntry("PARAM_READ_PERSISTENT", """Read all parameters from persistent storage. Replaces values in volatile storage.""")
-PARAM_WRITE_PERSISTENT = 1
-enums["PREFLIGHT_STORAGE_PARAMETER_ACTION"][1] = EnumEntry("PARAM_WRITE_PERSISTENT", """Write all parameter values to persistent storage (flash/EEPROM)""")
-PARAM_RESET_FACTORY_DEFAULT = 2
-enums["PREFLIGHT_STORAGE_PARAMETER_ACTION"][2] = EnumEntry("PARAM_RESET_FACTORY_DEFAULT", """Reset parameters to default values (such as sensor calibration, safety settings, and so on). Note that a flight stack may choose not to reset some parameters at their own discretion (such as those that are locked or expected to persist for the vehicle lifetime).""")
-PARAM_RESET_SENSOR_DEFAULT = 3
-enums["PREFLIGHT_STORAGE_PARAMETER_ACTION"][3] = EnumEntry("PARAM_RESET_SENSOR_DEFAULT", """Reset only sensor calibration parameters to factory defaults (or firmware default if not available)""")
-PARAM_RESET_ALL_DEFAULT = 4
-enums["PREFLIGHT_STORAGE_PARAMETER_ACTION"][4] = EnumEntry("PARAM_RESET_ALL_DEFAULT", """Reset all parameters to default values.""")
-PREFLIGHT_STORAGE_PARAMETER_ACTION_ENUM_END = 5
-enums["PREFLIGHT_STORAGE_PARAMETER_ACTION"][5] = EnumEntry("PREFLIGHT_STORAGE_PARAMETER_ACTION_ENUM_END", """""")
-
-# PREFLIGHT_STORAGE_MISSION_ACTION
-enums["PREFLIGHT_STORAGE_MISSION_ACTION"] = Enum()
-enums["PREFLIGHT_STORAGE_MISSION_ACTION"].bitmask = False
-MISSION_READ_PERSISTENT = 0
-enums["PREFLIGHT_STORAGE_MISSION_ACTION"][0] = EnumEntry("MISSION_READ_PERSISTENT", """Read current mission data from persistent storage""")
-MISSION_WRITE_PERSISTENT = 1
-enums["PREFLIGHT_STORAGE_MISSION_ACTION"][1] = EnumEntry("MISSION_WRITE_PERSISTENT", """Write current mission data to persistent storage""")
-MISSION_RESET_DEFAULT = 2
-enums["PREFLIGHT_STORAGE_MISSION_ACTION"][2] = EnumEntry("MISSION_RESET_DEFAULT", """Erase all mission data stored on the vehicle (both persistent and volatile storage)""")
-PREFLIGHT_STORAGE_MISSION_ACTION_ENUM_END = 3
-enums["PREFLIGHT_STORAGE_MISSION_ACTION"][3] = EnumEntry("PREFLIGHT_STORAGE_MISSION_ACTION_ENUM_END", """""")
-
-# REBOOT_SHUTDOWN_ACTION
-enums["REBOOT_SHUTDOWN_ACTION"] = Enum()
-enums["REBOOT_SHUTDOWN_ACTION"].bitmask = False
-REBOOT_SHUTDOWN_ACTION_NONE = 0
-enums["REBOOT_SHUTDOWN_ACTION"][0] = EnumEntry("REBOOT_SHUTDOWN_ACTION_NONE", """Do nothing.""")
-REBOOT_SHUTDOWN_ACTION_REBOOT = 1
-enums["REBOOT_SHUTDOWN_ACTION"][1] = EnumEntry("REBOOT_SHUTDOWN_ACTION_REBOOT", """Reboot component.""")
-REBOOT_SHUTDOWN_ACTION_SHUTDOWN = 2
-enums["REBOOT_SHUTDOWN_ACTION"][2] = EnumEntry("REBOOT_SHUTDOWN_ACTION_SHUTDOWN", """Shutdown component.""")
-REBOOT_SHUTDOWN_ACTION_REBOOT_TO_BOOTLOADER = 3
-enums["REBOOT_SHUTDOWN_ACTION"][3] = EnumEntry("REBOOT_SHUTDOWN_ACTION_REBOOT_TO_BOOTLOADER", """Reboot component and keep it in the bootloader until upgraded.""")
-REBOOT_SHUTDOWN_ACTION_POWER_ON = 4
-enums["REBOOT_SHUTDOWN_ACTION"][4] = EnumEntry("REBOOT_SHUTDOWN_ACTION_POWER_ON", """Power on component. Do nothing if component is already powered (ACK command with MAV_RESULT_ACCEPTED).""")
-REBOOT_SHUTDOWN_ACTION_REBOOT_TO_MASS_STORAGE = 5
-enums["REBOOT_SHUTDOWN_ACTION"][5] = EnumEntry("REBOOT_SHUTDOWN_ACTION_REBOOT_TO_MASS_STORAGE", """Reboot component into a mass storage mode if supported.""")
-REBOOT_SHUTDOWN_ACTION_ENUM_END = 6
-enums["REBOOT_SHUTDOWN_ACTION"][6] = EnumEntry("REBOOT_SHUTDOWN_ACTION_ENUM_END", """""")
-
-# REBOOT_SHUTDOWN_CONDITIONS
-enums["REBOOT_SHUTDOWN_CONDITIONS"] = Enum()
-enums["REBOOT_SHUTDOWN_CONDITIONS"].bitmask = False
-REBOOT_SHUTDOWN_CONDITIONS_SAFETY_INTERLOCKED = 0
-enums["REBOOT_SHUTDOWN_CONDITIONS"][0] = EnumEntry("REBOOT_SHUTDOWN_CONDITIONS_SAFETY_INTERLOCKED", """Reboot/Shutdown only if allowed by safety checks, such as being landed.""")
-REBOOT_SHUTDOWN_CONDITIONS_FORCE = 20190226
-enums["REBOOT_SHUTDOWN_CONDITIONS"][20190226] = EnumEntry("REBOOT_SHUTDOWN_CONDITIONS_FORCE", """Force reboot/shutdown of the autopilot/component regardless of system state.""")
-REBOOT_SHUTDOWN_CONDITIONS_ENUM_END = 20190227
-enums["REBOOT_SHUTDOWN_CONDITIONS"][20190227] = EnumEntry("REBOOT_SHUTDOWN_CONDITIONS_ENUM_END", """""")
-
-# PREFLIGHT_CALIBRATION_MAGNETOMETER
-enums["PREFLIGHT_CALIBRATION_MAGNETOMETER"] = Enum()
-enums["PREFLIGHT_CALIBRATION_MAGNETOMETER"].bitmask = False
-PREFLIGHT_CALIBRATION_MAGNETOMETER_NONE = 0
-enums["PREFLIGHT_CALIBRATION_MAGNETOMETER"][0] = EnumEntry("PREFLIGHT_CALIBRATION_MAGNETOMETER_NONE", """No action.""")
-PREFLIGHT_CALIBRATION_MAGNETOMETER_START = 1
-enums["PREFLIGHT_CALIBRATION_MAGNETOMETER"][1] = EnumEntry("PREFLIGHT_CALIBRATION_MAGNETOMETER_START", """Start magnetometer calibration.""")
-PREFLIGHT_CALIBRATION_MAGNETOMETER_FORCE_SAVE = 76
-enums["PREFLIGHT_CALIBRATION_MAGNETOMETER"][76] = EnumEntry("PREFLIGHT_CALIBRATION_MAGNETOMETER_FORCE_SAVE", """Force-accept the existing compass calibration as valid without re-running it. Useful after a parameter reload that cleared calibration validity flags.""")
-PREFLIGHT_CALIBRATION_MAGNETOMETER_ENUM_END = 77
-enums["PREFLIGHT_CALIBRATION_MAGNETOMETER"][77] = EnumEntry("PREFLIGHT_CALIBRATION_MAGNETOMETER_ENUM_END", """""")
-
-# PREFLIGHT_CALIBRATION_ACCELEROMETER
-enums["PREFLIGHT_CALIBRATION_ACCELEROMETER"] = Enum()
-enums["PREFLIGHT_CALIBRATION_ACCELEROMETER"].bitmask = False
-PREFLIGHT_CALIBRATION_ACCELEROMETER_NONE = 0
-enums["PREFLIGHT_CALIBRATION_ACCELEROMETER"][0] = EnumEntry("PREFLIGHT_CALIBRATION_ACCELEROMETER_NONE", """No action.""")
-PREFLIGHT_CALIBRATION_ACCELEROMETER_FULL = 1
-enums["PREFLIGHT_CALIBRATION_ACCELEROMETER"][1] = EnumEntry("PREFLIGHT_CALIBRATION_ACCELEROMETER_FULL", """Full 6-position accelerometer calibration.""")
-PREFLIGHT_CALIBRATION_ACCELEROMETER_TRIM = 2
-enums["PREFLIGHT_CALIBRATION_ACCELEROMETER"][2] = EnumEntry("PREFLIGHT_CALIBRATION_ACCELEROMETER_TRIM", """Board level (trim) calibration.""")
-PREFLIGHT_CALIBRATION_ACCELEROMETER_TEMPERATURE = 3
-enums["PREFLIGHT_CALIBRATION_ACCELEROMETER"][3] = EnumEntry("PREFLIGHT_CALIBRATION_ACCELEROMETER_TEMPERATURE", """Accelerometer temperature calibration.""")
-PREFLIGHT_CALIBRATION_ACCELEROMETER_SIMPLE = 4
-enums["PREFLIGHT_CALIBRATION_ACCELEROMETER"][4] = EnumEntry("PREFLIGHT_CALIBRATION_ACCELEROMETER_SIMPLE", """Simple accelerometer calibration.""")
-PREFLIGHT_CALIBRATION_ACCELEROMETER_FORCE_SAVE = 76
-enums["PREFLIGHT_CALIBRATION_ACCELEROMETER"][76] = EnumEntry("PREFLIGHT_CALIBRATION_ACCELEROMETER_FORCE_SAVE", """Force-accept the existing accelerometer calibration as valid without re-running it. Useful after a parameter reload that cleared calibration validity flags.""")
-PREFLIGHT_CALIBRATION_ACCELEROMETER_ENUM_END = 77
-enums["PREFLIGHT_CALIBRATION_ACCELEROMETER"][77] = EnumEntry("PREFLIGHT_CALIBRATION_ACCELEROMETER_ENUM_END", """""")
-
-# NAV_TAKEOFF_FLAGS
-enums["NAV_TAKEOFF_FLAGS"] = Enum()
-enums["NAV_TAKEOFF_FLAGS"].bitmask = True
-NAV_TAKEOFF_FLAGS_HORIZONTAL_POSITION_NOT_REQUIRED = 1
-enums["NAV_TAKEOFF_FLAGS"][1] = EnumEntry("NAV_TAKEOFF_FLAGS_HORIZONTAL_POSITION_NOT_REQUIRED", """Accept the command even if the autopilot does not have control over its horizontal position (note that it might not have altitude control either).""")
-NAV_TAKEOFF_FLAGS_ENUM_END = 2
-enums["NAV_TAKEOFF_FLAGS"][2] = EnumEntry("NAV_TAKEOFF_FLAGS_ENUM_END", """""")
+# DEBRIS_DEORBIT_FAULT
+enums["DEBRIS_DEORBIT_FAULT"] = Enum()
+enums["DEBRIS_DEORBIT_FAULT"].bitmask = True
+DEBRIS_DEORBIT_FAULT_STALL = 1
+enums["DEBRIS_DEORBIT_FAULT"][1] = EnumEntry("DEBRIS_DEORBIT_FAULT_STALL", """Stepper missed steps (home switch not where expected).""")
+DEBRIS_DEORBIT_FAULT_SHUTTER_STUCK = 2
+enums["DEBRIS_DEORBIT_FAULT"][2] = EnumEntry("DEBRIS_DEORBIT_FAULT_SHUTTER_STUCK", """Shutters did not reach their end switch in time.""")
+DEBRIS_DEORBIT_FAULT_SWITCH_DISAGREE = 4
+enums["DEBRIS_DEORBIT_FAULT"][4] = EnumEntry("DEBRIS_DEORBIT_FAULT_SWITCH_DISAGREE", """End or home switches contradict each other.""")
+DEBRIS_DEORBIT_FAULT_TIMEOUT = 8
+enums["DEBRIS_DEORBIT_FAULT"][8] = EnumEntry("DEBRIS_DEORBIT_FAULT_TIMEOUT", """A motion did not finish in time.""")
+DEBRIS_DEORBIT_FAULT_ENUM_END = 9
+enums["DEBRIS_DEORBIT_FAULT"][9] = EnumEntry("DEBRIS_DEORBIT_FAULT_ENUM_END", """""")
 
 # MAV_CMD
 enums["MAV_CMD"] = Enum()
@@ -3455,8 +2762,877 @@ enums["MAV_CMD"][43003].param[6] = """Longitude"""
 enums["MAV_CMD"][43003].label[6] = """Longitude"""
 enums["MAV_CMD"][43003].param[7] = """Altitude, not used. Should be sent as NaN. May be supported in a future version of this message."""
 enums["MAV_CMD"][43003].label[7] = """Altitude"""
-MAV_CMD_ENUM_END = 43004
-enums["MAV_CMD"][43004] = EnumEntry("MAV_CMD_ENUM_END", """""")
+MAV_CMD_DEBRIS_IDENT_START = 54000
+enums["MAV_CMD"][54000] = EnumEntry("MAV_CMD_DEBRIS_IDENT_START", """Start the inertia identification experiment: observe torque-free, apply the known torque, observe.""")
+enums["MAV_CMD"][54000].param[1] = """Torque source."""
+enums["MAV_CMD"][54000].label[1] = """Source"""
+enums["MAV_CMD"][54000].param[2] = """Torque-free observation before the torque."""
+enums["MAV_CMD"][54000].label[2] = """Observe free"""
+enums["MAV_CMD"][54000].param[3] = """Duration of the torque."""
+enums["MAV_CMD"][54000].label[3] = """Torque time"""
+enums["MAV_CMD"][54000].param[4] = """Observation after the torque."""
+enums["MAV_CMD"][54000].label[4] = """Observe after"""
+enums["MAV_CMD"][54000].param[5] = """Known moment, body X (source TUG; ignored for MAGNETS)."""
+enums["MAV_CMD"][54000].label[5] = """Mx"""
+enums["MAV_CMD"][54000].param[6] = """Known moment, body Y."""
+enums["MAV_CMD"][54000].label[6] = """My"""
+enums["MAV_CMD"][54000].param[7] = """Known moment, body Z."""
+enums["MAV_CMD"][54000].label[7] = """Mz"""
+MAV_CMD_DEBRIS_IDENT_STOP = 54001
+enums["MAV_CMD"][54001] = EnumEntry("MAV_CMD_DEBRIS_IDENT_STOP", """Stop the inertia identification experiment.""")
+enums["MAV_CMD"][54001].param[1] = """Reserved (default:0)"""
+enums["MAV_CMD"][54001].param[2] = """Reserved (default:0)"""
+enums["MAV_CMD"][54001].param[3] = """Reserved (default:0)"""
+enums["MAV_CMD"][54001].param[4] = """Reserved (default:0)"""
+enums["MAV_CMD"][54001].param[5] = """Reserved (default:0)"""
+enums["MAV_CMD"][54001].param[6] = """Reserved (default:0)"""
+enums["MAV_CMD"][54001].param[7] = """Reserved (default:0)"""
+MAV_CMD_DEBRIS_CAPSULE = 54010
+enums["MAV_CMD"][54010] = EnumEntry("MAV_CMD_DEBRIS_CAPSULE", """Open or close a screening capsule (refused while its magnet moves).""")
+enums["MAV_CMD"][54010].param[1] = """0 = pitch, 1 = yaw."""
+enums["MAV_CMD"][54010].label[1] = """Channel"""
+enums["MAV_CMD"][54010].param[2] = """1 = open, 0 = close."""
+enums["MAV_CMD"][54010].label[2] = """Open"""
+enums["MAV_CMD"][54010].param[3] = """Reserved (default:0)"""
+enums["MAV_CMD"][54010].param[4] = """Reserved (default:0)"""
+enums["MAV_CMD"][54010].param[5] = """Reserved (default:0)"""
+enums["MAV_CMD"][54010].param[6] = """Reserved (default:0)"""
+enums["MAV_CMD"][54010].param[7] = """Reserved (default:0)"""
+MAV_CMD_DEBRIS_MAGNET_TURN = 54011
+enums["MAV_CMD"][54011] = EnumEntry("MAV_CMD_DEBRIS_MAGNET_TURN", """Turn a magnet by an angle (refused unless its capsule is closed).""")
+enums["MAV_CMD"][54011].param[1] = """0 = pitch, 1 = yaw."""
+enums["MAV_CMD"][54011].label[1] = """Channel"""
+enums["MAV_CMD"][54011].param[2] = """Angle, a multiple of 1.8 deg."""
+enums["MAV_CMD"][54011].label[2] = """Angle"""
+enums["MAV_CMD"][54011].param[3] = """Reserved (default:0)"""
+enums["MAV_CMD"][54011].param[4] = """Reserved (default:0)"""
+enums["MAV_CMD"][54011].param[5] = """Reserved (default:0)"""
+enums["MAV_CMD"][54011].param[6] = """Reserved (default:0)"""
+enums["MAV_CMD"][54011].param[7] = """Reserved (default:0)"""
+MAV_CMD_DEBRIS_MAGNET_POLARITY = 54012
+enums["MAV_CMD"][54012] = EnumEntry("MAV_CMD_DEBRIS_MAGNET_POLARITY", """Set a magnet's dipole sign (turns it 180 deg if needed; refused unless its capsule is closed).""")
+enums["MAV_CMD"][54012].param[1] = """0 = pitch, 1 = yaw."""
+enums["MAV_CMD"][54012].label[1] = """Channel"""
+enums["MAV_CMD"][54012].param[2] = """+1 or -1."""
+enums["MAV_CMD"][54012].label[2] = """Polarity"""
+enums["MAV_CMD"][54012].param[3] = """Reserved (default:0)"""
+enums["MAV_CMD"][54012].param[4] = """Reserved (default:0)"""
+enums["MAV_CMD"][54012].param[5] = """Reserved (default:0)"""
+enums["MAV_CMD"][54012].param[6] = """Reserved (default:0)"""
+enums["MAV_CMD"][54012].param[7] = """Reserved (default:0)"""
+MAV_CMD_DEBRIS_CONTROLLER = 54013
+enums["MAV_CMD"][54013] = EnumEntry("MAV_CMD_DEBRIS_CONTROLLER", """Run or stop the automatic discrete de-orbit controller.""")
+enums["MAV_CMD"][54013].param[1] = """1 = run, 0 = stop."""
+enums["MAV_CMD"][54013].label[1] = """Run"""
+enums["MAV_CMD"][54013].param[2] = """Controller period T (0 = keep)."""
+enums["MAV_CMD"][54013].label[2] = """Period"""
+enums["MAV_CMD"][54013].param[3] = """Shortest pulse generated (0 = keep)."""
+enums["MAV_CMD"][54013].label[3] = """Min impulse"""
+enums["MAV_CMD"][54013].param[4] = """Reserved (default:0)"""
+enums["MAV_CMD"][54013].param[5] = """Reserved (default:0)"""
+enums["MAV_CMD"][54013].param[6] = """Reserved (default:0)"""
+enums["MAV_CMD"][54013].param[7] = """Reserved (default:0)"""
+MAV_CMD_DEBRIS_SAFE_MODE = 54014
+enums["MAV_CMD"][54014] = EnumEntry("MAV_CMD_DEBRIS_SAFE_MODE", """Enter (capsules closed, motion stopped) or leave safe mode.""")
+enums["MAV_CMD"][54014].param[1] = """1 = enter, 0 = leave."""
+enums["MAV_CMD"][54014].label[1] = """Enter"""
+enums["MAV_CMD"][54014].param[2] = """Reserved (default:0)"""
+enums["MAV_CMD"][54014].param[3] = """Reserved (default:0)"""
+enums["MAV_CMD"][54014].param[4] = """Reserved (default:0)"""
+enums["MAV_CMD"][54014].param[5] = """Reserved (default:0)"""
+enums["MAV_CMD"][54014].param[6] = """Reserved (default:0)"""
+enums["MAV_CMD"][54014].param[7] = """Reserved (default:0)"""
+MAV_CMD_DEBRIS_MAGNET_HOME = 54015
+enums["MAV_CMD"][54015] = EnumEntry("MAV_CMD_DEBRIS_MAGNET_HOME", """Re-home a magnet's stepper on its home switch (refused unless its capsule is closed).""")
+enums["MAV_CMD"][54015].param[1] = """0 = pitch, 1 = yaw."""
+enums["MAV_CMD"][54015].label[1] = """Channel"""
+enums["MAV_CMD"][54015].param[2] = """Reserved (default:0)"""
+enums["MAV_CMD"][54015].param[3] = """Reserved (default:0)"""
+enums["MAV_CMD"][54015].param[4] = """Reserved (default:0)"""
+enums["MAV_CMD"][54015].param[5] = """Reserved (default:0)"""
+enums["MAV_CMD"][54015].param[6] = """Reserved (default:0)"""
+enums["MAV_CMD"][54015].param[7] = """Reserved (default:0)"""
+MAV_CMD_ENUM_END = 54016
+enums["MAV_CMD"][54016] = EnumEntry("MAV_CMD_ENUM_END", """""")
+
+# HL_FAILURE_FLAG
+enums["HL_FAILURE_FLAG"] = Enum()
+enums["HL_FAILURE_FLAG"].bitmask = True
+HL_FAILURE_FLAG_GPS = 1
+enums["HL_FAILURE_FLAG"][1] = EnumEntry("HL_FAILURE_FLAG_GPS", """GPS failure.""")
+HL_FAILURE_FLAG_DIFFERENTIAL_PRESSURE = 2
+enums["HL_FAILURE_FLAG"][2] = EnumEntry("HL_FAILURE_FLAG_DIFFERENTIAL_PRESSURE", """Differential pressure sensor failure.""")
+HL_FAILURE_FLAG_ABSOLUTE_PRESSURE = 4
+enums["HL_FAILURE_FLAG"][4] = EnumEntry("HL_FAILURE_FLAG_ABSOLUTE_PRESSURE", """Absolute pressure sensor failure.""")
+HL_FAILURE_FLAG_3D_ACCEL = 8
+enums["HL_FAILURE_FLAG"][8] = EnumEntry("HL_FAILURE_FLAG_3D_ACCEL", """Accelerometer sensor failure.""")
+HL_FAILURE_FLAG_3D_GYRO = 16
+enums["HL_FAILURE_FLAG"][16] = EnumEntry("HL_FAILURE_FLAG_3D_GYRO", """Gyroscope sensor failure.""")
+HL_FAILURE_FLAG_3D_MAG = 32
+enums["HL_FAILURE_FLAG"][32] = EnumEntry("HL_FAILURE_FLAG_3D_MAG", """Magnetometer sensor failure.""")
+HL_FAILURE_FLAG_TERRAIN = 64
+enums["HL_FAILURE_FLAG"][64] = EnumEntry("HL_FAILURE_FLAG_TERRAIN", """Terrain subsystem failure.""")
+HL_FAILURE_FLAG_BATTERY = 128
+enums["HL_FAILURE_FLAG"][128] = EnumEntry("HL_FAILURE_FLAG_BATTERY", """Battery failure/critical low battery.""")
+HL_FAILURE_FLAG_RC_RECEIVER = 256
+enums["HL_FAILURE_FLAG"][256] = EnumEntry("HL_FAILURE_FLAG_RC_RECEIVER", """RC receiver failure/no RC connection.""")
+HL_FAILURE_FLAG_OFFBOARD_LINK = 512
+enums["HL_FAILURE_FLAG"][512] = EnumEntry("HL_FAILURE_FLAG_OFFBOARD_LINK", """Offboard link failure.""")
+HL_FAILURE_FLAG_ENGINE = 1024
+enums["HL_FAILURE_FLAG"][1024] = EnumEntry("HL_FAILURE_FLAG_ENGINE", """Engine failure.""")
+HL_FAILURE_FLAG_GEOFENCE = 2048
+enums["HL_FAILURE_FLAG"][2048] = EnumEntry("HL_FAILURE_FLAG_GEOFENCE", """Geofence violation.""")
+HL_FAILURE_FLAG_ESTIMATOR = 4096
+enums["HL_FAILURE_FLAG"][4096] = EnumEntry("HL_FAILURE_FLAG_ESTIMATOR", """Estimator failure, for example measurement rejection or large variances.""")
+HL_FAILURE_FLAG_MISSION = 8192
+enums["HL_FAILURE_FLAG"][8192] = EnumEntry("HL_FAILURE_FLAG_MISSION", """Mission failure.""")
+HL_FAILURE_FLAG_ENUM_END = 8193
+enums["HL_FAILURE_FLAG"][8193] = EnumEntry("HL_FAILURE_FLAG_ENUM_END", """""")
+
+# MAV_GOTO
+enums["MAV_GOTO"] = Enum()
+enums["MAV_GOTO"].bitmask = False
+MAV_GOTO_DO_HOLD = 0
+enums["MAV_GOTO"][0] = EnumEntry("MAV_GOTO_DO_HOLD", """Hold at the current position.""")
+MAV_GOTO_DO_CONTINUE = 1
+enums["MAV_GOTO"][1] = EnumEntry("MAV_GOTO_DO_CONTINUE", """Continue with the next item in mission execution.""")
+MAV_GOTO_HOLD_AT_CURRENT_POSITION = 2
+enums["MAV_GOTO"][2] = EnumEntry("MAV_GOTO_HOLD_AT_CURRENT_POSITION", """Hold at the current position of the system""")
+MAV_GOTO_HOLD_AT_SPECIFIED_POSITION = 3
+enums["MAV_GOTO"][3] = EnumEntry("MAV_GOTO_HOLD_AT_SPECIFIED_POSITION", """Hold at the position specified in the parameters of the DO_HOLD action""")
+MAV_GOTO_ENUM_END = 4
+enums["MAV_GOTO"][4] = EnumEntry("MAV_GOTO_ENUM_END", """""")
+
+# MAV_MODE
+enums["MAV_MODE"] = Enum()
+enums["MAV_MODE"].bitmask = False
+MAV_MODE_PREFLIGHT = 0
+enums["MAV_MODE"][0] = EnumEntry("MAV_MODE_PREFLIGHT", """System is not ready to fly, booting, calibrating, etc. No flag is set.""")
+MAV_MODE_MANUAL_DISARMED = 64
+enums["MAV_MODE"][64] = EnumEntry("MAV_MODE_MANUAL_DISARMED", """System is allowed to be active, under manual (RC) control, no stabilization (MAV_MODE_FLAG_MANUAL_INPUT_ENABLED)""")
+MAV_MODE_TEST_DISARMED = 66
+enums["MAV_MODE"][66] = EnumEntry("MAV_MODE_TEST_DISARMED", """UNDEFINED mode. This solely depends on the autopilot - use with caution, intended for developers only. (MAV_MODE_FLAG_MANUAL_INPUT_ENABLED, MAV_MODE_FLAG_TEST_ENABLED).""")
+MAV_MODE_STABILIZE_DISARMED = 80
+enums["MAV_MODE"][80] = EnumEntry("MAV_MODE_STABILIZE_DISARMED", """System is allowed to be active, under assisted RC control (MAV_MODE_FLAG_SAFETY_ARMED, MAV_MODE_FLAG_STABILIZE_ENABLED)""")
+MAV_MODE_GUIDED_DISARMED = 88
+enums["MAV_MODE"][88] = EnumEntry("MAV_MODE_GUIDED_DISARMED", """System is allowed to be active, under autonomous control, manual setpoint (MAV_MODE_FLAG_SAFETY_ARMED, MAV_MODE_FLAG_STABILIZE_ENABLED, MAV_MODE_FLAG_GUIDED_ENABLED)""")
+MAV_MODE_AUTO_DISARMED = 92
+enums["MAV_MODE"][92] = EnumEntry("MAV_MODE_AUTO_DISARMED", """System is allowed to be active, under autonomous control and navigation (the trajectory is decided onboard and not pre-programmed by waypoints). (MAV_MODE_FLAG_SAFETY_ARMED, MAV_MODE_FLAG_STABILIZE_ENABLED, MAV_MODE_FLAG_GUIDED_ENABLED, MAV_MODE_FLAG_AUTO_ENABLED).""")
+MAV_MODE_MANUAL_ARMED = 192
+enums["MAV_MODE"][192] = EnumEntry("MAV_MODE_MANUAL_ARMED", """System is allowed to be active, under manual (RC) control, no stabilization (MAV_MODE_FLAG_SAFETY_ARMED, MAV_MODE_FLAG_MANUAL_INPUT_ENABLED)""")
+MAV_MODE_TEST_ARMED = 194
+enums["MAV_MODE"][194] = EnumEntry("MAV_MODE_TEST_ARMED", """UNDEFINED mode. This solely depends on the autopilot - use with caution, intended for developers only (MAV_MODE_FLAG_SAFETY_ARMED, MAV_MODE_FLAG_MANUAL_INPUT_ENABLED, MAV_MODE_FLAG_TEST_ENABLED)""")
+MAV_MODE_STABILIZE_ARMED = 208
+enums["MAV_MODE"][208] = EnumEntry("MAV_MODE_STABILIZE_ARMED", """System is allowed to be active, under assisted RC control (MAV_MODE_FLAG_SAFETY_ARMED, MAV_MODE_FLAG_MANUAL_INPUT_ENABLED, MAV_MODE_FLAG_STABILIZE_ENABLED)""")
+MAV_MODE_GUIDED_ARMED = 216
+enums["MAV_MODE"][216] = EnumEntry("MAV_MODE_GUIDED_ARMED", """System is allowed to be active, under autonomous control, manual setpoint (MAV_MODE_FLAG_SAFETY_ARMED, MAV_MODE_FLAG_MANUAL_INPUT_ENABLED, MAV_MODE_FLAG_STABILIZE_ENABLED, MAV_MODE_FLAG_GUIDED_ENABLED)""")
+MAV_MODE_AUTO_ARMED = 220
+enums["MAV_MODE"][220] = EnumEntry("MAV_MODE_AUTO_ARMED", """System is allowed to be active, under autonomous control and navigation (the trajectory is decided onboard and not pre-programmed by waypoints). (MAV_MODE_FLAG_SAFETY_ARMED, MAV_MODE_FLAG_MANUAL_INPUT_ENABLED, MAV_MODE_FLAG_STABILIZE_ENABLED, MAV_MODE_FLAG_GUIDED_ENABLED,MAV_MODE_FLAG_AUTO_ENABLED).""")
+MAV_MODE_ENUM_END = 221
+enums["MAV_MODE"][221] = EnumEntry("MAV_MODE_ENUM_END", """""")
+
+# MAV_SYS_STATUS_SENSOR
+enums["MAV_SYS_STATUS_SENSOR"] = Enum()
+enums["MAV_SYS_STATUS_SENSOR"].bitmask = True
+MAV_SYS_STATUS_SENSOR_3D_GYRO = 1
+enums["MAV_SYS_STATUS_SENSOR"][1] = EnumEntry("MAV_SYS_STATUS_SENSOR_3D_GYRO", """0x01 3D gyro""")
+MAV_SYS_STATUS_SENSOR_3D_ACCEL = 2
+enums["MAV_SYS_STATUS_SENSOR"][2] = EnumEntry("MAV_SYS_STATUS_SENSOR_3D_ACCEL", """0x02 3D accelerometer""")
+MAV_SYS_STATUS_SENSOR_3D_MAG = 4
+enums["MAV_SYS_STATUS_SENSOR"][4] = EnumEntry("MAV_SYS_STATUS_SENSOR_3D_MAG", """0x04 3D magnetometer""")
+MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE = 8
+enums["MAV_SYS_STATUS_SENSOR"][8] = EnumEntry("MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE", """0x08 absolute pressure""")
+MAV_SYS_STATUS_SENSOR_DIFFERENTIAL_PRESSURE = 16
+enums["MAV_SYS_STATUS_SENSOR"][16] = EnumEntry("MAV_SYS_STATUS_SENSOR_DIFFERENTIAL_PRESSURE", """0x10 differential pressure""")
+MAV_SYS_STATUS_SENSOR_GPS = 32
+enums["MAV_SYS_STATUS_SENSOR"][32] = EnumEntry("MAV_SYS_STATUS_SENSOR_GPS", """0x20 GPS""")
+MAV_SYS_STATUS_SENSOR_OPTICAL_FLOW = 64
+enums["MAV_SYS_STATUS_SENSOR"][64] = EnumEntry("MAV_SYS_STATUS_SENSOR_OPTICAL_FLOW", """0x40 optical flow""")
+MAV_SYS_STATUS_SENSOR_VISION_POSITION = 128
+enums["MAV_SYS_STATUS_SENSOR"][128] = EnumEntry("MAV_SYS_STATUS_SENSOR_VISION_POSITION", """0x80 computer vision position""")
+MAV_SYS_STATUS_SENSOR_LASER_POSITION = 256
+enums["MAV_SYS_STATUS_SENSOR"][256] = EnumEntry("MAV_SYS_STATUS_SENSOR_LASER_POSITION", """0x100 laser based position""")
+MAV_SYS_STATUS_SENSOR_EXTERNAL_GROUND_TRUTH = 512
+enums["MAV_SYS_STATUS_SENSOR"][512] = EnumEntry("MAV_SYS_STATUS_SENSOR_EXTERNAL_GROUND_TRUTH", """0x200 external ground truth (Vicon or Leica)""")
+MAV_SYS_STATUS_SENSOR_ANGULAR_RATE_CONTROL = 1024
+enums["MAV_SYS_STATUS_SENSOR"][1024] = EnumEntry("MAV_SYS_STATUS_SENSOR_ANGULAR_RATE_CONTROL", """0x400 3D angular rate control""")
+MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION = 2048
+enums["MAV_SYS_STATUS_SENSOR"][2048] = EnumEntry("MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION", """0x800 attitude stabilization""")
+MAV_SYS_STATUS_SENSOR_YAW_POSITION = 4096
+enums["MAV_SYS_STATUS_SENSOR"][4096] = EnumEntry("MAV_SYS_STATUS_SENSOR_YAW_POSITION", """0x1000 yaw position""")
+MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL = 8192
+enums["MAV_SYS_STATUS_SENSOR"][8192] = EnumEntry("MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL", """0x2000 z/altitude control""")
+MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL = 16384
+enums["MAV_SYS_STATUS_SENSOR"][16384] = EnumEntry("MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL", """0x4000 x/y position control""")
+MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS = 32768
+enums["MAV_SYS_STATUS_SENSOR"][32768] = EnumEntry("MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS", """0x8000 motor outputs / control""")
+MAV_SYS_STATUS_SENSOR_RC_RECEIVER = 65536
+enums["MAV_SYS_STATUS_SENSOR"][65536] = EnumEntry("MAV_SYS_STATUS_SENSOR_RC_RECEIVER", """0x10000 RC receiver""")
+MAV_SYS_STATUS_SENSOR_3D_GYRO2 = 131072
+enums["MAV_SYS_STATUS_SENSOR"][131072] = EnumEntry("MAV_SYS_STATUS_SENSOR_3D_GYRO2", """0x20000 2nd 3D gyro""")
+MAV_SYS_STATUS_SENSOR_3D_ACCEL2 = 262144
+enums["MAV_SYS_STATUS_SENSOR"][262144] = EnumEntry("MAV_SYS_STATUS_SENSOR_3D_ACCEL2", """0x40000 2nd 3D accelerometer""")
+MAV_SYS_STATUS_SENSOR_3D_MAG2 = 524288
+enums["MAV_SYS_STATUS_SENSOR"][524288] = EnumEntry("MAV_SYS_STATUS_SENSOR_3D_MAG2", """0x80000 2nd 3D magnetometer""")
+MAV_SYS_STATUS_GEOFENCE = 1048576
+enums["MAV_SYS_STATUS_SENSOR"][1048576] = EnumEntry("MAV_SYS_STATUS_GEOFENCE", """0x100000 geofence""")
+MAV_SYS_STATUS_AHRS = 2097152
+enums["MAV_SYS_STATUS_SENSOR"][2097152] = EnumEntry("MAV_SYS_STATUS_AHRS", """0x200000 AHRS subsystem health""")
+MAV_SYS_STATUS_TERRAIN = 4194304
+enums["MAV_SYS_STATUS_SENSOR"][4194304] = EnumEntry("MAV_SYS_STATUS_TERRAIN", """0x400000 Terrain subsystem health""")
+MAV_SYS_STATUS_REVERSE_MOTOR = 8388608
+enums["MAV_SYS_STATUS_SENSOR"][8388608] = EnumEntry("MAV_SYS_STATUS_REVERSE_MOTOR", """0x800000 Motors are reversed""")
+MAV_SYS_STATUS_LOGGING = 16777216
+enums["MAV_SYS_STATUS_SENSOR"][16777216] = EnumEntry("MAV_SYS_STATUS_LOGGING", """0x1000000 Logging""")
+MAV_SYS_STATUS_SENSOR_BATTERY = 33554432
+enums["MAV_SYS_STATUS_SENSOR"][33554432] = EnumEntry("MAV_SYS_STATUS_SENSOR_BATTERY", """0x2000000 Battery""")
+MAV_SYS_STATUS_SENSOR_PROXIMITY = 67108864
+enums["MAV_SYS_STATUS_SENSOR"][67108864] = EnumEntry("MAV_SYS_STATUS_SENSOR_PROXIMITY", """0x4000000 Proximity""")
+MAV_SYS_STATUS_SENSOR_SATCOM = 134217728
+enums["MAV_SYS_STATUS_SENSOR"][134217728] = EnumEntry("MAV_SYS_STATUS_SENSOR_SATCOM", """0x8000000 Satellite Communication """)
+MAV_SYS_STATUS_PREARM_CHECK = 268435456
+enums["MAV_SYS_STATUS_SENSOR"][268435456] = EnumEntry("MAV_SYS_STATUS_PREARM_CHECK", """0x10000000 pre-arm check status. Always healthy when armed""")
+MAV_SYS_STATUS_OBSTACLE_AVOIDANCE = 536870912
+enums["MAV_SYS_STATUS_SENSOR"][536870912] = EnumEntry("MAV_SYS_STATUS_OBSTACLE_AVOIDANCE", """0x20000000 Avoidance/collision prevention""")
+MAV_SYS_STATUS_SENSOR_PROPULSION = 1073741824
+enums["MAV_SYS_STATUS_SENSOR"][1073741824] = EnumEntry("MAV_SYS_STATUS_SENSOR_PROPULSION", """0x40000000 propulsion (actuator, esc, motor or propellor)""")
+MAV_SYS_STATUS_EXTENSION_USED = 2147483648
+enums["MAV_SYS_STATUS_SENSOR"][2147483648] = EnumEntry("MAV_SYS_STATUS_EXTENSION_USED", """0x80000000 Extended bit-field are used for further sensor status bits (needs to be set in onboard_control_sensors_present only)""")
+MAV_SYS_STATUS_SENSOR_ENUM_END = 2147483649
+enums["MAV_SYS_STATUS_SENSOR"][2147483649] = EnumEntry("MAV_SYS_STATUS_SENSOR_ENUM_END", """""")
+
+# MAV_SYS_STATUS_SENSOR_EXTENDED
+enums["MAV_SYS_STATUS_SENSOR_EXTENDED"] = Enum()
+enums["MAV_SYS_STATUS_SENSOR_EXTENDED"].bitmask = True
+MAV_SYS_STATUS_RECOVERY_SYSTEM = 1
+enums["MAV_SYS_STATUS_SENSOR_EXTENDED"][1] = EnumEntry("MAV_SYS_STATUS_RECOVERY_SYSTEM", """0x01 Recovery system (parachute, balloon, retracts etc)""")
+MAV_SYS_STATUS_SENSOR_LEAK = 2
+enums["MAV_SYS_STATUS_SENSOR_EXTENDED"][2] = EnumEntry("MAV_SYS_STATUS_SENSOR_LEAK", """0x02 Leak detection""")
+MAV_SYS_STATUS_SENSOR_EXTENDED_ENUM_END = 3
+enums["MAV_SYS_STATUS_SENSOR_EXTENDED"][3] = EnumEntry("MAV_SYS_STATUS_SENSOR_EXTENDED_ENUM_END", """""")
+
+# MAV_FRAME
+enums["MAV_FRAME"] = Enum()
+enums["MAV_FRAME"].bitmask = False
+MAV_FRAME_GLOBAL = 0
+enums["MAV_FRAME"][0] = EnumEntry("MAV_FRAME_GLOBAL", """Global (WGS84) coordinate frame + altitude relative to mean sea level (MSL).""")
+MAV_FRAME_LOCAL_NED = 1
+enums["MAV_FRAME"][1] = EnumEntry("MAV_FRAME_LOCAL_NED", """NED local tangent frame (x: North, y: East, z: Down) with origin fixed relative to earth.""")
+MAV_FRAME_MISSION = 2
+enums["MAV_FRAME"][2] = EnumEntry("MAV_FRAME_MISSION", """NOT a coordinate frame, indicates a mission command.""")
+MAV_FRAME_GLOBAL_RELATIVE_ALT = 3
+enums["MAV_FRAME"][3] = EnumEntry(
+    "MAV_FRAME_GLOBAL_RELATIVE_ALT",
+    """
+          Global (WGS84) coordinate frame + altitude relative to the home position.
+        """,
+)
+MAV_FRAME_LOCAL_ENU = 4
+enums["MAV_FRAME"][4] = EnumEntry("MAV_FRAME_LOCAL_ENU", """ENU local tangent frame (x: East, y: North, z: Up) with origin fixed relative to earth.""")
+MAV_FRAME_GLOBAL_INT = 5
+enums["MAV_FRAME"][5] = EnumEntry("MAV_FRAME_GLOBAL_INT", """Global (WGS84) coordinate frame (scaled) + altitude relative to mean sea level (MSL).""")
+MAV_FRAME_GLOBAL_RELATIVE_ALT_INT = 6
+enums["MAV_FRAME"][6] = EnumEntry("MAV_FRAME_GLOBAL_RELATIVE_ALT_INT", """Global (WGS84) coordinate frame (scaled) + altitude relative to the home position. """)
+MAV_FRAME_LOCAL_OFFSET_NED = 7
+enums["MAV_FRAME"][7] = EnumEntry("MAV_FRAME_LOCAL_OFFSET_NED", """NED local tangent frame (x: North, y: East, z: Down) with origin that travels with the vehicle.""")
+MAV_FRAME_BODY_NED = 8
+enums["MAV_FRAME"][8] = EnumEntry("MAV_FRAME_BODY_NED", """Same as MAV_FRAME_LOCAL_NED when used to represent position values. Same as MAV_FRAME_BODY_FRD when used with velocity/acceleration values.""")
+MAV_FRAME_BODY_OFFSET_NED = 9
+enums["MAV_FRAME"][9] = EnumEntry("MAV_FRAME_BODY_OFFSET_NED", """This is the same as MAV_FRAME_BODY_FRD.""")
+MAV_FRAME_GLOBAL_TERRAIN_ALT = 10
+enums["MAV_FRAME"][10] = EnumEntry("MAV_FRAME_GLOBAL_TERRAIN_ALT", """Global (WGS84) coordinate frame with AGL altitude (altitude at ground level).""")
+MAV_FRAME_GLOBAL_TERRAIN_ALT_INT = 11
+enums["MAV_FRAME"][11] = EnumEntry("MAV_FRAME_GLOBAL_TERRAIN_ALT_INT", """Global (WGS84) coordinate frame (scaled) with AGL altitude (altitude at ground level).""")
+MAV_FRAME_BODY_FRD = 12
+enums["MAV_FRAME"][12] = EnumEntry("MAV_FRAME_BODY_FRD", """FRD local frame aligned to the vehicle's attitude (x: Forward, y: Right, z: Down) with an origin that travels with vehicle.""")
+MAV_FRAME_RESERVED_13 = 13
+enums["MAV_FRAME"][13] = EnumEntry("MAV_FRAME_RESERVED_13", """MAV_FRAME_BODY_FLU - Body fixed frame of reference, Z-up (x: Forward, y: Left, z: Up).""")
+MAV_FRAME_RESERVED_14 = 14
+enums["MAV_FRAME"][14] = EnumEntry("MAV_FRAME_RESERVED_14", """MAV_FRAME_MOCAP_NED - Odometry local coordinate frame of data given by a motion capture system, Z-down (x: North, y: East, z: Down).""")
+MAV_FRAME_RESERVED_15 = 15
+enums["MAV_FRAME"][15] = EnumEntry("MAV_FRAME_RESERVED_15", """MAV_FRAME_MOCAP_ENU - Odometry local coordinate frame of data given by a motion capture system, Z-up (x: East, y: North, z: Up).""")
+MAV_FRAME_RESERVED_16 = 16
+enums["MAV_FRAME"][16] = EnumEntry("MAV_FRAME_RESERVED_16", """MAV_FRAME_VISION_NED - Odometry local coordinate frame of data given by a vision estimation system, Z-down (x: North, y: East, z: Down).""")
+MAV_FRAME_RESERVED_17 = 17
+enums["MAV_FRAME"][17] = EnumEntry("MAV_FRAME_RESERVED_17", """MAV_FRAME_VISION_ENU - Odometry local coordinate frame of data given by a vision estimation system, Z-up (x: East, y: North, z: Up).""")
+MAV_FRAME_RESERVED_18 = 18
+enums["MAV_FRAME"][18] = EnumEntry("MAV_FRAME_RESERVED_18", """MAV_FRAME_ESTIM_NED - Odometry local coordinate frame of data given by an estimator running onboard the vehicle, Z-down (x: North, y: East, z: Down).""")
+MAV_FRAME_RESERVED_19 = 19
+enums["MAV_FRAME"][19] = EnumEntry("MAV_FRAME_RESERVED_19", """MAV_FRAME_ESTIM_ENU - Odometry local coordinate frame of data given by an estimator running onboard the vehicle, Z-up (x: East, y: North, z: Up).""")
+MAV_FRAME_LOCAL_FRD = 20
+enums["MAV_FRAME"][20] = EnumEntry("MAV_FRAME_LOCAL_FRD", """FRD local tangent frame (x: Forward, y: Right, z: Down) with origin fixed relative to earth. The forward axis is aligned to the front of the vehicle in the horizontal plane.""")
+MAV_FRAME_LOCAL_FLU = 21
+enums["MAV_FRAME"][21] = EnumEntry("MAV_FRAME_LOCAL_FLU", """FLU local tangent frame (x: Forward, y: Left, z: Up) with origin fixed relative to earth. The forward axis is aligned to the front of the vehicle in the horizontal plane.""")
+MAV_FRAME_ENUM_END = 22
+enums["MAV_FRAME"][22] = EnumEntry("MAV_FRAME_ENUM_END", """""")
+
+# MAVLINK_DATA_STREAM_TYPE
+enums["MAVLINK_DATA_STREAM_TYPE"] = Enum()
+enums["MAVLINK_DATA_STREAM_TYPE"].bitmask = False
+MAVLINK_DATA_STREAM_IMG_JPEG = 0
+enums["MAVLINK_DATA_STREAM_TYPE"][0] = EnumEntry("MAVLINK_DATA_STREAM_IMG_JPEG", """""")
+MAVLINK_DATA_STREAM_IMG_BMP = 1
+enums["MAVLINK_DATA_STREAM_TYPE"][1] = EnumEntry("MAVLINK_DATA_STREAM_IMG_BMP", """""")
+MAVLINK_DATA_STREAM_IMG_RAW8U = 2
+enums["MAVLINK_DATA_STREAM_TYPE"][2] = EnumEntry("MAVLINK_DATA_STREAM_IMG_RAW8U", """""")
+MAVLINK_DATA_STREAM_IMG_RAW32U = 3
+enums["MAVLINK_DATA_STREAM_TYPE"][3] = EnumEntry("MAVLINK_DATA_STREAM_IMG_RAW32U", """""")
+MAVLINK_DATA_STREAM_IMG_PGM = 4
+enums["MAVLINK_DATA_STREAM_TYPE"][4] = EnumEntry("MAVLINK_DATA_STREAM_IMG_PGM", """""")
+MAVLINK_DATA_STREAM_IMG_PNG = 5
+enums["MAVLINK_DATA_STREAM_TYPE"][5] = EnumEntry("MAVLINK_DATA_STREAM_IMG_PNG", """""")
+MAVLINK_DATA_STREAM_TYPE_ENUM_END = 6
+enums["MAVLINK_DATA_STREAM_TYPE"][6] = EnumEntry("MAVLINK_DATA_STREAM_TYPE_ENUM_END", """""")
+
+# FENCE_BREACH
+enums["FENCE_BREACH"] = Enum()
+enums["FENCE_BREACH"].bitmask = False
+FENCE_BREACH_NONE = 0
+enums["FENCE_BREACH"][0] = EnumEntry("FENCE_BREACH_NONE", """No last fence breach""")
+FENCE_BREACH_MINALT = 1
+enums["FENCE_BREACH"][1] = EnumEntry("FENCE_BREACH_MINALT", """Breached minimum altitude""")
+FENCE_BREACH_MAXALT = 2
+enums["FENCE_BREACH"][2] = EnumEntry("FENCE_BREACH_MAXALT", """Breached maximum altitude""")
+FENCE_BREACH_BOUNDARY = 3
+enums["FENCE_BREACH"][3] = EnumEntry("FENCE_BREACH_BOUNDARY", """Breached fence boundary""")
+FENCE_BREACH_ENUM_END = 4
+enums["FENCE_BREACH"][4] = EnumEntry("FENCE_BREACH_ENUM_END", """""")
+
+# FENCE_MITIGATE
+enums["FENCE_MITIGATE"] = Enum()
+enums["FENCE_MITIGATE"].bitmask = False
+FENCE_MITIGATE_UNKNOWN = 0
+enums["FENCE_MITIGATE"][0] = EnumEntry("FENCE_MITIGATE_UNKNOWN", """Unknown""")
+FENCE_MITIGATE_NONE = 1
+enums["FENCE_MITIGATE"][1] = EnumEntry("FENCE_MITIGATE_NONE", """No actions being taken""")
+FENCE_MITIGATE_VEL_LIMIT = 2
+enums["FENCE_MITIGATE"][2] = EnumEntry("FENCE_MITIGATE_VEL_LIMIT", """Velocity limiting active to prevent breach""")
+FENCE_MITIGATE_ENUM_END = 3
+enums["FENCE_MITIGATE"][3] = EnumEntry("FENCE_MITIGATE_ENUM_END", """""")
+
+# FENCE_TYPE
+enums["FENCE_TYPE"] = Enum()
+enums["FENCE_TYPE"].bitmask = True
+FENCE_TYPE_ALT_MAX = 1
+enums["FENCE_TYPE"][1] = EnumEntry("FENCE_TYPE_ALT_MAX", """Maximum altitude fence""")
+FENCE_TYPE_CIRCLE = 2
+enums["FENCE_TYPE"][2] = EnumEntry("FENCE_TYPE_CIRCLE", """Circle fence""")
+FENCE_TYPE_POLYGON = 4
+enums["FENCE_TYPE"][4] = EnumEntry("FENCE_TYPE_POLYGON", """Polygon fence""")
+FENCE_TYPE_ALT_MIN = 8
+enums["FENCE_TYPE"][8] = EnumEntry("FENCE_TYPE_ALT_MIN", """Minimum altitude fence""")
+FENCE_TYPE_ENUM_END = 9
+enums["FENCE_TYPE"][9] = EnumEntry("FENCE_TYPE_ENUM_END", """""")
+
+# MAV_MOUNT_MODE
+enums["MAV_MOUNT_MODE"] = Enum()
+enums["MAV_MOUNT_MODE"].bitmask = False
+MAV_MOUNT_MODE_RETRACT = 0
+enums["MAV_MOUNT_MODE"][0] = EnumEntry("MAV_MOUNT_MODE_RETRACT", """Load and keep safe position (Roll,Pitch,Yaw) from permanent memory and stop stabilization""")
+MAV_MOUNT_MODE_NEUTRAL = 1
+enums["MAV_MOUNT_MODE"][1] = EnumEntry("MAV_MOUNT_MODE_NEUTRAL", """Load and keep neutral position (Roll,Pitch,Yaw) from permanent memory.""")
+MAV_MOUNT_MODE_MAVLINK_TARGETING = 2
+enums["MAV_MOUNT_MODE"][2] = EnumEntry("MAV_MOUNT_MODE_MAVLINK_TARGETING", """Load neutral position and start MAVLink Roll,Pitch,Yaw control with stabilization""")
+MAV_MOUNT_MODE_RC_TARGETING = 3
+enums["MAV_MOUNT_MODE"][3] = EnumEntry("MAV_MOUNT_MODE_RC_TARGETING", """Load neutral position and start RC Roll,Pitch,Yaw control with stabilization""")
+MAV_MOUNT_MODE_GPS_POINT = 4
+enums["MAV_MOUNT_MODE"][4] = EnumEntry("MAV_MOUNT_MODE_GPS_POINT", """Load neutral position and start to point to Lat,Lon,Alt""")
+MAV_MOUNT_MODE_SYSID_TARGET = 5
+enums["MAV_MOUNT_MODE"][5] = EnumEntry("MAV_MOUNT_MODE_SYSID_TARGET", """Gimbal tracks system with specified system ID""")
+MAV_MOUNT_MODE_HOME_LOCATION = 6
+enums["MAV_MOUNT_MODE"][6] = EnumEntry("MAV_MOUNT_MODE_HOME_LOCATION", """Gimbal tracks home position""")
+MAV_MOUNT_MODE_WPNEXT_OFFSET = 7
+enums["MAV_MOUNT_MODE"][7] = EnumEntry("MAV_MOUNT_MODE_WPNEXT_OFFSET", """Gimbal tracks next waypoint location with offset""")
+MAV_MOUNT_MODE_ENUM_END = 8
+enums["MAV_MOUNT_MODE"][8] = EnumEntry("MAV_MOUNT_MODE_ENUM_END", """""")
+
+# GIMBAL_DEVICE_CAP_FLAGS
+enums["GIMBAL_DEVICE_CAP_FLAGS"] = Enum()
+enums["GIMBAL_DEVICE_CAP_FLAGS"].bitmask = True
+GIMBAL_DEVICE_CAP_FLAGS_HAS_RETRACT = 1
+enums["GIMBAL_DEVICE_CAP_FLAGS"][1] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_RETRACT", """Gimbal device supports a retracted position.""")
+GIMBAL_DEVICE_CAP_FLAGS_HAS_NEUTRAL = 2
+enums["GIMBAL_DEVICE_CAP_FLAGS"][2] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_NEUTRAL", """Gimbal device supports a horizontal, forward looking position, stabilized.""")
+GIMBAL_DEVICE_CAP_FLAGS_HAS_ROLL_AXIS = 4
+enums["GIMBAL_DEVICE_CAP_FLAGS"][4] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_ROLL_AXIS", """Gimbal device supports rotating around roll axis.""")
+GIMBAL_DEVICE_CAP_FLAGS_HAS_ROLL_FOLLOW = 8
+enums["GIMBAL_DEVICE_CAP_FLAGS"][8] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_ROLL_FOLLOW", """Gimbal device supports to follow a roll angle relative to the vehicle.""")
+GIMBAL_DEVICE_CAP_FLAGS_HAS_ROLL_LOCK = 16
+enums["GIMBAL_DEVICE_CAP_FLAGS"][16] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_ROLL_LOCK", """Gimbal device supports locking to a roll angle (generally that's the default with roll stabilized).""")
+GIMBAL_DEVICE_CAP_FLAGS_HAS_PITCH_AXIS = 32
+enums["GIMBAL_DEVICE_CAP_FLAGS"][32] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_PITCH_AXIS", """Gimbal device supports rotating around pitch axis.""")
+GIMBAL_DEVICE_CAP_FLAGS_HAS_PITCH_FOLLOW = 64
+enums["GIMBAL_DEVICE_CAP_FLAGS"][64] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_PITCH_FOLLOW", """Gimbal device supports to follow a pitch angle relative to the vehicle.""")
+GIMBAL_DEVICE_CAP_FLAGS_HAS_PITCH_LOCK = 128
+enums["GIMBAL_DEVICE_CAP_FLAGS"][128] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_PITCH_LOCK", """Gimbal device supports locking to a pitch angle (generally that's the default with pitch stabilized).""")
+GIMBAL_DEVICE_CAP_FLAGS_HAS_YAW_AXIS = 256
+enums["GIMBAL_DEVICE_CAP_FLAGS"][256] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_YAW_AXIS", """Gimbal device supports rotating around yaw axis.""")
+GIMBAL_DEVICE_CAP_FLAGS_HAS_YAW_FOLLOW = 512
+enums["GIMBAL_DEVICE_CAP_FLAGS"][512] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_YAW_FOLLOW", """Gimbal device supports to follow a yaw angle relative to the vehicle (generally that's the default).""")
+GIMBAL_DEVICE_CAP_FLAGS_HAS_YAW_LOCK = 1024
+enums["GIMBAL_DEVICE_CAP_FLAGS"][1024] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_YAW_LOCK", """Gimbal device supports locking to an absolute heading, i.e., yaw angle relative to North (earth frame, often this is an option available).""")
+GIMBAL_DEVICE_CAP_FLAGS_SUPPORTS_INFINITE_YAW = 2048
+enums["GIMBAL_DEVICE_CAP_FLAGS"][2048] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_SUPPORTS_INFINITE_YAW", """Gimbal device supports yawing/panning infinitely (e.g. using slip disk).""")
+GIMBAL_DEVICE_CAP_FLAGS_SUPPORTS_YAW_IN_EARTH_FRAME = 4096
+enums["GIMBAL_DEVICE_CAP_FLAGS"][4096] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_SUPPORTS_YAW_IN_EARTH_FRAME", """Gimbal device supports yaw angles and angular velocities relative to North (earth frame). This usually requires support by an autopilot via AUTOPILOT_STATE_FOR_GIMBAL_DEVICE. Support can go on and off during runtime, which is reported by the flag GIMBAL_DEVICE_FLAGS_CAN_ACCEPT_YAW_IN_EARTH_FRAME.""")
+GIMBAL_DEVICE_CAP_FLAGS_HAS_RC_INPUTS = 8192
+enums["GIMBAL_DEVICE_CAP_FLAGS"][8192] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_HAS_RC_INPUTS", """Gimbal device supports radio control inputs as an alternative input for controlling the gimbal orientation.""")
+GIMBAL_DEVICE_CAP_FLAGS_CAN_POINT_LOCATION_LOCAL = 65536
+enums["GIMBAL_DEVICE_CAP_FLAGS"][65536] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_CAN_POINT_LOCATION_LOCAL", """Gimbal device supports to point to a local position.""")
+GIMBAL_DEVICE_CAP_FLAGS_CAN_POINT_LOCATION_GLOBAL = 131072
+enums["GIMBAL_DEVICE_CAP_FLAGS"][131072] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_CAN_POINT_LOCATION_GLOBAL", """Gimbal device supports to point to a global latitude, longitude, altitude position.""")
+GIMBAL_DEVICE_CAP_FLAGS_ENUM_END = 131073
+enums["GIMBAL_DEVICE_CAP_FLAGS"][131073] = EnumEntry("GIMBAL_DEVICE_CAP_FLAGS_ENUM_END", """""")
+
+# GIMBAL_MANAGER_CAP_FLAGS
+enums["GIMBAL_MANAGER_CAP_FLAGS"] = Enum()
+enums["GIMBAL_MANAGER_CAP_FLAGS"].bitmask = True
+GIMBAL_MANAGER_CAP_FLAGS_HAS_RETRACT = 1
+enums["GIMBAL_MANAGER_CAP_FLAGS"][1] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_RETRACT", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_RETRACT.""")
+GIMBAL_MANAGER_CAP_FLAGS_HAS_NEUTRAL = 2
+enums["GIMBAL_MANAGER_CAP_FLAGS"][2] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_NEUTRAL", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_NEUTRAL.""")
+GIMBAL_MANAGER_CAP_FLAGS_HAS_ROLL_AXIS = 4
+enums["GIMBAL_MANAGER_CAP_FLAGS"][4] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_ROLL_AXIS", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_ROLL_AXIS.""")
+GIMBAL_MANAGER_CAP_FLAGS_HAS_ROLL_FOLLOW = 8
+enums["GIMBAL_MANAGER_CAP_FLAGS"][8] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_ROLL_FOLLOW", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_ROLL_FOLLOW.""")
+GIMBAL_MANAGER_CAP_FLAGS_HAS_ROLL_LOCK = 16
+enums["GIMBAL_MANAGER_CAP_FLAGS"][16] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_ROLL_LOCK", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_ROLL_LOCK.""")
+GIMBAL_MANAGER_CAP_FLAGS_HAS_PITCH_AXIS = 32
+enums["GIMBAL_MANAGER_CAP_FLAGS"][32] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_PITCH_AXIS", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_PITCH_AXIS.""")
+GIMBAL_MANAGER_CAP_FLAGS_HAS_PITCH_FOLLOW = 64
+enums["GIMBAL_MANAGER_CAP_FLAGS"][64] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_PITCH_FOLLOW", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_PITCH_FOLLOW.""")
+GIMBAL_MANAGER_CAP_FLAGS_HAS_PITCH_LOCK = 128
+enums["GIMBAL_MANAGER_CAP_FLAGS"][128] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_PITCH_LOCK", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_PITCH_LOCK.""")
+GIMBAL_MANAGER_CAP_FLAGS_HAS_YAW_AXIS = 256
+enums["GIMBAL_MANAGER_CAP_FLAGS"][256] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_YAW_AXIS", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_YAW_AXIS.""")
+GIMBAL_MANAGER_CAP_FLAGS_HAS_YAW_FOLLOW = 512
+enums["GIMBAL_MANAGER_CAP_FLAGS"][512] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_YAW_FOLLOW", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_YAW_FOLLOW.""")
+GIMBAL_MANAGER_CAP_FLAGS_HAS_YAW_LOCK = 1024
+enums["GIMBAL_MANAGER_CAP_FLAGS"][1024] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_YAW_LOCK", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_YAW_LOCK.""")
+GIMBAL_MANAGER_CAP_FLAGS_SUPPORTS_INFINITE_YAW = 2048
+enums["GIMBAL_MANAGER_CAP_FLAGS"][2048] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_SUPPORTS_INFINITE_YAW", """Based on GIMBAL_DEVICE_CAP_FLAGS_SUPPORTS_INFINITE_YAW.""")
+GIMBAL_MANAGER_CAP_FLAGS_SUPPORTS_YAW_IN_EARTH_FRAME = 4096
+enums["GIMBAL_MANAGER_CAP_FLAGS"][4096] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_SUPPORTS_YAW_IN_EARTH_FRAME", """Based on GIMBAL_DEVICE_CAP_FLAGS_SUPPORTS_YAW_IN_EARTH_FRAME.""")
+GIMBAL_MANAGER_CAP_FLAGS_HAS_RC_INPUTS = 8192
+enums["GIMBAL_MANAGER_CAP_FLAGS"][8192] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_HAS_RC_INPUTS", """Based on GIMBAL_DEVICE_CAP_FLAGS_HAS_RC_INPUTS.""")
+GIMBAL_MANAGER_CAP_FLAGS_CAN_POINT_LOCATION_LOCAL = 65536
+enums["GIMBAL_MANAGER_CAP_FLAGS"][65536] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_CAN_POINT_LOCATION_LOCAL", """Based on GIMBAL_DEVICE_CAP_FLAGS_CAN_POINT_LOCATION_LOCAL.""")
+GIMBAL_MANAGER_CAP_FLAGS_CAN_POINT_LOCATION_GLOBAL = 131072
+enums["GIMBAL_MANAGER_CAP_FLAGS"][131072] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_CAN_POINT_LOCATION_GLOBAL", """Based on GIMBAL_DEVICE_CAP_FLAGS_CAN_POINT_LOCATION_GLOBAL.""")
+GIMBAL_MANAGER_CAP_FLAGS_ENUM_END = 131073
+enums["GIMBAL_MANAGER_CAP_FLAGS"][131073] = EnumEntry("GIMBAL_MANAGER_CAP_FLAGS_ENUM_END", """""")
+
+# GIMBAL_DEVICE_FLAGS
+enums["GIMBAL_DEVICE_FLAGS"] = Enum()
+enums["GIMBAL_DEVICE_FLAGS"].bitmask = True
+GIMBAL_DEVICE_FLAGS_RETRACT = 1
+enums["GIMBAL_DEVICE_FLAGS"][1] = EnumEntry("GIMBAL_DEVICE_FLAGS_RETRACT", """Set to retracted safe position (no stabilization), takes precedence over all other flags.""")
+GIMBAL_DEVICE_FLAGS_NEUTRAL = 2
+enums["GIMBAL_DEVICE_FLAGS"][2] = EnumEntry("GIMBAL_DEVICE_FLAGS_NEUTRAL", """Set to neutral/default position, taking precedence over all other flags except RETRACT. Neutral is commonly forward-facing and horizontal (roll=pitch=yaw=0) but may be any orientation.""")
+GIMBAL_DEVICE_FLAGS_ROLL_LOCK = 4
+enums["GIMBAL_DEVICE_FLAGS"][4] = EnumEntry("GIMBAL_DEVICE_FLAGS_ROLL_LOCK", """Lock roll angle to absolute angle relative to horizon (not relative to vehicle). This is generally the default with a stabilizing gimbal.""")
+GIMBAL_DEVICE_FLAGS_PITCH_LOCK = 8
+enums["GIMBAL_DEVICE_FLAGS"][8] = EnumEntry("GIMBAL_DEVICE_FLAGS_PITCH_LOCK", """Lock pitch angle to absolute angle relative to horizon (not relative to vehicle). This is generally the default with a stabilizing gimbal.""")
+GIMBAL_DEVICE_FLAGS_YAW_LOCK = 16
+enums["GIMBAL_DEVICE_FLAGS"][16] = EnumEntry("GIMBAL_DEVICE_FLAGS_YAW_LOCK", """Lock yaw angle to absolute angle relative to North (not relative to vehicle). If this flag is set, the yaw angle and z component of angular velocity are relative to North (earth frame, x-axis pointing North), else they are relative to the vehicle heading (vehicle frame, earth frame rotated so that the x-axis is pointing forward).""")
+GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME = 32
+enums["GIMBAL_DEVICE_FLAGS"][32] = EnumEntry("GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME", """Yaw angle and z component of angular velocity are relative to the vehicle heading (vehicle frame, earth frame rotated such that the x-axis is pointing forward).""")
+GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME = 64
+enums["GIMBAL_DEVICE_FLAGS"][64] = EnumEntry("GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME", """Yaw angle and z component of angular velocity are relative to North (earth frame, x-axis is pointing North).""")
+GIMBAL_DEVICE_FLAGS_ACCEPTS_YAW_IN_EARTH_FRAME = 128
+enums["GIMBAL_DEVICE_FLAGS"][128] = EnumEntry("GIMBAL_DEVICE_FLAGS_ACCEPTS_YAW_IN_EARTH_FRAME", """Gimbal device can accept yaw angle inputs relative to North (earth frame). This flag is only for reporting (attempts to set this flag are ignored).""")
+GIMBAL_DEVICE_FLAGS_RC_EXCLUSIVE = 256
+enums["GIMBAL_DEVICE_FLAGS"][256] = EnumEntry("GIMBAL_DEVICE_FLAGS_RC_EXCLUSIVE", """The gimbal orientation is set exclusively by the RC signals feed to the gimbal's radio control inputs. MAVLink messages for setting the gimbal orientation (GIMBAL_DEVICE_SET_ATTITUDE) are ignored.""")
+GIMBAL_DEVICE_FLAGS_RC_MIXED = 512
+enums["GIMBAL_DEVICE_FLAGS"][512] = EnumEntry("GIMBAL_DEVICE_FLAGS_RC_MIXED", """The gimbal orientation is determined by combining/mixing the RC signals feed to the gimbal's radio control inputs and the MAVLink messages for setting the gimbal orientation (GIMBAL_DEVICE_SET_ATTITUDE). How these two controls are combined or mixed is not defined by the protocol but is up to the implementation.""")
+GIMBAL_DEVICE_FLAGS_ENUM_END = 513
+enums["GIMBAL_DEVICE_FLAGS"][513] = EnumEntry("GIMBAL_DEVICE_FLAGS_ENUM_END", """""")
+
+# GIMBAL_MANAGER_FLAGS
+enums["GIMBAL_MANAGER_FLAGS"] = Enum()
+enums["GIMBAL_MANAGER_FLAGS"].bitmask = True
+GIMBAL_MANAGER_FLAGS_RETRACT = 1
+enums["GIMBAL_MANAGER_FLAGS"][1] = EnumEntry("GIMBAL_MANAGER_FLAGS_RETRACT", """Based on GIMBAL_DEVICE_FLAGS_RETRACT.""")
+GIMBAL_MANAGER_FLAGS_NEUTRAL = 2
+enums["GIMBAL_MANAGER_FLAGS"][2] = EnumEntry("GIMBAL_MANAGER_FLAGS_NEUTRAL", """Based on GIMBAL_DEVICE_FLAGS_NEUTRAL.""")
+GIMBAL_MANAGER_FLAGS_ROLL_LOCK = 4
+enums["GIMBAL_MANAGER_FLAGS"][4] = EnumEntry("GIMBAL_MANAGER_FLAGS_ROLL_LOCK", """Based on GIMBAL_DEVICE_FLAGS_ROLL_LOCK.""")
+GIMBAL_MANAGER_FLAGS_PITCH_LOCK = 8
+enums["GIMBAL_MANAGER_FLAGS"][8] = EnumEntry("GIMBAL_MANAGER_FLAGS_PITCH_LOCK", """Based on GIMBAL_DEVICE_FLAGS_PITCH_LOCK.""")
+GIMBAL_MANAGER_FLAGS_YAW_LOCK = 16
+enums["GIMBAL_MANAGER_FLAGS"][16] = EnumEntry("GIMBAL_MANAGER_FLAGS_YAW_LOCK", """Based on GIMBAL_DEVICE_FLAGS_YAW_LOCK.""")
+GIMBAL_MANAGER_FLAGS_YAW_IN_VEHICLE_FRAME = 32
+enums["GIMBAL_MANAGER_FLAGS"][32] = EnumEntry("GIMBAL_MANAGER_FLAGS_YAW_IN_VEHICLE_FRAME", """Based on GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME.""")
+GIMBAL_MANAGER_FLAGS_YAW_IN_EARTH_FRAME = 64
+enums["GIMBAL_MANAGER_FLAGS"][64] = EnumEntry("GIMBAL_MANAGER_FLAGS_YAW_IN_EARTH_FRAME", """Based on GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME.""")
+GIMBAL_MANAGER_FLAGS_ACCEPTS_YAW_IN_EARTH_FRAME = 128
+enums["GIMBAL_MANAGER_FLAGS"][128] = EnumEntry("GIMBAL_MANAGER_FLAGS_ACCEPTS_YAW_IN_EARTH_FRAME", """Based on GIMBAL_DEVICE_FLAGS_ACCEPTS_YAW_IN_EARTH_FRAME.""")
+GIMBAL_MANAGER_FLAGS_RC_EXCLUSIVE = 256
+enums["GIMBAL_MANAGER_FLAGS"][256] = EnumEntry("GIMBAL_MANAGER_FLAGS_RC_EXCLUSIVE", """Based on GIMBAL_DEVICE_FLAGS_RC_EXCLUSIVE.""")
+GIMBAL_MANAGER_FLAGS_RC_MIXED = 512
+enums["GIMBAL_MANAGER_FLAGS"][512] = EnumEntry("GIMBAL_MANAGER_FLAGS_RC_MIXED", """Based on GIMBAL_DEVICE_FLAGS_RC_MIXED.""")
+GIMBAL_MANAGER_FLAGS_ENUM_END = 513
+enums["GIMBAL_MANAGER_FLAGS"][513] = EnumEntry("GIMBAL_MANAGER_FLAGS_ENUM_END", """""")
+
+# GIMBAL_DEVICE_ERROR_FLAGS
+enums["GIMBAL_DEVICE_ERROR_FLAGS"] = Enum()
+enums["GIMBAL_DEVICE_ERROR_FLAGS"].bitmask = True
+GIMBAL_DEVICE_ERROR_FLAGS_AT_ROLL_LIMIT = 1
+enums["GIMBAL_DEVICE_ERROR_FLAGS"][1] = EnumEntry("GIMBAL_DEVICE_ERROR_FLAGS_AT_ROLL_LIMIT", """Gimbal device is limited by hardware roll limit.""")
+GIMBAL_DEVICE_ERROR_FLAGS_AT_PITCH_LIMIT = 2
+enums["GIMBAL_DEVICE_ERROR_FLAGS"][2] = EnumEntry("GIMBAL_DEVICE_ERROR_FLAGS_AT_PITCH_LIMIT", """Gimbal device is limited by hardware pitch limit.""")
+GIMBAL_DEVICE_ERROR_FLAGS_AT_YAW_LIMIT = 4
+enums["GIMBAL_DEVICE_ERROR_FLAGS"][4] = EnumEntry("GIMBAL_DEVICE_ERROR_FLAGS_AT_YAW_LIMIT", """Gimbal device is limited by hardware yaw limit.""")
+GIMBAL_DEVICE_ERROR_FLAGS_ENCODER_ERROR = 8
+enums["GIMBAL_DEVICE_ERROR_FLAGS"][8] = EnumEntry("GIMBAL_DEVICE_ERROR_FLAGS_ENCODER_ERROR", """There is an error with the gimbal encoders.""")
+GIMBAL_DEVICE_ERROR_FLAGS_POWER_ERROR = 16
+enums["GIMBAL_DEVICE_ERROR_FLAGS"][16] = EnumEntry("GIMBAL_DEVICE_ERROR_FLAGS_POWER_ERROR", """There is an error with the gimbal power source.""")
+GIMBAL_DEVICE_ERROR_FLAGS_MOTOR_ERROR = 32
+enums["GIMBAL_DEVICE_ERROR_FLAGS"][32] = EnumEntry("GIMBAL_DEVICE_ERROR_FLAGS_MOTOR_ERROR", """There is an error with the gimbal motors.""")
+GIMBAL_DEVICE_ERROR_FLAGS_SOFTWARE_ERROR = 64
+enums["GIMBAL_DEVICE_ERROR_FLAGS"][64] = EnumEntry("GIMBAL_DEVICE_ERROR_FLAGS_SOFTWARE_ERROR", """There is an error with the gimbal's software.""")
+GIMBAL_DEVICE_ERROR_FLAGS_COMMS_ERROR = 128
+enums["GIMBAL_DEVICE_ERROR_FLAGS"][128] = EnumEntry("GIMBAL_DEVICE_ERROR_FLAGS_COMMS_ERROR", """There is an error with the gimbal's communication.""")
+GIMBAL_DEVICE_ERROR_FLAGS_CALIBRATION_RUNNING = 256
+enums["GIMBAL_DEVICE_ERROR_FLAGS"][256] = EnumEntry("GIMBAL_DEVICE_ERROR_FLAGS_CALIBRATION_RUNNING", """Gimbal device is currently calibrating.""")
+GIMBAL_DEVICE_ERROR_FLAGS_NO_MANAGER = 512
+enums["GIMBAL_DEVICE_ERROR_FLAGS"][512] = EnumEntry("GIMBAL_DEVICE_ERROR_FLAGS_NO_MANAGER", """Gimbal device is not assigned to a gimbal manager.""")
+GIMBAL_DEVICE_ERROR_FLAGS_ENUM_END = 513
+enums["GIMBAL_DEVICE_ERROR_FLAGS"][513] = EnumEntry("GIMBAL_DEVICE_ERROR_FLAGS_ENUM_END", """""")
+
+# GRIPPER_ACTIONS
+enums["GRIPPER_ACTIONS"] = Enum()
+enums["GRIPPER_ACTIONS"].bitmask = False
+GRIPPER_ACTION_RELEASE = 0
+enums["GRIPPER_ACTIONS"][0] = EnumEntry("GRIPPER_ACTION_RELEASE", """Gripper release cargo.""")
+GRIPPER_ACTION_GRAB = 1
+enums["GRIPPER_ACTIONS"][1] = EnumEntry("GRIPPER_ACTION_GRAB", """Gripper grab onto cargo.""")
+GRIPPER_ACTION_HOLD = 2
+enums["GRIPPER_ACTIONS"][2] = EnumEntry("GRIPPER_ACTION_HOLD", """Gripper hold current grip state/position.""")
+GRIPPER_ACTIONS_ENUM_END = 3
+enums["GRIPPER_ACTIONS"][3] = EnumEntry("GRIPPER_ACTIONS_ENUM_END", """""")
+
+# WINCH_ACTIONS
+enums["WINCH_ACTIONS"] = Enum()
+enums["WINCH_ACTIONS"].bitmask = False
+WINCH_RELAXED = 0
+enums["WINCH_ACTIONS"][0] = EnumEntry("WINCH_RELAXED", """Allow motor to freewheel.""")
+WINCH_RELATIVE_LENGTH_CONTROL = 1
+enums["WINCH_ACTIONS"][1] = EnumEntry("WINCH_RELATIVE_LENGTH_CONTROL", """Wind or unwind specified length of line, optionally using specified rate.""")
+WINCH_RATE_CONTROL = 2
+enums["WINCH_ACTIONS"][2] = EnumEntry("WINCH_RATE_CONTROL", """Wind or unwind line at specified rate.""")
+WINCH_LOCK = 3
+enums["WINCH_ACTIONS"][3] = EnumEntry("WINCH_LOCK", """Perform the locking sequence to relieve motor while in the fully retracted position. Only action and instance command parameters are used, others are ignored.""")
+WINCH_DELIVER = 4
+enums["WINCH_ACTIONS"][4] = EnumEntry("WINCH_DELIVER", """Sequence of drop, slow down, touch down, reel up, lock. Only action and instance command parameters are used, others are ignored.""")
+WINCH_HOLD = 5
+enums["WINCH_ACTIONS"][5] = EnumEntry("WINCH_HOLD", """Engage motor and hold current position. Only action and instance command parameters are used, others are ignored.""")
+WINCH_RETRACT = 6
+enums["WINCH_ACTIONS"][6] = EnumEntry("WINCH_RETRACT", """Return the reel to the fully retracted position. Only action and instance command parameters are used, others are ignored.""")
+WINCH_LOAD_LINE = 7
+enums["WINCH_ACTIONS"][7] = EnumEntry("WINCH_LOAD_LINE", """Load the reel with line. The winch will calculate the total loaded length and stop when the tension exceeds a threshold. Only action and instance command parameters are used, others are ignored.""")
+WINCH_ABANDON_LINE = 8
+enums["WINCH_ACTIONS"][8] = EnumEntry("WINCH_ABANDON_LINE", """Spool out the entire length of the line. Only action and instance command parameters are used, others are ignored.""")
+WINCH_LOAD_PAYLOAD = 9
+enums["WINCH_ACTIONS"][9] = EnumEntry("WINCH_LOAD_PAYLOAD", """Spools out just enough to present the hook to the user to load the payload. Only action and instance command parameters are used, others are ignored""")
+WINCH_ACTIONS_ENUM_END = 10
+enums["WINCH_ACTIONS"][10] = EnumEntry("WINCH_ACTIONS_ENUM_END", """""")
+
+# UAVCAN_NODE_HEALTH
+enums["UAVCAN_NODE_HEALTH"] = Enum()
+enums["UAVCAN_NODE_HEALTH"].bitmask = False
+UAVCAN_NODE_HEALTH_OK = 0
+enums["UAVCAN_NODE_HEALTH"][0] = EnumEntry("UAVCAN_NODE_HEALTH_OK", """The node is functioning properly.""")
+UAVCAN_NODE_HEALTH_WARNING = 1
+enums["UAVCAN_NODE_HEALTH"][1] = EnumEntry("UAVCAN_NODE_HEALTH_WARNING", """A critical parameter went out of range or the node has encountered a minor failure.""")
+UAVCAN_NODE_HEALTH_ERROR = 2
+enums["UAVCAN_NODE_HEALTH"][2] = EnumEntry("UAVCAN_NODE_HEALTH_ERROR", """The node has encountered a major failure.""")
+UAVCAN_NODE_HEALTH_CRITICAL = 3
+enums["UAVCAN_NODE_HEALTH"][3] = EnumEntry("UAVCAN_NODE_HEALTH_CRITICAL", """The node has suffered a fatal malfunction.""")
+UAVCAN_NODE_HEALTH_ENUM_END = 4
+enums["UAVCAN_NODE_HEALTH"][4] = EnumEntry("UAVCAN_NODE_HEALTH_ENUM_END", """""")
+
+# UAVCAN_NODE_MODE
+enums["UAVCAN_NODE_MODE"] = Enum()
+enums["UAVCAN_NODE_MODE"].bitmask = False
+UAVCAN_NODE_MODE_OPERATIONAL = 0
+enums["UAVCAN_NODE_MODE"][0] = EnumEntry("UAVCAN_NODE_MODE_OPERATIONAL", """The node is performing its primary functions.""")
+UAVCAN_NODE_MODE_INITIALIZATION = 1
+enums["UAVCAN_NODE_MODE"][1] = EnumEntry("UAVCAN_NODE_MODE_INITIALIZATION", """The node is initializing; this mode is entered immediately after startup.""")
+UAVCAN_NODE_MODE_MAINTENANCE = 2
+enums["UAVCAN_NODE_MODE"][2] = EnumEntry("UAVCAN_NODE_MODE_MAINTENANCE", """The node is under maintenance.""")
+UAVCAN_NODE_MODE_SOFTWARE_UPDATE = 3
+enums["UAVCAN_NODE_MODE"][3] = EnumEntry("UAVCAN_NODE_MODE_SOFTWARE_UPDATE", """The node is in the process of updating its software.""")
+UAVCAN_NODE_MODE_OFFLINE = 7
+enums["UAVCAN_NODE_MODE"][7] = EnumEntry("UAVCAN_NODE_MODE_OFFLINE", """The node is no longer available online.""")
+UAVCAN_NODE_MODE_ENUM_END = 8
+enums["UAVCAN_NODE_MODE"][8] = EnumEntry("UAVCAN_NODE_MODE_ENUM_END", """""")
+
+# STORAGE_STATUS
+enums["STORAGE_STATUS"] = Enum()
+enums["STORAGE_STATUS"].bitmask = False
+STORAGE_STATUS_EMPTY = 0
+enums["STORAGE_STATUS"][0] = EnumEntry("STORAGE_STATUS_EMPTY", """Storage is missing (no microSD card loaded for example.)""")
+STORAGE_STATUS_UNFORMATTED = 1
+enums["STORAGE_STATUS"][1] = EnumEntry("STORAGE_STATUS_UNFORMATTED", """Storage present but unformatted.""")
+STORAGE_STATUS_READY = 2
+enums["STORAGE_STATUS"][2] = EnumEntry("STORAGE_STATUS_READY", """Storage present and ready.""")
+STORAGE_STATUS_NOT_SUPPORTED = 3
+enums["STORAGE_STATUS"][3] = EnumEntry("STORAGE_STATUS_NOT_SUPPORTED", """Camera does not supply storage status information. Capacity information in STORAGE_INFORMATION fields will be ignored.""")
+STORAGE_STATUS_ENUM_END = 4
+enums["STORAGE_STATUS"][4] = EnumEntry("STORAGE_STATUS_ENUM_END", """""")
+
+# STORAGE_TYPE
+enums["STORAGE_TYPE"] = Enum()
+enums["STORAGE_TYPE"].bitmask = False
+STORAGE_TYPE_UNKNOWN = 0
+enums["STORAGE_TYPE"][0] = EnumEntry("STORAGE_TYPE_UNKNOWN", """Storage type is not known.""")
+STORAGE_TYPE_USB_STICK = 1
+enums["STORAGE_TYPE"][1] = EnumEntry("STORAGE_TYPE_USB_STICK", """Storage type is USB device.""")
+STORAGE_TYPE_SD = 2
+enums["STORAGE_TYPE"][2] = EnumEntry("STORAGE_TYPE_SD", """Storage type is SD card.""")
+STORAGE_TYPE_MICROSD = 3
+enums["STORAGE_TYPE"][3] = EnumEntry("STORAGE_TYPE_MICROSD", """Storage type is microSD card.""")
+STORAGE_TYPE_CF = 4
+enums["STORAGE_TYPE"][4] = EnumEntry("STORAGE_TYPE_CF", """Storage type is CFast.""")
+STORAGE_TYPE_CFE = 5
+enums["STORAGE_TYPE"][5] = EnumEntry("STORAGE_TYPE_CFE", """Storage type is CFexpress.""")
+STORAGE_TYPE_XQD = 6
+enums["STORAGE_TYPE"][6] = EnumEntry("STORAGE_TYPE_XQD", """Storage type is XQD.""")
+STORAGE_TYPE_HD = 7
+enums["STORAGE_TYPE"][7] = EnumEntry("STORAGE_TYPE_HD", """Storage type is HD mass storage type.""")
+STORAGE_TYPE_OTHER = 254
+enums["STORAGE_TYPE"][254] = EnumEntry("STORAGE_TYPE_OTHER", """Storage type is other, not listed type.""")
+STORAGE_TYPE_ENUM_END = 255
+enums["STORAGE_TYPE"][255] = EnumEntry("STORAGE_TYPE_ENUM_END", """""")
+
+# STORAGE_USAGE_FLAG
+enums["STORAGE_USAGE_FLAG"] = Enum()
+enums["STORAGE_USAGE_FLAG"].bitmask = True
+STORAGE_USAGE_FLAG_SET = 1
+enums["STORAGE_USAGE_FLAG"][1] = EnumEntry("STORAGE_USAGE_FLAG_SET", """Always set to 1 (indicates STORAGE_INFORMATION.storage_usage is supported).""")
+STORAGE_USAGE_FLAG_PHOTO = 2
+enums["STORAGE_USAGE_FLAG"][2] = EnumEntry("STORAGE_USAGE_FLAG_PHOTO", """Storage for saving photos.""")
+STORAGE_USAGE_FLAG_VIDEO = 4
+enums["STORAGE_USAGE_FLAG"][4] = EnumEntry("STORAGE_USAGE_FLAG_VIDEO", """Storage for saving videos.""")
+STORAGE_USAGE_FLAG_LOGS = 8
+enums["STORAGE_USAGE_FLAG"][8] = EnumEntry("STORAGE_USAGE_FLAG_LOGS", """Storage for saving logs.""")
+STORAGE_USAGE_FLAG_ENUM_END = 9
+enums["STORAGE_USAGE_FLAG"][9] = EnumEntry("STORAGE_USAGE_FLAG_ENUM_END", """""")
+
+# ORBIT_YAW_BEHAVIOUR
+enums["ORBIT_YAW_BEHAVIOUR"] = Enum()
+enums["ORBIT_YAW_BEHAVIOUR"].bitmask = False
+ORBIT_YAW_BEHAVIOUR_HOLD_FRONT_TO_CIRCLE_CENTER = 0
+enums["ORBIT_YAW_BEHAVIOUR"][0] = EnumEntry("ORBIT_YAW_BEHAVIOUR_HOLD_FRONT_TO_CIRCLE_CENTER", """Vehicle front points to the center (default).""")
+ORBIT_YAW_BEHAVIOUR_HOLD_INITIAL_HEADING = 1
+enums["ORBIT_YAW_BEHAVIOUR"][1] = EnumEntry("ORBIT_YAW_BEHAVIOUR_HOLD_INITIAL_HEADING", """Vehicle front holds heading when message received.""")
+ORBIT_YAW_BEHAVIOUR_UNCONTROLLED = 2
+enums["ORBIT_YAW_BEHAVIOUR"][2] = EnumEntry("ORBIT_YAW_BEHAVIOUR_UNCONTROLLED", """Yaw uncontrolled.""")
+ORBIT_YAW_BEHAVIOUR_HOLD_FRONT_TANGENT_TO_CIRCLE = 3
+enums["ORBIT_YAW_BEHAVIOUR"][3] = EnumEntry("ORBIT_YAW_BEHAVIOUR_HOLD_FRONT_TANGENT_TO_CIRCLE", """Vehicle front follows flight path (tangential to circle).""")
+ORBIT_YAW_BEHAVIOUR_RC_CONTROLLED = 4
+enums["ORBIT_YAW_BEHAVIOUR"][4] = EnumEntry("ORBIT_YAW_BEHAVIOUR_RC_CONTROLLED", """Yaw controlled by RC input.""")
+ORBIT_YAW_BEHAVIOUR_UNCHANGED = 5
+enums["ORBIT_YAW_BEHAVIOUR"][5] = EnumEntry("ORBIT_YAW_BEHAVIOUR_UNCHANGED", """Vehicle uses current yaw behaviour (unchanged). The vehicle-default yaw behaviour is used if this value is specified when orbit is first commanded.""")
+ORBIT_YAW_BEHAVIOUR_ENUM_END = 6
+enums["ORBIT_YAW_BEHAVIOUR"][6] = EnumEntry("ORBIT_YAW_BEHAVIOUR_ENUM_END", """""")
+
+# ACTUATOR_CONFIGURATION
+enums["ACTUATOR_CONFIGURATION"] = Enum()
+enums["ACTUATOR_CONFIGURATION"].bitmask = False
+ACTUATOR_CONFIGURATION_NONE = 0
+enums["ACTUATOR_CONFIGURATION"][0] = EnumEntry("ACTUATOR_CONFIGURATION_NONE", """Do nothing.""")
+ACTUATOR_CONFIGURATION_BEEP = 1
+enums["ACTUATOR_CONFIGURATION"][1] = EnumEntry("ACTUATOR_CONFIGURATION_BEEP", """Command the actuator to beep now.""")
+ACTUATOR_CONFIGURATION_3D_MODE_ON = 2
+enums["ACTUATOR_CONFIGURATION"][2] = EnumEntry("ACTUATOR_CONFIGURATION_3D_MODE_ON", """Permanently set the actuator (ESC) to 3D mode (reversible thrust).""")
+ACTUATOR_CONFIGURATION_3D_MODE_OFF = 3
+enums["ACTUATOR_CONFIGURATION"][3] = EnumEntry("ACTUATOR_CONFIGURATION_3D_MODE_OFF", """Permanently set the actuator (ESC) to non 3D mode (non-reversible thrust).""")
+ACTUATOR_CONFIGURATION_SPIN_DIRECTION1 = 4
+enums["ACTUATOR_CONFIGURATION"][4] = EnumEntry("ACTUATOR_CONFIGURATION_SPIN_DIRECTION1", """Permanently set the actuator (ESC) to spin direction 1 (which can be clockwise or counter-clockwise).""")
+ACTUATOR_CONFIGURATION_SPIN_DIRECTION2 = 5
+enums["ACTUATOR_CONFIGURATION"][5] = EnumEntry("ACTUATOR_CONFIGURATION_SPIN_DIRECTION2", """Permanently set the actuator (ESC) to spin direction 2 (opposite of direction 1).""")
+ACTUATOR_CONFIGURATION_ENUM_END = 6
+enums["ACTUATOR_CONFIGURATION"][6] = EnumEntry("ACTUATOR_CONFIGURATION_ENUM_END", """""")
+
+# ACTUATOR_OUTPUT_FUNCTION
+enums["ACTUATOR_OUTPUT_FUNCTION"] = Enum()
+enums["ACTUATOR_OUTPUT_FUNCTION"].bitmask = False
+ACTUATOR_OUTPUT_FUNCTION_NONE = 0
+enums["ACTUATOR_OUTPUT_FUNCTION"][0] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_NONE", """No function (disabled).""")
+ACTUATOR_OUTPUT_FUNCTION_MOTOR1 = 1
+enums["ACTUATOR_OUTPUT_FUNCTION"][1] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR1", """Motor 1""")
+ACTUATOR_OUTPUT_FUNCTION_MOTOR2 = 2
+enums["ACTUATOR_OUTPUT_FUNCTION"][2] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR2", """Motor 2""")
+ACTUATOR_OUTPUT_FUNCTION_MOTOR3 = 3
+enums["ACTUATOR_OUTPUT_FUNCTION"][3] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR3", """Motor 3""")
+ACTUATOR_OUTPUT_FUNCTION_MOTOR4 = 4
+enums["ACTUATOR_OUTPUT_FUNCTION"][4] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR4", """Motor 4""")
+ACTUATOR_OUTPUT_FUNCTION_MOTOR5 = 5
+enums["ACTUATOR_OUTPUT_FUNCTION"][5] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR5", """Motor 5""")
+ACTUATOR_OUTPUT_FUNCTION_MOTOR6 = 6
+enums["ACTUATOR_OUTPUT_FUNCTION"][6] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR6", """Motor 6""")
+ACTUATOR_OUTPUT_FUNCTION_MOTOR7 = 7
+enums["ACTUATOR_OUTPUT_FUNCTION"][7] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR7", """Motor 7""")
+ACTUATOR_OUTPUT_FUNCTION_MOTOR8 = 8
+enums["ACTUATOR_OUTPUT_FUNCTION"][8] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR8", """Motor 8""")
+ACTUATOR_OUTPUT_FUNCTION_MOTOR9 = 9
+enums["ACTUATOR_OUTPUT_FUNCTION"][9] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR9", """Motor 9""")
+ACTUATOR_OUTPUT_FUNCTION_MOTOR10 = 10
+enums["ACTUATOR_OUTPUT_FUNCTION"][10] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR10", """Motor 10""")
+ACTUATOR_OUTPUT_FUNCTION_MOTOR11 = 11
+enums["ACTUATOR_OUTPUT_FUNCTION"][11] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR11", """Motor 11""")
+ACTUATOR_OUTPUT_FUNCTION_MOTOR12 = 12
+enums["ACTUATOR_OUTPUT_FUNCTION"][12] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR12", """Motor 12""")
+ACTUATOR_OUTPUT_FUNCTION_MOTOR13 = 13
+enums["ACTUATOR_OUTPUT_FUNCTION"][13] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR13", """Motor 13""")
+ACTUATOR_OUTPUT_FUNCTION_MOTOR14 = 14
+enums["ACTUATOR_OUTPUT_FUNCTION"][14] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR14", """Motor 14""")
+ACTUATOR_OUTPUT_FUNCTION_MOTOR15 = 15
+enums["ACTUATOR_OUTPUT_FUNCTION"][15] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR15", """Motor 15""")
+ACTUATOR_OUTPUT_FUNCTION_MOTOR16 = 16
+enums["ACTUATOR_OUTPUT_FUNCTION"][16] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_MOTOR16", """Motor 16""")
+ACTUATOR_OUTPUT_FUNCTION_SERVO1 = 33
+enums["ACTUATOR_OUTPUT_FUNCTION"][33] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO1", """Servo 1""")
+ACTUATOR_OUTPUT_FUNCTION_SERVO2 = 34
+enums["ACTUATOR_OUTPUT_FUNCTION"][34] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO2", """Servo 2""")
+ACTUATOR_OUTPUT_FUNCTION_SERVO3 = 35
+enums["ACTUATOR_OUTPUT_FUNCTION"][35] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO3", """Servo 3""")
+ACTUATOR_OUTPUT_FUNCTION_SERVO4 = 36
+enums["ACTUATOR_OUTPUT_FUNCTION"][36] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO4", """Servo 4""")
+ACTUATOR_OUTPUT_FUNCTION_SERVO5 = 37
+enums["ACTUATOR_OUTPUT_FUNCTION"][37] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO5", """Servo 5""")
+ACTUATOR_OUTPUT_FUNCTION_SERVO6 = 38
+enums["ACTUATOR_OUTPUT_FUNCTION"][38] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO6", """Servo 6""")
+ACTUATOR_OUTPUT_FUNCTION_SERVO7 = 39
+enums["ACTUATOR_OUTPUT_FUNCTION"][39] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO7", """Servo 7""")
+ACTUATOR_OUTPUT_FUNCTION_SERVO8 = 40
+enums["ACTUATOR_OUTPUT_FUNCTION"][40] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO8", """Servo 8""")
+ACTUATOR_OUTPUT_FUNCTION_SERVO9 = 41
+enums["ACTUATOR_OUTPUT_FUNCTION"][41] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO9", """Servo 9""")
+ACTUATOR_OUTPUT_FUNCTION_SERVO10 = 42
+enums["ACTUATOR_OUTPUT_FUNCTION"][42] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO10", """Servo 10""")
+ACTUATOR_OUTPUT_FUNCTION_SERVO11 = 43
+enums["ACTUATOR_OUTPUT_FUNCTION"][43] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO11", """Servo 11""")
+ACTUATOR_OUTPUT_FUNCTION_SERVO12 = 44
+enums["ACTUATOR_OUTPUT_FUNCTION"][44] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO12", """Servo 12""")
+ACTUATOR_OUTPUT_FUNCTION_SERVO13 = 45
+enums["ACTUATOR_OUTPUT_FUNCTION"][45] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO13", """Servo 13""")
+ACTUATOR_OUTPUT_FUNCTION_SERVO14 = 46
+enums["ACTUATOR_OUTPUT_FUNCTION"][46] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO14", """Servo 14""")
+ACTUATOR_OUTPUT_FUNCTION_SERVO15 = 47
+enums["ACTUATOR_OUTPUT_FUNCTION"][47] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO15", """Servo 15""")
+ACTUATOR_OUTPUT_FUNCTION_SERVO16 = 48
+enums["ACTUATOR_OUTPUT_FUNCTION"][48] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_SERVO16", """Servo 16""")
+ACTUATOR_OUTPUT_FUNCTION_ENUM_END = 49
+enums["ACTUATOR_OUTPUT_FUNCTION"][49] = EnumEntry("ACTUATOR_OUTPUT_FUNCTION_ENUM_END", """""")
+
+# AUTOTUNE_AXIS
+enums["AUTOTUNE_AXIS"] = Enum()
+enums["AUTOTUNE_AXIS"].bitmask = True
+AUTOTUNE_AXIS_ROLL = 1
+enums["AUTOTUNE_AXIS"][1] = EnumEntry("AUTOTUNE_AXIS_ROLL", """Autotune roll axis.""")
+AUTOTUNE_AXIS_PITCH = 2
+enums["AUTOTUNE_AXIS"][2] = EnumEntry("AUTOTUNE_AXIS_PITCH", """Autotune pitch axis.""")
+AUTOTUNE_AXIS_YAW = 4
+enums["AUTOTUNE_AXIS"][4] = EnumEntry("AUTOTUNE_AXIS_YAW", """Autotune yaw axis.""")
+AUTOTUNE_AXIS_ENUM_END = 5
+enums["AUTOTUNE_AXIS"][5] = EnumEntry("AUTOTUNE_AXIS_ENUM_END", """""")
+
+# PREFLIGHT_STORAGE_PARAMETER_ACTION
+enums["PREFLIGHT_STORAGE_PARAMETER_ACTION"] = Enum()
+enums["PREFLIGHT_STORAGE_PARAMETER_ACTION"].bitmask = False
+PARAM_READ_PERSISTENT = 0
+enums["PREFLIGHT_STORAGE_PARAMETER_ACTION"][0] = EnumEntry("PARAM_READ_PERSISTENT", """Read all parameters from persistent storage. Replaces values in volatile storage.""")
+PARAM_WRITE_PERSISTENT = 1
+enums["PREFLIGHT_STORAGE_PARAMETER_ACTION"][1] = EnumEntry("PARAM_WRITE_PERSISTENT", """Write all parameter values to persistent storage (flash/EEPROM)""")
+PARAM_RESET_FACTORY_DEFAULT = 2
+enums["PREFLIGHT_STORAGE_PARAMETER_ACTION"][2] = EnumEntry("PARAM_RESET_FACTORY_DEFAULT", """Reset parameters to default values (such as sensor calibration, safety settings, and so on). Note that a flight stack may choose not to reset some parameters at their own discretion (such as those that are locked or expected to persist for the vehicle lifetime).""")
+PARAM_RESET_SENSOR_DEFAULT = 3
+enums["PREFLIGHT_STORAGE_PARAMETER_ACTION"][3] = EnumEntry("PARAM_RESET_SENSOR_DEFAULT", """Reset only sensor calibration parameters to factory defaults (or firmware default if not available)""")
+PARAM_RESET_ALL_DEFAULT = 4
+enums["PREFLIGHT_STORAGE_PARAMETER_ACTION"][4] = EnumEntry("PARAM_RESET_ALL_DEFAULT", """Reset all parameters to default values.""")
+PREFLIGHT_STORAGE_PARAMETER_ACTION_ENUM_END = 5
+enums["PREFLIGHT_STORAGE_PARAMETER_ACTION"][5] = EnumEntry("PREFLIGHT_STORAGE_PARAMETER_ACTION_ENUM_END", """""")
+
+# PREFLIGHT_STORAGE_MISSION_ACTION
+enums["PREFLIGHT_STORAGE_MISSION_ACTION"] = Enum()
+enums["PREFLIGHT_STORAGE_MISSION_ACTION"].bitmask = False
+MISSION_READ_PERSISTENT = 0
+enums["PREFLIGHT_STORAGE_MISSION_ACTION"][0] = EnumEntry("MISSION_READ_PERSISTENT", """Read current mission data from persistent storage""")
+MISSION_WRITE_PERSISTENT = 1
+enums["PREFLIGHT_STORAGE_MISSION_ACTION"][1] = EnumEntry("MISSION_WRITE_PERSISTENT", """Write current mission data to persistent storage""")
+MISSION_RESET_DEFAULT = 2
+enums["PREFLIGHT_STORAGE_MISSION_ACTION"][2] = EnumEntry("MISSION_RESET_DEFAULT", """Erase all mission data stored on the vehicle (both persistent and volatile storage)""")
+PREFLIGHT_STORAGE_MISSION_ACTION_ENUM_END = 3
+enums["PREFLIGHT_STORAGE_MISSION_ACTION"][3] = EnumEntry("PREFLIGHT_STORAGE_MISSION_ACTION_ENUM_END", """""")
+
+# REBOOT_SHUTDOWN_ACTION
+enums["REBOOT_SHUTDOWN_ACTION"] = Enum()
+enums["REBOOT_SHUTDOWN_ACTION"].bitmask = False
+REBOOT_SHUTDOWN_ACTION_NONE = 0
+enums["REBOOT_SHUTDOWN_ACTION"][0] = EnumEntry("REBOOT_SHUTDOWN_ACTION_NONE", """Do nothing.""")
+REBOOT_SHUTDOWN_ACTION_REBOOT = 1
+enums["REBOOT_SHUTDOWN_ACTION"][1] = EnumEntry("REBOOT_SHUTDOWN_ACTION_REBOOT", """Reboot component.""")
+REBOOT_SHUTDOWN_ACTION_SHUTDOWN = 2
+enums["REBOOT_SHUTDOWN_ACTION"][2] = EnumEntry("REBOOT_SHUTDOWN_ACTION_SHUTDOWN", """Shutdown component.""")
+REBOOT_SHUTDOWN_ACTION_REBOOT_TO_BOOTLOADER = 3
+enums["REBOOT_SHUTDOWN_ACTION"][3] = EnumEntry("REBOOT_SHUTDOWN_ACTION_REBOOT_TO_BOOTLOADER", """Reboot component and keep it in the bootloader until upgraded.""")
+REBOOT_SHUTDOWN_ACTION_POWER_ON = 4
+enums["REBOOT_SHUTDOWN_ACTION"][4] = EnumEntry("REBOOT_SHUTDOWN_ACTION_POWER_ON", """Power on component. Do nothing if component is already powered (ACK command with MAV_RESULT_ACCEPTED).""")
+REBOOT_SHUTDOWN_ACTION_REBOOT_TO_MASS_STORAGE = 5
+enums["REBOOT_SHUTDOWN_ACTION"][5] = EnumEntry("REBOOT_SHUTDOWN_ACTION_REBOOT_TO_MASS_STORAGE", """Reboot component into a mass storage mode if supported.""")
+REBOOT_SHUTDOWN_ACTION_ENUM_END = 6
+enums["REBOOT_SHUTDOWN_ACTION"][6] = EnumEntry("REBOOT_SHUTDOWN_ACTION_ENUM_END", """""")
+
+# REBOOT_SHUTDOWN_CONDITIONS
+enums["REBOOT_SHUTDOWN_CONDITIONS"] = Enum()
+enums["REBOOT_SHUTDOWN_CONDITIONS"].bitmask = False
+REBOOT_SHUTDOWN_CONDITIONS_SAFETY_INTERLOCKED = 0
+enums["REBOOT_SHUTDOWN_CONDITIONS"][0] = EnumEntry("REBOOT_SHUTDOWN_CONDITIONS_SAFETY_INTERLOCKED", """Reboot/Shutdown only if allowed by safety checks, such as being landed.""")
+REBOOT_SHUTDOWN_CONDITIONS_FORCE = 20190226
+enums["REBOOT_SHUTDOWN_CONDITIONS"][20190226] = EnumEntry("REBOOT_SHUTDOWN_CONDITIONS_FORCE", """Force reboot/shutdown of the autopilot/component regardless of system state.""")
+REBOOT_SHUTDOWN_CONDITIONS_ENUM_END = 20190227
+enums["REBOOT_SHUTDOWN_CONDITIONS"][20190227] = EnumEntry("REBOOT_SHUTDOWN_CONDITIONS_ENUM_END", """""")
+
+# PREFLIGHT_CALIBRATION_MAGNETOMETER
+enums["PREFLIGHT_CALIBRATION_MAGNETOMETER"] = Enum()
+enums["PREFLIGHT_CALIBRATION_MAGNETOMETER"].bitmask = False
+PREFLIGHT_CALIBRATION_MAGNETOMETER_NONE = 0
+enums["PREFLIGHT_CALIBRATION_MAGNETOMETER"][0] = EnumEntry("PREFLIGHT_CALIBRATION_MAGNETOMETER_NONE", """No action.""")
+PREFLIGHT_CALIBRATION_MAGNETOMETER_START = 1
+enums["PREFLIGHT_CALIBRATION_MAGNETOMETER"][1] = EnumEntry("PREFLIGHT_CALIBRATION_MAGNETOMETER_START", """Start magnetometer calibration.""")
+PREFLIGHT_CALIBRATION_MAGNETOMETER_FORCE_SAVE = 76
+enums["PREFLIGHT_CALIBRATION_MAGNETOMETER"][76] = EnumEntry("PREFLIGHT_CALIBRATION_MAGNETOMETER_FORCE_SAVE", """Force-accept the existing compass calibration as valid without re-running it. Useful after a parameter reload that cleared calibration validity flags.""")
+PREFLIGHT_CALIBRATION_MAGNETOMETER_ENUM_END = 77
+enums["PREFLIGHT_CALIBRATION_MAGNETOMETER"][77] = EnumEntry("PREFLIGHT_CALIBRATION_MAGNETOMETER_ENUM_END", """""")
+
+# PREFLIGHT_CALIBRATION_ACCELEROMETER
+enums["PREFLIGHT_CALIBRATION_ACCELEROMETER"] = Enum()
+enums["PREFLIGHT_CALIBRATION_ACCELEROMETER"].bitmask = False
+PREFLIGHT_CALIBRATION_ACCELEROMETER_NONE = 0
+enums["PREFLIGHT_CALIBRATION_ACCELEROMETER"][0] = EnumEntry("PREFLIGHT_CALIBRATION_ACCELEROMETER_NONE", """No action.""")
+PREFLIGHT_CALIBRATION_ACCELEROMETER_FULL = 1
+enums["PREFLIGHT_CALIBRATION_ACCELEROMETER"][1] = EnumEntry("PREFLIGHT_CALIBRATION_ACCELEROMETER_FULL", """Full 6-position accelerometer calibration.""")
+PREFLIGHT_CALIBRATION_ACCELEROMETER_TRIM = 2
+enums["PREFLIGHT_CALIBRATION_ACCELEROMETER"][2] = EnumEntry("PREFLIGHT_CALIBRATION_ACCELEROMETER_TRIM", """Board level (trim) calibration.""")
+PREFLIGHT_CALIBRATION_ACCELEROMETER_TEMPERATURE = 3
+enums["PREFLIGHT_CALIBRATION_ACCELEROMETER"][3] = EnumEntry("PREFLIGHT_CALIBRATION_ACCELEROMETER_TEMPERATURE", """Accelerometer temperature calibration.""")
+PREFLIGHT_CALIBRATION_ACCELEROMETER_SIMPLE = 4
+enums["PREFLIGHT_CALIBRATION_ACCELEROMETER"][4] = EnumEntry("PREFLIGHT_CALIBRATION_ACCELEROMETER_SIMPLE", """Simple accelerometer calibration.""")
+PREFLIGHT_CALIBRATION_ACCELEROMETER_FORCE_SAVE = 76
+enums["PREFLIGHT_CALIBRATION_ACCELEROMETER"][76] = EnumEntry("PREFLIGHT_CALIBRATION_ACCELEROMETER_FORCE_SAVE", """Force-accept the existing accelerometer calibration as valid without re-running it. Useful after a parameter reload that cleared calibration validity flags.""")
+PREFLIGHT_CALIBRATION_ACCELEROMETER_ENUM_END = 77
+enums["PREFLIGHT_CALIBRATION_ACCELEROMETER"][77] = EnumEntry("PREFLIGHT_CALIBRATION_ACCELEROMETER_ENUM_END", """""")
+
+# NAV_TAKEOFF_FLAGS
+enums["NAV_TAKEOFF_FLAGS"] = Enum()
+enums["NAV_TAKEOFF_FLAGS"].bitmask = True
+NAV_TAKEOFF_FLAGS_HORIZONTAL_POSITION_NOT_REQUIRED = 1
+enums["NAV_TAKEOFF_FLAGS"][1] = EnumEntry("NAV_TAKEOFF_FLAGS_HORIZONTAL_POSITION_NOT_REQUIRED", """Accept the command even if the autopilot does not have control over its horizontal position (note that it might not have altitude control either).""")
+NAV_TAKEOFF_FLAGS_ENUM_END = 2
+enums["NAV_TAKEOFF_FLAGS"][2] = EnumEntry("NAV_TAKEOFF_FLAGS_ENUM_END", """""")
 
 # MAV_DATA_STREAM
 enums["MAV_DATA_STREAM"] = Enum()
@@ -6368,6 +6544,9 @@ MAVLINK_MSG_ID_DEBRIS_RATE_ESTIMATE = 54000
 MAVLINK_MSG_ID_DEBRIS_SIM_STATE = 54001
 MAVLINK_MSG_ID_DEBRIS_LOOP_STATUS = 54002
 MAVLINK_MSG_ID_DEBRIS_MAG_STATUS = 54003
+MAVLINK_MSG_ID_DEBRIS_INERTIA_ESTIMATE = 54004
+MAVLINK_MSG_ID_DEBRIS_DEORBIT_STATUS = 54005
+MAVLINK_MSG_ID_DEBRIS_LINK_STATUS = 54006
 MAVLINK_MSG_ID_SYS_STATUS = 1
 MAVLINK_MSG_ID_SYSTEM_TIME = 2
 MAVLINK_MSG_ID_PING = 4
@@ -6685,22 +6864,22 @@ class MAVLink_debris_loop_status_message(MAVLink_message):
 
     id = MAVLINK_MSG_ID_DEBRIS_LOOP_STATUS
     msgname = "DEBRIS_LOOP_STATUS"
-    fieldnames = ["time_usec", "ticks", "overruns", "task_overruns", "period_us", "cycle_mean_us", "cycle_p99_us", "cycle_max_us"]
-    ordered_fieldnames = ["time_usec", "ticks", "overruns", "task_overruns", "period_us", "cycle_mean_us", "cycle_p99_us", "cycle_max_us"]
-    fieldtypes = ["uint64_t", "uint32_t", "uint32_t", "uint32_t", "float", "float", "float", "float"]
+    fieldnames = ["time_usec", "ticks", "overruns", "task_overruns", "period_us", "cycle_mean_us", "cycle_p50_us", "cycle_p99_us", "cycle_max_us"]
+    ordered_fieldnames = ["time_usec", "ticks", "overruns", "task_overruns", "period_us", "cycle_mean_us", "cycle_p50_us", "cycle_p99_us", "cycle_max_us"]
+    fieldtypes = ["uint64_t", "uint32_t", "uint32_t", "uint32_t", "float", "float", "float", "float", "float"]
     fielddisplays_by_name: Dict[str, str] = {}
     fieldenums_by_name: Dict[str, str] = {}
-    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "period_us": "us", "cycle_mean_us": "us", "cycle_p99_us": "us", "cycle_max_us": "us"}
-    native_format = bytearray(b"<QIIIffff")
-    orders = [0, 1, 2, 3, 4, 5, 6, 7]
-    lengths = [1, 1, 1, 1, 1, 1, 1, 1]
-    array_lengths = [0, 0, 0, 0, 0, 0, 0, 0]
-    crc_extra = 245
-    unpacker = struct.Struct("<QIIIffff")
+    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "period_us": "us", "cycle_mean_us": "us", "cycle_p50_us": "us", "cycle_p99_us": "us", "cycle_max_us": "us"}
+    native_format = bytearray(b"<QIIIfffff")
+    orders = [0, 1, 2, 3, 4, 5, 6, 7, 8]
+    lengths = [1, 1, 1, 1, 1, 1, 1, 1, 1]
+    array_lengths = [0, 0, 0, 0, 0, 0, 0, 0, 0]
+    crc_extra = 161
+    unpacker = struct.Struct("<QIIIfffff")
     instance_field = None
     instance_offset = -1
 
-    def __init__(self, time_usec: int, ticks: int, overruns: int, task_overruns: int, period_us: float, cycle_mean_us: float, cycle_p99_us: float, cycle_max_us: float):
+    def __init__(self, time_usec: int, ticks: int, overruns: int, task_overruns: int, period_us: float, cycle_mean_us: float, cycle_p50_us: float, cycle_p99_us: float, cycle_max_us: float):
         MAVLink_message.__init__(self, MAVLink_debris_loop_status_message.id, MAVLink_debris_loop_status_message.msgname)
         self._fieldnames = MAVLink_debris_loop_status_message.fieldnames
         self._instance_field = MAVLink_debris_loop_status_message.instance_field
@@ -6711,11 +6890,12 @@ class MAVLink_debris_loop_status_message(MAVLink_message):
         self.task_overruns = task_overruns
         self.period_us = period_us
         self.cycle_mean_us = cycle_mean_us
+        self.cycle_p50_us = cycle_p50_us
         self.cycle_p99_us = cycle_p99_us
         self.cycle_max_us = cycle_max_us
 
     def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
-        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.ticks, self.overruns, self.task_overruns, self.period_us, self.cycle_mean_us, self.cycle_p99_us, self.cycle_max_us), force_mavlink1=force_mavlink1)
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.ticks, self.overruns, self.task_overruns, self.period_us, self.cycle_mean_us, self.cycle_p50_us, self.cycle_p99_us, self.cycle_max_us), force_mavlink1=force_mavlink1)
 
 
 # Define name on the class for backwards compatibility (it is now msgname).
@@ -6768,6 +6948,148 @@ class MAVLink_debris_mag_status_message(MAVLink_message):
 # Define name on the class for backwards compatibility (it is now msgname).
 # Done with setattr to hide the class variable from mypy.
 setattr(MAVLink_debris_mag_status_message, "name", mavlink_msg_deprecated_name_property())
+
+
+class MAVLink_debris_inertia_estimate_message(MAVLink_message):
+    """
+    Inertia tensor estimate about the centre of mass, sensor axes,
+    with confidence half-widths.
+    """
+
+    id = MAVLINK_MSG_ID_DEBRIS_INERTIA_ESTIMATE
+    msgname = "DEBRIS_INERTIA_ESTIMATE"
+    fieldnames = ["time_usec", "samples", "inertia", "ci95", "ci99", "state", "flags"]
+    ordered_fieldnames = ["time_usec", "samples", "inertia", "ci95", "ci99", "state", "flags"]
+    fieldtypes = ["uint64_t", "uint32_t", "float", "float", "float", "uint8_t", "uint8_t"]
+    fielddisplays_by_name: Dict[str, str] = {}
+    fieldenums_by_name: Dict[str, str] = {"state": "DEBRIS_IDENT_STATE"}
+    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "inertia": "kg.m^2", "ci95": "kg.m^2", "ci99": "kg.m^2"}
+    native_format = bytearray(b"<QIfffBB")
+    orders = [0, 1, 2, 3, 4, 5, 6]
+    lengths = [1, 1, 6, 6, 6, 1, 1]
+    array_lengths = [0, 0, 6, 6, 6, 0, 0]
+    crc_extra = 24
+    unpacker = struct.Struct("<QI6f6f6fBB")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(self, time_usec: int, samples: int, inertia: Sequence[float], ci95: Sequence[float], ci99: Sequence[float], state: int, flags: int):
+        MAVLink_message.__init__(self, MAVLink_debris_inertia_estimate_message.id, MAVLink_debris_inertia_estimate_message.msgname)
+        self._fieldnames = MAVLink_debris_inertia_estimate_message.fieldnames
+        self._instance_field = MAVLink_debris_inertia_estimate_message.instance_field
+        self._instance_offset = MAVLink_debris_inertia_estimate_message.instance_offset
+        self.time_usec = time_usec
+        self.samples = samples
+        self.inertia = inertia
+        self.ci95 = ci95
+        self.ci99 = ci99
+        self.state = state
+        self.flags = flags
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.samples, self.inertia[0], self.inertia[1], self.inertia[2], self.inertia[3], self.inertia[4], self.inertia[5], self.ci95[0], self.ci95[1], self.ci95[2], self.ci95[3], self.ci95[4], self.ci95[5], self.ci99[0], self.ci99[1], self.ci99[2], self.ci99[3], self.ci99[4], self.ci99[5], self.state, self.flags), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_debris_inertia_estimate_message, "name", mavlink_msg_deprecated_name_property())
+
+
+class MAVLink_debris_deorbit_status_message(MAVLink_message):
+    """
+    De-orbit kit: the two channels (0 = pitch, 1 = yaw), each a magnet
+    turned by a stepper inside a screening capsule.
+    """
+
+    id = MAVLINK_MSG_ID_DEBRIS_DEORBIT_STATUS
+    msgname = "DEBRIS_DEORBIT_STATUS"
+    fieldnames = ["time_usec", "position_steps", "steps_total", "energy", "capsule_openings", "magnet_turns", "interlock_violations", "capsule_state", "magnet_state", "polarity", "fault", "controller_state"]
+    ordered_fieldnames = ["time_usec", "position_steps", "steps_total", "energy", "capsule_openings", "magnet_turns", "interlock_violations", "capsule_state", "magnet_state", "polarity", "fault", "controller_state"]
+    fieldtypes = ["uint64_t", "int32_t", "uint32_t", "float", "uint16_t", "uint16_t", "uint16_t", "uint8_t", "uint8_t", "int8_t", "uint8_t", "uint8_t"]
+    fielddisplays_by_name: Dict[str, str] = {"fault": "bitmask"}
+    fieldenums_by_name: Dict[str, str] = {"capsule_state": "DEBRIS_CAPSULE_STATE", "magnet_state": "DEBRIS_MAGNET_STATE", "fault": "DEBRIS_DEORBIT_FAULT", "controller_state": "DEBRIS_CONTROLLER_STATE"}
+    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "energy": "J"}
+    native_format = bytearray(b"<QiIfHHHBBbBB")
+    orders = [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11]
+    lengths = [1, 2, 2, 2, 2, 2, 1, 2, 2, 2, 2, 1]
+    array_lengths = [0, 2, 2, 2, 2, 2, 0, 2, 2, 2, 2, 0]
+    crc_extra = 75
+    unpacker = struct.Struct("<Q2i2I2f2H2HH2B2B2b2BB")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(self, time_usec: int, position_steps: Sequence[int], steps_total: Sequence[int], energy: Sequence[float], capsule_openings: Sequence[int], magnet_turns: Sequence[int], interlock_violations: int, capsule_state: Sequence[int], magnet_state: Sequence[int], polarity: Sequence[int], fault: Sequence[int], controller_state: int):
+        MAVLink_message.__init__(self, MAVLink_debris_deorbit_status_message.id, MAVLink_debris_deorbit_status_message.msgname)
+        self._fieldnames = MAVLink_debris_deorbit_status_message.fieldnames
+        self._instance_field = MAVLink_debris_deorbit_status_message.instance_field
+        self._instance_offset = MAVLink_debris_deorbit_status_message.instance_offset
+        self.time_usec = time_usec
+        self.position_steps = position_steps
+        self.steps_total = steps_total
+        self.energy = energy
+        self.capsule_openings = capsule_openings
+        self.magnet_turns = magnet_turns
+        self.interlock_violations = interlock_violations
+        self.capsule_state = capsule_state
+        self.magnet_state = magnet_state
+        self.polarity = polarity
+        self.fault = fault
+        self.controller_state = controller_state
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.position_steps[0], self.position_steps[1], self.steps_total[0], self.steps_total[1], self.energy[0], self.energy[1], self.capsule_openings[0], self.capsule_openings[1], self.magnet_turns[0], self.magnet_turns[1], self.interlock_violations, self.capsule_state[0], self.capsule_state[1], self.magnet_state[0], self.magnet_state[1], self.polarity[0], self.polarity[1], self.fault[0], self.fault[1], self.controller_state), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_debris_deorbit_status_message, "name", mavlink_msg_deprecated_name_property())
+
+
+class MAVLink_debris_link_status_message(MAVLink_message):
+    """
+    Uplink security and downlink store-and-forward counters.
+    """
+
+    id = MAVLINK_MSG_ID_DEBRIS_LINK_STATUS
+    msgname = "DEBRIS_LINK_STATUS"
+    fieldnames = ["time_usec", "cmd_accepted", "rejected_unsigned", "rejected_bad_signature", "rejected_replay", "rejected_invalid", "tlm_buffered", "tlm_replayed", "tlm_dropped", "link_up"]
+    ordered_fieldnames = ["time_usec", "cmd_accepted", "rejected_unsigned", "rejected_bad_signature", "rejected_replay", "rejected_invalid", "tlm_buffered", "tlm_replayed", "tlm_dropped", "link_up"]
+    fieldtypes = ["uint64_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint8_t"]
+    fielddisplays_by_name: Dict[str, str] = {}
+    fieldenums_by_name: Dict[str, str] = {}
+    fieldunits_by_name: Dict[str, str] = {"time_usec": "us"}
+    native_format = bytearray(b"<QIIIIIIIIB")
+    orders = [0, 1, 2, 3, 4, 5, 6, 7, 8, 9]
+    lengths = [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]
+    array_lengths = [0, 0, 0, 0, 0, 0, 0, 0, 0, 0]
+    crc_extra = 230
+    unpacker = struct.Struct("<QIIIIIIIIB")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(self, time_usec: int, cmd_accepted: int, rejected_unsigned: int, rejected_bad_signature: int, rejected_replay: int, rejected_invalid: int, tlm_buffered: int, tlm_replayed: int, tlm_dropped: int, link_up: int):
+        MAVLink_message.__init__(self, MAVLink_debris_link_status_message.id, MAVLink_debris_link_status_message.msgname)
+        self._fieldnames = MAVLink_debris_link_status_message.fieldnames
+        self._instance_field = MAVLink_debris_link_status_message.instance_field
+        self._instance_offset = MAVLink_debris_link_status_message.instance_offset
+        self.time_usec = time_usec
+        self.cmd_accepted = cmd_accepted
+        self.rejected_unsigned = rejected_unsigned
+        self.rejected_bad_signature = rejected_bad_signature
+        self.rejected_replay = rejected_replay
+        self.rejected_invalid = rejected_invalid
+        self.tlm_buffered = tlm_buffered
+        self.tlm_replayed = tlm_replayed
+        self.tlm_dropped = tlm_dropped
+        self.link_up = link_up
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.cmd_accepted, self.rejected_unsigned, self.rejected_bad_signature, self.rejected_replay, self.rejected_invalid, self.tlm_buffered, self.tlm_replayed, self.tlm_dropped, self.link_up), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_debris_link_status_message, "name", mavlink_msg_deprecated_name_property())
 
 
 class MAVLink_sys_status_message(MAVLink_message):
@@ -16847,6 +17169,9 @@ mavlink_map: Dict[int, Type[MAVLink_message]] = {
     MAVLINK_MSG_ID_DEBRIS_SIM_STATE: MAVLink_debris_sim_state_message,
     MAVLINK_MSG_ID_DEBRIS_LOOP_STATUS: MAVLink_debris_loop_status_message,
     MAVLINK_MSG_ID_DEBRIS_MAG_STATUS: MAVLink_debris_mag_status_message,
+    MAVLINK_MSG_ID_DEBRIS_INERTIA_ESTIMATE: MAVLink_debris_inertia_estimate_message,
+    MAVLINK_MSG_ID_DEBRIS_DEORBIT_STATUS: MAVLink_debris_deorbit_status_message,
+    MAVLINK_MSG_ID_DEBRIS_LINK_STATUS: MAVLink_debris_link_status_message,
     MAVLINK_MSG_ID_SYS_STATUS: MAVLink_sys_status_message,
     MAVLINK_MSG_ID_SYSTEM_TIME: MAVLink_system_time_message,
     MAVLINK_MSG_ID_PING: MAVLink_ping_message,
@@ -17531,7 +17856,7 @@ class MAVLink(object):
         """
         self.send(self.debris_sim_state_encode(time_usec, wx, wy, wz, q, bx, by, bz, mx, my, mz), force_mavlink1=force_mavlink1)
 
-    def debris_loop_status_encode(self, time_usec: int, ticks: int, overruns: int, task_overruns: int, period_us: float, cycle_mean_us: float, cycle_p99_us: float, cycle_max_us: float) -> MAVLink_debris_loop_status_message:
+    def debris_loop_status_encode(self, time_usec: int, ticks: int, overruns: int, task_overruns: int, period_us: float, cycle_mean_us: float, cycle_p50_us: float, cycle_p99_us: float, cycle_max_us: float) -> MAVLink_debris_loop_status_message:
         """
         Timing of the fixed-step flight loop over the last reporting interval.
 
@@ -17541,13 +17866,14 @@ class MAVLink(object):
         task_overruns             : Task runs since start that exceeded their own time budget. (type:uint32_t)
         period_us                 : Nominal loop period. [us] (type:float)
         cycle_mean_us             : Mean work time per tick over the interval. [us] (type:float)
+        cycle_p50_us              : Median work time per tick over the interval. [us] (type:float)
         cycle_p99_us              : 99th percentile of work time per tick over the interval. [us] (type:float)
         cycle_max_us              : Largest work time per tick over the interval. [us] (type:float)
 
         """
-        return MAVLink_debris_loop_status_message(time_usec, ticks, overruns, task_overruns, period_us, cycle_mean_us, cycle_p99_us, cycle_max_us)
+        return MAVLink_debris_loop_status_message(time_usec, ticks, overruns, task_overruns, period_us, cycle_mean_us, cycle_p50_us, cycle_p99_us, cycle_max_us)
 
-    def debris_loop_status_send(self, time_usec: int, ticks: int, overruns: int, task_overruns: int, period_us: float, cycle_mean_us: float, cycle_p99_us: float, cycle_max_us: float, force_mavlink1: bool = False) -> None:
+    def debris_loop_status_send(self, time_usec: int, ticks: int, overruns: int, task_overruns: int, period_us: float, cycle_mean_us: float, cycle_p50_us: float, cycle_p99_us: float, cycle_max_us: float, force_mavlink1: bool = False) -> None:
         """
         Timing of the fixed-step flight loop over the last reporting interval.
 
@@ -17557,11 +17883,12 @@ class MAVLink(object):
         task_overruns             : Task runs since start that exceeded their own time budget. (type:uint32_t)
         period_us                 : Nominal loop period. [us] (type:float)
         cycle_mean_us             : Mean work time per tick over the interval. [us] (type:float)
+        cycle_p50_us              : Median work time per tick over the interval. [us] (type:float)
         cycle_p99_us              : 99th percentile of work time per tick over the interval. [us] (type:float)
         cycle_max_us              : Largest work time per tick over the interval. [us] (type:float)
 
         """
-        self.send(self.debris_loop_status_encode(time_usec, ticks, overruns, task_overruns, period_us, cycle_mean_us, cycle_p99_us, cycle_max_us), force_mavlink1=force_mavlink1)
+        self.send(self.debris_loop_status_encode(time_usec, ticks, overruns, task_overruns, period_us, cycle_mean_us, cycle_p50_us, cycle_p99_us, cycle_max_us), force_mavlink1=force_mavlink1)
 
     def debris_mag_status_encode(self, time_usec: int, samples: int, bus_errors: int, timeouts: int, bad_id: int, resets: int, state: int, offset_x: float, offset_y: float, offset_z: float) -> MAVLink_debris_mag_status_message:
         """
@@ -17598,6 +17925,116 @@ class MAVLink(object):
 
         """
         self.send(self.debris_mag_status_encode(time_usec, samples, bus_errors, timeouts, bad_id, resets, state, offset_x, offset_y, offset_z), force_mavlink1=force_mavlink1)
+
+    def debris_inertia_estimate_encode(self, time_usec: int, samples: int, inertia: Sequence[float], ci95: Sequence[float], ci99: Sequence[float], state: int, flags: int) -> MAVLink_debris_inertia_estimate_message:
+        """
+        Inertia tensor estimate about the centre of mass, sensor axes, with
+        confidence half-widths.
+
+        time_usec                 : Time of the estimate. [us] (type:uint64_t)
+        samples                   : Samples used. (type:uint32_t)
+        inertia                   : Ixx, Iyy, Izz, Ixy, Ixz, Iyz. [kg.m^2] (type:float)
+        ci95                      : 95 % half-widths of the six components. [kg.m^2] (type:float)
+        ci99                      : 99 % half-widths of the six components. [kg.m^2] (type:float)
+        state                     : Experiment state. (type:uint8_t, values:DEBRIS_IDENT_STATE)
+        flags                     : Bit 0: positive definite; bit 1: principal moments satisfy the triangle inequalities; bit 2: full tensor (else diagonal only). (type:uint8_t)
+
+        """
+        return MAVLink_debris_inertia_estimate_message(time_usec, samples, inertia, ci95, ci99, state, flags)
+
+    def debris_inertia_estimate_send(self, time_usec: int, samples: int, inertia: Sequence[float], ci95: Sequence[float], ci99: Sequence[float], state: int, flags: int, force_mavlink1: bool = False) -> None:
+        """
+        Inertia tensor estimate about the centre of mass, sensor axes, with
+        confidence half-widths.
+
+        time_usec                 : Time of the estimate. [us] (type:uint64_t)
+        samples                   : Samples used. (type:uint32_t)
+        inertia                   : Ixx, Iyy, Izz, Ixy, Ixz, Iyz. [kg.m^2] (type:float)
+        ci95                      : 95 % half-widths of the six components. [kg.m^2] (type:float)
+        ci99                      : 99 % half-widths of the six components. [kg.m^2] (type:float)
+        state                     : Experiment state. (type:uint8_t, values:DEBRIS_IDENT_STATE)
+        flags                     : Bit 0: positive definite; bit 1: principal moments satisfy the triangle inequalities; bit 2: full tensor (else diagonal only). (type:uint8_t)
+
+        """
+        self.send(self.debris_inertia_estimate_encode(time_usec, samples, inertia, ci95, ci99, state, flags), force_mavlink1=force_mavlink1)
+
+    def debris_deorbit_status_encode(self, time_usec: int, position_steps: Sequence[int], steps_total: Sequence[int], energy: Sequence[float], capsule_openings: Sequence[int], magnet_turns: Sequence[int], interlock_violations: int, capsule_state: Sequence[int], magnet_state: Sequence[int], polarity: Sequence[int], fault: Sequence[int], controller_state: int) -> MAVLink_debris_deorbit_status_message:
+        """
+        De-orbit kit: the two channels (0 = pitch, 1 = yaw), each a magnet
+        turned by a stepper inside a screening capsule.
+
+        time_usec                 : Loop time. [us] (type:uint64_t)
+        position_steps            : Stepper position from home, steps (200 per turn). (type:int32_t)
+        steps_total               : Steps made since start. (type:uint32_t)
+        energy                    : Energy used since start, per channel. [J] (type:float)
+        capsule_openings          : Capsule openings since start. (type:uint16_t)
+        magnet_turns              : Magnet turns since start. (type:uint16_t)
+        interlock_violations        : Interlock violations ever seen (must stay 0). (type:uint16_t)
+        capsule_state             : Capsule states. (type:uint8_t, values:DEBRIS_CAPSULE_STATE)
+        magnet_state              : Magnet states. (type:uint8_t, values:DEBRIS_MAGNET_STATE)
+        polarity                  : Dipole sign per channel (+1, -1; 0 unknown). (type:int8_t)
+        fault                     : Faults per channel. (type:uint8_t, values:DEBRIS_DEORBIT_FAULT)
+        controller_state          : Controller state. (type:uint8_t, values:DEBRIS_CONTROLLER_STATE)
+
+        """
+        return MAVLink_debris_deorbit_status_message(time_usec, position_steps, steps_total, energy, capsule_openings, magnet_turns, interlock_violations, capsule_state, magnet_state, polarity, fault, controller_state)
+
+    def debris_deorbit_status_send(self, time_usec: int, position_steps: Sequence[int], steps_total: Sequence[int], energy: Sequence[float], capsule_openings: Sequence[int], magnet_turns: Sequence[int], interlock_violations: int, capsule_state: Sequence[int], magnet_state: Sequence[int], polarity: Sequence[int], fault: Sequence[int], controller_state: int, force_mavlink1: bool = False) -> None:
+        """
+        De-orbit kit: the two channels (0 = pitch, 1 = yaw), each a magnet
+        turned by a stepper inside a screening capsule.
+
+        time_usec                 : Loop time. [us] (type:uint64_t)
+        position_steps            : Stepper position from home, steps (200 per turn). (type:int32_t)
+        steps_total               : Steps made since start. (type:uint32_t)
+        energy                    : Energy used since start, per channel. [J] (type:float)
+        capsule_openings          : Capsule openings since start. (type:uint16_t)
+        magnet_turns              : Magnet turns since start. (type:uint16_t)
+        interlock_violations        : Interlock violations ever seen (must stay 0). (type:uint16_t)
+        capsule_state             : Capsule states. (type:uint8_t, values:DEBRIS_CAPSULE_STATE)
+        magnet_state              : Magnet states. (type:uint8_t, values:DEBRIS_MAGNET_STATE)
+        polarity                  : Dipole sign per channel (+1, -1; 0 unknown). (type:int8_t)
+        fault                     : Faults per channel. (type:uint8_t, values:DEBRIS_DEORBIT_FAULT)
+        controller_state          : Controller state. (type:uint8_t, values:DEBRIS_CONTROLLER_STATE)
+
+        """
+        self.send(self.debris_deorbit_status_encode(time_usec, position_steps, steps_total, energy, capsule_openings, magnet_turns, interlock_violations, capsule_state, magnet_state, polarity, fault, controller_state), force_mavlink1=force_mavlink1)
+
+    def debris_link_status_encode(self, time_usec: int, cmd_accepted: int, rejected_unsigned: int, rejected_bad_signature: int, rejected_replay: int, rejected_invalid: int, tlm_buffered: int, tlm_replayed: int, tlm_dropped: int, link_up: int) -> MAVLink_debris_link_status_message:
+        """
+        Uplink security and downlink store-and-forward counters.
+
+        time_usec                 : Loop time. [us] (type:uint64_t)
+        cmd_accepted              : Commands accepted. (type:uint32_t)
+        rejected_unsigned         : Frames rejected: not signed. (type:uint32_t)
+        rejected_bad_signature        : Frames rejected: wrong signature. (type:uint32_t)
+        rejected_replay           : Frames rejected: replayed or stale timestamp. (type:uint32_t)
+        rejected_invalid          : Commands rejected: unknown, malformed or out of range. (type:uint32_t)
+        tlm_buffered              : Telemetry frames waiting in the store-and-forward buffer. (type:uint32_t)
+        tlm_replayed              : Telemetry frames sent again after an outage. (type:uint32_t)
+        tlm_dropped               : Telemetry frames lost to a full buffer. (type:uint32_t)
+        link_up                   : 1 when the downlink is up. (type:uint8_t)
+
+        """
+        return MAVLink_debris_link_status_message(time_usec, cmd_accepted, rejected_unsigned, rejected_bad_signature, rejected_replay, rejected_invalid, tlm_buffered, tlm_replayed, tlm_dropped, link_up)
+
+    def debris_link_status_send(self, time_usec: int, cmd_accepted: int, rejected_unsigned: int, rejected_bad_signature: int, rejected_replay: int, rejected_invalid: int, tlm_buffered: int, tlm_replayed: int, tlm_dropped: int, link_up: int, force_mavlink1: bool = False) -> None:
+        """
+        Uplink security and downlink store-and-forward counters.
+
+        time_usec                 : Loop time. [us] (type:uint64_t)
+        cmd_accepted              : Commands accepted. (type:uint32_t)
+        rejected_unsigned         : Frames rejected: not signed. (type:uint32_t)
+        rejected_bad_signature        : Frames rejected: wrong signature. (type:uint32_t)
+        rejected_replay           : Frames rejected: replayed or stale timestamp. (type:uint32_t)
+        rejected_invalid          : Commands rejected: unknown, malformed or out of range. (type:uint32_t)
+        tlm_buffered              : Telemetry frames waiting in the store-and-forward buffer. (type:uint32_t)
+        tlm_replayed              : Telemetry frames sent again after an outage. (type:uint32_t)
+        tlm_dropped               : Telemetry frames lost to a full buffer. (type:uint32_t)
+        link_up                   : 1 when the downlink is up. (type:uint8_t)
+
+        """
+        self.send(self.debris_link_status_encode(time_usec, cmd_accepted, rejected_unsigned, rejected_bad_signature, rejected_replay, rejected_invalid, tlm_buffered, tlm_replayed, tlm_dropped, link_up), force_mavlink1=force_mavlink1)
 
     def sys_status_encode(self, onboard_control_sensors_present: int, onboard_control_sensors_enabled: int, onboard_control_sensors_health: int, load: int, voltage_battery: int, current_battery: int, battery_remaining: int, drop_rate_comm: int, errors_comm: int, errors_count1: int, errors_count2: int, errors_count3: int, errors_count4: int, onboard_control_sensors_present_extended: int = 0, onboard_control_sensors_enabled_extended: int = 0, onboard_control_sensors_health_extended: int = 0) -> MAVLink_sys_status_message:
         """

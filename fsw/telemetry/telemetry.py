@@ -84,9 +84,9 @@ class Telemetry:
             *(float(x) for x in g), *(float(x) for x in moment_Nm)))
 
     def loop_status(self, t_s: float, *, ticks: int, overruns: int, task_overruns: int, period_s: float,
-                    mean_us: float, p99_us: float, max_us: float) -> None:
+                    mean_us: float, p50_us: float, p99_us: float, max_us: float) -> None:
         self._send(mavlink.MAVLink_debris_loop_status_message(
-            usec(t_s), ticks, overruns, task_overruns, period_s * 1e6, mean_us, p99_us, max_us))
+            usec(t_s), ticks, overruns, task_overruns, period_s * 1e6, mean_us, p50_us, p99_us, max_us))
 
     def mag_status(self, t_s: float, driver) -> None:
         o = driver.offset_T * GAUSS_PER_TESLA
