@@ -4,10 +4,16 @@ Tasks (base rate = the loop rate):
 
 | task      | rate       | budget        | does                                                      |
 |-----------|------------|---------------|-----------------------------------------------------------|
-| sensor    | loop rate  | 20 % of period| advances the magnetometer driver; latches a new sample   |
+| uplink    | loop rate  | 10 % of period| reads the ground's frames, verifies, runs commands (ACK)  |
+| sensor    | loop rate  | 20 % of period| advances the magnetometer driver; latches a new sample,   |
+|           |            |               | refused if implausible (`estimation.sample_gate`)         |
 | estimator | loop rate  | 30 % of period| runs the rate estimators on a new sample                  |
 | telemetry | loop rate  | 30 % of period| sends the sample, the estimates (and SITL truth)          |
-| status    | 1 Hz       | 50 % of period| HEARTBEAT, SYS_STATUS, loop timing, driver health         |
+| status    | 1 Hz       | 50 % of period| HEARTBEAT, SYS_STATUS, loop timing, driver health,        |
+|           |            |               | DEBRIS_LINK_STATUS                                        |
+
+Commands: handlers register with `self.commands` (`fsw.commands.CommandRouter`), parameters with
+`self.params`; the uplink (`telemetry.uplink`) runs them when they arrive signed with the mission key.
 
 Time comes from the caller of :meth:`FlightSoftware.tick`: the simulator's clock in SITL, a monotonic
 clock on target. Nothing in here reads the wall clock.
@@ -18,10 +24,13 @@ from typing import Callable, Protocol
 
 import numpy as np
 
+from .commands import CommandRouter, ParamTable, int_param
 from .estimation.rate_formulas import BoerStream, DerivativeStream
+from .estimation.sample_gate import SampleGate, mark_gap
 from .scheduler import Scheduler, Task
 from .telemetry.dialect import mavlink
 from .telemetry.telemetry import Telemetry
+from .telemetry.uplink import Uplink
 
 
 class FieldSource(Protocol):
@@ -40,7 +49,9 @@ METHODS = {"boer": mavlink.DEBRIS_RATE_METHOD_BOER, "derivative": mavlink.DEBRIS
 class FlightSoftware:
     def __init__(self, source: FieldSource, telemetry: Telemetry, *, rate_hz: float, sigma_b_T: float,
                  truth: Callable[[float], object] | None = None, max_sample_tlm_hz: float = 20.0,
-                 sample_rate_hz: float | None = None) -> None:
+                 sample_rate_hz: float | None = None, uplink=None, key: bytes | None = None) -> None:
+        """`uplink`: the connection commands arrive on (usually the telemetry link itself, `telemetry.conn`;
+        None: no uplink); `key`: the mission key (None: every state-changing command is refused)."""
         self.source = source
         self.tlm = telemetry
         self.truth = truth
@@ -52,8 +63,20 @@ class FlightSoftware:
         self.sample_b_T = np.zeros(3)
         # at most max_sample_tlm_hz samples (with their estimates) go out on the link
         self._tlm_every = max(1, int(np.ceil((sample_rate_hz or rate_hz) / max_sample_tlm_hz)))
+        self.gate = SampleGate(sigma_b_T, 1.0 / (sample_rate_hz or rate_hz))
+        self.tlm_samples = 0  # samples handed to telemetry
+        self._gap, self._gap_left = 0, {}
+        self.commands = CommandRouter()
+        self.params = ParamTable()
+        self._register_params(sample_rate_hz or rate_hz)
+        self.commands.register(mavlink.MAV_CMD_REQUEST_MESSAGE, self._request_message, changes_state=False)
+        self.uplink = None if uplink is None else Uplink(
+            uplink, self.commands, sysid=telemetry.mav.srcSystem, compid=telemetry.mav.srcComponent, key=key,
+            clock=telemetry.clock, reply=telemetry.send_now if uplink is telemetry.conn else None,
+            params=self.params)
         period = 1.0 / rate_hz
         self.scheduler = Scheduler(rate_hz, [
+            Task("uplink", self._uplink, rate_hz, 0.1 * period),
             Task("sensor", self._sensor, rate_hz, 0.2 * period),
             Task("estimator", self._estimate, rate_hz, 0.3 * period),
             Task("telemetry", self._telemetry, rate_hz, 0.3 * period),
@@ -63,22 +86,80 @@ class FlightSoftware:
     def tick(self, now_s: float) -> float:
         return self.scheduler.tick(now_s)
 
+    def _register_params(self, sample_rate_hz: float) -> None:
+        def set_tlm_hz(hz: float) -> None:
+            self._tlm_every = max(1, int(np.ceil(sample_rate_hz / hz)))
+
+        self.params.register("TLM_SAMPLE_HZ", lambda: sample_rate_hz / self._tlm_every, set_tlm_hz, 0.01, 1000.0)
+        store = self.tlm.store
+        if store is not None:
+            self.params.register("SF_REPLAY_BPS", lambda: store.replay_bytes_per_s,
+                                 lambda v: setattr(store, "replay_bytes_per_s", v), 0.0, 1e6)
+
+    def _request_message(self, msg, now_s: float) -> int:
+        """MAV_CMD_REQUEST_MESSAGE (reads only): param1 = HEARTBEAT or DEBRIS_LINK_STATUS, sent at once."""
+        mid = int_param(msg.param1, 0, 0xFFFFFF, "message id")
+        if mid == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
+            self.tlm.heartbeat()
+        elif mid == mavlink.MAVLINK_MSG_ID_DEBRIS_LINK_STATUS:
+            self.tlm.link_status(now_s, **self._link_counters())
+        else:
+            return mavlink.MAV_RESULT_DENIED
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    def _link_counters(self) -> dict:
+        if self.uplink is not None:
+            return self.uplink.link_counters()
+        return dict.fromkeys(("cmd_accepted", "rejected_unsigned", "rejected_bad_signature", "rejected_replay",
+                              "rejected_invalid"), 0)
+
     # --- tasks ---------------------------------------------------------------------------------
+    def _uplink(self, now_s: float) -> None:
+        if self.uplink is not None:
+            self.uplink.poll(now_s)
+
     def _sensor(self, now_s: float) -> None:
         self.new_sample = self.source.update(now_s)
         if self.new_sample:
             self.samples += 1
             self.sample_t_s = self.source.sample_time_s
             self.sample_b_T[:] = self.source.b_body_T
+            # an implausible sample (saturated, stuck, spike) is neither estimated on nor sent
+            self.new_sample = self.gate.check(self.sample_t_s, self.sample_b_T)
+            if self.new_sample and self.gate.gap_samples > self.gate.reset_after_gap:
+                for est in self.estimators.values():  # history too old to difference against
+                    est.reset()
 
     def _estimate(self, now_s: float) -> None:
         for name, est in self.estimators.items():
             self.new_estimate[name] = self.new_sample and est.update(self.sample_t_s, self.sample_b_T)
+        self._flag_gaps()
+
+    def _flag_gaps(self) -> None:
+        """After samples went missing (refused, or the driver re-initialising): the estimates whose
+        samples span the gap are flagged DATA_GAP with σ widened (`sample_gate.mark_gap`): one for a
+        two-sample formula, two for a three-sample one (history length − 1); after a long gap the
+        estimators start afresh."""
+        if not self.new_sample:
+            return
+        gap = self.gate.gap_samples
+        if gap > self.gate.reset_after_gap:
+            self._gap_left = {}  # the estimators were reset in _sensor
+            return
+        if gap:
+            self._gap = gap
+            self._gap_left = {name: len(getattr(est, "_t", (0, 0, 0))) - 1 for name, est in self.estimators.items()}
+        for name, est in self.estimators.items():
+            if self._gap_left.get(name, 0) > 0 and self.new_estimate[name]:
+                self._gap_left[name] -= 1
+                mark_gap(est, self._gap)
 
     def _telemetry(self, now_s: float) -> None:
+        self.tlm.service(now_s)
         if not self.new_sample or (self.samples - 1) % self._tlm_every:
             return
         t = self.sample_t_s
+        self.tlm_samples += 1
         self.tlm.mag_sample(t, self.sample_b_T)
         for name, est in self.estimators.items():
             if self.new_estimate[name]:
@@ -92,10 +173,16 @@ class FlightSoftware:
         mean_us, p50_us, p99_us, max_us = st.summary_us()
         src = self.source
         healthy = getattr(src, "state", None) is None or int(src.state) == mavlink.DEBRIS_MAG_STATE_MEASURE
+        healthy = healthy and not self.gate.rejecting
+        link = self._link_counters()
         self.tlm.heartbeat()
         self.tlm.sys_status(mag_healthy=healthy,
                             load_permille=int(mean_us * 1e-3 / self.scheduler.period_s),
-                            errors_comm=getattr(src, "bus_errors", 0) + self.tlm.send_errors)
+                            errors_comm=getattr(src, "bus_errors", 0) + self.tlm.send_errors,
+                            errors_count=(self.gate.rejected, getattr(src, "resets", 0),
+                                          sum(v for k, v in link.items() if k != "cmd_accepted"),
+                                          self.tlm.store.dropped if self.tlm.store is not None else 0))
+        self.tlm.link_status(now_s, **link)
         self.tlm.loop_status(now_s, ticks=st.ticks, overruns=st.overruns, task_overruns=st.task_overruns,
                              period_s=self.scheduler.period_s, mean_us=mean_us, p50_us=p50_us, p99_us=p99_us,
                              max_us=max_us)

@@ -23,6 +23,8 @@ from .drivers.mmc5983ma import Mmc5983ma
 from .drivers.mmc5983ma_regs import Bandwidth
 from .flight import FlightSoftware
 from .telemetry.dialect import FSW_COMPID, FSW_SYSID, open_link
+from .telemetry.signing import SigningClock, key_fingerprint, load_key
+from .telemetry.store_forward import DEFAULT_CAPACITY, StoreForward
 from .telemetry.telemetry import Telemetry
 
 DEFAULT_LINK = "udpout:127.0.0.1:14550"
@@ -94,6 +96,15 @@ def parse_args(argv=None):
     ap.add_argument("--link", default=DEFAULT_LINK, metavar="URL",
                     help=f"telemetry link, any pymavlink connection string (default {DEFAULT_LINK})")
     ap.add_argument("--baud", type=int, default=57600, help="baud rate when --link is a serial port")
+    ap.add_argument("--key", metavar="FILE",
+                    help="mission key file (python -m ground.keys new FILE): commands must be signed with it, "
+                         "telemetry is signed with it; without a key every state-changing command is refused")
+    ap.add_argument("--uplink", metavar="URL", default=None,
+                    help="where commands arrive, a pymavlink connection string (default: the --link itself; "
+                         "e.g. udpin:0.0.0.0:14551 to command over UDP while ground.decode listens on --link)")
+    ap.add_argument("--buffer-frames", type=int, default=DEFAULT_CAPACITY, metavar="N",
+                    help=f"store-and-forward ring: telemetry frames kept while the link is down "
+                         f"(default {DEFAULT_CAPACITY}; 0 = none)")
     ap.add_argument("--seed", type=int, default=0, help="random seed of the simulator (default 0)")
     ap.add_argument("--sample-rate", type=float, default=None, metavar="HZ",
                     help="on target: magnetometer sample rate (default 1 Hz); SITL takes it from the scenario")
@@ -111,6 +122,8 @@ def parse_args(argv=None):
         ap.error("--duration must be > 0")
     if args.sigma_uT <= 0:
         ap.error("--sigma-uT must be > 0")
+    if args.buffer_frames < 0:
+        ap.error("--buffer-frames must be >= 0")
     return args
 
 
@@ -143,10 +156,24 @@ def run(args, out=sys.stdout) -> Run:
         sigma_b = args.sigma_uT * 1e-6
         header = f"target: MMC5983MA on {args.mag_serial}, loop {args.rate:g} Hz, link {args.link}"
 
+    key = load_key(args.key) if getattr(args, "key", None) else None  # KeyFileError is a ValueError
+    # the signing clock is the wall clock (this is the program's edge): a SITL run faster than real
+    # time still signs with real time, which the ground's replay checks compare with its own clock
+    clock = SigningClock(clock_set=True, unix_time=time.time)
     link = open_link(args.link, source_system=FSW_SYSID, source_component=FSW_COMPID, baud=args.baud)
-    tlm = Telemetry(link)
+    uplink = link
+    if getattr(args, "uplink", None):
+        uplink = open_link(args.uplink, source_system=FSW_SYSID, source_component=FSW_COMPID, baud=args.baud,
+                           input=True)
+    frames = getattr(args, "buffer_frames", DEFAULT_CAPACITY)
+    tlm = Telemetry(link, store=StoreForward(frames) if frames > 0 else None, key=key, clock=clock)
     fsw = FlightSoftware(source, tlm, rate_hz=args.rate, sigma_b_T=sigma_b, truth=truth,
-                         max_sample_tlm_hz=args.max_sample_tlm_hz, sample_rate_hz=sample_rate)
+                         max_sample_tlm_hz=args.max_sample_tlm_hz, sample_rate_hz=sample_rate,
+                         uplink=uplink, key=key)
+    header += (f"\nmission key {key_fingerprint(key)}: commands must be signed, telemetry is signed" if key else
+               "\nno mission key: commands that change state are refused")
+    if uplink is not link:
+        header += f"; commands on {args.uplink}"
     print(header, file=out, flush=True)
 
     stop = False
@@ -192,6 +219,8 @@ def run(args, out=sys.stdout) -> Run:
             signal.signal(signal.SIGINT, old[0])
             signal.signal(signal.SIGTERM, old[1])
         link.close()
+        if uplink is not link:
+            uplink.close()
     return Run(fsw, tlm, score, t, time.monotonic() - wall0)
 
 
@@ -249,6 +278,18 @@ def summary(r: Run) -> str:
     rate = tlm.bytes_sent / max(t_s, 1e-9)
     lines.append(f"link: {tlm.frames_sent} frames, {tlm.bytes_sent} bytes ({rate:.0f} B/s = "
                  f"{100 * rate / RADIO_BYTES_PER_S:.1f} % of a 57600-baud radio), send errors {tlm.send_errors}")
+    sf = tlm.store
+    if sf is not None and (sf.outages or sf.dropped):
+        lines.append(f"store and forward: {sf.outages} outages, {sf.stored} frames kept, {sf.replayed} replayed, "
+                     f"{sf.dropped} dropped (buffer full), {sf.buffered} still waiting")
+    if fsw.uplink is not None:
+        u = fsw.uplink.link_counters()
+        lines.append(f"uplink: {u['cmd_accepted']} commands accepted; rejected: {u['rejected_unsigned']} unsigned, "
+                     f"{u['rejected_bad_signature']} bad signature, {u['rejected_replay']} replayed, "
+                     f"{u['rejected_invalid']} invalid")
+    g = fsw.gate
+    if g.rejected:
+        lines.append("magnetometer samples refused: " + ", ".join(f"{n} {k}" for k, n in g.counts.items() if n))
     return "\n".join(lines)
 
 

@@ -24,7 +24,16 @@ Outputs
 The CSVs are written atomically when decoding stops: duration or count reached, end of a tlog, or
 Ctrl-C. Frames with non-finite values (or a negative σ) are counted and left out, never
 written. Samples are taken from one source, the first that sends magnetometer samples. When the
-flight software restarts (sample time jumps back), a new segment begins; the CSVs hold the last one.
+flight software restarts (its DEBRIS_LOOP_STATUS tick count goes back, or a sample is older than any of
+the current run), a new segment begins; the CSVs hold the last one.
+
+Store and forward: samples the box kept during a link outage arrive later, older than the newest;
+they are merged by time (``late`` in the summary), and the summary lists what is still missing
+(gaps in the sample times, at the median sample period).
+
+``--key FILE``: verify every frame's MAVLink 2 signature with the mission key (`fsw.telemetry.signing`,
+with a 64-frame reorder window); unsigned, wrongly signed or replayed frames are counted by reason
+and not used (the link accounting and the tlog still see every intact frame).
 """
 from __future__ import annotations
 
@@ -44,8 +53,14 @@ from fsw.telemetry import dialect
 from fsw.telemetry.dialect import mavlink
 from pymavlink import mavutil  # after dialect: it selects MAVLink 2
 
+from fsw.telemetry.signing import (TICKS_PER_S, UNIX_TO_MAVLINK_EPOCH_S, SigningClock, Verdict, Verifier,
+                                   load_key)
+
+from fsw.telemetry.framing import Deframer
+
 from .link_stats import MAG_FIELDS, LinkStats
 from .recording import RateEstimates, Recording, write_rate_estimates, write_recording
+from .tlog import check_tlog
 
 #: DEBRIS_RATE_METHOD values by their short lower-case name (boer, derivative, ...).
 METHODS: dict[str, int] = {
@@ -76,6 +91,9 @@ class _Segment:
     estimate: dict[int, tuple[tuple[float, ...], tuple[float, ...], int]] = field(default_factory=dict)
     truth: dict[int, tuple[tuple[float, ...], tuple[float, ...]]] = field(default_factory=dict)
     latest_us: int = -1
+    first_us: int = -1
+    late: int = 0  # magnetometer samples that arrived after a newer one (store-and-forward replay)
+    arrivals: list[int] = field(default_factory=list)  # sample times since the last DEBRIS_LOOP_STATUS
 
 
 class Decoder:
@@ -84,10 +102,11 @@ class Decoder:
     def __init__(self, method: int = mavlink.DEBRIS_RATE_METHOD_BOER,
                  source: tuple[int, int] | None = None,
                  on_line: Callable[[str], None] | None = None, origin: str = "",
-                 line_period_s: float = 1.0) -> None:
+                 line_period_s: float = 1.0, key: bytes | None = None) -> None:
         """`method`: the DEBRIS_RATE_METHOD exported and shown; `source`: (sysid, compid) to record
         from, None = the first to send samples; `on_line`: receives the live line about every
-        `line_period_s` of `now_s`; `origin`: the link, for the CSVs' ``# source:``."""
+        `line_period_s` of `now_s`; `origin`: the link, for the CSVs' ``# source:``; `key`: verify
+        signatures with this mission key (`now_s` is then Unix time, or 0 when unknown)."""
         if method not in METHOD_NAMES:
             raise ValueError(f"unknown DEBRIS_RATE_METHOD {method}")
         self.method = method
@@ -104,6 +123,12 @@ class Decoder:
         self._last_est: tuple[float, ...] | None = None
         self._last_truth: tuple[float, ...] | None = None
         self.interrupted = False
+        # now_s is Unix time: the signing clock's epoch maps it to 10 µs since 2015
+        self.verifier = None if key is None else Verifier(
+            key, SigningClock(epoch=-UNIX_TO_MAVLINK_EPOCH_S * TICKS_PER_S), window=64)
+        #: intact frames refused by the signature check, by reason
+        self.unauthenticated: Counter[str] = Counter()
+        self._loop_time_us: int | None = None
 
     # --- input -------------------------------------------------------------------------------
 
@@ -112,9 +137,43 @@ class Decoder:
         kind = msg.get_type()
         self.frames_by_type[kind] += 1
         self.stats.on_frame(msg, now_s)
-        if msg.get_msgId() >= 0 and self.stats.last_verdict != "duplicate" and kind in SAMPLE_MESSAGES:
-            self._sample_message(kind, msg)
+        if msg.get_msgId() >= 0 and self.stats.last_verdict != "duplicate" and not kind.startswith("UNKNOWN"):
+            if self.verifier is not None:
+                verdict = self.verifier.check(bytes(msg.get_msgbuf()), now_s)
+                if verdict is not Verdict.OK:
+                    self.unauthenticated[verdict.value] += 1
+                    self.tick(now_s)
+                    return
+            if kind in SAMPLE_MESSAGES:
+                self._sample_message(kind, msg)
+            elif kind == "DEBRIS_LOOP_STATUS" and self.stats.last_verdict == "new":
+                self._loop_status(msg)
         self.tick(now_s)
+
+    def _loop_status(self, msg) -> None:
+        """The live loop time going back means the flight software restarted: a new segment, which takes
+        the samples that arrived since the previous DEBRIS_LOOP_STATUS and are not after this one."""
+        if self.source is not None and (msg.get_srcSystem(), msg.get_srcComponent()) != self.source:
+            return
+        t_us = int(msg.time_usec)
+        seg = self.segments[-1]
+        if self._loop_time_us is not None and t_us < self._loop_time_us - RESTART_BACKSTEP_S * 1e6:
+            self._say(f"loop time went back from {self._loop_time_us * 1e-6:.3f} s to {t_us * 1e-6:.3f} s: "
+                      "flight software restarted, new recording segment")
+            new = _Segment()
+            for t in seg.arrivals:
+                if t <= t_us:
+                    for table in ("mag_gauss", "estimate", "truth"):
+                        old = getattr(seg, table)
+                        if t in old:
+                            getattr(new, table)[t] = old.pop(t)
+            if new.mag_gauss or new.estimate or new.truth:
+                times = [*new.mag_gauss, *new.estimate, *new.truth]
+                new.first_us, new.latest_us = min(times), max(times)
+            self.segments.append(new)
+            seg = new
+        self._loop_time_us = t_us
+        seg.arrivals.clear()
 
     def _sample_message(self, kind: str, msg) -> None:
         src = (msg.get_srcSystem(), msg.get_srcComponent())
@@ -126,12 +185,16 @@ class Decoder:
             return
         t_us = int(msg.time_usec)
         seg = self.segments[-1]
-        if t_us < seg.latest_us - RESTART_BACKSTEP_S * 1e6:
+        if t_us < seg.latest_us - RESTART_BACKSTEP_S * 1e6 and t_us < seg.first_us:
             self._say(f"sample time went back from {seg.latest_us * 1e-6:.3f} s to {t_us * 1e-6:.3f} s: "
                       "flight software restarted, new recording segment")
             seg = _Segment()
             self.segments.append(seg)
+        if kind == "HIGHRES_IMU" and t_us < seg.latest_us and t_us not in seg.mag_gauss:
+            seg.late += 1  # kept on board during an outage, replayed: merged by time
         seg.latest_us = max(seg.latest_us, t_us)
+        seg.first_us = t_us if seg.first_us < 0 else min(seg.first_us, t_us)
+        seg.arrivals.append(t_us)
         if kind == "HIGHRES_IMU":
             b = f32(msg.xmag, msg.ymag, msg.zmag)
             if not all(map(math.isfinite, b)):
@@ -250,12 +313,38 @@ class Decoder:
         out.append(f"rejected: {summary['garbage_bytes']} garbage bytes in {summary['garbage_chunks']} runs, "
                    f"{summary['bad_crc']} bad CRC, {summary['malformed']} malformed, "
                    f"{summary['unknown']} unknown message ids")
+        rep = self.sample_report()
+        if rep["samples"]:
+            late = f", {rep['late']} of them replayed after an outage and merged by time" if rep["late"] else ""
+            if rep["missing"]:
+                shown = ", ".join(f"{a:.3f}–{b:.3f} s ({k})" for a, b, k in rep["gaps"][:5])
+                more = f" and {len(rep['gaps']) - 5} more" if len(rep["gaps"]) > 5 else ""
+                lost = f"{rep['missing']} missing in {len(rep['gaps'])} gaps: {shown}{more}"
+            else:
+                lost = "none missing"
+            out.append(f"magnetometer samples recorded: {rep['samples']}{late}; {lost}")
+        if self.verifier is not None:
+            refused = ", ".join(f"{k} {n}" for k, n in sorted(self.unauthenticated.items())) or "none"
+            out.append(f"signatures: {self.verifier.counts[Verdict.OK]} frames verified; refused: {refused}")
         if self.invalid:
             out.append("not recorded, non-finite values: "
                        + ", ".join(f"{k} {n}" for k, n in sorted(self.invalid.items())))
         if len(self.segments) > 1:
             out.append(f"flight software restarts seen: {len(self.segments) - 1}; CSVs hold the last run")
         return "\n".join(out)
+
+    def sample_report(self) -> dict:
+        """The recorded run's magnetometer samples: ``samples``, ``late`` (arrived after a newer one:
+        replayed from the box's store-and-forward buffer), ``missing`` and the ``gaps`` still open, as
+        (last time before, first time after, samples missing) at the median sample period."""
+        seg = self._recorded()
+        t = np.array(sorted(seg.mag_gauss), dtype=np.int64)
+        gaps: list[tuple[float, float, int]] = []
+        if t.size >= 3:
+            dt = np.diff(t)
+            k = np.rint(dt / float(np.median(dt))).astype(np.int64) - 1
+            gaps = [(t[i] * 1e-6, t[i + 1] * 1e-6, int(k[i])) for i in np.flatnonzero(k > 0)]
+        return {"samples": int(t.size), "late": seg.late, "missing": sum(g[2] for g in gaps), "gaps": gaps}
 
     def write(self, csv: str | Path | None = None, rates_csv: str | Path | None = None) -> None:
         """Write the recording and/or rate-estimate CSVs (atomically)."""
@@ -275,52 +364,123 @@ def run(url: str, *, duration_s: float | None = None, count: int | None = None,
         tlog: str | Path | None = None, csv: str | Path | None = None,
         rates_csv: str | Path | None = None, method: int = mavlink.DEBRIS_RATE_METHOD_BOER,
         quiet: bool = False, on_line: Callable[[str], None] = print, baud: int = 115200,
-        clock: Callable[[], float] = time.time) -> Decoder:
+        clock: Callable[[], float] = time.time, key: bytes | None = None) -> Decoder:
     """Decode `url` until `duration_s` (of the link's time line: `clock` for live links, the
     recorded time stamps for a tlog) or `count` intact frames, the end of a tlog, or Ctrl-C; then
-    write the CSVs. Waits on the link in 0.1 s slices, never spins."""
+    write the CSVs. Waits on the link in 0.1 s slices, never spins.
+
+    A tlog is checked first (`ground.tlog.check_tlog`): a damaged one raises TlogError and nothing is
+    written. Live links are framed by `fsw.telemetry.framing.Deframer` (byte-wise resync, so no intact
+    frame is lost to line noise); a serial port that goes away is reopened every second until it is back.
+    The CSVs are written on a normal end or Ctrl-C, never after an error."""
     if tlog is not None and Path(tlog).resolve() == Path(url).resolve():
         raise ValueError("--tlog would overwrite the input")
-    decoder = Decoder(method=method, on_line=None if quiet else on_line, origin=url)
-    conn = dialect.open_link(url, source_system=dialect.GCS_SYSID, source_component=dialect.GCS_COMPID,
-                             input=True, baud=baud)
-    conn.first_byte = False  # the dialect is bound already: no protocol auto-switch by pymavlink
+    decoder = Decoder(method=method, on_line=None if quiet else on_line, origin=url, key=key)
+    if Path(url).is_file():
+        check_tlog(url)
+    live = _LiveLink(url, baud, decoder._say)
+    conn = live.conn
     is_log = isinstance(conn, mavutil.mavlogfile)
     log_out = None
     frames = 0
     start_s = flushed_s = None
+    done = False
     try:
         log_out = open(tlog, "wb") if tlog is not None else None
-        while True:
-            msg = conn.recv_match(blocking=not is_log, timeout=None if is_log else 0.1)
-            if msg is None and is_log:
-                break
-            now_s = msg._timestamp if is_log else clock()
+        while not done:
+            if is_log:
+                msg = conn.recv_match(blocking=False)
+                if msg is None:
+                    break
+                batch, now_s = [msg], msg._timestamp
+            else:
+                batch, now_s = live.read(), clock()
             if start_s is None:
                 start_s = flushed_s = now_s
-            if msg is None:
+            if not batch:
                 decoder.tick(now_s)
-            else:
+            for msg in batch:
                 decoder.handle(msg, now_s)
                 if msg.get_type() != "BAD_DATA":
                     frames += 1
                     if log_out is not None:
                         log_out.write(tlog_record(msg, now_s))
+                if count is not None and frames >= count:
+                    done = True
+                    break
             if log_out is not None and now_s - flushed_s >= 1.0:
                 log_out.flush()
                 flushed_s = now_s
-            if count is not None and frames >= count:
-                break
             if duration_s is not None and now_s - start_s >= duration_s:
                 break
+        if not is_log and not done:
+            for msg in live.flush():
+                decoder.handle(msg, now_s)
+                if msg.get_type() != "BAD_DATA" and log_out is not None:
+                    log_out.write(tlog_record(msg, now_s))
     except KeyboardInterrupt:
         decoder.interrupted = True
     finally:
-        conn.close()
+        live.close()
         if log_out is not None:
             log_out.close()
-        decoder.write(csv=csv, rates_csv=rates_csv)
+    decoder.write(csv=csv, rates_csv=rates_csv)
     return decoder
+
+
+class _LiveLink:
+    """A pymavlink connection read as raw bytes and framed by the Deframer; serial ports that fail are
+    reopened (once a second)."""
+
+    def __init__(self, url: str, baud: int, say: Callable[[str], None]) -> None:
+        self.url, self.baud, self.say = url, baud, say
+        self.conn = self._open()
+        self.deframer = Deframer()
+        self._retry_at = 0.0
+        self.reconnects = 0
+
+    def _open(self):
+        conn = dialect.open_link(self.url, source_system=dialect.GCS_SYSID, source_component=dialect.GCS_COMPID,
+                                 input=True, baud=self.baud)
+        conn.first_byte = False  # the dialect is bound already: no protocol auto-switch by pymavlink
+        return conn
+
+    def read(self) -> list:
+        if self.conn is None:  # the port went away: try it again now and then
+            if time.monotonic() < self._retry_at:
+                time.sleep(0.1)
+                return []
+            try:
+                self.conn = self._open()
+                self.reconnects += 1
+                self.say(f"{self.url}: reconnected")
+            except OSError:
+                self._retry_at = time.monotonic() + 1.0
+                return []
+        data = bytearray()
+        try:
+            self.conn.select(0.1)
+            for _ in range(64):
+                chunk = self.conn.recv(4096)
+                if not chunk:
+                    break
+                data += chunk.encode("latin-1") if isinstance(chunk, str) else chunk
+        except OSError as e:  # serial adapter unplugged: keep what came, reopen later
+            self.say(f"{self.url}: {e}; reconnecting")
+            try:
+                self.conn.close()
+            except OSError:
+                pass
+            self.conn = None
+            self._retry_at = time.monotonic() + 1.0
+        return self.deframer.feed(bytes(data)) if data else []
+
+    def flush(self) -> list:
+        return self.deframer.flush()
+
+    def close(self) -> None:
+        if self.conn is not None:
+            self.conn.close()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -336,11 +496,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, help="stop after this many seconds")
     ap.add_argument("--count", type=int, help="stop after this many intact frames")
     ap.add_argument("--quiet", action="store_true", help="no live lines, only the summary")
+    ap.add_argument("--key", metavar="FILE", help="mission key file: verify the frames' signatures, use only "
+                                                  "authentic ones")
     args = ap.parse_args(argv)
     try:
+        key = load_key(args.key) if args.key else None
         decoder = run(args.url, duration_s=args.duration, count=args.count, tlog=args.tlog, csv=args.csv,
                       rates_csv=args.rates_csv, method=METHODS[args.method], quiet=args.quiet,
-                      baud=args.baud)
+                      baud=args.baud, key=key)
     except (OSError, ValueError) as e:
         print(f"ground.decode: {e}", file=sys.stderr)
         return 1

@@ -19,7 +19,11 @@ does not know as lost. Here:
 
 Limits, by construction of an 8-bit counter: a gap of n ≥ 256 frames reads as n mod 256; a gap of
 256 − `REORDER_WINDOW` … 255 frames reads as out-of-sequence; a restart of the sender's counter
-reads as a gap. To see long outages the stream's own clock is used where the rate is known from the
+reads as a gap. The flight software therefore says how many frames it has written on the link
+(DEBRIS_LINK_STATUS ``frames_sent``, 1 Hz): between two of these, the sender's count minus the frames
+accounted here (received + lost by sequence number) is the loss the sequence number could not show,
+a multiple of 256, added to ``lost`` (``hidden_gaps`` counts such corrections). A sender whose count
+goes back has restarted: the count starts over. To see long outages the stream's own clock is used where the rate is known from the
 stream itself: magnetometer samples (HIGHRES_IMU with the mag bits in fields_updated) carry
 time_usec, and a step of k median sample periods means k − 1 missing samples (``samples_missing``).
 That assumes a steady sample rate; a deliberate rate change shows as missing samples.
@@ -77,6 +81,21 @@ class SourceStats:
     recent: deque = field(default_factory=lambda: deque(maxlen=REORDER_WINDOW))
     missing: deque = field(default_factory=lambda: deque(maxlen=REORDER_WINDOW))
     sample_times_us: list[int] = field(default_factory=list)
+    hidden_gaps: int = 0
+    _mark: tuple[int, int] | None = None  # (sender's frames_sent, our position) at its last LINK_STATUS
+
+    def sender_count(self, frames_sent: int) -> None:
+        """The sender's own count of frames written, carried by the frame just accounted (which was
+        'new', so its position is expected − 1): adds the losses of 256 frames or more."""
+        position = self.expected - 1
+        if self._mark is not None and frames_sent >= self._mark[0]:
+            hidden = (frames_sent - self._mark[0]) - (position - self._mark[1])
+            if hidden >= 256 and hidden % 256 == 0:
+                self.lost += hidden
+                self.expected += hidden
+                position += hidden
+                self.hidden_gaps += 1
+        self._mark = (frames_sent, position)
 
     def account(self, seq: int, frame: bytes) -> str:
         """Classify one frame by its sequence number: 'new', 'duplicate', 'late' or
@@ -109,7 +128,7 @@ class SourceStats:
         expected = self.received + self.unknown + self.lost
         return {"received": self.received, "unknown": self.unknown, "lost": self.lost,
                 "duplicates": self.duplicates, "late": self.late,
-                "out_of_sequence": self.out_of_sequence,
+                "out_of_sequence": self.out_of_sequence, "hidden_gaps": self.hidden_gaps,
                 "loss_fraction": self.lost / expected if expected else 0.0,
                 "samples": len(self.sample_times_us),
                 "samples_missing": samples_missing(np.array(self.sample_times_us)),
@@ -143,8 +162,11 @@ class LinkStats:
         if self.last_verdict == "duplicate":
             return
         src.received += 1
-        if msg.get_type() == "HIGHRES_IMU" and msg.fields_updated & MAG_FIELDS == MAG_FIELDS:
+        kind = msg.get_type()
+        if kind == "HIGHRES_IMU" and msg.fields_updated & MAG_FIELDS == MAG_FIELDS:
             src.sample_times_us.append(int(msg.time_usec))
+        elif kind == "DEBRIS_LINK_STATUS" and self.last_verdict == "new" and getattr(msg, "frames_sent", 0):
+            src.sender_count(int(msg.frames_sent))
 
     def on_bad_data(self, msg) -> None:
         """Account pymavlink's BAD_DATA (unframeable bytes, bad CRC, malformed frame) or UNKNOWN_*

@@ -315,19 +315,57 @@ def _pick_columns(path: PathLike, lineno: int, header: list[str], groups: Sequen
     return picks
 
 
-def read_recording(path: PathLike) -> Recording:
+def read_recording(path: PathLike, *, check_units: bool = False) -> Recording:
     """Read a recording-format-v1 CSV (µT, N·m, °/s in the file) into SI arrays.
 
-    Raises RecordingError (file, line, column) on anything the format forbids.
+    Raises RecordingError (file, line, column) on anything the format forbids. `check_units`: also
+    refuse field columns that are evidently not in µT (`FIELD_MEDIAN_UT`); tools that read real
+    magnetometer data set it, synthetic data (a zero field) may not pass it.
     """
     cols, metadata = _read_table(path, _RECORDING_GROUPS)
     t = cols[T_COLUMN][:, 0]
     m = cols[M_COLUMNS[0]]
     w = cols[W_COLUMNS[0]]
+    if check_units:
+        _check_field_units(path, cols[B_COLUMNS[0]])
     return Recording(t_s=t, b_T=cols[B_COLUMNS[0]] * T_PER_UT,
                      m_Nm=None if m is None else m,
                      w_ref_radps=None if w is None else np.deg2rad(w),
                      metadata=metadata, path=Path(path))
+
+
+#: Plausible median |B| of a magnetometer recording, µT: the geomagnetic field is 22–67 µT at the
+#: surface and less in orbit; the MMC5983MA's full scale is 800 µT. Outside: wrong units.
+FIELD_MEDIAN_UT = (1.0, 5000.0)
+
+
+def _check_field_units(path: PathLike, b_uT: np.ndarray) -> None:
+    """Refuse a file whose field columns are evidently not in µT (tesla or gauss: far too small; nT:
+    far too large), naming the first data line whose |B| is off."""
+    if not len(b_uT):
+        return
+    mag = np.linalg.norm(b_uT, axis=1)
+    med = float(np.median(mag))
+    lo, hi = FIELD_MEDIAN_UT
+    if lo <= med <= hi:
+        return
+    guess = "tesla or gauss" if med < lo else "nT"
+    i = int(np.argmax((mag < lo) if med < lo else (mag > hi)))
+    raise RecordingError(path, _data_line(path, i), B_COLUMNS[0],
+                         f"median |B| is {med:.6g} µT, outside {lo:g}–{hi:g} µT: the field columns look like "
+                         f"{guess}, not µT")
+
+
+def _data_line(path: PathLike, index: int) -> int | None:
+    """1-based line of the index-th data row (after comments, blank lines and the header)."""
+    seen = -1
+    for lineno, line in enumerate(Path(path).read_text(encoding="utf-8-sig").split("\n"), start=1):
+        if line.startswith("#") or not line.strip():
+            continue
+        if seen == index:
+            return lineno
+        seen += 1
+    return None
 
 
 def read_rate_estimates(path: PathLike) -> RateEstimates:

@@ -51,7 +51,9 @@ Modelling choices where the datasheet is silent:
 Fault-injection hooks (plain attributes, read at every access): `fault_no_data_ready` (a
 measurement finishes without setting Meas_M_Done or updating outputs), `fault_bus_error_rate`
 (probability that a transfer raises BusError), `fault_wrong_id` (0x2F reads 0xFF, the SPI symptom
-of fact-sheet section 5), `fault_stuck` (outputs frozen while Meas_M_Done still comes).
+of fact-sheet section 5), `fault_stuck` (outputs frozen while Meas_M_Done still comes),
+`fault_field_T` (a field added to the true one, e.g. a magnet or a current pulse nearby: spikes,
+saturation beyond ±8 G). `hil.faults` schedules them.
 """
 
 from __future__ import annotations
@@ -130,6 +132,7 @@ class EmulatedMmc5983ma:
         self.fault_bus_error_rate = 0.0
         self.fault_wrong_id = False
         self.fault_stuck = False
+        self.fault_field_T = np.zeros(3)
         # observability for tests and the simulator
         self.transfers = 0
         self.write_only_reads = 0
@@ -289,7 +292,7 @@ class EmulatedMmc5983ma:
         self.measurements += 1
         if not self.fault_stuck:
             sigma = math.hypot(self.bandwidth.noise_rms_T, self.extra_noise_T)
-            b = polarity * np.asarray(self._field_T(t_mid), dtype=float) + self.bridge_offset_T
+            b = polarity * (np.asarray(self._field_T(t_mid), dtype=float) + self.fault_field_T) + self.bridge_offset_T
             b = b + self._rng.normal(0.0, sigma, 3)
             c = np.clip(np.rint(b / TESLA_PER_COUNT_18) + NULL_FIELD_18, 0, COUNTS_MAX_18)
             old = self._out

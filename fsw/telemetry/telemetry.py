@@ -13,6 +13,8 @@ import struct
 import numpy as np
 
 from .dialect import mavlink
+from .signing import SigningClock, setup_outgoing, sign_ready
+from .store_forward import StoreForward
 
 GAUSS_PER_TESLA = 1e4
 
@@ -25,26 +27,94 @@ def usec(t_s: float) -> int:
 
 
 class Telemetry:
-    """Sends the flight software's messages on a pymavlink connection bound to the dialect."""
+    """Sends the flight software's messages on a pymavlink connection bound to the dialect.
 
-    def __init__(self, conn) -> None:
+    `store`: the store-and-forward buffer (`fsw.telemetry.store_forward`; None: what cannot be sent
+    is lost). `key` + `clock`: sign every frame with the mission key (`fsw.telemetry.signing`).
+    Call :meth:`service` once per loop tick: it sets the signing time, retries a link that is down
+    and replays stored frames within the replay budget.
+    """
+
+    def __init__(self, conn, *, store: StoreForward | None = None, key: bytes | None = None,
+                 clock: SigningClock | None = None, link_id: int = 0) -> None:
         self.conn = conn
         self.mav = conn.mav
         self.frames_sent = 0
         self.send_errors = 0
         self.encode_errors = 0
         self.last_error = ""
+        self.store = store
+        self.clock = clock if clock is not None else SigningClock()
+        self.signed = key is not None
+        if key is not None:
+            setup_outgoing(self.mav, key, self.clock, link_id)
+
+    def service(self, now_s: float, max_replay_frames: int = 16) -> None:
+        """Once per loop tick, before sending: signing time, link retry, replay of stored frames."""
+        if self.signed:
+            sign_ready(self.mav, self.clock, now_s)
+        sf = self.store
+        if sf is None:
+            return
+        sf.poll(now_s)
+        if not sf.link_up and sf.may_send() and getattr(self.conn, "portdead", False) \
+                and hasattr(self.conn, "reset"):
+            self.conn.reset()  # pymavlink serial: reopen the port
+        for _ in range(max_replay_frames):
+            msg = sf.next_replay()
+            if msg is None:
+                break
+            n = self._write(msg)
+            if n is None:
+                sf.write_failed()
+                break
+            sf.replay_sent(n)
 
     def _send(self, msg) -> None:
+        sf = self.store
+        if sf is not None and not sf.may_send():
+            sf.keep(msg)
+            return
+        n = self._write(msg)
+        if sf is not None:
+            if n is None:
+                sf.write_failed()
+                sf.keep(msg)
+            else:
+                sf.write_ok()
+
+    def send_now(self, msg) -> bool:
+        """Send a reply (COMMAND_ACK, PARAM_VALUE) now or never: it is not stored."""
+        n = self._write(msg)
+        if self.store is not None:
+            self.store.write_failed() if n is None else self.store.write_ok()
+        return n is not None
+
+    def _write(self, msg) -> int | None:
+        """Pack and write one frame: its length (0: could not be encoded, counted), or None when the
+        link refused it (counted in send_errors). Never raises."""
+        mav = self.mav
         try:
-            self.mav.send(msg)
-            self.frames_sent += 1
-        except (OSError, ValueError) as e:  # link down, port closed: counted, the loop goes on
-            self.send_errors += 1
-            self.last_error = repr(e)
+            buf = msg.pack(mav)
         except struct.error as e:  # a value out of its field's range: a bug, counted, never fatal
             self.encode_errors += 1
             self.last_error = repr(e)
+            return 0
+        try:
+            result = self.conn.write(buf)
+        except (OSError, ValueError) as e:  # link down, port closed: counted, the loop goes on
+            self.send_errors += 1
+            self.last_error = repr(e)
+            return None
+        if result == -1 or getattr(self.conn, "portdead", False):  # pymavlink serial: port dead
+            self.send_errors += 1
+            self.last_error = "port dead"
+            return None
+        mav.seq = (mav.seq + 1) % 256
+        mav.total_packets_sent += 1
+        mav.total_bytes_sent += len(buf)
+        self.frames_sent += 1
+        return len(buf)
 
     @property
     def bytes_sent(self) -> int:
@@ -56,11 +126,24 @@ class Telemetry:
             mavlink.MAV_STATE_ACTIVE, 3))
 
     def sys_status(self, *, mag_healthy: bool, load_permille: int, errors_comm: int,
-                   drop_rate_comm_centipercent: int = 0) -> None:
+                   drop_rate_comm_centipercent: int = 0, errors_count=(0, 0, 0, 0)) -> None:
+        """`errors_count`: SYS_STATUS errors_count1..4 (README, "Security and faults")."""
         mag = mavlink.MAV_SYS_STATUS_SENSOR_3D_MAG
+        e1, e2, e3, e4 = (min(max(int(e), 0), 65535) for e in errors_count)
         self._send(mavlink.MAVLink_sys_status_message(
             mag, mag, mag if mag_healthy else 0, min(max(load_permille, 0), 1000),
-            65535, -1, -1, min(drop_rate_comm_centipercent, 10000), min(errors_comm, 65535), 0, 0, 0, 0))
+            65535, -1, -1, min(drop_rate_comm_centipercent, 10000), min(errors_comm, 65535), e1, e2, e3, e4))
+
+    def link_status(self, t_s: float, *, cmd_accepted: int, rejected_unsigned: int,
+                    rejected_bad_signature: int, rejected_replay: int, rejected_invalid: int) -> None:
+        """DEBRIS_LINK_STATUS: uplink security counters and this link's store-and-forward state."""
+        sf = self.store
+        u32 = 0xFFFFFFFF
+        self._send(mavlink.MAVLink_debris_link_status_message(
+            usec(t_s), *(min(int(x), u32) for x in (cmd_accepted, rejected_unsigned, rejected_bad_signature,
+                                                    rejected_replay, rejected_invalid)),
+            *(min(int(x), u32) for x in ((sf.buffered, sf.replayed, sf.dropped) if sf else (0, 0, 0))),
+            1 if sf is None or sf.link_up else 0, (self.frames_sent + 1) & u32))
 
     def mag_sample(self, t_s: float, b_T: np.ndarray) -> None:
         """HIGHRES_IMU with the field in gauss; only the magnetometer bits set in fields_updated."""

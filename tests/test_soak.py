@@ -1,0 +1,57 @@
+"""The soak run in its CI form: a few simulated minutes with every fault kind and every attack
+(`python -m hil.soak` runs the full hour on demand)."""
+import json
+
+import pytest
+
+from hil import soak
+from hil.faults import ALL_KINDS
+
+
+@pytest.fixture(scope="module")
+def figures():
+    return soak.run(480.0, seed=1, quiet_s=(5.0, 10.0))
+
+
+def test_every_fault_kind_is_injected_flagged_and_survived(figures):
+    assert set(figures["faults_injected"]) == set(ALL_KINDS)
+    assert figures["faults_survived"] == figures["faults_injected"]
+    assert figures["faults_flagged"] == figures["faults_injected"]
+    assert all(f["recovered_after_s"] is not None and f["recovered_after_s"] < 10 + f["duration_s"]
+               for f in figures["faults"])
+
+
+def test_no_attack_is_obeyed_and_the_ground_is_never_locked_out(figures):
+    assert set(figures["attacks"]) == set(soak.ATTACKS)
+    assert figures["attacks_obeyed"] == 0
+    assert figures["lockout_attempts_survived"] == figures["attacks"]["lockout"] > 0
+    rej = figures["commands_rejected"]
+    assert rej["unsigned"] > 0 and rej["bad_signature"] > 0 and rej["replay"] > 0
+    assert figures["commands_answered"] + figures["commands_unanswered"] == figures["commands_sent"]
+
+
+def test_nothing_is_lost_in_outages_and_the_loss_count_matches_the_link(figures):
+    assert figures["link_outages"] > 0 and figures["frames_recovered_by_replay"] > 0
+    assert figures["samples_lost_in_outages"] == 0
+    assert figures["samples_received"] + figures["samples_lost"] == figures["samples_sent"]
+    bad_sig = figures["frames_refused_signature"].get("bad_signature", 0)
+    assert bad_sig == figures["frames_corrupted_in_signature_link_truth"]
+    assert figures["frames_lost"] + bad_sig == figures["frames_lost_link_truth"]
+    assert figures["tlog_frames"] == figures["frames_delivered_intact_link_truth"] + bad_sig
+
+
+def test_the_loop_kept_running(figures):
+    assert figures["sim_seconds"] == 480.0
+    assert figures["loop_work_p99_us"] < figures["loop_period_us"]
+
+
+def test_cli_prints_and_writes_the_figures(tmp_path, capsys):
+    out = tmp_path / "soak.json"
+    assert soak.main(["--duration", "150", "--json", str(out), "--quiet", "--seed", "2"]) == 0
+    fig = json.loads(out.read_text())
+    for key in ("sim_seconds", "faults_injected", "faults_survived", "commands_rejected", "frames_sent",
+                "frames_received", "samples_lost", "loop_overruns"):
+        assert key in fig
+    assert "faults" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        soak.main(["--duration", "10"])
