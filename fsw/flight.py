@@ -9,8 +9,12 @@ Tasks (base rate = the loop rate):
 |           |            |               | refused if implausible (`estimation.sample_gate`)         |
 | estimator | loop rate  | 30 % of period| runs the rate estimators on a new sample                  |
 | telemetry | loop rate  | 30 % of period| sends the sample, the estimates (and SITL truth)          |
+| ident     | loop rate  | 30 % of period| (when configured) inertia identification experiment: a   |
+|           |            |               | slice of its fit, DEBRIS_INERTIA_ESTIMATE (`fsw.ident`)   |
+| deorbit   | ≤ 10 Hz    | 50 % of period| (when configured) de-orbit kit: drivers, sequencer,       |
+|           |            |               | controller (`fsw.deorbit.kit`); transitions as STATUSTEXT |
 | status    | 1 Hz       | 50 % of period| HEARTBEAT, SYS_STATUS, loop timing, driver health,        |
-|           |            |               | DEBRIS_LINK_STATUS                                        |
+|           |            |               | DEBRIS_LINK_STATUS (DEBRIS_DEORBIT_STATUS with the kit)   |
 
 Commands: handlers register with `self.commands` (`fsw.commands.CommandRouter`), parameters with
 `self.params`; the uplink (`telemetry.uplink`) runs them when they arrive signed with the mission key.
@@ -25,6 +29,7 @@ from typing import Callable, Protocol
 import numpy as np
 
 from .commands import CommandRouter, ParamTable, int_param
+from .estimation.kalman import RateKalman
 from .estimation.rate_formulas import BoerStream, DerivativeStream
 from .estimation.sample_gate import SampleGate, mark_gap
 from .scheduler import Scheduler, Task
@@ -43,19 +48,26 @@ class FieldSource(Protocol):
 
 
 #: (method id, estimator) pairs run on every sample, in telemetry order
-METHODS = {"boer": mavlink.DEBRIS_RATE_METHOD_BOER, "derivative": mavlink.DEBRIS_RATE_METHOD_DERIVATIVE}
+METHODS = {"boer": mavlink.DEBRIS_RATE_METHOD_BOER, "derivative": mavlink.DEBRIS_RATE_METHOD_DERIVATIVE,
+           "kalman": mavlink.DEBRIS_RATE_METHOD_KALMAN}
 
 
 class FlightSoftware:
     def __init__(self, source: FieldSource, telemetry: Telemetry, *, rate_hz: float, sigma_b_T: float,
                  truth: Callable[[float], object] | None = None, max_sample_tlm_hz: float = 20.0,
-                 sample_rate_hz: float | None = None, uplink=None, key: bytes | None = None) -> None:
+                 sample_rate_hz: float | None = None, uplink=None, key: bytes | None = None,
+                 ident=None, deorbit=None, rate_filter=None) -> None:
         """`uplink`: the connection commands arrive on (usually the telemetry link itself, `telemetry.conn`;
-        None: no uplink); `key`: the mission key (None: every state-changing command is refused)."""
+        None: no uplink); `key`: the mission key (None: every state-changing command is refused);
+        `ident`: the inertia identification experiment (`fsw.ident.IdentExperiment`), or None;
+        `deorbit`: the de-orbit kit (`fsw.deorbit.kit.DeorbitKit`), or None;
+        `rate_filter`: the Kalman filter sent as DEBRIS_RATE_METHOD_KALMAN (default
+        `estimation.kalman.RateKalman`; e.g. an `AttitudeRateKalman` with the field along the orbit)."""
         self.source = source
         self.tlm = telemetry
         self.truth = truth
-        self.estimators = {"boer": BoerStream(sigma_b_T), "derivative": DerivativeStream(sigma_b_T)}
+        self.estimators = {"boer": BoerStream(sigma_b_T), "derivative": DerivativeStream(sigma_b_T),
+                           "kalman": rate_filter if rate_filter is not None else RateKalman(sigma_b_T)}
         self.new_sample = False
         self.new_estimate = {name: False for name in self.estimators}
         self.samples = 0
@@ -70,6 +82,13 @@ class FlightSoftware:
         self.params = ParamTable()
         self._register_params(sample_rate_hz or rate_hz)
         self.commands.register(mavlink.MAV_CMD_REQUEST_MESSAGE, self._request_message, changes_state=False)
+        self.ident = ident
+        if ident is not None:
+            ident.register(self.commands)
+        self.deorbit = deorbit
+        if deorbit is not None:
+            deorbit.register_commands(self.commands)
+            deorbit.sequencer.on_event = self._deorbit_event
         self.uplink = None if uplink is None else Uplink(
             uplink, self.commands, sysid=telemetry.mav.srcSystem, compid=telemetry.mav.srcComponent, key=key,
             clock=telemetry.clock, reply=telemetry.send_now if uplink is telemetry.conn else None,
@@ -82,6 +101,12 @@ class FlightSoftware:
             Task("telemetry", self._telemetry, rate_hz, 0.3 * period),
             Task("status", self._status, min(1.0, rate_hz), 0.5 * period),
         ])
+        if ident is not None:
+            self.scheduler.tasks.insert(3, Task("ident", self._ident, rate_hz, 0.3 * period, divider=1))
+        if deorbit is not None:
+            kit_hz = min(rate_hz, 10.0)
+            self.scheduler.tasks.insert(-1, Task("deorbit", deorbit.tick, kit_hz, 0.5 * period,
+                                                 divider=max(1, round(rate_hz / kit_hz))))
 
     def tick(self, now_s: float) -> float:
         return self.scheduler.tick(now_s)
@@ -148,11 +173,22 @@ class FlightSoftware:
             return
         if gap:
             self._gap = gap
-            self._gap_left = {name: len(getattr(est, "_t", (0, 0, 0))) - 1 for name, est in self.estimators.items()}
+            # a filter propagates its covariance across the gap itself (gap_history = 0)
+            self._gap_left = {name: getattr(est, "gap_history", len(getattr(est, "_t", (0, 0, 0))) - 1)
+                              for name, est in self.estimators.items()}
         for name, est in self.estimators.items():
             if self._gap_left.get(name, 0) > 0 and self.new_estimate[name]:
                 self._gap_left[name] -= 1
                 mark_gap(est, self._gap)
+
+    def _ident(self, now_s: float) -> None:
+        """The identification experiment: its samples, phases, a slice of its fit, its estimate message."""
+        ident = self.ident
+        if self.new_sample:
+            ident.on_sample(self.sample_t_s, self.sample_b_T)
+        ident.step(now_s)
+        if ident.telemetry_due(now_s):
+            self.tlm.inertia_estimate(now_s, **ident.message_fields())
 
     def _telemetry(self, now_s: float) -> None:
         self.tlm.service(now_s)
@@ -188,4 +224,13 @@ class FlightSoftware:
                              max_us=max_us)
         if hasattr(src, "offset_T"):
             self.tlm.mag_status(now_s, src)
+        if self.deorbit is not None:
+            self.tlm.deorbit_status(now_s, self.deorbit.status(now_s))
         st.reset_window()
+
+    def _deorbit_event(self, event) -> None:
+        """A de-orbit kit transition, refusal or fault → STATUSTEXT (faults and violations as errors)."""
+        severity = (mavlink.MAV_SEVERITY_ERROR if event.what in ("fault", "violation") else
+                    mavlink.MAV_SEVERITY_WARNING if event.what in ("refused", "recovery") or
+                    (event.what == "mode" and event.new == "SAFE") else mavlink.MAV_SEVERITY_INFO)
+        self.tlm.statustext(event.text(), severity)

@@ -73,7 +73,11 @@ def build_sitl(args):
     from hil.sim import Simulator
 
     scn = scenarios.load(args.scenario)
-    sim = Simulator(scn, seed=args.seed, max_step_s=min(0.02, 1.0 / args.rate))
+    if scn.deorbit is not None:  # the de-orbit kit's scenario: environment torques and the kit emulator
+        from hil.deorbit_sim import DeorbitSimulator
+        sim = DeorbitSimulator(scn, seed=args.seed, max_step_s=min(0.02, 1.0 / args.rate))
+    else:
+        sim = Simulator(scn, seed=args.seed, max_step_s=min(0.02, 1.0 / args.rate))
     driver = Mmc5983ma(sim.sensor, bandwidth=BANDWIDTH[scn.bandwidth_hz],
                        sample_period_s=1.0 / scn.sample_rate_hz)
     sigma_b = math.hypot(scn.noise_T, CHIP_NOISE_T[scn.bandwidth_hz])
@@ -86,8 +90,13 @@ def parse_args(argv=None):
     mode.add_argument("--sitl", action="store_true", help="run against the in-process simulator (lockstep)")
     mode.add_argument("--mag-serial", metavar="PORT",
                       help="on target: MMC5983MA behind a serial register bridge (e.g. the pty of python -m hil.pty_link)")
+    mode.add_argument("--replay", metavar="INPUT.csv",
+                      help="a recording (format v1) as the magnetometer, on a virtual clock, as fast as possible")
+    ap.add_argument("--rates-out", metavar="OUT.csv",
+                    help="with --replay: write the onboard Kalman filter's estimates, one row per sample")
     ap.add_argument("--scenario", default="isoi", metavar="NAME|FILE",
-                    help="SITL scenario: a shipped name (isoi, aist2d, amds) or a TOML file (default: isoi)")
+                    help="SITL scenario: a shipped name (isoi, aist2d, amds, amds_deorbit, ...) or a TOML file "
+                         "(default: isoi)")
     ap.add_argument("--duration", type=float, default=None, metavar="S",
                     help="stop after S seconds of loop time (default: run until Ctrl-C)")
     ap.add_argument("--speed", type=float, default=1.0, metavar="X",
@@ -113,6 +122,8 @@ def parse_args(argv=None):
     ap.add_argument("--max-sample-tlm-hz", type=float, default=20.0,
                     help="at most this many magnetometer samples per second go out on the link (default 20)")
     ap.add_argument("--quiet", action="store_true", help="no status line each second, only the summary")
+    ap.add_argument("--ident-inertia-guess", type=float, default=100.0, metavar="KGM2",
+                    help="SITL identification experiment: starting tensor = this × identity (default 100 kg.m^2)")
     args = ap.parse_args(argv)
     if not 0 < args.rate <= 1000:
         ap.error("--rate must be in (0, 1000] Hz")
@@ -124,6 +135,10 @@ def parse_args(argv=None):
         ap.error("--sigma-uT must be > 0")
     if args.buffer_frames < 0:
         ap.error("--buffer-frames must be >= 0")
+    if args.ident_inertia_guess <= 0:
+        ap.error("--ident-inertia-guess must be > 0")
+    if args.rates_out and not args.replay:
+        ap.error("--rates-out needs --replay")
     return args
 
 
@@ -148,6 +163,17 @@ def run(args, out=sys.stdout) -> Run:
         header = (f"SITL scenario {scn.name}: {scn.description}\n"
                   f"loop {args.rate:g} Hz, sensor {sample_rate:g} Hz, speed "
                   f"{'max' if args.speed == 0 else f'{args.speed:g}x'}, seed {args.seed}, link {args.link}")
+    elif getattr(args, "replay", None):
+        from .replay import RecordingReplay
+        sim = None
+        source = RecordingReplay.from_csv(args.replay)
+        sample_rate = source.sample_rate_hz
+        # one sample per tick at most: the loop runs at twice the recording's rate (virtual clock)
+        args.rate = min(1000.0, max(args.rate, 2.0 * sample_rate))
+        args.speed = 0.0
+        sigma_b = args.sigma_uT * 1e-6
+        header = (f"replay {args.replay}: {len(source.t)} samples at {sample_rate:.3g} Hz, loop {args.rate:g} Hz "
+                  f"(virtual clock), link {args.link}")
     else:
         from .drivers.serial_bus import SerialBus
         sim = None
@@ -167,9 +193,18 @@ def run(args, out=sys.stdout) -> Run:
                            input=True)
     frames = getattr(args, "buffer_frames", DEFAULT_CAPACITY)
     tlm = Telemetry(link, store=StoreForward(frames) if frames > 0 else None, key=key, clock=clock)
+    ident = None
+    if sim is not None:  # the identification experiment needs a field model along the orbit: SITL has one
+        from hil.ident_sitl import build_ident
+        ident = build_ident(scn, sim, sigma_b, getattr(args, "ident_inertia_guess", 100.0))
+    deorbit = None
+    if sim is not None and scn.deorbit is not None:  # the kit's lines are the emulator's, attitude from truth
+        from hil.deorbit_sim import build_kit
+        deorbit = build_kit(sim)
+        header += f"\nde-orbit kit: emulated; controller attitude from {deorbit.attitude.description}"
     fsw = FlightSoftware(source, tlm, rate_hz=args.rate, sigma_b_T=sigma_b, truth=truth,
                          max_sample_tlm_hz=args.max_sample_tlm_hz, sample_rate_hz=sample_rate,
-                         uplink=uplink, key=key)
+                         uplink=uplink, key=key, ident=ident, deorbit=deorbit)
     header += (f"\nmission key {key_fingerprint(key)}: commands must be signed, telemetry is signed" if key else
                "\nno mission key: commands that change state are refused")
     if uplink is not link:
@@ -192,6 +227,9 @@ def run(args, out=sys.stdout) -> Run:
     k = 0
     next_status = 1.0
     t = 0.0
+    replay = source if getattr(args, "replay", None) else None
+    t0 = replay.start_s if replay is not None else 0.0
+    rates = {}  # replay: sample time -> (ω, σ) of the Kalman filter
     try:
         while not stop:
             if args.duration is not None and k * period > args.duration + 1e-9:
@@ -199,9 +237,17 @@ def run(args, out=sys.stdout) -> Run:
             t = k * period
             if sim is not None:
                 sim.advance_to(t)
+            elif replay is not None:
+                if replay.done and not fsw.new_sample:
+                    break
+                t = t0 + k * period
             else:
                 t = time.monotonic() - wall0
             score.work_s.append(fsw.tick(t))
+            if replay is not None and fsw.new_estimate.get("kalman"):
+                kf = fsw.estimators["kalman"]
+                if not kf.flags & kf.NO_ESTIMATE:
+                    rates[fsw.sample_t_s] = (kf.omega_radps.copy(), kf.sigma_radps.copy())
             if fsw.new_sample and truth is not None:
                 sample_truth = truth(fsw.sample_t_s)
                 score.add(fsw, sample_truth)
@@ -210,7 +256,7 @@ def run(args, out=sys.stdout) -> Run:
                 if not args.quiet:
                     print(status_line(t, fsw, sample_truth), file=out, flush=True)
             k += 1
-            if args.speed > 0 or sim is None:
+            if args.speed > 0 or (sim is None and replay is None):
                 wait = wall0 + (k * period) / (args.speed or 1.0) - time.monotonic()
                 if wait > 0:
                     time.sleep(wait)
@@ -221,7 +267,27 @@ def run(args, out=sys.stdout) -> Run:
         link.close()
         if uplink is not link:
             uplink.close()
+    if replay is not None and getattr(args, "rates_out", None):
+        write_replay_rates(args.rates_out, replay, rates, args.replay)
+        print(f"wrote {len(rates)} Kalman estimates for {len(replay.t)} samples: {args.rates_out}", file=out)
     return Run(fsw, tlm, score, t, time.monotonic() - wall0)
+
+
+def write_replay_rates(path, replay, rates: dict, source: str) -> None:
+    """The replay's Kalman estimates in the rate-estimate format: one row per recording sample (NaN
+    where the sample gate refused the sample or the filter had no estimate yet)."""
+    from ground.recording import RateEstimates, write_rate_estimates
+
+    n = len(replay.t)
+    w = np.full((n, 3), np.nan)
+    s = np.full((n, 3), np.nan)
+    for i, tk in enumerate(replay.t):
+        est = rates.get(float(tk))
+        if est is not None:
+            w[i], s[i] = est
+    write_rate_estimates(path, RateEstimates(replay.t, w, s, metadata={
+        "source": f"python -m fsw.main --replay {source}",
+        "method": "kalman (onboard RateKalman, DEBRIS_RATE_METHOD_KALMAN)"}))
 
 
 def main(argv=None) -> int:
@@ -287,6 +353,12 @@ def summary(r: Run) -> str:
         lines.append(f"uplink: {u['cmd_accepted']} commands accepted; rejected: {u['rejected_unsigned']} unsigned, "
                      f"{u['rejected_bad_signature']} bad signature, {u['rejected_replay']} replayed, "
                      f"{u['rejected_invalid']} invalid")
+    kit = getattr(fsw, "deorbit", None)
+    if kit is not None:
+        e, seq = kit.energy(), kit.sequencer
+        lines.append(f"de-orbit kit: {seq.mode.name}, openings {e.channels[0].openings} + {e.channels[1].openings}, "
+                     f"turns {e.channels[0].turns} + {e.channels[1].turns}, energy {e.total_J:.0f} J, "
+                     f"interlock violations {seq.interlock_violations}, safe entries {seq.safe_entries}")
     g = fsw.gate
     if g.rejected:
         lines.append("magnetometer samples refused: " + ", ".join(f"{n} {k}" for k, n in g.counts.items() if n))

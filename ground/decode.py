@@ -9,8 +9,9 @@ URL is any pymavlink connection string: ``udpin:0.0.0.0:14550``, ``tcp:host:port
 Parsing is pymavlink's robust parser bound to the project dialect: bytes that do not frame, frames
 with a bad CRC and frames of unknown message ids are rejected and counted (`ground.link_stats`), never
 fatal. About once a second a line shows the last magnetometer sample's time and |B|, the onboard rate
-estimate of the selected method, the simulator's true rate when DEBRIS_SIM_STATE arrives (SITL), and
-the loss so far. At the end a summary: frames by type, loss per source, rejected data.
+estimate of the selected method, the simulator's true rate when DEBRIS_SIM_STATE arrives (SITL), the
+identification experiment's latest inertia estimate (DEBRIS_INERTIA_ESTIMATE: diagonal ± 95 %, state;
+all of them in `Decoder.inertia_estimates`), and the loss so far. At the end a summary: frames by type, loss per source, rejected data.
 
 Outputs
 - ``--tlog``: every intact frame as received (pymavlink tlog: 8-byte big-endian µs time stamp, then
@@ -129,6 +130,8 @@ class Decoder:
         #: intact frames refused by the signature check, by reason
         self.unauthenticated: Counter[str] = Counter()
         self._loop_time_us: int | None = None
+        #: decoded DEBRIS_INERTIA_ESTIMATE messages, in arrival order (see `_inertia`)
+        self.inertia_estimates: list[dict] = []
 
     # --- input -------------------------------------------------------------------------------
 
@@ -148,7 +151,23 @@ class Decoder:
                 self._sample_message(kind, msg)
             elif kind == "DEBRIS_LOOP_STATUS" and self.stats.last_verdict == "new":
                 self._loop_status(msg)
+            elif kind == "DEBRIS_INERTIA_ESTIMATE":
+                self._inertia(msg)
         self.tick(now_s)
+
+    def _inertia(self, msg) -> None:
+        """DEBRIS_INERTIA_ESTIMATE (the identification experiment's running/final estimate), kept in
+        ``inertia_estimates`` as dicts in SI with the state name; non-finite values are refused."""
+        vals = f32(*msg.inertia, *msg.ci95, *msg.ci99)
+        if not all(map(math.isfinite, vals)) or min(vals[6:]) < 0:
+            self.invalid["DEBRIS_INERTIA_ESTIMATE"] += 1
+            return
+        state = mavlink.enums["DEBRIS_IDENT_STATE"].get(msg.state)
+        self.inertia_estimates.append({
+            "t_s": msg.time_usec * 1e-6, "samples": int(msg.samples), "inertia_kgm2": vals[:6],
+            "ci95_kgm2": vals[6:12], "ci99_kgm2": vals[12:], "state": int(msg.state),
+            "state_name": state.name.removeprefix("DEBRIS_IDENT_STATE_").lower() if state else str(msg.state),
+            "flags": int(msg.flags)})
 
     def _loop_status(self, msg) -> None:
         """The live loop time going back means the flight software restarted: a new segment, which takes
@@ -253,6 +272,14 @@ class Decoder:
             parts.append(f"ω[{name}] —")
         if self._last_truth is not None:
             parts.append(f"true |ω| {np.linalg.norm(np.rad2deg(self._last_truth)):6.2f} °/s")
+        if self.inertia_estimates:
+            e = self.inertia_estimates[-1]
+            if e["samples"]:
+                i, c = e["inertia_kgm2"], e["ci95_kgm2"]
+                parts.append(f"I[{e['state_name']}] ({i[0]:.1f}±{c[0]:.1f} {i[1]:.1f}±{c[1]:.1f} "
+                             f"{i[2]:.1f}±{c[2]:.1f}) kg·m²")
+            else:
+                parts.append(f"I[{e['state_name']}] —")
         received, lost = self.stats.received(), self.stats.lost()
         pct = 100.0 * lost / (received + lost) if received + lost else 0.0
         parts.append(f"frames {received} lost {lost} ({pct:.1f} %)")

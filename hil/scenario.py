@@ -13,6 +13,7 @@ description = "..."
 [field]    model = "igrf14-dipole", epoch_year
 [sensor]   sample_rate_hz, bandwidth_hz (100/200/400/800), noise_uT, bridge_offset_uT
 [[torque]] start_s, duration_s, moment_Nm   (known applied moment, body axes, about the centre of mass)
+[deorbit]  optional, the de-orbit kit's closed loop (hil.deorbit_sim): see DeorbitSpec
 ```
 """
 from __future__ import annotations
@@ -42,6 +43,31 @@ class TorquePulse:
 
 
 @dataclass(frozen=True)
+class DeorbitSpec:
+    """The optional [deorbit] table: the AMDS spacecraft of lapkhanov2019 with its sail and magnets.
+
+    Every key is optional (defaults: the paper's numbers). `initial_ypr_deg` (yaw, pitch, roll) and
+    `initial_rate_dps` (body rate relative to the orbital frame) give the initial attitude w.r.t. the
+    orbital frame (x along the velocity, z to nadir; ZYX) and replace [initial] in the de-orbit
+    simulator. Density: ρ = density_kgm3 · exp(−(h − density_ref_alt_km) / density_scale_height_km).
+    `settle_s`: yaw and pitch are scored from this time on.
+    """
+
+    initial_ypr_deg: tuple[float, float, float] = (60.0, 45.0, 0.0)
+    initial_rate_dps: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    sail_area_m2: float = 5.0
+    body_area_m2: float = 0.58
+    drag_coefficient: float = 2.2
+    cp_offset_m: tuple[float, float, float] = (-0.12, 0.0, 0.0)
+    density_kgm3: float = 1.454e-13
+    density_ref_alt_km: float = 600.0
+    density_scale_height_km: float = 71.835
+    dipole_Am2: float = 15.0
+    duration_s: float = 10800.0
+    settle_s: float = 3600.0
+
+
+@dataclass(frozen=True)
 class Scenario:
     name: str
     description: str
@@ -62,6 +88,7 @@ class Scenario:
     noise_T: float
     bridge_offset_T: np.ndarray
     torques: tuple[TorquePulse, ...] = field(default_factory=tuple)
+    deorbit: DeorbitSpec | None = None
 
     def moment_Nm(self, t_s: float, out: np.ndarray | None = None) -> np.ndarray:
         """Applied moment at time t (sum of the active pulses), body axes."""
@@ -80,7 +107,7 @@ _SCHEMA: dict[str, dict[str, type | tuple]] = {
     "field": {"model": str, "epoch_year": float},
     "sensor": {"sample_rate_hz": float, "bandwidth_hz": int, "noise_uT": float, "bridge_offset_uT": list},
 }
-_TOP = {"name", "description", "source", "torque", *_SCHEMA}
+_TOP = {"name", "description", "source", "torque", "deorbit", *_SCHEMA}
 _BANDWIDTHS_HZ = (100, 200, 400, 800)
 _FIELD_MODELS = ("igrf14-dipole",)
 
@@ -179,6 +206,31 @@ def load(name_or_path: str = DEFAULT_SCENARIO) -> Scenario:
             fail(where, "start_s must be >= 0 and duration_s > 0")
         pulses.append(TorquePulse(float(p["start_s"]), float(p["duration_s"]), m))
 
+    deorbit = None
+    if "deorbit" in doc:
+        table = doc["deorbit"]
+        if not isinstance(table, dict):
+            fail("[deorbit]", "must be a table")
+        kw = {}
+        for k, v in table.items():
+            if k not in DeorbitSpec.__dataclass_fields__:
+                fail(f"deorbit.{k}", f"unknown key (expected {sorted(DeorbitSpec.__dataclass_fields__)})")
+            vector = isinstance(getattr(DeorbitSpec, k), tuple)
+            try:
+                a = np.array(v, dtype=float)
+            except (TypeError, ValueError):
+                fail(f"deorbit.{k}", "must be numbers")
+            if a.shape != ((3,) if vector else ()) or not np.all(np.isfinite(a)):
+                fail(f"deorbit.{k}", "expected 3 finite numbers" if vector else "expected a finite number")
+            kw[k] = tuple(float(x) for x in a) if vector else float(a)
+        deorbit = DeorbitSpec(**kw)
+        for k in ("sail_area_m2", "drag_coefficient", "density_kgm3", "density_scale_height_km",
+                  "dipole_Am2", "duration_s"):
+            if not getattr(deorbit, k) > 0:
+                fail(f"deorbit.{k}", "must be > 0")
+        if not 0 <= deorbit.settle_s < deorbit.duration_s:
+            fail("deorbit.settle_s", "must be in [0, duration_s)")
+
     return Scenario(
         name=str(doc.get("name", path.stem)), description=str(doc.get("description", "")),
         source=str(doc.get("source", "")), path=path, mass_kg=mass, inertia_kgm2=J,
@@ -189,5 +241,5 @@ def load(name_or_path: str = DEFAULT_SCENARIO) -> Scenario:
         field_model=sec["field"]["model"], epoch_year=sec["field"]["epoch_year"],
         sample_rate_hz=sensor["sample_rate_hz"], bandwidth_hz=sensor["bandwidth_hz"],
         noise_T=sensor["noise_uT"] * 1e-6, bridge_offset_T=vec("sensor", "bridge_offset_uT", (3,)) * 1e-6,
-        torques=tuple(pulses),
+        torques=tuple(pulses), deorbit=deorbit,
     )

@@ -176,3 +176,23 @@ class Telemetry:
         self._send(mavlink.MAVLink_debris_mag_status_message(
             usec(t_s), driver.samples, driver.bus_errors, driver.timeouts, driver.bad_id,
             min(driver.resets, 65535), int(driver.state), float(o[0]), float(o[1]), float(o[2])))
+
+    def inertia_estimate(self, t_s: float, *, samples: int, inertia, ci95, ci99, state: int, flags: int) -> None:
+        """DEBRIS_INERTIA_ESTIMATE: tensor (Ixx, Iyy, Izz, Ixy, Ixz, Iyz) kg·m² about the centre of mass in
+        sensor axes, 95 %/99 % half-widths, experiment state, flags (`fsw.ident.IdentExperiment`)."""
+        self._send(mavlink.MAVLink_debris_inertia_estimate_message(
+            usec(t_s), int(samples), [float(x) for x in inertia], [float(x) for x in ci95],
+            [float(x) for x in ci99], int(state), int(flags)))
+
+    def deorbit_status(self, t_s: float, st) -> None:
+        """DEBRIS_DEORBIT_STATUS from a `fsw.deorbit.kit.DeorbitStatus` (channel 0 = pitch, 1 = yaw)."""
+        u16 = [min(int(x), 65535) for x in st.capsule_openings], [min(int(x), 65535) for x in st.magnet_turns]
+        self._send(mavlink.MAVLink_debris_deorbit_status_message(
+            usec(t_s), [int(x) for x in st.position_steps], [int(x) & 0xFFFFFFFF for x in st.steps_total],
+            [float(x) for x in st.energy_J], u16[0], u16[1], min(int(st.interlock_violations), 65535),
+            [int(x) for x in st.capsule_state], [int(x) for x in st.magnet_state], [int(x) for x in st.polarity],
+            [int(x) for x in st.fault], int(st.controller_state)))
+
+    def statustext(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> None:
+        """STATUSTEXT (at most 50 characters, cut beyond): events such as the de-orbit kit's transitions."""
+        self._send(mavlink.MAVLink_statustext_message(severity, text.encode("ascii", "replace")[:50]))

@@ -1,0 +1,274 @@
+"""The de-orbit kit on board: drivers + sequencer + discrete controller + ground commands + status.
+
+`DeorbitKit.tick(now_s)` runs in the flight loop's "deorbit" task: the sequencer advances the drivers
+and the plans; while the controller runs, a decision is taken at the start of each controller period
+(`ControllerConfig.period_s`) from the attitude source, and turned into pulses of the sequencer.
+
+Attitude: the controller needs the attitude w.r.t. the orbital frame, the rate relative to it, the
+field in body axes and a forecast of the field along the orbit. The box has no attitude sensor of its
+own for that yet: in SITL and in the benchmark these come from the simulator's truth (as lapkhanov2019
+assumes perfect attitude knowledge); `AttitudeSource` is the seam for an onboard estimate.
+
+Ground commands (COMMAND_LONG, dialect `debris.xml`), each a handler `(msg, now_s) -> MAV_RESULT` with
+`msg.param1..param7`:
+
+| command                          | params                                    |
+|----------------------------------|-------------------------------------------|
+| MAV_CMD_DEBRIS_CAPSULE 54010     | channel 0/1, open 1 / close 0             |
+| MAV_CMD_DEBRIS_MAGNET_TURN 54011 | channel, angle deg in [−360, 360], k·1.8° |
+| MAV_CMD_DEBRIS_MAGNET_POLARITY 54012 | channel, polarity ±1                  |
+| MAV_CMD_DEBRIS_CONTROLLER 54013  | run 1 / stop 0, period s (0 keep), min impulse s (0 keep) |
+| MAV_CMD_DEBRIS_SAFE_MODE 54014   | enter 1 / leave 0                         |
+| MAV_CMD_DEBRIS_MAGNET_HOME 54015 | channel                                   |
+
+Results: malformed or out-of-range parameters → DENIED (nothing executed); refused by an interlock,
+a busy channel or the running controller → TEMPORARILY_REJECTED; SAFE mode, a latched fault or an
+unhomed magnet → FAILED; accepted → ACCEPTED (the motion runs on; its end shows in the status).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Callable, Protocol
+
+
+from fsw.drivers.capsule import CapsuleTiming
+from fsw.drivers.gpio import DigitalLines
+from fsw.drivers.stepper import STEP_DEG, StepperLimits
+from fsw.telemetry.dialect import mavlink
+
+from .controller import AttitudeInput, ChannelCommand, ControllerConfig, DiscreteController
+from .energy import EnergyLedger
+from .sequencer import Event, KitMode, Outcome, Sequencer, SequencerConfig
+
+MAV_RESULT_OF = {
+    Outcome.STARTED: mavlink.MAV_RESULT_ACCEPTED,
+    Outcome.DONE: mavlink.MAV_RESULT_ACCEPTED,
+    Outcome.BUSY: mavlink.MAV_RESULT_TEMPORARILY_REJECTED,
+    Outcome.INTERLOCK: mavlink.MAV_RESULT_TEMPORARILY_REJECTED,
+    Outcome.CONTROLLER: mavlink.MAV_RESULT_TEMPORARILY_REJECTED,
+    Outcome.SAFE: mavlink.MAV_RESULT_FAILED,
+    Outcome.FAULT: mavlink.MAV_RESULT_FAILED,
+    Outcome.UNHOMED: mavlink.MAV_RESULT_FAILED,
+    Outcome.INVALID: mavlink.MAV_RESULT_DENIED,
+}
+MAX_PERIOD_S = 3600.0
+
+
+class AttitudeSource(Protocol):
+    """Where the controller's attitude comes from; `description` is shown with the results."""
+
+    description: str
+
+    def attitude(self, now_s: float) -> AttitudeInput | None: ...
+
+
+@dataclass(frozen=True)
+class DeorbitStatus:
+    """The fields of DEBRIS_DEORBIT_STATUS (channel 0 = pitch, 1 = yaw)."""
+
+    t_s: float
+    position_steps: tuple[int, int]
+    steps_total: tuple[int, int]
+    energy_J: tuple[float, float]
+    capsule_openings: tuple[int, int]
+    magnet_turns: tuple[int, int]
+    interlock_violations: int
+    capsule_state: tuple[int, int]
+    magnet_state: tuple[int, int]
+    polarity: tuple[int, int]
+    fault: tuple[int, int]
+    controller_state: int
+
+
+@dataclass(frozen=True)
+class PulseRecord:
+    """A controller decision applied to one channel (for plots and the benchmark)."""
+
+    t_s: float
+    channel: int
+    polarity: int
+    width_s: float
+    m_theor_Nm: float
+    m_ctrl_Nm: float
+    outcome: Outcome
+
+
+def _param(msg, i: int) -> float:
+    v = getattr(msg, f"param{i}", math.nan)
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _choice(v: float, allowed: tuple[int, ...]) -> int | None:
+    """`v` as one of the integers `allowed`, or None (NaN, fractional, out of range)."""
+    if not math.isfinite(v) or v != round(v) or int(round(v)) not in allowed:
+        return None
+    return int(round(v))
+
+
+class DeorbitKit:
+    """The kit on `io` (the GPIO lines or the emulator); controller decisions from `attitude`."""
+
+    def __init__(self, io: DigitalLines, attitude: AttitudeSource | None = None, *,
+                 controller: ControllerConfig = ControllerConfig(), limits: StepperLimits = StepperLimits(),
+                 timing: CapsuleTiming = CapsuleTiming(), sequencer: SequencerConfig = SequencerConfig(),
+                 on_event: Callable[[Event], None] | None = None, keep_pulses: bool = False) -> None:
+        self.sequencer = Sequencer(io, limits=limits, timing=timing, config=sequencer, on_event=on_event)
+        self.controller = DiscreteController(controller)
+        self.attitude = attitude
+        self.next_decision_s = math.inf
+        self.decisions_without_attitude = 0
+        self.pulses: list[PulseRecord] | None = [] if keep_pulses else None
+        self.handlers: dict[int, Callable] = {
+            mavlink.MAV_CMD_DEBRIS_CAPSULE: self.cmd_capsule,
+            mavlink.MAV_CMD_DEBRIS_MAGNET_TURN: self.cmd_magnet_turn,
+            mavlink.MAV_CMD_DEBRIS_MAGNET_POLARITY: self.cmd_magnet_polarity,
+            mavlink.MAV_CMD_DEBRIS_CONTROLLER: self.cmd_controller,
+            mavlink.MAV_CMD_DEBRIS_SAFE_MODE: self.cmd_safe_mode,
+            mavlink.MAV_CMD_DEBRIS_MAGNET_HOME: self.cmd_magnet_home,
+        }
+
+    @property
+    def mode(self) -> KitMode:
+        return self.sequencer.mode
+
+    # --- the loop -------------------------------------------------------------------------------
+    def tick(self, now_s: float) -> None:
+        """A due controller decision first (so that a pulse ending now can be extended rather than
+        closed and reopened), then the sequencer: drivers, plans, interlock monitor."""
+        seq = self.sequencer
+        if seq.mode is KitMode.RUNNING:
+            if math.isinf(self.next_decision_s):
+                self.next_decision_s = now_s
+            if now_s + 1e-9 >= self.next_decision_s:
+                self.next_decision_s += self.controller.config.period_s
+                self._decide(now_s)
+        else:
+            self.next_decision_s = math.inf
+        seq.update(now_s)
+
+    def _decide(self, now_s: float) -> None:
+        seq = self.sequencer
+        att = self.attitude.attitude(now_s) if self.attitude is not None else None
+        if att is None:
+            self.decisions_without_attitude += 1
+            for i in range(2):
+                seq.end_pulse(i, now_s)
+            return
+        chans = seq.channels
+        cmds = self.controller.decide(now_s, att, acting=tuple(c.acting for c in chans),
+                                      polarity=tuple(c.polarity for c in chans))
+        for cmd in cmds:
+            self._apply(cmd, now_s)
+
+    def _apply(self, cmd: ChannelCommand, now_s: float) -> None:
+        seq = self.sequencer
+        if cmd.polarity == 0 or cmd.width_s <= 0.0:
+            seq.end_pulse(cmd.channel, now_s)
+            out = Outcome.DONE
+        else:
+            out = seq.pulse(cmd.channel, cmd.polarity, cmd.width_s, now_s)
+        if self.pulses is not None:
+            self.pulses.append(PulseRecord(now_s, cmd.channel, cmd.polarity, cmd.width_s, cmd.m_theor_Nm,
+                                           cmd.m_ctrl_Nm, out))
+
+    # --- status ---------------------------------------------------------------------------------
+    def status(self, now_s: float) -> DeorbitStatus:
+        chs = self.sequencer.channels
+
+        def pair(f):
+            return tuple(f(c) for c in chs)
+
+        return DeorbitStatus(
+            t_s=now_s, position_steps=pair(lambda c: int(c.stepper.position_steps)),
+            steps_total=pair(lambda c: int(c.stepper.steps_total)),
+            energy_J=pair(lambda c: float(c.stepper.energy_J + c.capsule.energy_J)),
+            capsule_openings=pair(lambda c: int(c.capsule.openings)),
+            magnet_turns=pair(lambda c: int(c.stepper.turns)),
+            interlock_violations=int(self.sequencer.interlock_violations),
+            capsule_state=pair(lambda c: int(c.capsule.state)), magnet_state=pair(lambda c: int(c.stepper.state)),
+            polarity=pair(lambda c: int(c.stepper.polarity)),
+            fault=pair(lambda c: int(c.fault | c.stepper.fault | c.capsule.fault) & 0xFF),
+            controller_state=int(self.sequencer.mode))
+
+    def energy(self) -> EnergyLedger:
+        return self.sequencer.energy()
+
+    # --- ground commands ------------------------------------------------------------------------
+    def register_commands(self, router) -> None:
+        """Register the handlers with a command router (`router.register(cmd, handler, changes_state=...)`)."""
+        for cmd, handler in self.handlers.items():
+            router.register(cmd, handler, changes_state=True)
+
+    def handle_command(self, msg, now_s: float) -> int:
+        """Dispatch a COMMAND_LONG-like `msg` (when no router is used); never raises."""
+        handler = self.handlers.get(int(getattr(msg, "command", -1)))
+        if handler is None:
+            return mavlink.MAV_RESULT_UNSUPPORTED
+        try:
+            return handler(msg, now_s)
+        except Exception:  # noqa: BLE001 - a command never brings the loop down
+            return mavlink.MAV_RESULT_FAILED
+
+    def cmd_capsule(self, msg, now_s: float) -> int:
+        ch, op = _choice(_param(msg, 1), (0, 1)), _choice(_param(msg, 2), (0, 1))
+        if ch is None or op is None:
+            return mavlink.MAV_RESULT_DENIED
+        return MAV_RESULT_OF[self.sequencer.request_capsule(ch, bool(op), now_s)]
+
+    def cmd_magnet_turn(self, msg, now_s: float) -> int:
+        ch, angle = _choice(_param(msg, 1), (0, 1)), _param(msg, 2)
+        if ch is None or not math.isfinite(angle) or abs(angle) > 360.0:
+            return mavlink.MAV_RESULT_DENIED
+        steps = angle / STEP_DEG
+        if abs(steps - round(steps)) > 1e-4:
+            return mavlink.MAV_RESULT_DENIED  # not a whole number of 1.8° steps
+        return MAV_RESULT_OF[self.sequencer.request_turn(ch, int(round(steps)), now_s)]
+
+    def cmd_magnet_polarity(self, msg, now_s: float) -> int:
+        ch, pol = _choice(_param(msg, 1), (0, 1)), _choice(_param(msg, 2), (1, -1))
+        if ch is None or pol is None:
+            return mavlink.MAV_RESULT_DENIED
+        return MAV_RESULT_OF[self.sequencer.request_polarity(ch, pol, now_s)]
+
+    def cmd_magnet_home(self, msg, now_s: float) -> int:
+        ch = _choice(_param(msg, 1), (0, 1))
+        if ch is None:
+            return mavlink.MAV_RESULT_DENIED
+        return MAV_RESULT_OF[self.sequencer.request_home(ch, now_s)]
+
+    def cmd_safe_mode(self, msg, now_s: float) -> int:
+        enter = _choice(_param(msg, 1), (0, 1))
+        if enter is None:
+            return mavlink.MAV_RESULT_DENIED
+        seq = self.sequencer
+        out = seq.enter_safe(now_s, "ground command") if enter else seq.leave_safe(now_s)
+        return MAV_RESULT_OF[out]
+
+    def cmd_controller(self, msg, now_s: float) -> int:
+        run = _choice(_param(msg, 1), (0, 1))
+        period, t_min = _param(msg, 2), _param(msg, 3)
+        if run is None or not (math.isfinite(period) and math.isfinite(t_min)) or period < 0 or t_min < 0:
+            return mavlink.MAV_RESULT_DENIED
+        cfg = self.controller.config
+        if run and (period > 0 or t_min > 0):
+            new_period = period if period > 0 else cfg.period_s
+            new_min = t_min if t_min > 0 else cfg.min_impulse_s
+            if not (new_min <= new_period <= MAX_PERIOD_S):
+                return mavlink.MAV_RESULT_DENIED
+            if (new_period, new_min) != (cfg.period_s, cfg.min_impulse_s):
+                widths = tuple(sorted({new_min, 0.5 * (new_min + new_period), new_period}))
+                try:
+                    self.controller = DiscreteController(replace(cfg, period_s=new_period, min_impulse_s=new_min,
+                                                                 widths_s=widths))
+                except ValueError:
+                    return mavlink.MAV_RESULT_DENIED
+        seq = self.sequencer
+        out = seq.start_controller(now_s) if run else seq.stop_controller(now_s)
+        if run and out.accepted:
+            self.next_decision_s = now_s
+        return MAV_RESULT_OF[out]
+

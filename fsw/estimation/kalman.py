@@ -1,0 +1,986 @@
+"""Kalman filtering of the body rate from magnetometer samples (causal: onboard, and the forward pass
+of the ground smoother).
+
+Model (physics-and-seeds.md §2). The field in body axes is B = Rᵀ B_I with R = R_bodyToInertial, so
+
+    dB/dt = B × ω + Rᵀ dB_I/dt,      J ω̇ + ω × (J ω) = M.
+
+The Boer formula sees only the part of ω perpendicular to B; a filter that carries ω as a state also
+gets the part along B, from how the perpendicular part turns as B moves in the body.
+
+Two filters:
+
+- :class:`RateKalman` — the onboard filter. State x = [B (3), ω (3)]; the field is taken as fixed in
+  inertial space over a step, so B turns rigidly: B_{k+1} = exp(−[ω Δt]ₓ) B_k (exact for constant ω,
+  any angle per step). ω is a random walk whose strength follows the physics of a torque-free body:
+  |ω̇| = |J⁻¹(ω × Jω)| ≤ κ|ω|² with κ ≈ 0.5 for bodies with principal moments within a factor of two.
+  Written on plain floats with the block structure of F = [[E, G], [0, I]] and H = [I, 0] (no array
+  is created per step: see the class docstring).
+- :class:`AttitudeRateKalman` — a multiplicative EKF (Markley 2003; Trawny & Roumeliotis 2005) with
+  the attitude as state: nominal q (body → ECI), ω, optional inertia shape p, optional inertial field
+  β; error state δθ (body axes), δω, δp, δβ. With a field model B_I(t) along the orbit it removes the
+  0.1–0.2 °/s floor that the fixed-field assumption leaves (the field turns at about twice the orbital
+  rate); with Euler's equations (a known tensor, or the shape J = diag(1, e^p₁, e^p₂) estimated) it
+  follows the rate of an asymmetric tumbling body instead of lagging it. It keeps what the RTS
+  smoother needs (ground/smoother.py).
+
+Textbook steps (Bar-Shalom, Li & Kirubarajan 2001, ch. 5): :func:`predict` and :func:`update` on
+(x, P). Units inside: field in µT (so that P is well scaled), rate in rad/s, time in s; the public
+interfaces take tesla.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from operator import add as _add, sub as _sub
+from typing import Callable
+
+import numpy as np
+
+from .rate_formulas import SIGMA_UNOBSERVED_RADPS
+
+UT_PER_T = 1e6
+#: Flags, same bit values as DEBRIS_ESTIMATE_FLAGS in the telemetry dialect.
+PERPENDICULAR_ONLY, DEGENERATE, NO_ESTIMATE, DATA_GAP = 1, 2, 4, 8
+
+# --- textbook Kalman steps ------------------------------------------------------------------------
+
+
+def predict(x: np.ndarray, P: np.ndarray, F: np.ndarray, Q: np.ndarray,
+            fx: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """x⁻ = F x (or `fx`, the nonlinear propagation, for an EKF); P⁻ = F P Fᵀ + Q."""
+    return (F @ x if fx is None else np.asarray(fx, float)), F @ P @ F.T + Q
+
+
+def update(x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, R: np.ndarray,
+           hx: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Measurement update; returns (x⁺, P⁺, innovation y, its covariance S).
+
+    y = z − H x (or z − `hx` for an EKF), S = H P Hᵀ + R, K = P Hᵀ S⁻¹, x⁺ = x + K y and the Joseph
+    form P⁺ = (I − KH) P (I − KH)ᵀ + K R Kᵀ, which stays symmetric positive semi-definite.
+    """
+    z = np.asarray(z, float).reshape(-1)
+    y = z - (H @ x if hx is None else np.asarray(hx, float).reshape(-1))
+    S = H @ P @ H.T + R
+    K = np.linalg.solve(S, H @ P).T
+    IKH = np.eye(len(x)) - K @ H
+    return x + K @ y, IKH @ P @ IKH.T + K @ R @ K.T, y, S
+
+
+# --- rotations ------------------------------------------------------------------------------------
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """[v]ₓ with [v]ₓ u = v × u."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def so3_exp(phi: np.ndarray) -> np.ndarray:
+    """Rotation matrix exp([φ]ₓ) of a rotation vector φ (Rodrigues)."""
+    th2 = float(phi @ phi)
+    K = skew(phi)
+    if th2 < 1e-12:
+        return np.eye(3) + K + 0.5 * K @ K
+    th = math.sqrt(th2)
+    return np.eye(3) + (math.sin(th) / th) * K + ((1.0 - math.cos(th)) / th2) * K @ K
+
+
+def so3_right_jacobian(phi: np.ndarray) -> np.ndarray:
+    """J_r(φ) = ∫₀¹ exp(−[φ]ₓ s) ds = I − (1 − cos θ)/θ² [φ]ₓ + (θ − sin θ)/θ³ [φ]ₓ²."""
+    a, c = _jr_coefficients(float(phi @ phi))
+    K = skew(phi)
+    return np.eye(3) - a * K + c * K @ K
+
+
+def _jr_coefficients(th2: float) -> tuple[float, float]:
+    """(1 − cos θ)/θ² and (θ − sin θ)/θ³, with their series near θ = 0."""
+    if th2 < 1e-6:
+        return 0.5 - th2 / 24.0, 1.0 / 6.0 - th2 / 120.0
+    th = math.sqrt(th2)
+    return (1.0 - math.cos(th)) / th2, (th - math.sin(th)) / (th2 * th)
+
+
+def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton product p ⊗ q of scalar-first quaternions (R(p ⊗ q) = R(p) R(q))."""
+    pw, px, py, pz = p
+    qw, qx, qy, qz = q
+    return np.array([pw * qw - px * qx - py * qy - pz * qz, pw * qx + px * qw + py * qz - pz * qy,
+                     pw * qy - px * qz + py * qw + pz * qx, pw * qz + px * qy - py * qx + pz * qw])
+
+
+def quat_exp(phi: np.ndarray) -> np.ndarray:
+    """Unit quaternion of the rotation vector φ."""
+    th = math.sqrt(float(phi @ phi))
+    if th < 1e-9:
+        q = np.array([1.0, 0.5 * phi[0], 0.5 * phi[1], 0.5 * phi[2]])
+        return q / math.sqrt(float(q @ q))
+    s = math.sin(0.5 * th) / th
+    return np.array([math.cos(0.5 * th), s * phi[0], s * phi[1], s * phi[2]])
+
+
+def quat_log(q: np.ndarray) -> np.ndarray:
+    """Rotation vector of a unit quaternion (the shorter way round)."""
+    if q[0] < 0:
+        q = -q
+    v = q[1:]
+    s = math.sqrt(float(v @ v))
+    if s < 1e-12:
+        return 2.0 * v
+    return (2.0 * math.atan2(s, q[0]) / s) * v
+
+
+def quat_conj(q: np.ndarray) -> np.ndarray:
+    return np.array([q[0], -q[1], -q[2], -q[3]])
+
+
+def quat_to_dcm(q: np.ndarray) -> np.ndarray:
+    """R_bodyToInertial of a unit quaternion [w, x, y, z]."""
+    w, x, y, z = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def quat_aligning(b_body: np.ndarray, b_inertial: np.ndarray, angle_about_b_rad: float = 0.0) -> np.ndarray:
+    """An attitude q (body → inertial) with R(q) b̂_body = b̂_inertial, turned by `angle_about_b_rad`
+    about the body's field direction: the attitudes that one field sample allows."""
+    a = np.asarray(b_inertial, float) / np.linalg.norm(b_inertial)
+    b = np.asarray(b_body, float) / np.linalg.norm(b_body)
+    v = np.cross(b, a)
+    s, c = float(np.linalg.norm(v)), float(b @ a)
+    if s > 1e-12:
+        q = quat_exp(v / s * math.atan2(s, c))
+    elif c > 0:
+        q = np.array([1.0, 0.0, 0.0, 0.0])
+    else:  # opposite: half a turn about any axis perpendicular to b
+        axis = np.cross(b, [1.0, 0.0, 0.0] if abs(b[0]) < 0.9 else [0.0, 1.0, 0.0])
+        q = quat_exp(axis / np.linalg.norm(axis) * math.pi)
+    return quat_mul(q, quat_exp(b * angle_about_b_rad))
+
+
+# --- the fixed-field rate filter (onboard) ----------------------------------------------------------
+
+def _m3(a, b):
+    """3×3 product of row-major 9-tuples."""
+    a0, a1, a2, a3, a4, a5, a6, a7, a8 = a
+    b0, b1, b2, b3, b4, b5, b6, b7, b8 = b
+    return (a0 * b0 + a1 * b3 + a2 * b6, a0 * b1 + a1 * b4 + a2 * b7, a0 * b2 + a1 * b5 + a2 * b8,
+            a3 * b0 + a4 * b3 + a5 * b6, a3 * b1 + a4 * b4 + a5 * b7, a3 * b2 + a4 * b5 + a5 * b8,
+            a6 * b0 + a7 * b3 + a8 * b6, a6 * b1 + a7 * b4 + a8 * b7, a6 * b2 + a7 * b5 + a8 * b8)
+
+
+def _m3t(a, b):
+    """a bᵀ for row-major 9-tuples."""
+    a0, a1, a2, a3, a4, a5, a6, a7, a8 = a
+    b0, b1, b2, b3, b4, b5, b6, b7, b8 = b
+    return (a0 * b0 + a1 * b1 + a2 * b2, a0 * b3 + a1 * b4 + a2 * b5, a0 * b6 + a1 * b7 + a2 * b8,
+            a3 * b0 + a4 * b1 + a5 * b2, a3 * b3 + a4 * b4 + a5 * b5, a3 * b6 + a4 * b7 + a5 * b8,
+            a6 * b0 + a7 * b1 + a8 * b2, a6 * b3 + a7 * b4 + a8 * b5, a6 * b6 + a7 * b7 + a8 * b8)
+
+
+def _tm3(a, b):
+    """aᵀ b for row-major 9-tuples."""
+    a0, a1, a2, a3, a4, a5, a6, a7, a8 = a
+    b0, b1, b2, b3, b4, b5, b6, b7, b8 = b
+    return (a0 * b0 + a3 * b3 + a6 * b6, a0 * b1 + a3 * b4 + a6 * b7, a0 * b2 + a3 * b5 + a6 * b8,
+            a1 * b0 + a4 * b3 + a7 * b6, a1 * b1 + a4 * b4 + a7 * b7, a1 * b2 + a4 * b5 + a7 * b8,
+            a2 * b0 + a5 * b3 + a8 * b6, a2 * b1 + a5 * b4 + a8 * b7, a2 * b2 + a5 * b5 + a8 * b8)
+
+
+def _sym(a):
+    a0, a1, a2, a3, a4, a5, a6, a7, a8 = a
+    u, v, w = 0.5 * (a1 + a3), 0.5 * (a2 + a6), 0.5 * (a5 + a7)
+    return (a0, u, v, u, a4, w, v, w, a8)
+
+
+@dataclass
+class RateKalmanTuning:
+    """Process and initial uncertainty of :class:`RateKalman` (SI units).
+
+    kappa: |ω̇| ≤ κ|ω|² for a torque-free body; the random walk of ω has per-step variance
+      (κ|ω|²Δt)²/3 per axis, which matches the Euler term's change over one step. κ = 0.5 covers
+      principal moments within a factor of two (Aist-2D: 0.49); a near-symmetric body needs less.
+    rate_accel_radps2: floor of the rate's change per second (external torques, an actuator).
+    rate_time_constant_s: an optional pull of ω to zero (Ornstein–Uhlenbeck; a component nothing observes
+      then stays bounded); off by default, since it biases a constant rate towards zero.
+    field_rate_radps: how fast the field may turn in inertial space (about twice the orbital rate,
+      ≈2.3e-3 rad/s in LEO) — a random walk of B on top of the rigid rotation.
+    sigma_rate0_radps: 1-σ of the rate before the first estimate.
+    adapt_samples, adapt_max: the floor's variance is scaled by a factor f ∈ [1, adapt_max] that
+      follows the innovations (an exponential mean of NIS/3 over about `adapt_samples` samples: f
+      doubles while it exceeds 1.5, shrinks by 1.25 while it is below 0.7): a body driven by
+      torques the model does not know (flywheels, magnetorquers) gets the process noise it needs, and
+      an honest σ, without hand tuning.
+    max_step_angle_rad: a step longer than this many radians of rotation at the current rate (or than
+      `max_gap_s`) restarts the filter: beyond about half a turn the samples cannot say which way B went.
+    sigma_flag_radps: an axis whose 1-σ exceeds this is reported DEGENERATE (not to be trusted).
+    """
+
+    kappa: float = 0.5
+    rate_accel_radps2: float = 1e-4
+    rate_time_constant_s: float = math.inf
+    field_rate_radps: float = 2.5e-3
+    sigma_rate0_radps: float = 0.5
+    max_step_angle_rad: float = 2.5
+    max_gap_s: float = 60.0
+    gap_factor: float = 1.8
+    sigma_flag_radps: float = 0.1
+    nis_reset: float = 1e4
+    adapt_samples: float = 10.0
+    adapt_max: float = 1e4
+
+
+class RateKalman:
+    """Onboard Kalman filter of ω from B samples, one sample at a time (full vector, with 1-σ).
+
+    Interface as the streaming formulas (fsw/estimation/rate_formulas.py): :meth:`update` with a
+    sample, then `omega_radps`, `sigma_radps` (1-σ per axis), `flags`, `t_s`.
+
+    Allocation: the state lives in Python floats (B in µT, ω in rad/s; P as the 3×3 blocks
+    P_BB, P_Bω, P_ωω, row-major 9-tuples); a step builds only small tuples and writes the published
+    arrays in place. The field's rotation over a step is exact (Rodrigues) and its Jacobian closed form:
+    F = [[E, G], [0, I]], E = exp(−[ωΔt]ₓ), G = Δt [B⁻]ₓ J_r(ωΔt).
+    """
+
+    PERPENDICULAR_ONLY, DEGENERATE, NO_ESTIMATE, DATA_GAP = PERPENDICULAR_ONLY, DEGENERATE, NO_ESTIMATE, DATA_GAP
+    #: estimates after a data gap that the flight software should widen: none, the filter's own
+    #: propagation across the gap widens σ (fsw/flight.py, sample_gate.mark_gap)
+    gap_history = 0
+
+    def __init__(self, sigma_b_T: float, tuning: RateKalmanTuning | None = None) -> None:
+        if not sigma_b_T > 0:
+            raise ValueError(f"sigma_b_T must be > 0, got {sigma_b_T!r}")
+        self.sigma_b_T = float(sigma_b_T)
+        self.tuning = tuning or RateKalmanTuning()
+        self._r = (self.sigma_b_T * UT_PER_T) ** 2
+        self.omega_radps = np.zeros(3)
+        self.sigma_radps = np.full(3, SIGMA_UNOBSERVED_RADPS)
+        self.flags = NO_ESTIMATE
+        self.t_s = 0.0
+        self.nis = 0.0
+        self.resets = 0
+        self._started = False
+        self._dt_nominal = math.inf
+        self._gap = False
+        self._bad = 0
+        self.adapt = 1.0
+        self._nis_mean = 3.0
+
+    # -- public -----------------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget everything; the next sample starts the filter afresh."""
+        self._started = False
+        self._bad = 0
+        self.omega_radps[:] = 0.0
+        self.sigma_radps[:] = SIGMA_UNOBSERVED_RADPS
+        self.flags = NO_ESTIMATE
+
+    @property
+    def b_T(self) -> np.ndarray:
+        """The filtered field (tesla, body axes)."""
+        return np.array(self._b) / UT_PER_T
+
+    @property
+    def P(self) -> np.ndarray:
+        """The 6×6 covariance (B in µT, ω in rad/s)."""
+        out = np.zeros((6, 6))
+        out[:3, :3] = np.reshape(self._pbb, (3, 3))
+        out[:3, 3:] = np.reshape(self._pbw, (3, 3))
+        out[3:, :3] = out[:3, 3:].T
+        out[3:, 3:] = np.reshape(self._pww, (3, 3))
+        return out
+
+    def update(self, t_s: float, b_T) -> bool:
+        """Add a field sample (tesla, body axes) taken at `t_s`; True when an estimate was published.
+
+        A non-finite sample is refused (False) and the next estimate is flagged DATA_GAP.
+        """
+        bx, by, bz = float(b_T[0]) * UT_PER_T, float(b_T[1]) * UT_PER_T, float(b_T[2]) * UT_PER_T
+        if not (math.isfinite(bx) and math.isfinite(by) and math.isfinite(bz)):
+            self._gap = True
+            return False
+        if not self._started:
+            self._start(t_s, bx, by, bz)
+            return True
+        dt = t_s - self.t_s
+        if not dt > 0:
+            return False
+        tun = self.tuning
+        gap = self._gap or dt > tun.gap_factor * self._dt_nominal
+        self._gap = False
+        self._dt_nominal = min(self._dt_nominal, dt)
+        w = self._w
+        if dt > tun.max_gap_s or dt * math.sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2) > tun.max_step_angle_rad:
+            self.resets += 1
+            self._start(t_s, bx, by, bz, DATA_GAP)
+            return True
+        self._predict(dt)
+        self._update(bx, by, bz)
+        self.t_s = t_s
+        self._publish(DATA_GAP if gap else 0)
+        return True
+
+    # -- steps ------------------------------------------------------------------------------------
+    def _start(self, t_s: float, bx: float, by: float, bz: float, flags: int = 0) -> None:
+        r = self._r
+        s0 = self.tuning.sigma_rate0_radps ** 2
+        self._b = (bx, by, bz)
+        self._w = (0.0, 0.0, 0.0)
+        self._pbb = (r, 0.0, 0.0, 0.0, r, 0.0, 0.0, 0.0, r)
+        self._pbw = (0.0,) * 9
+        self._pww = (s0, 0.0, 0.0, 0.0, s0, 0.0, 0.0, 0.0, s0)
+        self._started = True
+        self._bad = 0
+        self.adapt = 1.0
+        self._nis_mean = 3.0
+        self.t_s = t_s
+        self.omega_radps[:] = 0.0
+        self.sigma_radps[:] = SIGMA_UNOBSERVED_RADPS
+        self.flags = NO_ESTIMATE | flags
+
+    def _predict(self, dt: float) -> None:
+        wx, wy, wz = self._w
+        bx, by, bz = self._b
+        px, py, pz = wx * dt, wy * dt, wz * dt
+        th2 = px * px + py * py + pz * pz
+        # E = exp(−[φ]ₓ) = I − s[φ]ₓ + a[φ]ₓ² with s = sin θ/θ, a = (1 − cos θ)/θ²
+        a, c = _jr_coefficients(th2)
+        s = 1.0 - th2 * c  # sin θ/θ = 1 − θ² (θ − sin θ)/θ³
+        # [φ]ₓ² = φφᵀ − θ² I
+        k2 = (px * px - th2, px * py, px * pz, px * py, py * py - th2, py * pz, px * pz, py * pz, pz * pz - th2)
+        sx, sy, sz = s * px, s * py, s * pz
+        E = (1.0 + a * k2[0], sz + a * k2[1], -sy + a * k2[2], -sz + a * k2[3], 1.0 + a * k2[4], sx + a * k2[5],
+             sy + a * k2[6], -sx + a * k2[7], 1.0 + a * k2[8])
+        # J_r(φ) = I − a[φ]ₓ + c[φ]ₓ²
+        ax, ay, az = a * px, a * py, a * pz
+        Jr = (1.0 + c * k2[0], az + c * k2[1], -ay + c * k2[2], -az + c * k2[3], 1.0 + c * k2[4], ax + c * k2[5],
+              ay + c * k2[6], -ax + c * k2[7], 1.0 + c * k2[8])
+        nbx = E[0] * bx + E[1] * by + E[2] * bz
+        nby = E[3] * bx + E[4] * by + E[5] * bz
+        nbz = E[6] * bx + E[7] * by + E[8] * bz
+        Bx = (0.0, -nbz, nby, nbz, 0.0, -nbx, -nby, nbx, 0.0)
+        G = tuple(map(dt.__mul__, _m3(Bx, Jr)))
+        pbb, pbw, pww = self._pbb, self._pbw, self._pww
+        # X = E P_BB + G P_ωB,  Y = E P_Bω + G P_ωω;  P_BB⁻ = X Eᵀ + Y Gᵀ,  P_Bω⁻ = Y
+        X = tuple(map(_add, _m3(E, pbb), _m3t(G, pbw)))
+        Y = tuple(map(_add, _m3(E, pbw), _m3(G, pww)))
+        pbb_n = tuple(map(_add, _m3t(X, E), _m3t(Y, G)))
+        # process noise: ω a random walk (q_ω), B a random walk (field motion, q_B)
+        tun = self.tuning
+        w2 = wx * wx + wy * wy + wz * wz
+        b2 = nbx * nbx + nby * nby + nbz * nbz
+        wb = (wx * nbx + wy * nby + wz * nbz)
+        wp2 = max(w2 - wb * wb / b2, 0.0) if b2 > 0 else w2
+        # κ|ω||ω⊥| rather than κ|ω|²: the part of ω along B is seen only through the dynamics, and a
+        # noise that grew with its (unobserved) size would let it run away
+        acc = tun.kappa * math.sqrt(w2 * wp2)
+        q_w = (acc * acc / 3.0 + self.adapt * tun.rate_accel_radps2 ** 2) * dt
+        q_b = tun.field_rate_radps ** 2 * b2 * dt * dt
+        # Q_BB = q_ω Δt²/3 [B]ₓ[B]ₓᵀ + q_B I, Q_Bω = q_ω Δt/2 [B]ₓ, Q_ωω = q_ω I  (q_ω per step)
+        f3, f2 = q_w * dt * dt / 3.0, q_w * dt / 2.0
+        bbt = (b2 - nbx * nbx, -nbx * nby, -nbx * nbz, -nbx * nby, b2 - nby * nby, -nby * nbz,
+               -nbx * nbz, -nby * nbz, b2 - nbz * nbz)
+        p0, p1, p2, p3, p4, p5, p6, p7, p8 = pbb_n
+        u, v, w_ = 0.5 * (p1 + p3) + f3 * bbt[1], 0.5 * (p2 + p6) + f3 * bbt[2], 0.5 * (p5 + p7) + f3 * bbt[5]
+        self._pbb = (p0 + f3 * bbt[0] + q_b, u, v, u, p4 + f3 * bbt[4] + q_b, w_, v, w_, p8 + f3 * bbt[8] + q_b)
+        # ω: a random walk, optionally pulled to zero (time constant τ, Ornstein–Uhlenbeck)
+        phi = math.exp(-dt / tun.rate_time_constant_s)
+        self._pbw = (phi * Y[0], phi * Y[1] - f2 * nbz, phi * Y[2] + f2 * nby, phi * Y[3] + f2 * nbz, phi * Y[4],
+                     phi * Y[5] - f2 * nbx, phi * Y[6] - f2 * nby, phi * Y[7] + f2 * nbx, phi * Y[8])
+        f = phi * phi
+        self._pww = (f * pww[0] + q_w, f * pww[1], f * pww[2], f * pww[3], f * pww[4] + q_w, f * pww[5],
+                     f * pww[6], f * pww[7], f * pww[8] + q_w)
+        self._w = (phi * wx, phi * wy, phi * wz)
+        self._b = (nbx, nby, nbz)
+
+    def _update(self, zx: float, zy: float, zz: float) -> None:
+        r = self._r
+        pbb, pbw, pww = self._pbb, self._pbw, self._pww
+        s0, s1, s2, _, s4, s5, _, _, s8 = pbb
+        s0 += r
+        s4 += r
+        s8 += r
+        # S⁻¹ by the adjugate (S symmetric positive definite)
+        c0, c1, c2 = s4 * s8 - s5 * s5, s2 * s5 - s1 * s8, s1 * s5 - s2 * s4
+        det = s0 * c0 + s1 * c1 + s2 * c2
+        c4, c5, c8 = s0 * s8 - s2 * s2, s1 * s2 - s0 * s5, s0 * s4 - s1 * s1
+        inv = 1.0 / det
+        Si = (c0 * inv, c1 * inv, c2 * inv, c1 * inv, c4 * inv, c5 * inv, c2 * inv, c5 * inv, c8 * inv)
+        bx, by, bz = self._b
+        yx, yy, yz = zx - bx, zy - by, zz - bz
+        self.nis = (yx * (Si[0] * yx + Si[1] * yy + Si[2] * yz) + yy * (Si[3] * yx + Si[4] * yy + Si[5] * yz)
+                    + yz * (Si[6] * yx + Si[7] * yy + Si[8] * yz))
+        Kb = _m3(pbb, Si)
+        Kw = _tm3(pbw, Si)  # P_ωB S⁻¹ = P_Bωᵀ S⁻¹
+        self._b = (bx + Kb[0] * yx + Kb[1] * yy + Kb[2] * yz, by + Kb[3] * yx + Kb[4] * yy + Kb[5] * yz,
+                   bz + Kb[6] * yx + Kb[7] * yy + Kb[8] * yz)
+        wx, wy, wz = self._w
+        self._w = (wx + Kw[0] * yx + Kw[1] * yy + Kw[2] * yz, wy + Kw[3] * yx + Kw[4] * yy + Kw[5] * yz,
+                   wz + Kw[6] * yx + Kw[7] * yy + Kw[8] * yz)
+        # P⁺ = P − K H P: P_BB −= K_B P_BB, P_Bω −= K_B P_Bω, P_ωω −= K_ω P_Bω
+        self._pbb = _sym(tuple(map(_sub, pbb, _m3(Kb, pbb))))
+        self._pbw = tuple(map(_sub, pbw, _m3(Kb, pbw)))
+        self._pww = _sym(tuple(map(_sub, pww, _m3(Kw, pbw))))
+
+    def _publish(self, flags: int) -> None:
+        w = self._w
+        p = self._pww
+        b = self._b
+        # a NaN or inf anywhere makes the sum non-finite
+        if not math.isfinite(w[0] + w[1] + w[2] + p[0] + p[4] + p[8] + b[0] + b[1] + b[2]) \
+                or p[0] < 0 or p[4] < 0 or p[8] < 0:
+            self.resets += 1
+            b = b if math.isfinite(b[0] + b[1] + b[2]) else (0.0, 0.0, 0.0)
+            self._start(self.t_s, *b, DEGENERATE | flags)
+            return
+        tun = self.tuning
+        self._bad = self._bad + 1 if self.nis > tun.nis_reset else 0
+        self.adapt = adapt_noise(self, tun.adapt_samples, tun.adapt_max)
+        sx, sy, sz = math.sqrt(p[0]), math.sqrt(p[4]), math.sqrt(p[8])
+        if max(sx, sy, sz) > tun.sigma_flag_radps or b[0] * b[0] + b[1] * b[1] + b[2] * b[2] < 9.0 * self._r:
+            flags |= DEGENERATE
+        if self._bad >= 3:  # lost: the innovations are far outside what P allows
+            flags |= DEGENERATE
+            self.resets += 1
+            self._start(self.t_s, *b, flags)
+            return
+        self.omega_radps[:] = w
+        self.sigma_radps[:] = (min(sx, SIGMA_UNOBSERVED_RADPS), min(sy, SIGMA_UNOBSERVED_RADPS),
+                               min(sz, SIGMA_UNOBSERVED_RADPS))
+        self.flags = flags
+
+
+def adapt_noise(kf, samples: float, max_factor: float) -> float:
+    """Innovation-driven scale of the rate's process noise (a fading-memory variant of Mehra 1970):
+    the exponential mean of NIS/3 over about `samples` samples; the factor doubles while the mean
+    exceeds 1.5 and shrinks by 1.25 while it is below 0.7, within [1, `max_factor`]."""
+    kf._nis_mean += (min(kf.nis, 100.0) - kf._nis_mean) / samples
+    f = kf.adapt
+    if kf._nis_mean > 4.5:
+        f = min(2.0 * f, max_factor)
+    elif kf._nis_mean < 2.1:
+        f = max(f / 1.25, 1.0)
+    return f
+
+
+def kalman_rate(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, tuning: RateKalmanTuning | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Run :class:`RateKalman` over a recording: ω (N, 3) rad/s, 1-σ (N, 3) and flags (N,); rows
+    without an estimate (NO_ESTIMATE) are NaN."""
+    kf = RateKalman(sigma_b_T, tuning)
+    return _run_stream(kf, t_s, b_T)
+
+
+def _run_stream(kf, t_s, b_T):
+    t = np.asarray(t_s, float)
+    b = np.asarray(b_T, float)
+    n = len(t)
+    w = np.full((n, 3), np.nan)
+    s = np.full((n, 3), np.nan)
+    flags = np.full(n, NO_ESTIMATE, dtype=int)
+    for k in range(n):
+        if kf.update(t[k], b[k]):
+            flags[k] = kf.flags
+            if not kf.flags & NO_ESTIMATE:
+                w[k] = kf.omega_radps
+                s[k] = kf.sigma_radps
+    return w, s, flags
+
+
+# --- the attitude-based filter (field along the orbit, Euler's equations) ---------------------------
+
+def euler_rate(par, w, torque=None) -> tuple[float, float, float]:
+    """ω̇ from Euler's equations J ω̇ + ω × (J ω) = M, on floats.
+
+    `par` is ("shape", J₂/J₁, J₃/J₁) for a diagonal tensor known up to scale (torque-free: then
+    ω̇ = (k₁ω₂ω₃, k₂ω₃ω₁, k₃ω₁ω₂) with k₁ = (J₂ − J₃)/J₁ and cyclically), or ("J", J (9), J⁻¹ (9)).
+    """
+    w1, w2, w3 = w
+    if par[0] == "shape":
+        j2, j3 = par[1], par[2]
+        return ((j2 - j3) * w2 * w3, (j3 - 1.0) / j2 * w3 * w1, (1.0 - j2) / j3 * w1 * w2)
+    J, K = par[1], par[2]
+    h1 = J[0] * w1 + J[1] * w2 + J[2] * w3
+    h2 = J[3] * w1 + J[4] * w2 + J[5] * w3
+    h3 = J[6] * w1 + J[7] * w2 + J[8] * w3
+    e1, e2, e3 = -(w2 * h3 - w3 * h2), -(w3 * h1 - w1 * h3), -(w1 * h2 - w2 * h1)
+    if torque is not None:
+        e1, e2, e3 = e1 + torque[0], e2 + torque[1], e3 + torque[2]
+    return (K[0] * e1 + K[1] * e2 + K[2] * e3, K[3] * e1 + K[4] * e2 + K[5] * e3,
+            K[6] * e1 + K[7] * e2 + K[8] * e3)
+
+
+def euler_jacobians(par, w) -> tuple[tuple, tuple]:
+    """∂ω̇/∂ω (row-major 9-tuple) and ∂ω̇/∂(ln J₂/J₁, ln J₃/J₁) (row-major 3×2 6-tuple; zeros for a
+    known tensor)."""
+    w1, w2, w3 = w
+    if par[0] == "shape":
+        j2, j3 = par[1], par[2]
+        k1, k2, k3 = j2 - j3, (j3 - 1.0) / j2, (1.0 - j2) / j3
+        A = (0.0, k1 * w3, k1 * w2, k2 * w3, 0.0, k2 * w1, k3 * w2, k3 * w1, 0.0)
+        Ap = (j2 * w2 * w3, -j3 * w2 * w3, -k2 * w3 * w1, j3 / j2 * w3 * w1, -j2 / j3 * w1 * w2, -k3 * w1 * w2)
+        return A, Ap
+    J, K = par[1], par[2]
+    # ∂/∂ω of −J⁻¹ (ω × Jω) = −J⁻¹ ([ω]ₓ J − [Jω]ₓ)
+    h1 = J[0] * w1 + J[1] * w2 + J[2] * w3
+    h2 = J[3] * w1 + J[4] * w2 + J[5] * w3
+    h3 = J[6] * w1 + J[7] * w2 + J[8] * w3
+    W = (0.0, -w3, w2, w3, 0.0, -w1, -w2, w1, 0.0)
+    Hx = (0.0, -h3, h2, h3, 0.0, -h1, -h2, h1, 0.0)
+    M = tuple(u - v for u, v in zip(_m3(W, J), Hx))
+    return tuple(-v for v in _m3(K, M)), (0.0,) * 6
+
+
+def _physical_shape(p) -> bool:
+    """J = diag(1, e^p₁, e^p₂) obeys the triangle inequalities J_i ≤ J_j + J_k (with a margin)."""
+    j = (1.0, math.exp(p[0]), math.exp(p[1]))
+    return all(j[i] <= 1.02 * (j[(i + 1) % 3] + j[(i + 2) % 3]) for i in range(3))
+
+
+def _qmul_f(p, q):
+    pw, px, py, pz = p
+    qw, qx, qy, qz = q
+    return (pw * qw - px * qx - py * qy - pz * qz, pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx, pw * qz + px * qy - py * qx + pz * qw)
+
+
+def _rk4_attitude(par, q, w, h, m0, m_mid, m1):
+    """One RK4 step of q̇ = ½ q ⊗ [0, ω], ω̇ = euler_rate; returns (q, ω, the midpoint rate)."""
+    def qdot(qq, ww):
+        d = _qmul_f(qq, (0.0, ww[0], ww[1], ww[2]))
+        return (0.5 * d[0], 0.5 * d[1], 0.5 * d[2], 0.5 * d[3])
+
+    def add(a, b, f):
+        return tuple(x + f * y for x, y in zip(a, b))
+
+    k1w = euler_rate(par, w, m0)
+    k1q = qdot(q, w)
+    w2 = add(w, k1w, 0.5 * h)
+    k2w = euler_rate(par, w2, m_mid)
+    k2q = qdot(add(q, k1q, 0.5 * h), w2)
+    w3 = add(w, k2w, 0.5 * h)
+    k3w = euler_rate(par, w3, m_mid)
+    k3q = qdot(add(q, k2q, 0.5 * h), w3)
+    w4 = add(w, k3w, h)
+    k4w = euler_rate(par, w4, m1)
+    k4q = qdot(add(q, k3q, h), w4)
+    f = h / 6.0
+    qn = tuple(a + f * (b + 2.0 * c + 2.0 * d + e) for a, b, c, d, e in zip(q, k1q, k2q, k3q, k4q))
+    nq = math.sqrt(sum(v * v for v in qn))
+    wn = tuple(a + f * (b + 2.0 * c + 2.0 * d + e) for a, b, c, d, e in zip(w, k1w, k2w, k3w, k4w))
+    return tuple(v / nq for v in qn), wn, tuple(0.5 * (a + b) for a, b in zip(w2, w3))
+
+
+def _rodrigues(px, py, pz):
+    """exp([φ]ₓ) and J_r(φ) as row-major 9-tuples."""
+    th2 = px * px + py * py + pz * pz
+    a, c = _jr_coefficients(th2)
+    s = 1.0 - th2 * c
+    k2 = (px * px - th2, px * py, px * pz, px * py, py * py - th2, py * pz, px * pz, py * pz, pz * pz - th2)
+    K = (0.0, -pz, py, pz, 0.0, -px, -py, px, 0.0)
+    eye = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    E = tuple(i + s * k + a * kk for i, k, kk in zip(eye, K, k2))
+    Jr = tuple(i - a * k + c * kk for i, k, kk in zip(eye, K, k2))
+    return E, Jr
+
+
+def _substep_transition(par, wm, h, n, npar) -> np.ndarray:
+    """Error-state transition over a substep h at the midpoint rate ω_m (first order in the rate's
+    change): Φ_θθ = exp(−[ω_m h]ₓ), Φ_θω = h J_r(ω_m h) + ½h²A, Φ_ωω = I + Ah + ½(Ah)²,
+    Φ_ωp = (I + ½Ah) A_p h, Φ_θp = ½h² A_p; A = ∂ω̇/∂ω, A_p = ∂ω̇/∂p."""
+    A, Ap = euler_jacobians(par, wm)
+    E, _ = _rodrigues(-wm[0] * h, -wm[1] * h, -wm[2] * h)
+    _, Jr = _rodrigues(wm[0] * h, wm[1] * h, wm[2] * h)
+    Ah = tuple(v * h for v in A)
+    Ah2 = _m3(Ah, Ah)
+    tw = tuple(h * j + 0.5 * h * a for j, a in zip(Jr, Ah))
+    ww = tuple((1.0 if i in (0, 4, 8) else 0.0) + a + 0.5 * a2 for i, (a, a2) in enumerate(zip(Ah, Ah2)))
+    F = np.eye(n)
+    F[:3, :3] = np.reshape(E, (3, 3))
+    F[:3, 3:6] = np.reshape(tw, (3, 3))
+    F[3:6, 3:6] = np.reshape(ww, (3, 3))
+    if npar:
+        Aph = np.reshape(Ap, (3, 2)) * h
+        F[3:6, 6:8] = Aph + 0.5 * (np.reshape(Ah, (3, 3)) @ Aph)
+        F[:3, 6:8] = 0.5 * h * Aph
+    return F
+
+
+FieldFn = Callable[[float], np.ndarray]
+"""B_I(t): the inertial (ECI) field [T] at time t [s] along the orbit (fsw/estimation/field_motion.py)."""
+
+
+@dataclass
+class AttitudeKalmanTuning:
+    """Settings of :class:`AttitudeRateKalman` (SI units).
+
+    Dynamics: with neither `inertia_kgm2` nor `estimate_inertia`, ω is a random walk as in
+    :class:`RateKalman` (`kappa`, `rate_accel_radps2`); with Euler's equations only
+    `rate_accel_radps2` remains (unmodelled torques), and `inertia_shape_rate` lets the shape drift.
+    sigma_log_inertia0: 1-σ of ln(J₂/J₁), ln(J₃/J₁) before any data (0.7: a factor of two).
+    field_sigma_T: 1-σ per axis of the field model's error, added to the measurement noise; with no
+      field model, `field_rate_radps` lets the (unknown, fixed) inertial field drift instead.
+    max_substep_rad: rotation per integration substep of Euler's equations (RK4).
+    """
+
+    kappa: float = 0.5
+    rate_accel_radps2: float = 1e-4
+    inertia_shape_rate: float = 0.0
+    field_rate_radps: float = 2.5e-3
+    field_sigma_T: float = 0.0
+    sigma_rate0_radps: float = 0.5
+    sigma_log_inertia0: float = 0.7
+    max_substep_rad: float = 0.1
+    max_substeps: int = 200
+    euler_after_samples: int = 20
+    euler_sigma_rate_radps: float = 0.01
+    euler_sigma_rate_rel: float = 0.3
+    nis_reset: float = 1e3
+    adapt_samples: float = 10.0
+    adapt_max: float = 1e4
+    max_rate_radps: float = 100.0
+    max_step_angle_rad: float = 2.5
+    max_gap_s: float = 60.0
+    gap_factor: float = 1.8
+    sigma_flag_radps: float = 0.1
+
+
+class AttitudeRateKalman:
+    """Multiplicative EKF on attitude and rate, one sample at a time.
+
+    Nominal state: q (body → ECI, or → the body's own axes at the first sample when no field model is
+    given), ω (rad/s), p = (ln J₂/J₁, ln J₃/J₁) when the inertia shape is estimated, β = the inertial
+    field (µT) when no field model is given. Error state δx = [δθ, δω, δp, δβ] with the true attitude
+    R = R̂ exp([δθ]ₓ) (body-frame error): δθ̇ = −[ω]ₓ δθ + δω.
+
+    Measurement: z = Rᵀ (B_I(t) + β) + v, H = [[h]ₓ, 0, 0, Rᵀ].
+
+    Without a field model the attitude is defined relative to the first sample (P_θ = 0 there) and the
+    field is the state β: equivalent to :class:`RateKalman` plus optional Euler dynamics. With a field
+    model the rotation about B at the first sample is unknown: `angle_about_b_rad` picks one and the
+    covariance about B starts at π²/3 (the smoother tries several).
+
+    Acquisition: Euler's equations are switched on only once the random-walk model has found the rate
+    (`euler_after_samples` samples and every 1-σ of ω below `euler_sigma_rate_radps` +
+    `euler_sigma_rate_rel`·|ω|); before that the
+    shape would absorb the large early errors and the filter would diverge. Innovations far outside S
+    (NIS > `nis_reset` three times in a row) send it back to acquisition.
+
+    `store=True` keeps, per sample, the predicted and filtered states, covariances and transition
+    matrices for the RTS smoother (ground/smoother.py).
+    """
+
+    PERPENDICULAR_ONLY, DEGENERATE, NO_ESTIMATE, DATA_GAP = PERPENDICULAR_ONLY, DEGENERATE, NO_ESTIMATE, DATA_GAP
+    gap_history = 0
+
+    def __init__(self, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
+                 inertia_kgm2: np.ndarray | None = None, estimate_inertia: bool = False,
+                 torque_Nm: Callable[[float], np.ndarray] | None = None,
+                 tuning: AttitudeKalmanTuning | None = None, angle_about_b_rad: float = 0.0,
+                 store: bool = False) -> None:
+        if not sigma_b_T > 0:
+            raise ValueError(f"sigma_b_T must be > 0, got {sigma_b_T!r}")
+        if inertia_kgm2 is not None and estimate_inertia:
+            raise ValueError("give a known inertia tensor or estimate its shape, not both")
+        if torque_Nm is not None and inertia_kgm2 is None:
+            raise ValueError("a known torque needs the absolute inertia tensor")
+        self.sigma_b_T = float(sigma_b_T)
+        self.tuning = tun = tuning or AttitudeKalmanTuning()
+        self.field = field_eci_T
+        self.J = None if inertia_kgm2 is None else np.array(inertia_kgm2, float)
+        self.J_inv = None if self.J is None else np.linalg.inv(self.J)
+        self.torque = torque_Nm
+        self.n_p = 2 if estimate_inertia else 0
+        self.n_beta = 0 if field_eci_T is not None else 3
+        self.n = 6 + self.n_p + self.n_beta
+        self.i_beta = 6 + self.n_p
+        self.euler_model = self.J is not None or estimate_inertia
+        self.euler = False
+        self.angle_about_b_rad = float(angle_about_b_rad)
+        self.R = ((self.sigma_b_T ** 2 + tun.field_sigma_T ** 2) * UT_PER_T ** 2) * np.eye(3)
+        self.store = store
+        self.log: dict[str, list] = {k: [] for k in ("t", "qp", "xp", "Pp", "F", "q", "x", "P", "restart")}
+        self.omega_radps = np.zeros(3)
+        self.sigma_radps = np.full(3, SIGMA_UNOBSERVED_RADPS)
+        self.flags = NO_ESTIMATE
+        self.t_s = 0.0
+        self.nll = 0.0
+        self.nis = 0.0
+        self.resets = 0
+        self._started = False
+        self._gap = False
+        self._dt_nominal = math.inf
+
+    # -- public -----------------------------------------------------------------------------------
+    def reset(self) -> None:
+        self._started = False
+        self.omega_radps[:] = 0.0
+        self.sigma_radps[:] = SIGMA_UNOBSERVED_RADPS
+        self.flags = NO_ESTIMATE
+
+    def start(self, t_s: float, b_T, *, q: np.ndarray | None = None, omega_radps: np.ndarray | None = None,
+              p: np.ndarray | None = None, beta_uT: np.ndarray | None = None, P: np.ndarray | None = None) -> None:
+        """Start from the sample (t_s, b_T) with optional initial values (a smoother's restart);
+        missing ones take the defaults. Updates with the sample."""
+        tun = self.tuning
+        z = np.asarray(b_T, float) * UT_PER_T
+        self.w = np.zeros(3) if omega_radps is None else np.array(omega_radps, float)
+        self.p = np.zeros(self.n_p) if p is None else np.array(p, float)
+        n = self.n
+        P0 = np.zeros((n, n))
+        sb = math.sqrt(self.R[0, 0])
+        if self.field is None:
+            self.q = np.array([1.0, 0.0, 0.0, 0.0]) if q is None else np.array(q, float)
+            self.beta = z.copy() if beta_uT is None else np.array(beta_uT, float)
+            P0[self.i_beta:, self.i_beta:] = sb ** 2 * np.eye(3)
+        else:
+            b_i = np.asarray(self.field(t_s), float) * UT_PER_T
+            self.q = quat_aligning(z, b_i, self.angle_about_b_rad) if q is None else np.array(q, float)
+            self.beta = np.zeros(0)
+            bh = z / np.linalg.norm(z)
+            P0[:3, :3] = (sb / np.linalg.norm(z)) ** 2 * np.eye(3) + (math.pi ** 2 / 3) * np.outer(bh, bh)
+        P0[3:6, 3:6] = tun.sigma_rate0_radps ** 2 * np.eye(3)
+        P0[6:6 + self.n_p, 6:6 + self.n_p] = tun.sigma_log_inertia0 ** 2 * np.eye(self.n_p)
+        self.P = P0 if P is None else np.array(P, float)
+        self.euler = self.euler_model and omega_radps is not None and P is not None
+        self.adapt = 1.0
+        self._nis_mean = 3.0
+        self._samples = 0
+        self._bad = 0
+        self._started = True
+        self.t_s = t_s
+        self._record_prediction(t_s, np.eye(n), restart=True)
+        self._update(t_s, z)
+        self._publish(NO_ESTIMATE)
+
+    def set_nominal(self, t_s: float, q: np.ndarray, omega_radps: np.ndarray, p: np.ndarray | None = None,
+                    beta_uT: np.ndarray | None = None, euler: bool | None = None) -> None:
+        """Set the nominal state at `t_s` without a measurement (a propagator for batch fits)."""
+        self.q = np.array(q, float)
+        self.w = np.array(omega_radps, float)
+        self.p = np.zeros(self.n_p) if p is None else np.array(p, float)
+        if self.n_beta:
+            self.beta = np.zeros(3) if beta_uT is None else np.array(beta_uT, float)
+        else:
+            self.beta = np.zeros(0)
+        self.P = np.zeros((self.n, self.n))
+        self.t_s = t_s
+        self.euler = self.euler_model if euler is None else euler
+        self._started = True
+
+    def update(self, t_s: float, b_T) -> bool:
+        """Add a field sample (tesla, body axes) taken at `t_s`; True when an estimate was published."""
+        b = np.asarray(b_T, float)
+        if not np.all(np.isfinite(b)):
+            self._gap = True
+            return False
+        if not self._started:
+            self.start(t_s, b)
+            return True
+        dt = t_s - self.t_s
+        if not dt > 0:
+            return False
+        tun = self.tuning
+        gap = self._gap or dt > tun.gap_factor * self._dt_nominal
+        self._gap = False
+        self._dt_nominal = min(self._dt_nominal, dt)
+        if dt > tun.max_gap_s:
+            self.resets += 1
+            self.start(t_s, b)
+            self.flags |= DATA_GAP
+            return True
+        marks = {k: len(v) for k, v in self.log.items()}
+        try:
+            F = self.propagate(dt)
+            self.P = F @ self.P @ F.T + self._process_noise(dt)
+            self.t_s = t_s
+            self._record_prediction(t_s, F)
+            self._update(t_s, b * UT_PER_T)
+        except (ValueError, OverflowError, FloatingPointError, np.linalg.LinAlgError):
+            ok = False
+        else:
+            wn = float(np.linalg.norm(self.w))
+            # beyond about half a turn per step the samples alias: a rate that fast is a lost filter
+            ok = bool(np.all(np.isfinite(self.P)) and wn < tun.max_rate_radps
+                      and wn * min(dt, self._dt_nominal) < tun.max_step_angle_rad)
+        if not ok:  # diverged: start again from this sample, flagged (the smoother's log keeps the restart)
+            self.resets += 1
+            for k, v in self.log.items():
+                del v[marks[k]:]
+            self.start(t_s, b)
+            self.flags |= DEGENERATE | DATA_GAP
+            return True
+        self._publish(DATA_GAP if gap else 0)
+        return True
+
+    @property
+    def inertia_shape(self) -> np.ndarray:
+        """Estimated J / J₁ = diag(1, e^p₁, e^p₂) (ones when not estimated)."""
+        return np.concatenate([[1.0], np.exp(self.p)]) if self.n_p else np.ones(3)
+
+    # -- model ------------------------------------------------------------------------------------
+    def _euler_params(self):
+        if self.J is not None:
+            return ("J", tuple(self.J.ravel()), tuple(self.J_inv.ravel()))
+        return ("shape", math.exp(self.p[0]), math.exp(self.p[1]))
+
+    def _torque(self, t_s: float):
+        if self.torque is None:
+            return None
+        m = self.torque(t_s)
+        return (float(m[0]), float(m[1]), float(m[2]))
+
+    def propagate(self, dt: float) -> np.ndarray:
+        """Advance the nominal state by dt; return the error-state transition Φ (n×n)."""
+        n = self.n
+        F = np.eye(n)
+        if not self.euler:
+            phi = self.w * dt
+            self.q = quat_mul(self.q, quat_exp(phi))
+            self.q /= np.linalg.norm(self.q)
+            F[:3, :3] = so3_exp(-phi)
+            F[:3, 3:6] = dt * so3_right_jacobian(phi)
+            return F
+        tun = self.tuning
+        wn = math.sqrt(float(self.w @ self.w))
+        if not math.isfinite(wn) or not np.all(np.isfinite(self.p)):
+            raise ValueError("non-finite state")
+        m = min(tun.max_substeps, max(1, int(math.ceil(wn * dt / tun.max_substep_rad))))
+        h = dt / m
+        par = self._euler_params()
+        q = tuple(float(v) for v in self.q)
+        w = tuple(float(v) for v in self.w)
+        t = self.t_s
+        npar = self.n_p
+        for _ in range(m):
+            mid = self._torque(t + 0.5 * h)
+            q, w, wm = _rk4_attitude(par, q, w, h, self._torque(t), mid, self._torque(t + h))
+            F = _substep_transition(par, wm, h, n, npar) @ F
+            t += h
+        self.q = np.array(q)
+        self.w = np.array(w)
+        return F
+
+    def _process_noise(self, dt: float) -> np.ndarray:
+        tun = self.tuning
+        n = self.n
+        Q = np.zeros((n, n))
+        q_w = self.adapt * tun.rate_accel_radps2 ** 2 * dt
+        if not self.euler:  # κ|ω||ω⊥| (see RateKalman)
+            w2 = float(self.w @ self.w)
+            wb = float(self.w @ self._bhat)
+            q_w += tun.kappa ** 2 * w2 * max(w2 - wb * wb, 0.0) / 3.0 * dt
+        # ω a random walk with per-step variance q_w; its effect on the attitude over the step
+        Q[:3, :3] = q_w * dt * dt / 3.0 * np.eye(3)
+        Q[:3, 3:6] = Q[3:6, :3] = q_w * dt / 2.0 * np.eye(3)
+        Q[3:6, 3:6] = q_w * np.eye(3)
+        if self.n_p:
+            Q[6:6 + self.n_p, 6:6 + self.n_p] = tun.inertia_shape_rate ** 2 * dt * np.eye(self.n_p)
+        if self.n_beta:
+            b2 = float(self.beta @ self.beta)
+            Q[self.i_beta:, self.i_beta:] = tun.field_rate_radps ** 2 * b2 * dt * dt * np.eye(3)
+        return Q
+
+    def measurement(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted field h (µT, body) and H = ∂h/∂δx at the nominal state."""
+        C = quat_to_dcm(self.q)
+        b_i = (np.asarray(self.field(t_s), float) * UT_PER_T) if self.field is not None else self.beta
+        h = C.T @ b_i
+        H = np.zeros((3, self.n))
+        H[:, :3] = skew(h)
+        if self.n_beta:
+            H[:, self.i_beta:] = C.T
+        return h, H
+
+    def _update(self, t_s: float, z: np.ndarray) -> None:
+        h, H = self.measurement(t_s)
+        self._bhat = z / max(float(np.linalg.norm(z)), 1e-30)
+        P = self.P
+        y = z - h
+        S = H @ P @ H.T + self.R
+        K = np.linalg.solve(S, H @ P).T
+        dx = K @ y
+        IKH = np.eye(self.n) - K @ H
+        self.P = IKH @ P @ IKH.T + K @ self.R @ K.T
+        self.nis = float(y @ np.linalg.solve(S, y))
+        self.nll += 0.5 * (self.nis + math.log(max(np.linalg.det(S), 1e-300)))
+        self.q = quat_mul(self.q, quat_exp(dx[:3]))
+        self.q /= np.linalg.norm(self.q)
+        self.w = self.w + dx[3:6]
+        if self.n_p:
+            self.p = self.p + dx[6:6 + self.n_p]
+        if self.n_beta:
+            self.beta = self.beta + dx[self.i_beta:]
+        if self.store:
+            lg = self.log
+            lg["q"].append(self.q.copy())
+            lg["x"].append(self._x())
+            lg["P"].append(self.P.copy())
+
+    def _x(self) -> np.ndarray:
+        return np.concatenate([self.w, self.p, self.beta])
+
+    def _record_prediction(self, t_s: float, F: np.ndarray, restart: bool = False) -> None:
+        if self.store:
+            lg = self.log
+            lg["restart"].append(restart)
+            lg["t"].append(t_s)
+            lg["qp"].append(self.q.copy())
+            lg["xp"].append(self._x())
+            lg["Pp"].append(self.P.copy())
+            lg["F"].append(F)
+
+    def _publish(self, flags: int) -> None:
+        w = self.w
+        s = np.sqrt(np.clip(np.diagonal(self.P)[3:6], 0.0, None))
+        if not (np.all(np.isfinite(w)) and np.all(np.isfinite(s)) and np.all(np.isfinite(self.q))):
+            self.omega_radps[:] = 0.0
+            self.sigma_radps[:] = SIGMA_UNOBSERVED_RADPS
+            self.flags = DEGENERATE | flags | NO_ESTIMATE
+            self.resets += 1
+            self._started = False
+            return
+        tun = self.tuning
+        self._samples += 1
+        self._bad = self._bad + 1 if self.nis > tun.nis_reset else 0
+        if tun.adapt_max > 1.0:
+            self.adapt = adapt_noise(self, tun.adapt_samples, tun.adapt_max)
+        if self._bad >= 3:  # lost: back to acquisition
+            self._bad = 0
+            self.resets += 1
+            self.euler = False
+            self._samples = 0
+            if self.n_p:
+                self.p[:] = 0.0
+                ip = slice(6, 6 + self.n_p)
+                self.P[ip, :] = 0.0
+                self.P[:, ip] = 0.0
+                self.P[ip, ip] = tun.sigma_log_inertia0 ** 2 * np.eye(self.n_p)
+            self.P[3:6, 3:6] += tun.sigma_rate0_radps ** 2 * np.eye(3)
+            flags |= DEGENERATE
+        elif (self.euler_model and not self.euler and self._samples >= tun.euler_after_samples
+              and self._nis_mean < 6.0
+              and s.max() < tun.euler_sigma_rate_radps + tun.euler_sigma_rate_rel * float(np.linalg.norm(w))):
+            self.euler = True
+        elif self.euler and self.n_p and not _physical_shape(self.p):
+            # a shape no body has (a principal moment above the sum of the other two): start the
+            # shape again from a sphere, back in acquisition
+            self.euler = False
+            self._samples = 0
+            self.p[:] = 0.0
+            ip = slice(6, 6 + self.n_p)
+            self.P[ip, :] = 0.0
+            self.P[:, ip] = 0.0
+            self.P[ip, ip] = tun.sigma_log_inertia0 ** 2 * np.eye(self.n_p)
+            flags |= DEGENERATE
+        if s.max() > tun.sigma_flag_radps:
+            flags |= DEGENERATE
+        self.omega_radps[:] = w
+        self.sigma_radps[:] = np.minimum(s, SIGMA_UNOBSERVED_RADPS)
+        self.flags = flags
+
+
+def attitude_kalman_rate(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, **kwargs
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Run :class:`AttitudeRateKalman` (keyword arguments as its constructor) over a recording."""
+    return _run_stream(AttitudeRateKalman(sigma_b_T, **kwargs), t_s, b_T)

@@ -1,0 +1,312 @@
+"""The onboard inertia identification experiment (sedelnikov2023's algorithm, run by the box).
+
+Sequence, started by MAV_CMD_DEBRIS_IDENT_START (54000) and stopped by MAV_CMD_DEBRIS_IDENT_STOP (54001):
+
+    OBSERVE_FREE (param2 s) → TORQUE (param3 s) → OBSERVE_AFTER (param4 s) → DONE   (or ABORTED)
+
+- the known torque comes from a tug (DEBRIS_TORQUE_SOURCE_TUG: a force F at a known point r, sent as
+  the moment M = r × F in body axes, params 5–7) or from the box's own magnets
+  (DEBRIS_TORQUE_SOURCE_MAGNETS: their capsules open, M = p × B with p the dipole they report);
+- every magnetometer sample of the experiment is kept (and goes to the ground with the usual
+  telemetry); while the experiment runs, the output-error fit of :mod:`fsw.estimation.euler_fit` is
+  re-run on the samples so far (a running estimate with its 95 % / 99 % intervals, sent as
+  DEBRIS_INERTIA_ESTIMATE), and once more on all of them at the end (the final estimate, state DONE);
+- the fit is a generator advanced a bounded amount of work per loop tick (``work_per_tick``), so it
+  never holds the loop; the ground repeats it on the decoded recording (``python -m ground.inertia``).
+
+Handlers follow `fsw.commands`: ``(msg, now_s) -> MAV_RESULT``; an out-of-range parameter raises
+`BadParam` (→ DENIED); a second start while one runs → TEMPORARILY_REJECTED. Time is the loop's
+``now_s``, never the wall clock. The flight software must not import the simulator: the field model
+along the orbit and the actuators come in as callables.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from .commands import BadParam, float_param, int_param
+from .estimation import euler_fit as ef
+from .estimation import inertia as inr
+from .telemetry.dialect import mavlink
+
+FieldFn = ef.FieldFn
+
+IDLE = mavlink.DEBRIS_IDENT_STATE_IDLE
+OBSERVE_FREE = mavlink.DEBRIS_IDENT_STATE_OBSERVE_FREE
+TORQUE = mavlink.DEBRIS_IDENT_STATE_TORQUE
+OBSERVE_AFTER = mavlink.DEBRIS_IDENT_STATE_OBSERVE_AFTER
+DONE = mavlink.DEBRIS_IDENT_STATE_DONE
+ABORTED = mavlink.DEBRIS_IDENT_STATE_ABORTED
+RUNNING = (OBSERVE_FREE, TORQUE, OBSERVE_AFTER)
+STATE_NAMES = {IDLE: "idle", OBSERVE_FREE: "observe free", TORQUE: "torque", OBSERVE_AFTER: "observe after",
+               DONE: "done", ABORTED: "aborted"}
+
+TUG = mavlink.DEBRIS_TORQUE_SOURCE_TUG
+MAGNETS = mavlink.DEBRIS_TORQUE_SOURCE_MAGNETS
+
+
+class Tug(Protocol):
+    """The tug's side of a TUG experiment: the known moment M = r × F (body axes, about the centre of
+    mass) over [start, start + duration), or stopped early."""
+
+    def apply(self, start_s: float, duration_s: float, moment_Nm: np.ndarray) -> None: ...
+
+    def stop(self, now_s: float) -> None: ...
+
+
+class Magnets(Protocol):
+    """The box's magnets for a MAGNETS experiment (the de-orbit kit behind an adapter)."""
+
+    def open(self, now_s: float) -> bool: ...          # unscreen; False if refused (busy, fault, safe mode)
+
+    def close(self, now_s: float) -> None: ...
+
+    def dipole_body_Am2(self) -> np.ndarray: ...       # the dipole acting now (zeros while screened)
+
+
+@dataclass
+class IdentConfig:
+    """Limits and settings of the experiment (SI)."""
+
+    max_duration_s: float = 4 * 3600.0       # free + torque + after
+    max_moment_Nm: float = 50.0              # |M| accepted from the ground (TUG)
+    min_torque_s: float = 1.0
+    inertia_guess_kgm2: float = 100.0        # starting tensor: this times the identity; the fit's weak prior
+    update_every_s: float = 120.0            # a new running estimate at most this often (loop time)
+    work_per_tick: int = 15000               # fit work per tick (euler_fit.evaluate_steps units, ~3 ms)
+    tlm_period_s: float = 5.0                # DEBRIS_INERTIA_ESTIMATE period while not idle
+    max_samples: int = 20000
+    fit: ef.FitOptions = field(default_factory=ef.FitOptions)
+
+
+@dataclass
+class IdentResult:
+    """A finished fit of the samples so far."""
+
+    estimate: inr.InertiaEstimate
+    fit: ef.FitResult
+    t_s: float            # loop time it finished
+    t_data_end_s: float   # time of the last sample it used
+    final: bool
+
+
+class IdentExperiment:
+    """The experiment's state machine, its samples, and the fit jobs that run on them."""
+
+    def __init__(self, *, sigma_b_T: float, b_inertial: FieldFn | None, tug: Tug | None = None,
+                 magnets: Magnets | None = None, config: IdentConfig | None = None) -> None:
+        self.sigma_b_T = float(sigma_b_T)
+        self.b_inertial = b_inertial
+        self.tug = tug
+        self.magnets = magnets
+        self.cfg = config or IdentConfig()
+        self.state = IDLE
+        self.source = 0
+        self.moment_Nm = np.zeros(3)
+        self.t_start_s = self.t_torque_s = self.t_after_s = self.t_end_s = math.nan
+        self.t: list[float] = []
+        self.b: list[np.ndarray] = []
+        self.dipoles: list[tuple[float, np.ndarray]] = []   # (time, dipole) whenever it changed (MAGNETS)
+        self.result: IdentResult | None = None
+        self.history: list[IdentResult] = []
+        self.jobs_started = 0
+        self.last_error = ""
+        self._job = None
+        self._job_meta: tuple[int, float, bool] | None = None
+        self._last_job_s = -math.inf
+        self._torque_stop_s = math.nan
+        self._state_changed = False
+        self._next_tlm_s = -math.inf
+
+    # --- commands ------------------------------------------------------------------------------
+    def register(self, router) -> None:
+        """Register the START/STOP handlers with a `fsw.commands.CommandRouter`."""
+        router.register(mavlink.MAV_CMD_DEBRIS_IDENT_START, self.cmd_start, changes_state=True)
+        router.register(mavlink.MAV_CMD_DEBRIS_IDENT_STOP, self.cmd_stop, changes_state=True)
+
+    def cmd_start(self, msg, now_s: float) -> int:
+        """MAV_CMD_DEBRIS_IDENT_START: param1 source, param2–4 durations [s], param5–7 moment [N·m] (TUG)."""
+        source = int_param(msg.param1, TUG, MAGNETS, "source")
+        cap = self.cfg.max_duration_s
+        free = float_param(msg.param2, 0.0, cap, "observe free s")
+        torque = float_param(msg.param3, self.cfg.min_torque_s, cap, "torque s")
+        after = float_param(msg.param4, 0.0, cap, "observe after s")
+        if free + torque + after > cap:
+            raise BadParam(f"experiment of {free + torque + after:g} s longer than {cap:g} s")
+        moment = np.zeros(3)
+        if source == TUG:
+            lim = self.cfg.max_moment_Nm
+            moment = np.array([float_param(getattr(msg, f"param{i}"), -lim, lim, f"M{a}")
+                               for i, a in zip((5, 6, 7), "xyz")])
+            if not np.any(moment):
+                raise BadParam("TUG experiment with a zero moment")
+            if self.tug is None:
+                raise BadParam("no tug interface on board")
+        elif self.magnets is None:
+            raise BadParam("MAGNETS source: no magnets interface on board")
+        if self.b_inertial is None:
+            raise BadParam("no orbit/field model on board: the fit needs B along the orbit")
+        if self.state in RUNNING:
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        self._reset()
+        self.source, self.moment_Nm = source, moment
+        self.t_start_s = now_s
+        self._last_job_s = now_s          # the first running estimate comes update_every_s later at most
+        self.t_torque_s = now_s + free
+        self.t_after_s = self.t_torque_s + torque
+        self.t_end_s = self.t_after_s + after
+        self._set_state(OBSERVE_FREE)
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    def cmd_stop(self, msg, now_s: float) -> int:
+        """MAV_CMD_DEBRIS_IDENT_STOP: abort a running experiment (the torque is released at once)."""
+        if self.state in RUNNING:
+            self._release(now_s)
+            self._job = None
+            self._set_state(ABORTED)
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    # --- loop ------------------------------------------------------------------------------------
+    def on_sample(self, t_s: float, b_T: np.ndarray) -> None:
+        """A magnetometer sample (the flight loop's latched, gated sample)."""
+        if (self.state in RUNNING and t_s <= self.t_end_s and len(self.t) < self.cfg.max_samples
+                and (not self.t or t_s > self.t[-1])):
+            self.t.append(float(t_s))
+            self.b.append(np.array(b_T, float))
+
+    def step(self, now_s: float) -> None:
+        """Advance the phases and a slice of the fit (called every loop tick)."""
+        if self.state == OBSERVE_FREE and now_s >= self.t_torque_s:
+            self._apply(now_s)
+            self._set_state(TORQUE)
+        if self.state == TORQUE:
+            if self.source == MAGNETS:
+                self._note_dipole(now_s)
+            if now_s >= self.t_after_s:
+                self._release(now_s)
+                self._set_state(OBSERVE_AFTER)
+        self._fit_work(now_s)
+
+    # --- actuators ---------------------------------------------------------------------------------
+    def _apply(self, now_s: float) -> None:
+        self.t_torque_s = now_s                    # the action starts at this tick
+        if self.source == TUG:
+            self.tug.apply(now_s, self.t_after_s - now_s, self.moment_Nm.copy())
+        elif not self.magnets.open(now_s):
+            self.last_error = "magnets refused to open"
+            self._set_state(ABORTED)
+            return
+        self._note_dipole(now_s)
+
+    def _release(self, now_s: float) -> None:
+        if self.state != TORQUE:
+            return
+        self._torque_stop_s = min(now_s, self.t_after_s)
+        if self.source == TUG:
+            if now_s < self.t_after_s:
+                self.tug.stop(now_s)
+        else:
+            self.magnets.close(now_s)
+            self.dipoles.append((now_s, np.zeros(3)))
+
+    def _note_dipole(self, now_s: float) -> None:
+        p = np.array(self.magnets.dipole_body_Am2(), float) if self.magnets is not None else np.zeros(3)
+        if not self.dipoles or np.any(self.dipoles[-1][1] != p):
+            self.dipoles.append((now_s, p))
+
+    def known_action(self) -> ef.KnownAction:
+        """The known action of the experiment so far (moment pulse, or the magnets' dipole timeline)."""
+        if self.source == TUG:
+            end = self._torque_stop_s if math.isfinite(self._torque_stop_s) else self.t_after_s
+            if self.state == OBSERVE_FREE or end <= self.t_torque_s:
+                return ef.KnownAction.none()
+            return ef.KnownAction.pulses([(self.t_torque_s, end - self.t_torque_s, self.moment_Nm)])
+        if not self.dipoles:
+            return ef.KnownAction.none()
+        t = np.array([d[0] for d in self.dipoles])
+        p = np.array([d[1] for d in self.dipoles])
+        return ef.KnownAction(t, np.zeros_like(p), p)
+
+    # --- the fit ---------------------------------------------------------------------------------------
+    def _fit_work(self, now_s: float) -> None:
+        if self._job is None:
+            self._maybe_start_job(now_s)
+            return
+        try:
+            next(self._job)
+        except StopIteration as stop:
+            n, t_end, final = self._job_meta
+            self._job = None
+            fr = stop.value[0]
+            est = fr.estimate("output-error fit onboard" + (" (final)" if final else ""))
+            self.result = IdentResult(est, fr, now_s, t_end, final)
+            self.history.append(self.result)
+            if final:
+                self._set_state(DONE)
+            self._state_changed = True
+        except (ValueError, np.linalg.LinAlgError) as e:   # a degenerate record: reported, never raised
+            self._job = None
+            self.last_error = f"fit failed: {e}"
+            if self.state == OBSERVE_AFTER and now_s >= self.t_end_s:
+                self._set_state(DONE)
+
+    def _maybe_start_job(self, now_s: float) -> None:
+        if self.state not in (TORQUE, OBSERVE_AFTER) or len(self.t) < 20:
+            return
+        final = self.state == OBSERVE_AFTER and now_s >= self.t_end_s
+        if not final and now_s - self._last_job_s < self.cfg.update_every_s:
+            return
+        if not final and now_s < self.t_torque_s + min(60.0, self.t_after_s - self.t_torque_s):
+            return
+        t = np.array(self.t)
+        b = np.array(self.b)
+        g = self.cfg.inertia_guess_kgm2
+        self._job = ef.identify_steps(t, b[None], self.b_inertial, self.known_action(), self.sigma_b_T,
+                                      np.array([g, g, g, 0.0, 0.0, 0.0]), self.cfg.fit,
+                                      chunk=self.cfg.work_per_tick)
+        self._job_meta = (len(t), float(t[-1]), final)
+        self._last_job_s = now_s
+        self.jobs_started += 1
+
+    # --- state and telemetry ------------------------------------------------------------------------
+    def _reset(self) -> None:
+        self.t, self.b, self.dipoles = [], [], []
+        self.result = None
+        self.history = []
+        self._job = None
+        self._last_job_s = -math.inf
+        self._torque_stop_s = math.nan
+        self.last_error = ""
+
+    def _set_state(self, state: int) -> None:
+        if state != self.state:
+            self.state = state
+            self._state_changed = True
+
+    @property
+    def busy(self) -> bool:
+        return self._job is not None
+
+    def telemetry_due(self, now_s: float) -> bool:
+        """True when a DEBRIS_INERTIA_ESTIMATE should go out: a state change, a new estimate, or the period."""
+        if self.state == IDLE and not self._state_changed:
+            return False
+        if self._state_changed or now_s >= self._next_tlm_s:
+            self._state_changed = False
+            self._next_tlm_s = now_s + self.cfg.tlm_period_s
+            return True
+        return False
+
+    def message_fields(self) -> dict:
+        """The fields of DEBRIS_INERTIA_ESTIMATE for the current estimate (zeros before the first)."""
+        r = self.result
+        if r is None:
+            z = [0.0] * 6
+            return {"samples": 0, "inertia": z, "ci95": z, "ci99": z, "state": self.state, "flags": 0}
+        e = r.estimate
+        return {"samples": int(e.samples_used), "inertia": [float(x) for x in e.p],
+                "ci95": [float(x) for x in e.ci95], "ci99": [float(x) for x in e.ci99],
+                "state": self.state, "flags": int(e.flags)}

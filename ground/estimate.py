@@ -1,0 +1,197 @@
+"""Body rate from a magnetometer recording, by any of the methods: `python -m ground.estimate`.
+
+    python -m ground.estimate run.csv --rates rates.csv --method smoother --plot rates.png
+    python -m ground.estimate run.csv --rates rates.csv --method euler --scenario isoi   # field along the orbit
+    python -m ground.estimate lab.csv --rates r.csv --method kalman --decimate-hz 10
+
+Reads recording format v1 (`ground/recording.py`), writes the rate-estimate CSV (one row per input
+sample, NaN where a method has no estimate) and, with `--plot`, each axis with its 1-σ band and the
+reference rate when the recording has one (sedelnikov2024 Figures 9/12). With a reference it prints the
+RMS and maximum error, of the full vector and of the part perpendicular to B.
+
+Methods: boer (perpendicular part; `boer-printed` is the paper's sign, for comparison), derivative,
+kotelnikov (`kotelnikov-paper`: sedelnikov2023's discrete pairing), kalman (the onboard filter),
+kalman-orbit / kalman-euler (attitude filter; need an orbit for the field's motion unless the field
+is fixed), smoother (RTS), euler (batch torque-free fit), auto (euler when it explains the data, else
+smoother).
+
+The field: fixed in inertial space unless an orbit is given — `--scenario NAME|FILE` (a SITL scenario's
+orbit and field epoch; the recording's t = 0 is the scenario's) or `--tle LINE1 LINE2 --utc0 ISO`.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from datetime import datetime
+
+import numpy as np
+
+from fsw.estimation import field_motion as fm
+from fsw.estimation import kalman as kl
+from fsw.estimation import kotelnikov as ko
+from fsw.estimation import rate_formulas as rf
+from ground import smoother as sm
+from ground.recording import RateEstimates, Recording, RecordingError, read_recording, write_rate_estimates
+
+METHODS = ("boer", "boer-printed", "derivative", "kotelnikov", "kotelnikov-paper", "kalman", "kalman-orbit",
+           "kalman-euler", "smoother", "euler", "auto")
+PERPENDICULAR = ("boer", "boer-printed")
+
+
+def noise_estimate_T(b_T: np.ndarray) -> float:
+    """Per-axis white-noise σ from third differences (var = 20 σ² for white noise), robust (MAD).
+    A smooth signal sampled fast leaves the noise; a coarse sampling of fast motion overestimates it."""
+    d3 = np.diff(np.asarray(b_T, float), n=3, axis=0)
+    if len(d3) < 3:
+        return 1.5e-6
+    mad = np.median(np.abs(d3 - np.median(d3, axis=0)), axis=0) / 0.6745
+    return float(np.sqrt(np.mean(mad ** 2) / 20.0))
+
+
+def decimate(rec: Recording, hz: float) -> Recording:
+    """Keep one sample per 1/hz seconds (the first at or after each grid time): a slower sensor."""
+    step = 1.0 / hz
+    keep, next_t = [], rec.t_s[0]
+    for i, t in enumerate(rec.t_s):
+        if t >= next_t - 1e-9:
+            keep.append(i)
+            next_t = t + step
+    idx = np.array(keep)
+    return Recording(rec.t_s[idx], rec.b_T[idx], rec.m_Nm[idx],
+                     None if rec.w_ref_radps is None else rec.w_ref_radps[idx], rec.metadata)
+
+
+def estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, field=None,
+             inertia_kgm2=None) -> tuple[np.ndarray, np.ndarray, dict]:
+    """ω (N, 3) and 1-σ (N, 3) in rad/s of `method`, NaN where it has none; and notes."""
+    notes: dict = {}
+    if method == "boer":
+        return rf.boer_rate(t, b), _diag_sigma(rf.boer_covariance(t, b, sigma_b_T)), notes
+    if method == "boer-printed":
+        return rf.boer_rate_printed(t, b), _diag_sigma(rf.boer_covariance(t, b, sigma_b_T)), notes
+    if method == "derivative":
+        return rf.derivative_rate(t, b), _diag_sigma(rf.derivative_covariance(t, b, sigma_b_T)), notes
+    if method in ("kotelnikov", "kotelnikov-paper"):
+        tu, bu = t, b
+        steps = np.diff(t)
+        if np.max(np.abs(steps - np.median(steps))) > 0.02 * np.median(steps):
+            tu, bu = ko.resample_uniform(t, b)
+            notes["resampled"] = f"to a uniform {np.median(steps):.4g} s grid (linear), back by interpolation"
+        w, s = ko.kotelnikov_rate(tu, bu, sigma_b_T, form="paper" if method.endswith("paper") else "analytic")
+        if tu is not t:
+            w = np.column_stack([np.interp(t, tu, w[:, i], left=np.nan, right=np.nan) for i in range(3)])
+            s = np.column_stack([np.interp(t, tu, s[:, i], left=np.nan, right=np.nan) for i in range(3)])
+        return w, s, notes
+    if method == "kalman":
+        w, s, _ = kl.kalman_rate(t, b, sigma_b_T)
+        return w, s, notes
+    if method in ("kalman-orbit", "kalman-euler"):
+        w, s, _ = kl.attitude_kalman_rate(t, b, sigma_b_T, field_eci_T=sm.tabulated(field, t),
+                                          estimate_inertia=method == "kalman-euler" and inertia_kgm2 is None,
+                                          inertia_kgm2=inertia_kgm2 if method == "kalman-euler" else None)
+        return w, s, notes
+    if method in ("smoother", "euler", "auto"):
+        model = {"smoother": "random_walk", "euler": "euler", "auto": "auto"}[method]
+        res = sm.smooth(t, b, sigma_b_T, field_eci_T=field, model=model, inertia_kgm2=inertia_kgm2)
+        notes["model"] = res.method
+        notes["chi2_per_dof"] = f"{res.chi2_dof:.3f}"
+        if res.inertia_shape is not None:
+            notes["inertia_shape"] = " ".join(f"{v:.4f}" for v in res.inertia_shape)
+        return res.w_radps, res.sigma_radps, notes
+    raise ValueError(f"unknown method {method!r}")
+
+
+def _diag_sigma(cov: np.ndarray) -> np.ndarray:
+    return np.sqrt(np.clip(np.einsum("kii->ki", cov), 0.0, None))
+
+
+def score(rec: Recording, w: np.ndarray, perpendicular_only: bool) -> dict:
+    """RMS / max error (°/s) against the recording's reference: full vector and ⊥ B (measured B)."""
+    ref = rec.w_ref_radps
+    ok = np.all(np.isfinite(w), axis=1) & np.all(np.isfinite(ref), axis=1)
+    e = w[ok] - ref[ok]
+    bh = rec.b_T[ok] / np.linalg.norm(rec.b_T[ok], axis=1, keepdims=True)
+    e_perp = e - np.sum(e * bh, axis=1, keepdims=True) * bh
+    out = {"n": int(ok.sum()),
+           "perp_rms_dps": math.degrees(float(np.sqrt(np.mean(np.sum(e_perp ** 2, 1))))) if ok.any() else math.nan,
+           "perp_max_dps": math.degrees(float(np.max(np.linalg.norm(e_perp, axis=1)))) if ok.any() else math.nan}
+    if not perpendicular_only and ok.any():
+        out["full_rms_dps"] = math.degrees(float(np.sqrt(np.mean(np.sum(e ** 2, 1)))))
+        out["full_max_dps"] = math.degrees(float(np.max(np.linalg.norm(e, axis=1))))
+    return out
+
+
+def field_from_args(args):
+    if args.scenario:
+        from hil import scenario as scenarios
+        scn = scenarios.load(args.scenario)
+        return fm.OrbitField(fm.CircularOrbitModel(scn.altitude_m, scn.inclination_deg, scn.raan_deg,
+                                                   scn.arg_lat0_deg), fm.DipoleModel(scn.epoch_year))
+    if args.tle:
+        utc = datetime.fromisoformat(args.utc0)
+        orbit = fm.TleOrbitModel(args.tle[0], args.tle[1], (utc.year, utc.month, utc.day, utc.hour, utc.minute,
+                                                            utc.second + utc.microsecond * 1e-6))
+        return fm.OrbitField(orbit, fm.DipoleModel(utc.year + (utc.timetuple().tm_yday - 1) / 365.25))
+    return None
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m ground.estimate", description=__doc__.splitlines()[0])
+    ap.add_argument("input", help="recording, format v1 (CSV)")
+    ap.add_argument("--rates", required=True, metavar="OUT.csv", help="rate estimates to write")
+    ap.add_argument("--method", choices=METHODS, default="smoother", help="estimator (default smoother)")
+    ap.add_argument("--plot", metavar="FILE.png", help="estimate, 1-σ band and reference per axis")
+    ap.add_argument("--sigma-uT", type=float, default=None,
+                    help="1-σ field noise per axis (default: estimated from third differences)")
+    ap.add_argument("--decimate-hz", type=float, default=None, metavar="HZ",
+                    help="keep one sample per 1/HZ s first (mimic a slower sensor)")
+    ap.add_argument("--scenario", metavar="NAME|FILE", help="the field along this SITL scenario's orbit")
+    ap.add_argument("--tle", nargs=2, metavar=("LINE1", "LINE2"), help="the field along a TLE's orbit")
+    ap.add_argument("--utc0", help="with --tle: UTC of the recording's t = 0, ISO 8601")
+    ap.add_argument("--inertia", metavar="I", help="known tensor for euler/kalman-euler: 'Ixx,Iyy,Izz' or 9 values")
+    args = ap.parse_args(argv)
+    if args.tle and not args.utc0:
+        ap.error("--tle needs --utc0")
+    if args.scenario and args.tle:
+        ap.error("give --scenario or --tle, not both")
+    try:
+        rec = read_recording(args.input)
+        if args.decimate_hz:
+            rec = decimate(rec, args.decimate_hz)
+        field = field_from_args(args)
+        inertia = None
+        if args.inertia:
+            vals = [float(v) for v in args.inertia.split(",")]
+            if len(vals) not in (3, 9):
+                ap.error("--inertia takes 3 or 9 values")
+            inertia = np.diag(vals) if len(vals) == 3 else np.reshape(vals, (3, 3))
+        sigma = args.sigma_uT * 1e-6 if args.sigma_uT else noise_estimate_T(rec.b_T)
+        w, s, notes = estimate(args.method, rec.t_s, rec.b_T, sigma, field=field, inertia_kgm2=inertia)
+        meta = {"source": f"python -m ground.estimate {args.input}", "method": args.method,
+                "sigma_uT": f"{sigma * 1e6:.4g}" + ("" if args.sigma_uT else " (estimated)"),
+                "field": "along the orbit" if field is not None else "fixed in inertial space"}
+        meta.update({k: str(v) for k, v in notes.items()})
+        write_rate_estimates(args.rates, RateEstimates(rec.t_s, w, s, metadata=meta))
+    except (RecordingError, ValueError, OSError) as e:
+        print(f"ground.estimate: {e}", file=sys.stderr)
+        return 1
+    print(f"{args.method}: {int(np.all(np.isfinite(w), axis=1).sum())} estimates of {len(rec)} samples, "
+          f"σ_B {sigma * 1e6:.3g} µT" + "".join(f", {k} {v}" for k, v in notes.items()))
+    if rec.w_ref_radps is not None:
+        sc = score(rec, w, args.method in PERPENDICULAR)
+        parts = [f"⊥B RMS {sc['perp_rms_dps']:.3f} max {sc['perp_max_dps']:.2f}"]
+        if "full_rms_dps" in sc:
+            parts.insert(0, f"full RMS {sc['full_rms_dps']:.3f} max {sc['full_max_dps']:.2f}")
+        print(f"error vs reference (°/s, {sc['n']} samples): " + ", ".join(parts))
+    print(f"wrote {args.rates}")
+    if args.plot:
+        from ground.plot import plot_rates
+        plot_rates(args.plot, rec.t_s, w, s, rec.w_ref_radps,
+                   title=f"{args.input}: {args.method}", perpendicular_only=args.method in PERPENDICULAR)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,245 @@
+"""Ground refinement of the inertia tensor from a magnetometer recording (output-error fit).
+
+    python -m ground.inertia INPUT.csv OUT.json [--scenario NAME|FILE] [--sigma-uT S] [--diag]
+                             [--guess KGM2] [--plot FILE [--running N]] [--hold centered|forward] [--quiet]
+
+(also reached as ``python -m ground.estimate INPUT.csv --inertia OUT.json``). INPUT is a recording
+in format v1 (`recording.py`): the field samples and the known applied moment ``m*_Nm`` (about the
+centre of mass, sensor axes; from the simulation truth in SITL, from the tug's log otherwise).
+Euler's equations and the attitude kinematics are integrated with the candidate tensor and fitted to
+the samples themselves (`fsw.estimation.euler_fit`: multiple shooting, then single shooting): no rate
+is differentiated, so no errors-in-variables bias. The inertial field along the orbit comes from the
+field model of `hil` for the orbit of ``--scenario`` or of the recording's metadata
+(``# orbit_altitude_km:``, ``# orbit_inclination_deg:``, ``# orbit_raan_deg:``,
+``# orbit_arg_lat0_deg:``, ``# field_epoch_year:``; ``t_s`` = 0 at the orbit's epoch, the Earth rotation
+angle 0 there).
+
+Output: the inertia JSON of recording-format.md — tensor about the centre of mass in sensor axes,
+95 % half-widths, principal moments, method, samples — plus the 99 % half-widths, the physical
+checks, the fitted initial rate and the offset. ``--plot`` draws the running estimate (the fit of the
+first n samples, n growing) with its 95 % band next to the final value, like sedelnikov2023's
+Figures 11–12 (and the truth, when a scenario gives it).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from fsw.estimation import euler_fit as ef
+from fsw.estimation import inertia as inr
+
+from .recording import Recording, RecordingError, read_recording
+
+#: metadata keys of the orbit (recording ``# key: value`` lines)
+ORBIT_KEYS = ("orbit_altitude_km", "orbit_inclination_deg", "orbit_raan_deg", "orbit_arg_lat0_deg",
+              "field_epoch_year")
+
+
+@dataclass
+class InertiaReport:
+    """What :func:`run` found: the final estimate, the fit behind it, and the running estimate."""
+
+    estimate: inr.InertiaEstimate
+    fit: ef.FitResult
+    running: list[tuple[float, np.ndarray, np.ndarray]] = field(default_factory=list)  # (t_end, p, ci95)
+    truth_p: np.ndarray | None = None
+    source: str = ""
+
+
+def field_model(scenario: str | None = None, metadata: dict | None = None) -> tuple[Callable, np.ndarray | None, str]:
+    """B_I(t) along the orbit of a scenario (name or TOML) or of the recording metadata; also the truth
+    tensor (scenario only) and a description."""
+    from hil.field import DipoleField, FieldAlongOrbit
+    from hil.orbit import CircularOrbit
+
+    if scenario:
+        from hil import scenario as scenarios
+
+        scn = scenarios.load(scenario)
+        orbit = CircularOrbit(scn.altitude_m, scn.inclination_deg, scn.raan_deg, scn.arg_lat0_deg)
+        return (FieldAlongOrbit(orbit, DipoleField(scn.epoch_year)).b_eci_T, inr.params(scn.inertia_kgm2),
+                f"scenario {scn.name}")
+    md = metadata or {}
+    missing = [k for k in ORBIT_KEYS if k not in md]
+    if missing:
+        raise ValueError("no orbit for the field model: give --scenario, or the recording metadata "
+                         + ", ".join(f"'# {k}: ...'" for k in missing))
+    try:
+        v = {k: float(md[k]) for k in ORBIT_KEYS}
+    except ValueError as e:
+        raise ValueError(f"orbit metadata is not a number: {e}") from None
+    orbit = CircularOrbit(v["orbit_altitude_km"] * 1e3, v["orbit_inclination_deg"], v["orbit_raan_deg"],
+                          v["orbit_arg_lat0_deg"])
+    return FieldAlongOrbit(orbit, DipoleField(v["field_epoch_year"])).b_eci_T, None, "recording metadata"
+
+
+def known_action(rec: Recording, hold: str = "centered") -> ef.KnownAction:
+    """The known moment of a recording (its m*_Nm columns held between samples)."""
+    return ef.KnownAction.from_samples(rec.t_s, rec.m_Nm, hold=hold)
+
+
+def run(rec: Recording, b_inertial: Callable, *, sigma_b_T: float = 1.5e-6, mode: str = "full",
+        guess_kgm2: float | None = None, hold: str = "centered", running_points: int = 12,
+        opts: ef.FitOptions | None = None, log: Callable[[str], None] | None = None) -> InertiaReport:
+    """Fit the tensor to a recording; ``running_points`` prefixes for the running estimate (0: none).
+
+    ``guess_kgm2``: starting tensor guess × identity (default: 100 kg·m²); it is also the mean of a weak
+    prior (1-σ three times the guess), so it need only be right within a factor of a few.
+    """
+    if len(rec) < 20:
+        raise ValueError(f"{len(rec)} samples: too few to identify a tensor (need 20 or more)")
+    opts = opts or ef.FitOptions(mode=mode)
+    opts.mode = mode
+    action = known_action(rec, hold)
+    if not np.any(action.moment_Nm):
+        raise ValueError("the recording has no known moment (m*_Nm all zero): torque-free data fix the "
+                         "tensor only up to scale")
+    g = 100.0 if guess_kgm2 is None else float(guess_kgm2)
+    p_guess = np.array([g, g, g, 0.0, 0.0, 0.0])
+    t, b = rec.t_s, rec.b_T
+    b_samples = np.asarray(b_inertial(t), float)
+    fit = ef.identify(t, b[None], b_inertial, action, sigma_b_T, p_guess, opts, b_samples=b_samples, log=log)[0]
+    est = fit.estimate(f"output-error fit of Euler + kinematics to the samples ({mode})")
+    est.extra.update({"omega0_dps": np.degrees(fit.omega0_radps).tolist(), "offset_uT": (fit.bias_T * 1e6).tolist(),
+                      "t0_s": float(t[0]), "sigma_uT": sigma_b_T * 1e6})
+    running = []
+    if running_points > 0:
+        n = len(t)
+        lengths = sorted({int(round(x)) for x in np.linspace(max(20, n / running_points), n, running_points)})
+        for res, nn in zip(ef.prefix_fits(t, b, b_inertial, action, sigma_b_T, fit, lengths, p_guess, opts,
+                                          b_samples=b_samples), lengths):
+            running.append((float(t[nn - 1]), res.p, inr.half_width(res.cov_p, 0.95)))
+    return InertiaReport(est, fit, running)
+
+
+def write_json(path: str | Path, est: inr.InertiaEstimate, **extra) -> None:
+    """Write the inertia JSON (atomically: nothing is written on error)."""
+    doc = est.to_json()
+    doc.update(extra)
+    text = json.dumps(doc, indent=2, default=float) + "\n"
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", dir=path.parent or ".")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+
+
+def plot(path: str | Path, report: InertiaReport) -> None:
+    """The running estimate of each component with its 95 % band, the final value and the truth."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    full = report.estimate.full
+    comps = range(6) if full else range(3)
+    fig, axes = plt.subplots(2 if full else 1, 3, figsize=(12, 6.5 if full else 3.6), squeeze=False)
+    t = np.array([r[0] for r in report.running])
+    p = np.array([r[1] for r in report.running]) if report.running else np.zeros((0, 6))
+    ci = np.array([r[2] for r in report.running]) if report.running else np.zeros((0, 6))
+    final, hw = report.estimate.p, report.estimate.ci95
+    for k in comps:
+        ax = axes.flat[k]
+        if len(t):
+            ax.fill_between(t, p[:, k] - ci[:, k], p[:, k] + ci[:, k], color="C0", alpha=0.25,
+                            label="95 % band")
+            ax.plot(t, p[:, k], "o-", color="C0", ms=3, label="running estimate")
+        ax.axhline(final[k], color="k", lw=1, label=f"final {final[k]:.1f} ± {hw[k]:.1f}")
+        if report.truth_p is not None:
+            ax.axhline(report.truth_p[k], color="C3", ls="--", lw=1, label=f"truth {report.truth_p[k]:.1f}")
+        lo, hi = final[k] - 6 * max(hw[k], 1e-3 * abs(final[k]) + 1e-6), final[k] + 6 * max(hw[k], 1e-3 * abs(final[k]) + 1e-6)
+        ax.set_ylim(lo, hi)
+        ax.set_title(f"{inr.COMPONENTS[k]} [kg·m²]")
+        ax.set_xlabel("data up to t [s]")
+        ax.legend(fontsize=7)
+    fig.suptitle("Inertia tensor about the centre of mass, sensor axes: running estimate "
+                 f"({report.estimate.method})", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def summary(report: InertiaReport) -> str:
+    e = report.estimate
+    c = e.checks()
+    lines = [f"inertia about the centre of mass, sensor axes ({e.method}, {e.samples_used} samples, "
+             f"χ²/dof {e.extra.get('chi2_per_dof', math.nan):.3f})",
+             "component      estimate    ±95 %     ±99 %" + ("       truth" if report.truth_p is not None else "")]
+    for k, name in enumerate(inr.COMPONENTS):
+        if not e.full and k >= 3:
+            continue
+        row = f"  {name:<8s} {e.p[k]:11.3f} {e.ci95[k]:8.3f} {e.ci99[k]:9.3f}"
+        if report.truth_p is not None:
+            row += f" {report.truth_p[k]:11.3f}"
+        lines.append(row + "  kg·m²")
+    I = c["principal_kgm2"]
+    lines.append(f"principal moments {I[0]:.2f} {I[1]:.2f} {I[2]:.2f} kg·m²; positive definite: "
+                 f"{'yes' if c['positive_definite'] else 'NO'}; triangle inequalities: "
+                 f"{'yes' if c['triangle'] else 'NO'} (margin {c['triangle_margin_kgm2']:.2f} kg·m²)")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m ground.inertia", description=__doc__.splitlines()[0])
+    ap.add_argument("input", help="recording-format CSV with the field and the known moment m*_Nm")
+    ap.add_argument("output", help="inertia JSON to write")
+    add_arguments(ap)
+    args = ap.parse_args(argv)
+    return run_cli(args.input, args.output, args)
+
+
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    """The options of the inertia fit (shared with ``python -m ground.estimate --inertia``)."""
+    ap.add_argument("--scenario", metavar="NAME|FILE",
+                    help="take the orbit (field model) and the truth from a SITL scenario")
+    ap.add_argument("--sigma-uT", type=float, default=1.5, help="1-σ field noise per axis (default 1.5 µT)")
+    ap.add_argument("--diag", action="store_true",
+                    help="diagonal tensor only (sedelnikov2023's special case: sensor axes = principal axes)")
+    ap.add_argument("--guess", type=float, default=100.0, metavar="KGM2",
+                    help="starting tensor = this × identity, within a factor of a few (default 100)")
+    ap.add_argument("--hold", choices=("centered", "forward"), default="centered",
+                    help="how the sampled moment holds between samples (default centered)")
+    ap.add_argument("--plot", metavar="FILE", help="draw the running estimate with its 95 %% band (PNG)")
+    ap.add_argument("--running", type=int, default=12, metavar="N",
+                    help="points of the running estimate drawn by --plot (default 12)")
+    ap.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
+def run_cli(input_path: str, output_path: str, args) -> int:
+    if args.sigma_uT <= 0 or args.guess <= 0 or args.running < 1:
+        print("ground.inertia: --sigma-uT and --guess must be > 0, --running >= 1", file=sys.stderr)
+        return 2
+    try:
+        rec = read_recording(input_path)
+        b_inertial, truth, where = field_model(args.scenario, rec.metadata)
+        report = run(rec, b_inertial, sigma_b_T=args.sigma_uT * 1e-6, mode="diag" if args.diag else "full",
+                     guess_kgm2=args.guess, hold=args.hold, running_points=args.running if args.plot else 0,
+                     log=None if args.quiet else (lambda m: print("  " + m, flush=True)))
+    except (OSError, RecordingError, ValueError) as e:
+        print(f"ground.inertia: {e}", file=sys.stderr)
+        return 1
+    report.truth_p = truth
+    report.source = where
+    write_json(output_path, report.estimate, input=str(input_path), field_model=where)
+    print(summary(report))
+    print(f"wrote inertia: {output_path}")
+    if args.plot:
+        plot(args.plot, report)
+        print(f"wrote plot: {args.plot}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

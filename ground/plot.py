@@ -1,0 +1,34 @@
+"""Plots of rate estimates: per axis, the estimate, its ±1σ band and the reference (sedelnikov2024
+Figures 9/12 show the same comparison against the gyro)."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def plot_rates(path, t_s: np.ndarray, w_radps: np.ndarray, sigma_radps: np.ndarray | None = None,
+               w_ref_radps: np.ndarray | None = None, *, title: str = "", perpendicular_only: bool = False) -> None:
+    """Write a PNG with one panel per body axis (°/s)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = np.asarray(t_s, float)
+    w = np.degrees(np.asarray(w_radps, float))
+    fig, axes = plt.subplots(3, 1, sharex=True, figsize=(9, 7))
+    label = "estimate (⊥ B only)" if perpendicular_only else "estimate"
+    for i, (ax, name) in enumerate(zip(axes, "xyz")):
+        if w_ref_radps is not None:
+            ax.plot(t, np.degrees(w_ref_radps[:, i]), color="k", lw=1.0, label="reference")
+        ax.plot(t, w[:, i], color="C0", lw=0.9, label=label)
+        if sigma_radps is not None:
+            s = np.degrees(np.asarray(sigma_radps, float)[:, i])
+            ax.fill_between(t, w[:, i] - s, w[:, i] + s, color="C0", alpha=0.25, lw=0, label="±1σ")
+        ax.set_ylabel(f"ω{name} °/s")
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[-1].set_xlabel("t s")
+    if title:
+        axes[0].set_title(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

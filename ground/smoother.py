@@ -1,0 +1,490 @@
+"""Ground smoothers of the body rate: every sample of a recording informs every estimate.
+
+Two models, both on the attitude filter of the flight software (fsw/estimation/kalman.py), with the
+field model along the orbit when one is given (which removes the field-motion floor) and the field
+fixed in inertial space otherwise (laboratory recordings):
+
+- :func:`rts_smooth` — fixed-interval Rauch–Tung–Striebel smoother (Rauch, Tung & Striebel 1965;
+  Bar-Shalom et al. 2001 §8.6) over the multiplicative EKF with ω a random walk. Works for any
+  motion; the strength of the random walk (κ, the scale of the torque-free |ω̇| ≤ κ|ω|²) and, with a
+  field model, the initial angle about B are chosen by maximum likelihood over a small grid, and the
+  pass is repeated from the smoothed start (re-linearisation).
+- :func:`euler_fit` — output-error fit of the torque-free Euler equations and the kinematics to the
+  whole record (batch nonlinear least squares, Gauss–Newton / Levenberg–Marquardt): parameters are
+  the attitude and rate at the first sample, the inertia shape ln(J₂/J₁), ln(J₃/J₁) (torque-free
+  motion depends only on the ratios) or a known tensor, and, with no field model, the inertial field.
+  Residual Jacobians come from the error-state transition matrices of the same propagation; the
+  record is brought in over growing windows (continuation), so that a rate known only roughly at
+  first never has to be extrapolated far. 1-σ from s²(JᵀJ)⁻¹ mapped through the transition matrices.
+  An asymmetric tumbling body has ω varying in body axes; a random walk then lags, this model does not.
+- :func:`smooth` — both, and the Euler fit kept when it explains the data (χ²/dof ≤ `chi2_accept`).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from fsw.estimation import kalman as kl
+from fsw.estimation.rate_formulas import SIGMA_UNOBSERVED_RADPS
+
+FieldFn = Callable[[float], np.ndarray]
+
+
+@dataclass
+class Smoothed:
+    """A smoothed rate history: ω and 1-σ per sample (rad/s), the attitude (body → ECI, or → the first
+    sample's body axes with no field model), and what the model says about itself."""
+
+    t_s: np.ndarray
+    w_radps: np.ndarray
+    sigma_radps: np.ndarray
+    q: np.ndarray
+    method: str
+    chi2_dof: float = math.nan
+    inertia_shape: np.ndarray | None = None
+    info: dict = field(default_factory=dict)
+
+
+def tabulated(field_eci_T: FieldFn | None, t_s: np.ndarray) -> FieldFn | None:
+    """The field model evaluated once at the sample times (vectorised when it allows), served from a
+    table at those times and by the model elsewhere."""
+    if field_eci_T is None:
+        return None
+    t = np.asarray(t_s, float)
+    try:
+        values = np.asarray(field_eci_T(t), float).reshape(len(t), 3)
+    except (TypeError, ValueError):
+        values = np.array([np.asarray(field_eci_T(x), float) for x in t])
+    table = {float(x): v for x, v in zip(t, values)}
+
+    def field(t_query: float) -> np.ndarray:
+        v = table.get(float(t_query))
+        return v if v is not None else np.asarray(field_eci_T(t_query), float)
+    return field
+
+
+# --- RTS over the attitude filter ------------------------------------------------------------------
+
+def rts(log: dict, n_att: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rauch–Tung–Striebel backward pass over a stored :class:`AttitudeRateKalman` pass.
+
+    C_k = P_k Φ_{k+1}ᵀ (P⁻_{k+1})⁻¹;  δ_{k+1} = x^s_{k+1} ⊖ x⁻_{k+1} (attitude part: the body-frame
+    rotation vector of q⁻⁻¹ ⊗ q^s);  x^s_k = x_k ⊕ C_k δ_{k+1};  P^s_k = P_k + C_k (P^s_{k+1} − P⁻_{k+1}) C_kᵀ.
+    Returns the smoothed attitudes (N, 4), additive states (N, m) and covariances (N, n, n). Where the
+    filter restarted (a gap, a divergence) the pass does not link the two sides.
+    """
+    q_f, x_f, P_f = np.array(log["q"]), np.array(log["x"]), np.array(log["P"])
+    q_p, x_p, P_p, F = np.array(log["qp"]), np.array(log["xp"]), np.array(log["Pp"]), np.array(log["F"])
+    N = len(q_f)
+    restart = log.get("restart", [False] * N)
+    q_s, x_s, P_s = q_f.copy(), x_f.copy(), P_f.copy()
+    for k in range(N - 2, -1, -1):
+        if restart[k + 1]:  # the filter started afresh at k + 1: nothing links the two stretches
+            continue
+        C = np.linalg.solve(P_p[k + 1], F[k + 1] @ P_f[k]).T
+        d = np.concatenate([kl.quat_log(kl.quat_mul(kl.quat_conj(q_p[k + 1]), q_s[k + 1])),
+                            x_s[k + 1] - x_p[k + 1]])
+        dx = C @ d
+        q_s[k] = kl.quat_mul(q_f[k], kl.quat_exp(dx[:n_att]))
+        x_s[k] = x_f[k] + dx[n_att:]
+        P_s[k] = P_f[k] + C @ (P_s[k + 1] - P_p[k + 1]) @ C.T
+    return q_s, x_s, P_s
+
+
+def _forward(t, b, sigma_b_T, field_eci_T, noise, angle, start=None, store=False):
+    """One pass of the random-walk attitude filter over (t, b) from `start` (or the first sample);
+    `noise` = (κ, rate floor [rad/s²], factor on σ_B)."""
+    kappa, accel, sfac = noise
+    kf = kl.AttitudeRateKalman(sigma_b_T * sfac, field_eci_T=field_eci_T,
+                               tuning=kl.AttitudeKalmanTuning(kappa=kappa, rate_accel_radps2=accel, adapt_max=1.0),
+                               angle_about_b_rad=angle, store=store)
+    kf.start(t[0], b[0], **(start or {}))
+    for k in range(1, len(t)):
+        kf.update(t[k], b[k])
+    return kf
+
+
+def _reversed(t, b, field_eci_T):
+    """The record in reversed time τ = −t: the body turns at −ω, the field is B_I(−τ)."""
+    fld = None if field_eci_T is None else (lambda tau: field_eci_T(-tau))
+    return -t[::-1], b[::-1], fld
+
+
+def rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
+               kappas: tuple[float, ...] = (0.03, 0.1, 0.3, 0.6),
+               accels_radps2: tuple[float, ...] = (1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0),
+               sigma_factors: tuple[float, ...] = (1.0, 3.0), angles: int = 6) -> Smoothed:
+    """RTS smoother with ω a random walk.
+
+    The pass is linearised where the filter has converged: first a filter runs backwards in time (τ = −t,
+    the body turning at −ω) and its end state at t₀ — which has seen the whole record — becomes the
+    start of the forward filter, its covariance inflated tenfold (so that the samples it has seen count
+    only a tenth again); the RTS pass then runs over that forward filter. The random walk's strength
+    (κ for the torque-free part, a floor for other torques: 10⁻⁴ rad/s² for a tumbling body up to
+    100 rad/s² for a hand-held sensor), a factor on σ_B (a field that is not quite uniform, a sensor
+    not quite calibrated) and, with a field model, the starting angle about B are chosen by maximum
+    likelihood on the backward pass (a coordinate search over the grids).
+    """
+    t = np.asarray(t_s, float)
+    b = np.asarray(b_T, float)
+    field_eci_T = tabulated(field_eci_T, t)
+    tr, br, fr = _reversed(t, b, field_eci_T)
+    mid = (kappas[len(kappas) // 2], accels_radps2[min(2, len(accels_radps2) - 1)], sigma_factors[0])
+    angle = 0.0
+    if fr is not None:
+        angle = min((2 * math.pi * a / angles for a in range(angles)),
+                    key=lambda g: _forward(tr, br, sigma_b_T, fr, mid, g).nll)
+    # coordinate search: the floor, then κ, then the measurement-noise factor
+    runs = {}
+
+    def nll(n):
+        if n not in runs:
+            runs[n] = _forward(tr, br, sigma_b_T, fr, n, angle)
+        return runs[n].nll
+
+    noise = mid
+    for axis, values in ((1, accels_radps2), (0, kappas), (2, sigma_factors)):
+        noise = min((noise[:axis] + (v,) + noise[axis + 1:] for v in values), key=nll)
+    back = runs[noise]
+    # the backward estimate at t₀ as the forward start; its covariance (block-diagonal, reversed rate
+    # sign irrelevant there) inflated tenfold, so that the samples it has seen weigh only a tenth again
+    P0 = np.zeros_like(back.P)
+    for blk in (slice(0, 3), slice(3, 6), slice(6, back.n)):
+        P0[blk, blk] = 10.0 * back.P[blk, blk]
+    start = {"q": back.q, "omega_radps": -back.w, "P": P0}
+    if field_eci_T is None:
+        start["beta_uT"] = back.beta
+    kf = _forward(t, b, sigma_b_T, field_eci_T, noise, angle, start=start, store=True)
+    q_s, x_s, P_s = rts(kf.log)
+    sig = np.sqrt(np.clip(np.einsum("kii->ki", P_s[:, 3:6, 3:6]), 0.0, None))
+    chi2 = _chi2(t, b, sigma_b_T * noise[2], q_s, x_s, field_eci_T)
+    return Smoothed(t, x_s[:, :3].copy(), np.minimum(sig, SIGMA_UNOBSERVED_RADPS), q_s, "smoother",
+                    chi2 / max(3 * len(t) - 6, 1), info={"kappa": noise[0], "rate_accel_radps2": noise[1],
+                                                          "sigma_factor": noise[2], "angle_about_b_rad": angle,
+                                                          "nll": kf.nll})
+
+
+def _chi2(t, b, sigma_b_T, q, x, field_eci_T) -> float:
+    """Σ |z − h|² / σ² of a smoothed trajectory."""
+    total = 0.0
+    for k in range(len(t)):
+        C = kl.quat_to_dcm(q[k])
+        b_i = np.asarray(field_eci_T(t[k]), float) if field_eci_T is not None else x[k, -3:] / kl.UT_PER_T
+        r = b[k] - C.T @ b_i
+        total += float(r @ r)
+    return total / sigma_b_T ** 2
+
+
+# --- batch output-error fit of the torque-free motion ----------------------------------------------
+
+@dataclass
+class _Trajectory:
+    q: np.ndarray          # (N, 4) nominal attitudes
+    w: np.ndarray          # (N, 3)
+    Phi: np.ndarray        # (N, n, n) transition from the first sample
+    r: np.ndarray          # (N, 3) residuals / σ
+    Jr: np.ndarray         # (N, 3, n) ∂r/∂δx₀
+
+
+def _trajectory(kf: kl.AttitudeRateKalman, t, z_uT, sb_uT, n) -> _Trajectory:
+    """Propagate the filter's nominal state (no updates) across the first n samples."""
+    q0, w0 = kf.q.copy(), kf.w.copy()
+    nn = kf.n
+    Q = np.zeros((n, 4))
+    W = np.zeros((n, 3))
+    Phi = np.zeros((n, nn, nn))
+    r = np.zeros((n, 3))
+    Jr = np.zeros((n, 3, nn))
+    F = np.eye(nn)
+    kf.t_s = t[0]
+    for k in range(n):
+        if k:
+            F = kf.propagate(t[k] - t[k - 1]) @ F
+            kf.t_s = t[k]
+        h, H = kf.measurement(t[k])
+        Q[k], W[k], Phi[k] = kf.q, kf.w, F
+        r[k] = (z_uT[k] - h) / sb_uT
+        Jr[k] = -(H @ F) / sb_uT
+    kf.q, kf.w, kf.t_s = q0, w0, t[0]
+    return _Trajectory(Q, W, Phi, r, Jr)
+
+
+def euler_fit(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
+              inertia_kgm2: np.ndarray | None = None, init: Smoothed | None = None,
+              first_window: int = 8, growth: float = 1.4, iterations: int = 10, starts_about_b: int = 6,
+              wahba_rounds: int = 2,
+              max_substep_rad: float = 0.25) -> Smoothed:
+    """Torque-free Euler + kinematics fitted to the whole record (see the module docstring).
+
+    `init` gives the starting attitude and rate (default: :func:`rts_smooth`). With a field model the
+    attitude about B is fixed only by the field's slow turning and the cost has several minima in
+    that angle: after the growing windows the whole record is fitted from `starts_about_b` angles
+    about B_I(t₀) (a few iterations each), the best is polished, then the attitude at t₀ is solved
+    globally for the fitted relative motion (Wahba's problem, :func:`_wahba_start`) and the record
+    fitted again from there while that lowers the cost.
+    """
+    t = np.asarray(t_s, float)
+    b = np.asarray(b_T, float)
+    N = len(t)
+    field_eci_T = tabulated(field_eci_T, t)
+    init = init or rts_smooth(t, b, sigma_b_T, field_eci_T=field_eci_T)
+    tun = kl.AttitudeKalmanTuning(max_substep_rad=max_substep_rad, max_substeps=400)
+
+    def filt():
+        return kl.AttitudeRateKalman(sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2,
+                                     estimate_inertia=inertia_kgm2 is None, tuning=tun)
+
+    kf = filt()
+    if field_eci_T is None:  # the first sample's body axes are the frame; β the field in it
+        beta = kl.quat_to_dcm(init.q[0]) @ (b[0] * kl.UT_PER_T)
+        kf.set_nominal(t[0], np.array([1.0, 0.0, 0.0, 0.0]), init.w_radps[0], beta_uT=beta, euler=True)
+    else:
+        kf.set_nominal(t[0], init.q[0], init.w_radps[0], euler=True)
+    z = b * kl.UT_PER_T
+    sb = sigma_b_T * kl.UT_PER_T
+    nn = kf.n
+    free = np.ones(nn, bool)
+    if field_eci_T is None:
+        free[:3] = False  # δθ₀ is the gauge
+    prior_w = np.zeros(nn)
+    prior_w[6:6 + kf.n_p] = 1.0  # weak prior on the shape: 1-σ of a factor e
+    windows = []
+    n = min(N, max(first_window, 5))
+    while True:
+        windows.append(n)
+        if n >= N:
+            break
+        n = min(N, int(math.ceil(n * growth)))
+    # rate and shape over growing windows, then the angle about B over the whole record: the angle is
+    # fixed only by the field's slow turning, so short windows cannot choose it and the cost has
+    # several minima in it
+    for n in windows:
+        kf, cost = _lm(kf, t, z, sb, n, free, prior_w, iterations)
+    cands = [(kf, cost)]
+    if field_eci_T is not None:
+        b_i0 = np.asarray(field_eci_T(t[0]), float)
+        axis = b_i0 / np.linalg.norm(b_i0)
+        for a in range(1, starts_about_b):
+            other = _apply(kf, np.zeros(int(free.sum())), free)
+            other.q = kl.quat_mul(kl.quat_exp(axis * (2 * math.pi * a / starts_about_b)), kf.q)
+            cands.append(_lm(other, t, z, sb, N, free, prior_w, 3))
+        cands.sort(key=lambda kc: kc[1])
+        kf, cost = _lm(cands[0][0], t, z, sb, N, free, prior_w, iterations)
+        for _ in range(wahba_rounds):
+            other = _apply(kf, np.zeros(int(free.sum())), free)
+            other.q = _wahba_start(kf, t, z, field_eci_T, N)
+            other, c = _lm(other, t, z, sb, N, free, prior_w, iterations)
+            if not np.isfinite(c) or c >= cost - 1e-6:
+                break
+            kf, cost = other, c
+        cands.insert(0, (kf, cost))
+    cands.sort(key=lambda kc: kc[1])
+    kf = cands[0][0]
+    traj = _trajectory(kf, t, z, sb, N)
+    A = traj.Jr.reshape(-1, nn)[:, free]
+    r = traj.r.reshape(-1)
+    chi2 = float(r @ r)
+    dof = max(r.size - int(free.sum()), 1)
+    s2 = max(1.0, chi2 / dof)
+    cov_f = s2 * np.linalg.pinv(A.T @ A + np.diag(prior_w[free] ** 2))
+    cov = np.zeros((nn, nn))
+    cov[np.ix_(free, free)] = cov_f
+    Pw = traj.Phi[:, 3:6, :] @ cov @ traj.Phi[:, 3:6, :].transpose(0, 2, 1)
+    sig = np.sqrt(np.clip(np.einsum("kii->ki", Pw), 0.0, None))
+    shape = kf.inertia_shape if kf.n_p else None
+    return Smoothed(t, traj.w, np.minimum(sig, SIGMA_UNOBSERVED_RADPS), traj.q, "euler", chi2 / dof, shape,
+                    info={"s2": s2, "windows": windows, "cov_x0": cov, "beta_uT": kf.beta.copy(),
+                          "p": kf.p.copy(), "minima_chi2": [c for _, c in cands]})
+
+
+def _wahba_start(kf, t, z, field_eci_T, n) -> np.ndarray:
+    """The attitude at t₀ that best explains all samples for the fitted relative motion.
+
+    With R(t_k) = R₀ R_rel,k: min over R₀ of Σ |R₀ R_rel,k z_k − B_I(t_k)|² (Wahba 1965), solved by
+    the SVD of Σ B_I,k (R_rel,k z_k)ᵀ (Markley 1988): the global optimum, whatever the angle about B.
+    """
+    traj_q = _trajectory(kf, t, z, 1.0, n).q
+    C0t = kl.quat_to_dcm(kf.q).T
+    Bm = np.zeros((3, 3))
+    for k in range(n):
+        u = C0t @ (kl.quat_to_dcm(traj_q[k]) @ z[k])
+        Bm += np.outer(np.asarray(field_eci_T(t[k]), float), u)
+    U, _, Vt = np.linalg.svd(Bm)
+    D = np.diag([1.0, 1.0, np.linalg.det(U) * np.linalg.det(Vt)])
+    R0 = U @ D @ Vt
+    return _quat_from_dcm(R0)
+
+
+def _quat_from_dcm(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (scalar first) of a rotation matrix (Shepperd's method)."""
+    tr = np.trace(R)
+    i = int(np.argmax([tr, R[0, 0], R[1, 1], R[2, 2]]))
+    if i == 0:
+        w = 0.5 * math.sqrt(1.0 + tr)
+        q = [w, (R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w), (R[1, 0] - R[0, 1]) / (4 * w)]
+    elif i == 1:
+        x = 0.5 * math.sqrt(1.0 + 2 * R[0, 0] - tr)
+        q = [(R[2, 1] - R[1, 2]) / (4 * x), x, (R[0, 1] + R[1, 0]) / (4 * x), (R[0, 2] + R[2, 0]) / (4 * x)]
+    elif i == 2:
+        y = 0.5 * math.sqrt(1.0 + 2 * R[1, 1] - tr)
+        q = [(R[0, 2] - R[2, 0]) / (4 * y), (R[0, 1] + R[1, 0]) / (4 * y), y, (R[1, 2] + R[2, 1]) / (4 * y)]
+    else:
+        zz = 0.5 * math.sqrt(1.0 + 2 * R[2, 2] - tr)
+        q = [(R[1, 0] - R[0, 1]) / (4 * zz), (R[0, 2] + R[2, 0]) / (4 * zz), (R[1, 2] + R[2, 1]) / (4 * zz), zz]
+    q = np.array(q)
+    return q / np.linalg.norm(q)
+
+
+def _same_start(a, b, tol_rad: float = 0.02) -> bool:
+    d = kl.quat_log(kl.quat_mul(kl.quat_conj(a.q), b.q))
+    return float(np.linalg.norm(d)) < tol_rad and float(np.linalg.norm(a.w - b.w)) < 1e-3
+
+
+def _lm(kf, t, z, sb, n, free, prior_w, iterations, lam: float = 1e-3):
+    """Levenberg–Marquardt on the first n samples from the filter's nominal start; (start, cost)."""
+    nn = kf.n
+    cost = math.inf
+    for _ in range(iterations):
+        traj = _trajectory(kf, t, z, sb, n)
+        A = traj.Jr.reshape(-1, nn)[:, free]
+        r = traj.r.reshape(-1)
+        cost = float(r @ r) + _prior_cost(kf, prior_w)
+        if not np.isfinite(cost):
+            return kf, math.inf
+        # (AᵀA + W² + λ diag) δ = −(Aᵀr + W² p)
+        g = A.T @ r + _prior_grad(kf, prior_w)[free]
+        JtJ = A.T @ A + np.diag(prior_w[free] ** 2)
+        improved = False
+        for _ in range(6):
+            step = np.linalg.solve(JtJ + lam * np.diag(np.diag(JtJ) + 1e-12), -g)
+            trial = _apply(kf, step, free)
+            try:
+                tr = _trajectory(trial, t, z, sb, n)
+                tc = float(tr.r.reshape(-1) @ tr.r.reshape(-1)) + _prior_cost(trial, prior_w)
+            except (ValueError, OverflowError, FloatingPointError):
+                tc = math.inf
+            if np.isfinite(tc) and tc < cost:
+                kf, improved = trial, True
+                lam = max(lam / 5.0, 1e-9)
+                break
+            lam *= 10.0
+        if not improved:
+            break
+        if cost - tc < 1e-3 * max(1.0, 1e-3 * cost):
+            cost = tc
+            break
+        cost = tc
+    return kf, cost
+
+
+def _prior_cost(kf, w) -> float:
+    if not kf.n_p:
+        return 0.0
+    return float(np.sum((w[6:6 + kf.n_p] * kf.p) ** 2))
+
+
+def _prior_grad(kf, w) -> np.ndarray:
+    g = np.zeros(kf.n)
+    if kf.n_p:
+        g[6:6 + kf.n_p] = w[6:6 + kf.n_p] ** 2 * kf.p
+    return g
+
+
+def _apply(kf: kl.AttitudeRateKalman, step: np.ndarray, free: np.ndarray) -> kl.AttitudeRateKalman:
+    """A copy of the filter's nominal start state moved by the error-state step."""
+    d = np.zeros(kf.n)
+    d[free] = step
+    new = kl.AttitudeRateKalman.__new__(kl.AttitudeRateKalman)
+    new.__dict__.update(kf.__dict__)
+    new.q = kl.quat_mul(kf.q, kl.quat_exp(d[:3]))
+    new.q /= np.linalg.norm(new.q)
+    new.w = kf.w + d[3:6]
+    new.p = kf.p + d[6:6 + kf.n_p]
+    new.beta = kf.beta + d[kf.i_beta:] if kf.n_beta else kf.beta
+    return new
+
+
+# --- both ------------------------------------------------------------------------------------------
+
+def euler_rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
+                     inertia_kgm2: np.ndarray | None = None, init: Smoothed | None = None,
+                     accels_radps2: tuple[float, ...] = (1e-5, 1e-4, 1e-3, 1e-2)) -> Smoothed:
+    """RTS over the Euler-aware attitude filter, for a body that is not quite torque-free.
+
+    Euler's equations, with the tensor known or the shape found by the batch fit (`init`, default
+    :func:`euler_fit`), carry the rate between samples; what they do not explain (a magnetic torque,
+    an imperfect shape) is process noise on ω, its level chosen by maximum likelihood. The filter
+    starts from the batch fit with a loose prior, so it is linearised on a good trajectory from the
+    first sample.
+    """
+    t = np.asarray(t_s, float)
+    b = np.asarray(b_T, float)
+    field_eci_T = tabulated(field_eci_T, t)
+    init = init or euler_fit(t, b, sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2)
+    J = inertia_kgm2
+    if J is None:
+        J = np.diag(init.inertia_shape if init.inertia_shape is not None else np.ones(3))
+
+    def run(accel, store):
+        kf = kl.AttitudeRateKalman(sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=J, store=store,
+                                   tuning=kl.AttitudeKalmanTuning(rate_accel_radps2=accel, adapt_max=1.0,
+                                                                  max_substep_rad=0.25, max_substeps=400))
+        n = kf.n
+        P0 = np.zeros((n, n))
+        P0[3:6, 3:6] = 0.05 ** 2 * np.eye(3)
+        start = {"q": init.q[0], "omega_radps": init.w_radps[0], "P": P0}
+        if field_eci_T is None:
+            start["beta_uT"] = init.info.get("beta_uT")
+            P0[kf.i_beta:, kf.i_beta:] = (3 * sigma_b_T * kl.UT_PER_T) ** 2 * np.eye(3)
+        else:
+            P0[:3, :3] = 0.1 ** 2 * np.eye(3)
+        kf.start(t[0], b[0], **start)
+        for k in range(1, len(t)):
+            kf.update(t[k], b[k])
+        return kf
+
+    fits = {}
+    for a in accels_radps2:
+        try:
+            fits[a] = run(a, False).nll
+        except (ValueError, np.linalg.LinAlgError):
+            fits[a] = math.inf
+    accel = min(fits, key=fits.get)
+    kf = run(accel, True)
+    q_s, x_s, P_s = rts(kf.log)
+    sig = np.sqrt(np.clip(np.einsum("kii->ki", P_s[:, 3:6, 3:6]), 0.0, None))
+    chi2 = _chi2(t, b, sigma_b_T, q_s, x_s, field_eci_T)
+    return Smoothed(t, x_s[:, :3].copy(), np.minimum(sig, SIGMA_UNOBSERVED_RADPS), q_s, "euler_rts",
+                    chi2 / max(3 * len(t) - kf.n, 1), init.inertia_shape,
+                    info={"rate_accel_radps2": accel, "nll": kf.nll, "resets": kf.resets})
+
+
+def smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
+           model: str = "auto", inertia_kgm2: np.ndarray | None = None, chi2_accept: float = 1.5) -> Smoothed:
+    """Smooth a recording. `model`: "random_walk" (:func:`rts_smooth`), "euler" (:func:`euler_fit`),
+    "euler_rts" (:func:`euler_rts_smooth`) or "auto": the batch Euler fit when it explains the data
+    (χ²/dof ≤ `chi2_accept`), else the Euler-aware RTS smoother started from it, else (if that one
+    had to restart: the motion is not Euler's) the random-walk RTS smoother."""
+    if model not in ("auto", "random_walk", "euler", "euler_rts"):
+        raise ValueError(f"model must be auto, random_walk, euler or euler_rts, got {model!r}")
+    rw = rts_smooth(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T)
+    if model == "random_walk":
+        return rw
+    try:
+        eu = euler_fit(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2, init=rw)
+    except (RuntimeError, ValueError, np.linalg.LinAlgError):
+        if model == "auto":
+            return rw
+        raise
+    if model == "euler" or (model == "auto" and np.isfinite(eu.chi2_dof) and eu.chi2_dof <= chi2_accept):
+        eu.info["rts_chi2_dof"] = rw.chi2_dof
+        return eu
+    er = euler_rts_smooth(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2, init=eu)
+    if model == "euler_rts" or er.info["resets"] == 0:
+        er.info["euler_chi2_dof"] = eu.chi2_dof
+        return er
+    rw.info["euler_chi2_dof"] = eu.chi2_dof
+    return rw

@@ -1,0 +1,324 @@
+"""Closed-loop benchmark of the de-orbit kit: `python -m hil.deorbit_bench [--json FILE] [--plot FILE.png]`.
+
+The scenario of lapkhanov2019 section 6 (`hil/scenarios/amds_deorbit.toml`): the AMDS spacecraft at
+600 km from yaw 60°, pitch 45° (orbital frame) for 10,800 s. Composed like the SITL of `fsw.main`, in one
+process and in lockstep: the simulator (rigid body, orbit, field, aerodynamic and gravity-gradient
+torques, the magnets' M = p × B; `hil.deorbit_sim`) and the kit emulator (steppers, shutters, switches;
+`hil.deorbit_kit`) are advanced to the loop time, then the flight software's de-orbit task runs on the
+same clock through `fsw.scheduler.Scheduler`: drivers → sequencer (interlocks, recovery) → controller.
+The controller is started with the ground command MAV_CMD_DEBRIS_CONTROLLER through the same handler the
+uplink uses. The controller's attitude comes from the simulation truth (the paper assumes it too).
+
+Printed: yaw and pitch errors after convergence (from `settle_s`), capsule openings, magnet turns and
+energy per channel, next to the paper's figures (≤ 0.2 rad; 15 + 30 openings, 35 + 25 turns;
+1,053 J + 702 J = 1,755 J per 10,800 s). `--json` writes the numbers, `--plot` the figure (the paper's
+Figures 3-8: yaw, pitch, the control moments and the pulses of both channels).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from types import SimpleNamespace
+
+import numpy as np
+
+from fsw.deorbit.controller import ControllerConfig, euler_zyx
+from fsw.deorbit.energy import PAPER_CAPSULES_J, PAPER_MAGNETS_J, PAPER_OPENINGS, PAPER_TOTAL_J, PAPER_TURNS
+from fsw.deorbit.kit import DeorbitKit
+from fsw.scheduler import Scheduler, Task
+from fsw.telemetry.dialect import mavlink
+
+from . import scenario as scenarios
+from .deorbit_sim import DeorbitSimulator, build_kit, controller_config
+
+DEFAULT_SCENARIO = "amds_deorbit"
+PAPER = {
+    "err_max_rad": 0.2,
+    "capsule_openings": {"pitch": PAPER_OPENINGS["pitch"], "yaw": PAPER_OPENINGS["yaw"],
+                         "total": sum(PAPER_OPENINGS.values())},
+    "magnet_turns": {"pitch": PAPER_TURNS["pitch"], "yaw": PAPER_TURNS["yaw"], "total": sum(PAPER_TURNS.values())},
+    "energy_J": {"capsules": PAPER_CAPSULES_J, "magnets": PAPER_MAGNETS_J, "total": PAPER_TOTAL_J},
+}
+FAULT_KINDS = ("stall", "stuck", "switch", "gpio")
+CHANNELS = {"pitch": 0, "yaw": 1, "0": 0, "1": 1}
+
+
+@dataclass
+class Fault:
+    """A fault injected into the kit emulator at `t_s`: kind stall/stuck/switch/gpio on a channel."""
+
+    t_s: float
+    channel: int
+    kind: str
+    value: object = None
+
+    @classmethod
+    def parse(cls, text: str) -> "Fault":
+        """KIND:CHANNEL:T_S[:VALUE], e.g. stall:pitch:1500, stuck:yaw:900:0.5, switch:yaw:600:closed=1."""
+        parts = text.split(":")
+        if len(parts) not in (3, 4) or parts[0] not in FAULT_KINDS or parts[1] not in CHANNELS:
+            raise ValueError(f"bad fault {text!r}: KIND:CHANNEL:T_S[:VALUE], KIND in {FAULT_KINDS}, "
+                             "CHANNEL pitch/yaw")
+        value: object = None
+        if len(parts) == 4:
+            if parts[0] == "switch":
+                name, _, level = parts[3].partition("=")
+                value = (name, level in ("1", "on", "true"))
+            else:
+                value = float(parts[3])
+        return cls(float(parts[2]), CHANNELS[parts[1]], parts[0], value)
+
+
+@dataclass
+class Trace:
+    """One row per second of loop time."""
+
+    t_s: list = field(default_factory=list)
+    yaw: list = field(default_factory=list)
+    pitch: list = field(default_factory=list)
+    roll: list = field(default_factory=list)
+    m_y: list = field(default_factory=list)  # magnets' moment about body y / z [N·m]
+    m_z: list = field(default_factory=list)
+    pulse_pitch: list = field(default_factory=list)  # unscreened fraction × polarity
+    pulse_yaw: list = field(default_factory=list)
+
+
+@dataclass
+class BenchResult:
+    scenario: str
+    law: str
+    duration_s: float
+    settle_s: float
+    rate_hz: float
+    step_s: float
+    wall_s: float
+    attitude_source: str
+    density: str
+    trace: Trace
+    kit: DeorbitKit
+    sim: DeorbitSimulator
+    faults: list
+
+    # --- the numbers ----------------------------------------------------------------------------
+    def _window(self) -> np.ndarray:
+        return np.asarray(self.trace.t_s) >= self.settle_s
+
+    @property
+    def yaw_err_max_rad(self) -> float:
+        w = self._window()
+        return float(np.abs(np.asarray(self.trace.yaw)[w]).max()) if w.any() else math.nan
+
+    @property
+    def pitch_err_max_rad(self) -> float:
+        w = self._window()
+        return float(np.abs(np.asarray(self.trace.pitch)[w]).max()) if w.any() else math.nan
+
+    @property
+    def converged_at_s(self) -> float:
+        """Time after which |yaw| and |pitch| stay within 0.2 rad (NaN if they never do by the end)."""
+        y, p = np.abs(self.trace.yaw), np.abs(self.trace.pitch)
+        bad = np.nonzero((y > 0.2) | (p > 0.2))[0]
+        if bad.size == 0:
+            return 0.0
+        if bad[-1] == len(y) - 1:
+            return math.nan
+        return float(self.trace.t_s[bad[-1] + 1])
+
+    def as_dict(self) -> dict:
+        kit, seq = self.kit, self.kit.sequencer
+        led = kit.energy()
+        names = ("pitch", "yaw")
+        openings = {n: c.openings for n, c in zip(names, led.channels)}
+        turns = {n: c.turns for n, c in zip(names, led.channels)}
+        openings["total"] = sum(openings.values())
+        turns["total"] = sum(turns.values())
+        emu = self.sim.kit
+        return {
+            "scenario": self.scenario, "law": self.law, "duration_s": self.duration_s,
+            "settle_s": self.settle_s, "loop_rate_hz": self.rate_hz, "dynamics_step_s": self.step_s,
+            "attitude_source": self.attitude_source, "density_model": self.density,
+            "yaw_err_max_rad": self.yaw_err_max_rad, "pitch_err_max_rad": self.pitch_err_max_rad,
+            "converged_at_s": self.converged_at_s,
+            "roll_rate_max_radps": float(np.abs(np.diff(np.unwrap(self.trace.roll))).max()) if len(self.trace.roll) > 1 else 0.0,
+            "capsule_openings": openings, "magnet_turns": turns,
+            "energy_J": {k: round(v, 1) for k, v in led.as_dict().items()},
+            "energy_truth_J": round(emu.energy_J, 1),
+            "interlock_violations": seq.interlock_violations + emu.interlock_violations,
+            "interlock_violations_flight": seq.interlock_violations,
+            "interlock_violations_truth": emu.interlock_violations,
+            "interlock_refusals": seq.interlock_refusals,
+            "safe_entries": seq.safe_entries, "recoveries": seq.recoveries,
+            "controller_state": seq.mode.name, "faults_injected": [f.__dict__ for f in self.faults],
+            "fault_bits": [int(c.fault) for c in seq.channels],
+            "decisions": kit.controller.decisions, "events": seq.events_total,
+            "wall_s": round(self.wall_s, 2),
+            "paper": PAPER,
+        }
+
+
+def run_bench(scenario_name: str = DEFAULT_SCENARIO, *, duration_s: float | None = None, rate_hz: float = 10.0,
+              law: str = "mpc", faults: list[Fault] | tuple = (), seed: int = 0,
+              settle_s: float | None = None, controller: ControllerConfig | None = None) -> BenchResult:
+    scn = scenarios.load(scenario_name)
+    spec = scn.deorbit
+    if spec is None:
+        raise ValueError(f"scenario {scn.name!r} has no [deorbit] table")
+    duration = float(duration_s if duration_s is not None else spec.duration_s)
+    settle = float(settle_s if settle_s is not None else min(spec.settle_s, duration))
+    step = 1.0 / rate_hz
+    sim = DeorbitSimulator(scn, seed=seed, max_step_s=step)
+    cfg = controller or controller_config(sim, law=law)
+    kit = build_kit(sim, cfg, keep_pulses=True)
+    attitude = kit.attitude
+    sched = Scheduler(rate_hz, [Task("deorbit", kit.tick, rate_hz, 0.5 * step)])
+    # start the controller through its ground command handler
+    start = SimpleNamespace(command=mavlink.MAV_CMD_DEBRIS_CONTROLLER, param1=1, param2=0, param3=0,
+                            param4=0, param5=0, param6=0, param7=0)
+    pending = sorted(faults, key=lambda f: f.t_s)
+    tr = Trace()
+    n = int(round(duration * rate_hz))
+    every = max(1, int(round(rate_hz)))
+    wall0 = time.perf_counter()
+    for k in range(n + 1):
+        t = k * step
+        sim.advance_to(t)
+        while pending and pending[0].t_s <= t:
+            f = pending.pop(0)
+            sim.kit.inject(f.channel, f.kind, f.value)
+        if k == 0:
+            result = kit.handle_command(start, t)
+            if result != mavlink.MAV_RESULT_ACCEPTED:
+                raise RuntimeError(f"controller start refused: MAV_RESULT {result}")
+        sched.tick(t)
+        if k % every == 0:
+            R_bo, _, b_body = sim.attitude_orbital()
+            yaw, pitch, roll = euler_zyx(R_bo)
+            m = np.cross(sim.kit.dipole_body_Am2(), b_body)
+            tr.t_s.append(t)
+            tr.yaw.append(yaw)
+            tr.pitch.append(pitch)
+            tr.roll.append(roll)
+            tr.m_y.append(float(m[1]))
+            tr.m_z.append(float(m[2]))
+            chs = sim.kit.channels
+            tr.pulse_pitch.append(chs[0].shutter * _sign(chs[0]))
+            tr.pulse_yaw.append(chs[1].shutter * _sign(chs[1]))
+    wall = time.perf_counter() - wall0
+    density = (f"exponential, {spec.density_kgm3:.4g} kg/m3 at {spec.density_ref_alt_km:g} km, scale height "
+               f"{spec.density_scale_height_km:g} km (Vallado Table 8-4)")
+    return BenchResult(scn.name, cfg.law, duration, settle, rate_hz, sim.max_step_s, wall, attitude.description,
+                       density, tr, kit, sim, list(faults))
+
+
+def _sign(ch) -> int:
+    """Polarity of an emulated magnet from its rotor angle (+1 near home, −1 near half a turn)."""
+    r = ch.rotor_steps % 200
+    return 1 if min(r, 200 - r) < 50 else -1
+
+
+def report(r: BenchResult) -> str:
+    d = r.as_dict()
+    o, tu, e = d["capsule_openings"], d["magnet_turns"], d["energy_J"]
+    conv = d["converged_at_s"]
+    lines = [
+        f"de-orbit kit closed loop: scenario {r.scenario}, {r.duration_s:.0f} s, law {r.law}",
+        f"  loop {r.rate_hz:g} Hz (fsw.scheduler), dynamics step {r.step_s:g} s, wall {r.wall_s:.1f} s",
+        f"  attitude for the controller: {r.attitude_source}",
+        f"  atmosphere: {r.density}",
+        "",
+        f"{'':34s}{'this run':>22s}{'lapkhanov2019':>22s}",
+        f"{'yaw error after ' + format(r.settle_s, '.0f') + ' s [rad]':34s}{d['yaw_err_max_rad']:>22.3f}{'<= 0.2':>22s}",
+        f"{'pitch error after ' + format(r.settle_s, '.0f') + ' s [rad]':34s}{d['pitch_err_max_rad']:>22.3f}{'<= 0.2':>22s}",
+        f"{'within 0.2 rad from [s]':34s}{('never' if math.isnan(conv) else format(conv, '.0f')):>22s}{'-':>22s}",
+        f"{'capsule openings pitch + yaw':34s}{format(o['pitch'], 'd') + ' + ' + format(o['yaw'], 'd'):>22s}{'15 + 30':>22s}",
+        f"{'magnet turns pitch + yaw':34s}{format(tu['pitch'], 'd') + ' + ' + format(tu['yaw'], 'd'):>22s}{'35 + 25':>22s}",
+        f"{'energy capsules + magnets [J]':34s}{format(e['capsules'], '.0f') + ' + ' + format(e['magnets'], '.0f'):>22s}{'1053 + 702':>22s}",
+        f"{'energy pitch + yaw channel [J]':34s}{format(e['pitch'], '.0f') + ' + ' + format(e['yaw'], '.0f'):>22s}{'-':>22s}",
+        f"{'energy total [J]':34s}{e['total']:>22.0f}{'1755':>22s}",
+        f"{'interlock violations':34s}{d['interlock_violations']:>22d}{'-':>22s}",
+        f"  (flight monitor {d['interlock_violations_flight']}, emulator truth {d['interlock_violations_truth']}; "
+        f"refused by the gate {d['interlock_refusals']}; energy by the emulator's truth {d['energy_truth_J']:.0f} J)",
+        f"  kit state at the end: {d['controller_state']}, safe entries {d['safe_entries']}, "
+        f"recoveries {d['recoveries']}, faults {d['fault_bits']}",
+    ]
+    return "\n".join(lines)
+
+
+def plot(r: BenchResult, path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tr = r.trace
+    t = np.asarray(tr.t_s)
+    fig, ax = plt.subplots(3, 2, figsize=(12, 9), sharex=True)
+    for a, y, name in ((ax[0, 0], tr.yaw, "yaw ψ"), (ax[0, 1], tr.pitch, "pitch θ")):
+        a.plot(t, y, lw=1.0)
+        a.axhspan(-0.2, 0.2, color="tab:green", alpha=0.12, label="±0.2 rad")
+        a.axvline(r.settle_s, color="grey", ls=":", lw=0.8)
+        a.set_ylabel(f"{name} [rad]")
+        a.legend(loc="upper right", fontsize=8)
+    ax[0, 0].set_title("Stabilisation by yaw (cf. Fig. 3)")
+    ax[0, 1].set_title("Stabilisation by pitch (cf. Fig. 4)")
+    ax[1, 0].plot(t, np.asarray(tr.m_z) * 1e3, lw=0.8, color="tab:red")
+    ax[1, 0].set_ylabel("M_z,ctrl [mN·m]")
+    ax[1, 0].set_title("Control moment, yaw (cf. Fig. 5)")
+    ax[1, 1].plot(t, np.asarray(tr.m_y) * 1e3, lw=0.8, color="tab:red")
+    ax[1, 1].set_ylabel("M_y,ctrl [mN·m]")
+    ax[1, 1].set_title("Control moment, pitch (cf. Fig. 7)")
+    ax[2, 0].fill_between(t, tr.pulse_yaw, step="post", color="tab:purple", lw=0)
+    ax[2, 0].set_ylabel("yaw magnet: opening × sign")
+    ax[2, 0].set_title("Pulses for M_z,ctrl (cf. Fig. 6)")
+    ax[2, 1].fill_between(t, tr.pulse_pitch, step="post", color="tab:purple", lw=0)
+    ax[2, 1].set_ylabel("pitch magnet: opening × sign")
+    ax[2, 1].set_title("Pulses for M_y,ctrl (cf. Fig. 8)")
+    for a in ax[2]:
+        a.set_xlabel("time [s]")
+        a.set_ylim(-1.1, 1.1)
+    d = r.as_dict()
+    fig.suptitle(f"De-orbit kit, {r.scenario}, law {r.law}: {d['capsule_openings']['total']} openings, "
+                 f"{d['magnet_turns']['total']} turns, {d['energy_J']['total']:.0f} J "
+                 f"(paper: 45, 60, 1755 J); attitude from simulation truth", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m hil.deorbit_bench", description=__doc__.splitlines()[0])
+    ap.add_argument("--scenario", default=DEFAULT_SCENARIO, metavar="NAME|FILE")
+    ap.add_argument("--duration", type=float, default=None, metavar="S", help="default: the scenario's (10,800 s)")
+    ap.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="loop rate (default 10 Hz)")
+    ap.add_argument("--law", choices=("mpc", "paper"), default="mpc",
+                    help="what produces M_theor: the receding-horizon choice (default) or the PD law")
+    ap.add_argument("--fault", action="append", default=[], metavar="KIND:CH:T[:VALUE]",
+                    help="inject a fault, e.g. stall:pitch:1500, stuck:yaw:900:0.5, switch:yaw:600:closed=1")
+    ap.add_argument("--json", metavar="FILE", help="write the numbers as JSON")
+    ap.add_argument("--plot", metavar="FILE.png", help="write the figure")
+    args = ap.parse_args(argv)
+    if not 1.0 <= args.rate <= 100.0:
+        ap.error("--rate must be in [1, 100] Hz")
+    try:
+        faults = [Fault.parse(f) for f in args.fault]
+        r = run_bench(args.scenario, duration_s=args.duration, rate_hz=args.rate, law=args.law, faults=faults)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(report(r))
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(r.as_dict(), fh, indent=2, default=float)
+        print(f"wrote {args.json}")
+    if args.plot:
+        plot(r, args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,56 @@
+"""SITL side of the identification experiment: the tug is the simulator's torque schedule, the field model
+along the orbit is the scenario's.
+
+`SimTug.apply` adds a pulse to the simulator's scenario (`[[torque]]` schedule), `SimTug.stop` cuts the
+last one short; the simulator integrates it from its next step, exactly as it does the scenario's own
+pulses, and reports it in DEBRIS_SIM_STATE. The flight software gets only callables (it never imports
+the simulator).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from fsw.ident import IdentConfig, IdentExperiment
+
+from .field import DipoleField, FieldAlongOrbit
+from .orbit import CircularOrbit
+from .scenario import Scenario, TorquePulse
+from .sim import Simulator
+
+
+class SimTug:
+    """A tug whose moment is a pulse in the simulator's torque schedule."""
+
+    def __init__(self, sim: Simulator) -> None:
+        self.sim = sim
+        self.pulses: list[TorquePulse] = []
+
+    def apply(self, start_s: float, duration_s: float, moment_Nm: np.ndarray) -> None:
+        p = TorquePulse(float(start_s), float(duration_s), np.array(moment_Nm, float))
+        self.pulses.append(p)
+        self.sim.scenario = dataclasses.replace(self.sim.scenario, torques=self.sim.scenario.torques + (p,))
+
+    def stop(self, now_s: float) -> None:
+        if not self.pulses:
+            return
+        last = self.pulses[-1]
+        if now_s < last.start_s + last.duration_s:
+            cut = TorquePulse(last.start_s, max(now_s - last.start_s, 1e-9), last.moment_Nm)
+            torques = tuple(cut if q is last else q for q in self.sim.scenario.torques)
+            self.sim.scenario = dataclasses.replace(self.sim.scenario, torques=torques)
+            self.pulses[-1] = cut
+
+
+def field_model(scn: Scenario) -> FieldAlongOrbit:
+    """B_I(t) along the scenario's orbit (the model the simulator itself uses)."""
+    orbit = CircularOrbit(scn.altitude_m, scn.inclination_deg, scn.raan_deg, scn.arg_lat0_deg)
+    return FieldAlongOrbit(orbit, DipoleField(epoch_year=scn.epoch_year))
+
+
+def build_ident(scn: Scenario, sim: Simulator, sigma_b_T: float, inertia_guess_kgm2: float = 100.0,
+                **config) -> IdentExperiment:
+    """The experiment for a SITL run: tug = the simulator's torque schedule, field = the scenario's orbit."""
+    return IdentExperiment(sigma_b_T=sigma_b_T, b_inertial=field_model(scn).b_eci_T, tug=SimTug(sim),
+                           config=IdentConfig(inertia_guess_kgm2=inertia_guess_kgm2, **config))

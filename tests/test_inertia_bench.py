@@ -1,0 +1,39 @@
+"""The identification benchmark (hil.inertia_bench): a short seeded Monte-Carlo through the command line,
+its JSON and table; the full run (README table) is `python -m hil.inertia_bench`."""
+import json
+
+import numpy as np
+import pytest
+
+from hil import inertia_bench as ib
+
+
+def test_truth_record_is_the_simulators_and_noise_is_seeded():
+    tr = ib.truth_record("aist2d", 100.0)
+    assert tr.t_s[0] == 0.5 and np.allclose(np.diff(tr.t_s), 1.0)
+    assert tr.sigma_b_T == pytest.approx(np.hypot(1.5e-6, 0.04e-6))
+    # the moment column is the scenario's schedule: 0.2 N·m on x from 60 s
+    assert not np.any(tr.moment_Nm[tr.t_s < 60]) and np.allclose(tr.moment_Nm[(tr.t_s > 60) & (tr.t_s < 100)], [0.2, 0, 0])
+    a = ib.noisy(tr, 2, np.random.default_rng(3))
+    b = ib.noisy(tr, 2, np.random.default_rng(3))
+    np.testing.assert_array_equal(a, b)
+    assert np.std(a - tr.b_T) == pytest.approx(tr.sigma_b_T, rel=0.1)
+    mask = ib.free_interval(ib.truth_record("cellular_debris", 400.0))
+    assert mask.sum() == 215                          # before the impulse at 215 s (the longer side here)
+
+
+def test_command_line_short_run(tmp_path, capsys):
+    out = tmp_path / "bench.json"
+    assert ib.main(["--runs", "2", "--duration", "420", "--scenarios", "aist2d", "--no-linear", "--fits", "full",
+                    "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "== aist2d" in text and "== targets" in text and "Aist-2D diagonal within ±1 %" in text
+    assert "sedelnikov2023" in text                 # the paper's numbers are printed alongside
+    r = json.loads(out.read_text())["results"][0]
+    f = r["full"]
+    assert r["runs"] == 2 and r["samples"] == 420
+    np.testing.assert_allclose(f["truth"], [175.0, 200.0, 285.0, 0.0, 0.0, 0.0])
+    assert max(f["max_abs_err_pct_of_own"][:3]) < 2.0
+    assert all(0.0 <= c <= 1.0 for c in f["coverage95"] + f["coverage99"])
+    assert all(a <= b for a, b in zip(f["coverage95"], f["coverage99"]))
+    assert 0.7 < f["chi2_per_dof_mean"] < 1.3

@@ -1,0 +1,93 @@
+"""Ground refinement (ground.inertia): a recording of the simulator in, the inertia JSON (and the running
+estimate's plot) out, against the truth; the field model from the recording's orbit metadata; errors."""
+import json
+
+import numpy as np
+import pytest
+
+from fsw.estimation import euler_fit as ef
+from ground import inertia as gi
+from ground.recording import Recording, write_recording
+from hil.inertia_bench import truth_record
+
+TRUTH = np.array([175.0, 200.0, 285.0, 0.0, 0.0, 0.0])
+
+
+@pytest.fixture(scope="module")
+def recording_csv(tmp_path_factory):
+    """420 s of Aist-2D (its three 0.2 N·m pulses end at 360 s) at 1 Hz, 1.5 µT noise, orbit in the metadata."""
+    tr = truth_record("aist2d", 420.0)
+    rng = np.random.default_rng(5)
+    scn = tr.scenario
+    meta = {"source": "hil.inertia_bench.truth_record(aist2d) + 1.5 uT noise",
+            "orbit_altitude_km": f"{scn.altitude_m / 1e3:g}", "orbit_inclination_deg": f"{scn.inclination_deg:g}",
+            "orbit_raan_deg": f"{scn.raan_deg:g}", "orbit_arg_lat0_deg": f"{scn.arg_lat0_deg:g}",
+            "field_epoch_year": f"{scn.epoch_year:g}"}
+    rec = Recording(t_s=tr.t_s, b_T=tr.b_T + tr.sigma_b_T * rng.standard_normal(tr.b_T.shape), m_Nm=tr.moment_Nm,
+                    w_ref_radps=tr.omega_radps, metadata=meta)
+    path = tmp_path_factory.mktemp("rec") / "aist2d.csv"
+    write_recording(path, rec)
+    return path
+
+
+def test_command_line_writes_the_json_and_the_plot(recording_csv, tmp_path, capsys):
+    out, png = tmp_path / "inertia.json", tmp_path / "running.png"
+    assert gi.main([str(recording_csv), str(out), "--plot", str(png), "--running", "3", "--quiet"]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["frame"] == "sensor" and doc["about"] == "centre_of_mass" and doc["samples_used"] == 420
+    I = np.array(doc["I_kgm2"])
+    ci = np.array(doc["ci95_kgm2"])
+    assert I.shape == ci.shape == (3, 3) and np.allclose(I, I.T)
+    truth = np.diag(TRUTH[:3])
+    assert np.all(np.abs(I - truth) <= 3 * ci + 1e-6)
+    assert np.all(np.abs(np.diag(I) - TRUTH[:3]) / TRUTH[:3] < 0.02)
+    assert np.all(np.array(doc["ci99_kgm2"]) > ci)
+    assert doc["checks"]["positive_definite"] and doc["checks"]["triangle"]
+    np.testing.assert_allclose(sorted(doc["principal_kgm2"]), doc["principal_kgm2"])
+    assert doc["field_model"] == "recording metadata"
+    assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
+    text = capsys.readouterr().out
+    assert "Ixx" in text and "wrote inertia" in text and "triangle inequalities: yes" in text
+
+
+def test_running_estimate_narrows_as_data_come(recording_csv):
+    from ground.recording import read_recording
+    rec = read_recording(recording_csv)
+    b_inertial, truth, where = gi.field_model("aist2d")
+    assert where == "scenario aist2d"
+    np.testing.assert_allclose(truth, TRUTH)
+    # the orbit metadata gives the same field as the scenario
+    b_meta, _, _ = gi.field_model(None, rec.metadata)
+    np.testing.assert_allclose(b_meta(rec.t_s[:5]), b_inertial(rec.t_s[:5]), rtol=1e-9)
+    rep = gi.run(rec, b_inertial, running_points=3)
+    t_end = [r[0] for r in rep.running]
+    ci_izz = [r[2][2] for r in rep.running]
+    assert t_end == sorted(t_end) and t_end[-1] == pytest.approx(rec.t_s[-1])
+    assert ci_izz[0] > 3 * ci_izz[-1]                 # before the z pulse Izz is hardly known
+    np.testing.assert_allclose(rep.running[-1][1], rep.estimate.p, atol=0.05 * rep.estimate.ci95.max())
+
+
+def test_errors_are_reported_not_raised(recording_csv, tmp_path, capsys):
+    text = recording_csv.read_text().splitlines()
+    no_orbit = tmp_path / "no_orbit.csv"
+    no_orbit.write_text("\n".join(line for line in text if "orbit" not in line and "epoch" not in line) + "\n")
+    assert gi.main([str(no_orbit), str(tmp_path / "x.json"), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "--scenario" in err and "orbit_altitude_km" in err
+    assert not (tmp_path / "x.json").exists()
+    # torque-free data fix the tensor only up to scale: refused
+    rec = Recording(t_s=np.arange(50.0), b_T=np.tile([2e-5, 1e-5, 3e-5], (50, 1)))
+    with pytest.raises(ValueError, match="up to scale"):
+        gi.run(rec, lambda t: np.tile([2e-5, 1e-5, 3e-5], (len(t), 1)))
+    assert gi.main([str(recording_csv), str(tmp_path / "y.json"), "--sigma-uT", "0"]) == 2
+
+
+def test_sampled_moment_hold():
+    t = np.arange(10.0) + 0.5
+    m = np.zeros((10, 3))
+    m[3:6, 0] = 0.2                                  # true pulse [3, 6) s sampled at 3.5, 4.5, 5.5
+    a = gi.known_action(Recording(t_s=t, b_T=np.ones((10, 3)), m_Nm=m))
+    np.testing.assert_allclose(a.impulse_Nms(), [0.6, 0.0, 0.0])        # same impulse
+    assert a.moment_at(np.array([2.9]))[0, 0] == 0 and a.moment_at(np.array([3.1]))[0, 0] == 0.2
+    f = ef.KnownAction.from_samples(t, m, hold="forward")
+    assert f.moment_at(np.array([3.4]))[0, 0] == 0 and f.moment_at(np.array([3.6]))[0, 0] == 0.2
