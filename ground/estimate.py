@@ -136,8 +136,26 @@ def field_from_args(args):
     return None
 
 
+def inertia_main(argv) -> int:
+    """`python -m ground.estimate INPUT.csv --inertia OUT.json [options of python -m ground.inertia]`."""
+    from ground import inertia as gi
+
+    ap = argparse.ArgumentParser(prog="python -m ground.estimate INPUT.csv --inertia OUT.json",
+                                 description="the inertia tensor from a recording (output-error fit, ground.inertia)")
+    ap.add_argument("input", help="recording, format v1 (CSV), with the known moment in m*_Nm")
+    ap.add_argument("--inertia", required=True, metavar="OUT.json", help="inertia estimate to write (JSON)")
+    gi.add_arguments(ap)
+    args = ap.parse_args(argv)
+    return gi.run_cli(args.input, args.inertia, args)
+
+
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m ground.estimate", description=__doc__.splitlines()[0])
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if "--inertia" in argv:
+        return inertia_main(argv)
+    ap = argparse.ArgumentParser(prog="python -m ground.estimate", description=__doc__.splitlines()[0],
+                                 epilog="With --inertia OUT.json instead of --rates: the inertia tensor "
+                                        "(options: python -m ground.inertia --help).")
     ap.add_argument("input", help="recording, format v1 (CSV)")
     ap.add_argument("--rates", required=True, metavar="OUT.csv", help="rate estimates to write")
     ap.add_argument("--method", choices=METHODS, default="smoother", help="estimator (default smoother)")
@@ -149,7 +167,8 @@ def main(argv=None) -> int:
     ap.add_argument("--scenario", metavar="NAME|FILE", help="the field along this SITL scenario's orbit")
     ap.add_argument("--tle", nargs=2, metavar=("LINE1", "LINE2"), help="the field along a TLE's orbit")
     ap.add_argument("--utc0", help="with --tle: UTC of the recording's t = 0, ISO 8601")
-    ap.add_argument("--inertia", metavar="I", help="known tensor for euler/kalman-euler: 'Ixx,Iyy,Izz' or 9 values")
+    ap.add_argument("--known-inertia", metavar="I",
+                    help="known tensor for euler/kalman-euler: 'Ixx,Iyy,Izz' or 9 values")
     args = ap.parse_args(argv)
     if args.tle and not args.utc0:
         ap.error("--tle needs --utc0")
@@ -161,10 +180,10 @@ def main(argv=None) -> int:
             rec = decimate(rec, args.decimate_hz)
         field = field_from_args(args)
         inertia = None
-        if args.inertia:
-            vals = [float(v) for v in args.inertia.split(",")]
+        if args.known_inertia:
+            vals = [float(v) for v in args.known_inertia.split(",")]
             if len(vals) not in (3, 9):
-                ap.error("--inertia takes 3 or 9 values")
+                ap.error("--known-inertia takes 3 or 9 values")
             inertia = np.diag(vals) if len(vals) == 3 else np.reshape(vals, (3, 3))
         sigma = args.sigma_uT * 1e-6 if args.sigma_uT else noise_estimate_T(rec.b_T)
         w, s, notes = estimate(args.method, rec.t_s, rec.b_T, sigma, field=field, inertia_kgm2=inertia)

@@ -88,7 +88,7 @@ def test_the_command_started_the_experiment_and_the_tug_acted(experiment):
     np.testing.assert_allclose(pulses[0].moment_Nm, M)
     assert pulses[0].start_s == pytest.approx(60.5, abs=0.11)
     assert e.ident.state == DONE and e.t_end < 400.0             # the final fit came within 100 s of the end
-    assert e.fsw.scheduler.stats.overruns == 0
+    # (loop overruns are wall-time measurements: reported, not asserted — see the benchmarks)
 
 
 def test_onboard_estimate_against_truth(experiment):

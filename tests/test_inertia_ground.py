@@ -91,3 +91,14 @@ def test_sampled_moment_hold():
     assert a.moment_at(np.array([2.9]))[0, 0] == 0 and a.moment_at(np.array([3.1]))[0, 0] == 0.2
     f = ef.KnownAction.from_samples(t, m, hold="forward")
     assert f.moment_at(np.array([3.4]))[0, 0] == 0 and f.moment_at(np.array([3.6]))[0, 0] == 0.2
+
+
+def test_ground_estimate_inertia_is_the_same_fit(recording_csv, tmp_path):
+    """`python -m ground.estimate INPUT.csv --inertia OUT.json` (the issue's interface) = ground.inertia."""
+    from ground import estimate
+
+    a, b = tmp_path / "a.json", tmp_path / "b.json"
+    assert estimate.main([str(recording_csv), "--inertia", str(a), "--diag", "--quiet"]) == 0
+    assert gi.main([str(recording_csv), str(b), "--diag", "--quiet"]) == 0
+    np.testing.assert_allclose(json.loads(a.read_text())["I_kgm2"], json.loads(b.read_text())["I_kgm2"])
+    assert np.all(np.abs(np.diag(json.loads(a.read_text())["I_kgm2"]) - TRUTH[:3]) / TRUTH[:3] < 0.02)
