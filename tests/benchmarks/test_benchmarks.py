@@ -95,3 +95,56 @@ def test_ground_parse(benchmark, tmp_path):
     d = benchmark(parse)
     assert d.frames_by_type["HIGHRES_IMU"] == 250
     assert d.stats.summary()["totals"]["lost"] == 0
+
+
+def _kalman_samples(n=2000, dt=0.01):
+    from scipy.spatial.transform import Rotation
+    w = np.radians([6.0, -5.0, 6.5])
+    t = np.arange(n) * dt
+    b = Rotation.from_rotvec(-np.outer(t, w)).apply([20e-6, -15e-6, 35e-6])
+    return t, b + np.random.default_rng(0).normal(0, 0.05e-6, b.shape)
+
+
+def test_kalman_step(benchmark):
+    """The onboard rate filter's step (predict over Δt + update with one field sample)."""
+    from fsw.estimation.kalman import RateKalman
+
+    t, b = _kalman_samples()
+    kf = RateKalman(0.05e-6)
+    for k in range(200):  # converged
+        kf.update(t[k], b[k])
+    state = {"k": 200}
+
+    def step():
+        k = state["k"]
+        state["k"] = k + 1 if k + 1 < len(t) else 200
+        if k == 200:
+            kf.reset()
+        kf.update(t[k], b[k])
+
+    benchmark(step)
+    assert np.all(np.isfinite(kf.omega_radps))
+
+
+def test_filterpy_kalman_step(benchmark):
+    """Reference a user would otherwise pick: filterpy's KalmanFilter.predict()+update() with the same
+    dimensions (6 states: B and ω; 3 measurements: B), linear, F and Q fixed."""
+    from filterpy.kalman import KalmanFilter
+
+    t, b = _kalman_samples()
+    kf = KalmanFilter(dim_x=6, dim_z=3)
+    kf.F = np.eye(6)
+    kf.H = np.hstack([np.eye(3), np.zeros((3, 3))])
+    kf.Q = np.eye(6) * 1e-6
+    kf.R = np.eye(3) * (0.05) ** 2
+    z = (b * 1e6).reshape(-1, 3, 1)   # µT, a column (filterpy 2.0.0 broadcasts a 1-D z)
+    state = {"k": 0}
+
+    def step():
+        k = state["k"]
+        state["k"] = (k + 1) % len(z)
+        kf.predict()
+        kf.update(z[k])
+
+    benchmark(step)
+    assert np.all(np.isfinite(kf.x))
