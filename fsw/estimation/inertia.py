@@ -38,6 +38,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import optimize, stats
 
+from .rate_formulas import skew
+
 #: Component names in parameter order (DEBRIS_INERTIA_ESTIMATE order).
 COMPONENTS = ("Ixx", "Iyy", "Izz", "Ixy", "Ixz", "Iyz")
 #: (row, column) of each parameter in the 3×3 tensor.
@@ -281,14 +283,6 @@ def total_least_squares(omega: np.ndarray, omega_dot: np.ndarray, moment: np.nda
     return InertiaEstimate(p, c, "total least squares" + ("" if full else " (diagonal)"), len(A) // 3, full)
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    s = np.zeros(v.shape[:-1] + (3, 3))
-    s[..., 0, 1], s[..., 0, 2] = -v[..., 2], v[..., 1]
-    s[..., 1, 0], s[..., 1, 2] = v[..., 2], -v[..., 0]
-    s[..., 2, 0], s[..., 2, 1] = -v[..., 1], v[..., 0]
-    return s
-
-
 def errors_in_variables(omega: np.ndarray, omega_dot: np.ndarray, moment: np.ndarray, *,
                         sigma_omega: float | np.ndarray, sigma_omega_dot: float | np.ndarray,
                         full: bool = True, p0: np.ndarray | None = None) -> InertiaEstimate:
@@ -318,7 +312,7 @@ def errors_in_variables(omega: np.ndarray, omega_dot: np.ndarray, moment: np.nda
     def whitened(x: np.ndarray) -> np.ndarray:
         J = tensor(x * scale)
         r = euler_moment(J, w, a) - M
-        G = _skew(w) @ J - _skew(w @ J)      # J symmetric: J ω = ω J
+        G = skew(w) @ J - skew(w @ J)      # J symmetric: J ω = ω J
         C = J @ A2 @ J + G @ W2 @ G.swapaxes(-1, -2)
         L = np.linalg.cholesky(C + 1e-30 * np.eye(3))
         return np.linalg.solve(L, r[..., None])[..., 0].ravel()

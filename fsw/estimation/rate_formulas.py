@@ -29,7 +29,7 @@ SIGMA_UNOBSERVED_RADPS = 10.0
 DEGENERATE_SNR = 1.0
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
+def skew(v: np.ndarray) -> np.ndarray:
     """Cross-product matrices [v]ₓ for v of shape (..., 3): [v]ₓ u = v × u."""
     s = np.zeros(v.shape[:-1] + (3, 3))
     s[..., 0, 1], s[..., 0, 2] = -v[..., 2], v[..., 1]
@@ -71,8 +71,8 @@ def boer_jacobians(b_prev: np.ndarray, b_k: np.ndarray, dt_s) -> tuple[np.ndarra
     n2 = np.einsum("...i,...i", b_k, b_k)[..., None, None]
     n2 = np.where(n2 > 0, n2, np.inf)
     w = boer_kernel(b_prev, b_k, dt_s)
-    j_prev = _skew(b_k) / (dt * n2)
-    j_k = -_skew(b_prev) / (dt * n2) - 2.0 * w[..., :, None] * b_k[..., None, :] / n2
+    j_prev = skew(b_k) / (dt * n2)
+    j_k = -skew(b_prev) / (dt * n2) - 2.0 * w[..., :, None] * b_k[..., None, :] / n2
     return j_prev, j_k
 
 
@@ -89,8 +89,8 @@ def derivative_jacobians(b_2, b_1, b_k, dt_prev_s, dt_s) -> tuple[np.ndarray, np
     n2 = np.einsum("...i,...i", d_k, d_k)[..., None, None]
     n2 = np.where(n2 > 0, n2, np.inf)
     w = derivative_kernel(b_2, b_1, b_k, dt_prev_s, dt_s)
-    a_1 = _skew(d_k) / (dt * n2)
-    a_k = -_skew(d_1) / (dt * n2) - 2.0 * w[..., :, None] * d_k[..., None, :] / n2
+    a_1 = skew(d_k) / (dt * n2)
+    a_k = -skew(d_1) / (dt * n2) - 2.0 * w[..., :, None] * d_k[..., None, :] / n2
     return -a_1 / dtp, a_1 / dtp - a_k / dt, a_k / dt
 
 
