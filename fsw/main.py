@@ -44,13 +44,39 @@ def _perp(w: np.ndarray, b: np.ndarray) -> np.ndarray:
     return w - np.dot(w, bh) * bh
 
 
+class WorkHistogram:
+    """Work time per tick over a whole run in fixed 1 µs bins (the last bin holds everything above
+    100 ms): constant memory however long the run, p50/p99 to the microsecond."""
+
+    def __init__(self, max_us: int = 100_000) -> None:
+        self.counts = np.zeros(max_us + 1, dtype=np.int64)
+        self.n = 0
+        self.total_s = 0.0
+        self.max_s = 0.0
+
+    def add(self, work_s: float) -> None:
+        self.counts[min(int(work_s * 1e6), len(self.counts) - 1)] += 1
+        self.n += 1
+        self.total_s += work_s
+        if work_s > self.max_s:
+            self.max_s = work_s
+
+    def percentile_us(self, p: float) -> float:
+        if not self.n:
+            return 0.0
+        return float(np.searchsorted(np.cumsum(self.counts), p / 100.0 * self.n))
+
+    def mean_us(self) -> float:
+        return self.total_s / self.n * 1e6 if self.n else 0.0
+
+
 @dataclass
 class Score:
     """Errors of the onboard estimates against the simulator's truth, at the sample times."""
 
     boer_err: list = field(default_factory=list)
     deriv_err: list = field(default_factory=list)
-    work_s: list = field(default_factory=list)
+    work: WorkHistogram = field(default_factory=WorkHistogram)
 
     def add(self, fsw: FlightSoftware, tr) -> None:
         if fsw.new_estimate["boer"]:
@@ -243,7 +269,7 @@ def run(args, out=sys.stdout) -> Run:
                 t = t0 + k * period
             else:
                 t = time.monotonic() - wall0
-            score.work_s.append(fsw.tick(t))
+            score.work.add(fsw.tick(t))
             if replay is not None and fsw.new_estimate.get("kalman"):
                 kf = fsw.estimators["kalman"]
                 if not kf.flags & kf.NO_ESTIMATE:
@@ -327,7 +353,7 @@ def summary(r: Run) -> str:
     fsw, tlm, score, t_s, wall_s = r.fsw, r.tlm, r.score, r.t_s, r.wall_s
     src = fsw.source
     st = fsw.scheduler.stats
-    work = np.asarray(score.work_s) * 1e6 if score.work_s else np.zeros(1)
+    work = score.work
     lines = [f"--- summary: {t_s:.1f} s of loop time in {wall_s:.1f} s wall "
              f"({t_s / max(wall_s, 1e-9):.1f}x real time)",
              f"magnetometer: {fsw.samples} samples, {getattr(src, 'bus_errors', 0)} bus errors, "
@@ -338,9 +364,9 @@ def summary(r: Run) -> str:
                            ("derivative (full vector)", score.deriv_err)):
             rms, mx, n = Score._rms_max(errs)
             lines.append(f"  {name:<30s} {np.degrees(rms):7.3f}  {np.degrees(mx):7.3f}  {n:4d}")
-    lines.append(f"loop: {st.ticks} ticks at {fsw.scheduler.rate_hz:g} Hz; step time mean {work.mean():.0f} us, "
-                 f"p50 {np.percentile(work, 50):.0f} us, p99 {np.percentile(work, 99):.0f} us, "
-                 f"max {work.max():.0f} us; overruns {st.overruns}, task overruns {st.task_overruns}")
+    lines.append(f"loop: {st.ticks} ticks at {fsw.scheduler.rate_hz:g} Hz; step time mean {work.mean_us():.0f} us, "
+                 f"p50 {work.percentile_us(50):.0f} us, p99 {work.percentile_us(99):.0f} us, "
+                 f"max {work.max_s * 1e6:.0f} us; overruns {st.overruns}, task overruns {st.task_overruns}")
     rate = tlm.bytes_sent / max(t_s, 1e-9)
     lines.append(f"link: {tlm.frames_sent} frames, {tlm.bytes_sent} bytes ({rate:.0f} B/s = "
                  f"{100 * rate / RADIO_BYTES_PER_S:.1f} % of a 57600-baud radio), send errors {tlm.send_errors}")

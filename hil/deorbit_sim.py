@@ -81,23 +81,16 @@ class DeorbitSimulator(Simulator):
         """R_oi at `t_s`."""
         return orbital_frame_dcm(self.orbit.position_eci_m(t_s), self.orbit.velocity_eci_mps(t_s))
 
-    def advance_to(self, t_s: float) -> None:
-        """Integrate body and kit up to `t_s` in steps of at most `max_step_s` (torques held per step)."""
-        if t_s < self.t_s - 1e-12:
-            raise ValueError(f"time runs forward only: at {self.t_s} s, asked for {t_s} s")
-        if t_s - self.t_s <= 1e-12:
-            return
-        while self.t_s < t_s - 1e-12:
-            h = min(self.max_step_s, t_s - self.t_s)
-            self.scenario.moment_Nm(self.t_s, out=self._moment)
-            cache = getattr(self, "_b_eci_cache", None)
-            b_eci = cache[1] if cache is not None and cache[0] == self.t_s else None
-            self._env_moment = self.env.torque_Nm(self.t_s, self.body.q, b_eci)
-            self.body.step(h, self._moment + self._env_moment)
-            self.t_s += h
-            self.kit.advance_to(self.t_s)
-        self.t_s = t_s
-        self._history.append(self._snapshot())
+    def _step(self, h: float) -> None:
+        """One step of body and kit: the scenario's moment plus the environment's (aerodynamic, gravity
+        gradient, the kit's magnets) held over the step, then the kit advanced to the new time."""
+        self.scenario.moment_Nm(self.t_s, out=self._moment)
+        cache = getattr(self, "_b_eci_cache", None)
+        b_eci = cache[1] if cache is not None and cache[0] == self.t_s else None
+        self._env_moment = self.env.torque_Nm(self.t_s, self.body.q, b_eci)
+        self.body.step(h, self._moment + self._env_moment)
+        self.t_s += h
+        self.kit.advance_to(self.t_s)
 
     def _snapshot(self) -> Truth:
         """As `Simulator._snapshot`, with the environment's torque in the moment; keeps B_ECI for the

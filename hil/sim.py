@@ -66,12 +66,16 @@ class Simulator:
         if t_s - self.t_s <= 1e-12:
             return
         while self.t_s < t_s - 1e-12:
-            h = min(self.max_step_s, t_s - self.t_s)
-            self.scenario.moment_Nm(self.t_s, out=self._moment)
-            self.body.step(h, self._moment)
-            self.t_s += h
+            self._step(min(self.max_step_s, t_s - self.t_s))
         self.t_s = t_s
         self._history.append(self._snapshot())
+
+    def _step(self, h: float) -> None:
+        """One integration step of `h` seconds, the scenario's applied moment held over it. Subclasses
+        that add torques or devices (hil.deorbit_sim) override this, not advance_to."""
+        self.scenario.moment_Nm(self.t_s, out=self._moment)
+        self.body.step(h, self._moment)
+        self.t_s += h
 
     def truth(self, t_s: float | None = None) -> Truth:
         """Truth at `t_s` (default: now), interpolated between the recent snapshots.

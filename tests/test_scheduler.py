@@ -58,3 +58,18 @@ def test_bad_rates_rejected():
         Scheduler(0, [])
     with pytest.raises(ValueError):
         Scheduler(10, [Task("x", lambda t: None, 20, 1e-3)])
+
+
+def test_run_histogram_percentiles_match_numpy_to_a_microsecond():
+    import numpy as np
+
+    from fsw.main import WorkHistogram
+
+    work_s = np.random.default_rng(4).lognormal(np.log(30e-6), 0.8, 20_000)
+    h = WorkHistogram()
+    for w in work_s:
+        h.add(float(w))
+    for p in (50, 99):
+        assert abs(h.percentile_us(p) - np.percentile(work_s * 1e6, p)) <= 1.0
+    assert h.mean_us() == pytest.approx(work_s.mean() * 1e6)
+    assert h.max_s == work_s.max()
