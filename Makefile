@@ -19,6 +19,7 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) -m pytest -q tests/benchmarks --benchmark-only --benchmark-json=bench.json
+	$(PY) tests/benchmarks/report.py bench.json
 
 dialect: $(STAMP)
 	$(PY) -m fsw.telemetry.dialect --generate

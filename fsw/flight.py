@@ -52,6 +52,15 @@ METHODS = {"boer": mavlink.DEBRIS_RATE_METHOD_BOER, "derivative": mavlink.DEBRIS
            "kalman": mavlink.DEBRIS_RATE_METHOD_KALMAN}
 
 
+def load_compiled_kernels() -> None:
+    """Run the estimators' compiled kernels once on throwaway instances, so that loading them from the
+    on-disk cache (or compiling them, the first time) happens before the loop, not in its first ticks."""
+    b_T = np.array([20e-6, -10e-6, 30e-6])
+    for est in (BoerStream(1e-7), DerivativeStream(1e-7), RateKalman(1e-7)):
+        for k in range(3):
+            est.update(0.1 * k, b_T + 1e-7 * k)
+
+
 class FlightSoftware:
     def __init__(self, source: FieldSource, telemetry: Telemetry, *, rate_hz: float, sigma_b_T: float,
                  truth: Callable[[float], object] | None = None, max_sample_tlm_hz: float = 20.0,
@@ -66,6 +75,7 @@ class FlightSoftware:
         self.source = source
         self.tlm = telemetry
         self.truth = truth
+        load_compiled_kernels()
         self.estimators = {"boer": BoerStream(sigma_b_T), "derivative": DerivativeStream(sigma_b_T),
                            "kalman": rate_filter if rate_filter is not None else RateKalman(sigma_b_T)}
         self.new_sample = False

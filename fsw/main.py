@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .drivers.mmc5983ma import Mmc5983ma
-from .drivers.mmc5983ma_regs import Bandwidth
+from .drivers.mmc5983ma_regs import Bandwidth, ContinuousFrequency
 from .flight import FlightSoftware
 from .telemetry.dialect import FSW_COMPID, FSW_SYSID, open_link
 from .telemetry.signing import SigningClock, key_fingerprint, load_key
@@ -29,8 +29,6 @@ from .telemetry.telemetry import Telemetry
 
 DEFAULT_LINK = "udpout:127.0.0.1:14550"
 RADIO_BYTES_PER_S = 57600 / 10  # 8N1
-#: RMS noise of the chip itself per bandwidth (MMC5983MA datasheet: 0.4/0.6/0.8/1.2 mG)
-CHIP_NOISE_T = {100: 0.04e-6, 200: 0.06e-6, 400: 0.08e-6, 800: 0.12e-6}
 BANDWIDTH = {100: Bandwidth.BW_100HZ, 200: Bandwidth.BW_200HZ, 400: Bandwidth.BW_400HZ,
              800: Bandwidth.BW_800HZ}
 
@@ -61,6 +59,18 @@ class WorkHistogram:
         if work_s > self.max_s:
             self.max_s = work_s
 
+    #: edges (µs) of the summary's coarse histogram
+    BUCKETS_US = (50, 100, 200, 500, 1000, 5000)
+
+    def buckets(self) -> list[tuple[str, int]]:
+        """(label, ticks) per coarse bin of work time: <50 µs, 50–100 µs, … ≥5 ms."""
+        edges = (0,) + self.BUCKETS_US + (len(self.counts),)
+        out = []
+        for lo, hi in zip(edges[:-1], edges[1:]):
+            label = (f"<{hi} us" if lo == 0 else f">={lo} us" if hi == len(self.counts) else f"{lo}-{hi} us")
+            out.append((label, int(self.counts[lo:hi].sum())))
+        return out
+
     def percentile_us(self, p: float) -> float:
         if not self.n:
             return 0.0
@@ -76,7 +86,11 @@ class Score:
 
     boer_err: list = field(default_factory=list)
     deriv_err: list = field(default_factory=list)
+    kalman_err: list = field(default_factory=list)
     work: WorkHistogram = field(default_factory=WorkHistogram)
+    #: real-time runs: ticks that started more than one period behind their wall-clock time
+    late_ticks: int = 0
+    max_late_s: float = 0.0
 
     def add(self, fsw: FlightSoftware, tr) -> None:
         if fsw.new_estimate["boer"]:
@@ -85,6 +99,9 @@ class Score:
         if fsw.new_estimate["derivative"]:
             w = fsw.estimators["derivative"].omega_radps
             self.deriv_err.append(np.linalg.norm(w - tr.omega_radps))
+        kf = fsw.estimators["kalman"]
+        if fsw.new_estimate["kalman"] and not kf.flags & kf.NO_ESTIMATE:
+            self.kalman_err.append(np.linalg.norm(kf.omega_radps - tr.omega_radps))
 
     @staticmethod
     def _rms_max(errs) -> tuple[float, float, int]:
@@ -104,10 +121,26 @@ def build_sitl(args):
         sim = DeorbitSimulator(scn, seed=args.seed, max_step_s=min(0.02, 1.0 / args.rate))
     else:
         sim = Simulator(scn, seed=args.seed, max_step_s=min(0.02, 1.0 / args.rate))
-    driver = Mmc5983ma(sim.sensor, bandwidth=BANDWIDTH[scn.bandwidth_hz],
-                       sample_period_s=1.0 / scn.sample_rate_hz)
-    sigma_b = math.hypot(scn.noise_T, CHIP_NOISE_T[scn.bandwidth_hz])
+    rate_hz, bw, cm = sitl_sensor(scn.sample_rate_hz, BANDWIDTH[scn.bandwidth_hz], getattr(args, "sample_rate", None))
+    driver = Mmc5983ma(sim.sensor, bandwidth=bw, sample_period_s=1.0 / rate_hz, continuous=cm)
+    sigma_b = math.hypot(scn.noise_T, bw.noise_rms_T)
     return scn, sim, driver, sigma_b
+
+
+def sitl_sensor(scenario_rate_hz: float, scenario_bw: Bandwidth, rate_hz: float | None
+                ) -> tuple[float, Bandwidth, ContinuousFrequency]:
+    """(sample rate, bandwidth, continuous mode) of the SITL magnetometer: the scenario's, or for a
+    `--sample-rate` the narrowest bandwidth (least noise), no narrower than the scenario's, whose
+    measurement takes at most half a sample period; continuous mode when the chip has that rate
+    (1000 Hz needs BW = 800 Hz, DS p13-16), else single measurements on the driver's grid."""
+    if not rate_hz:
+        return scenario_rate_hz, scenario_bw, ContinuousFrequency.OFF
+    if not 0 < rate_hz <= 1000.0:
+        raise ValueError(f"--sample-rate must be in (0, 1000] Hz (the MMC5983MA's ceiling), got {rate_hz:g}")
+    fits = [bw for bw in Bandwidth if bw >= scenario_bw and bw.measurement_time_s <= 0.5 / rate_hz]
+    bw = fits[0] if fits else Bandwidth.BW_800HZ
+    cm = next((f for f in ContinuousFrequency if f.rate_hz == rate_hz and f.fits(bw)), ContinuousFrequency.OFF)
+    return float(rate_hz), bw, cm
 
 
 def parse_args(argv=None):
@@ -142,7 +175,8 @@ def parse_args(argv=None):
                          f"(default {DEFAULT_CAPACITY}; 0 = none)")
     ap.add_argument("--seed", type=int, default=0, help="random seed of the simulator (default 0)")
     ap.add_argument("--sample-rate", type=float, default=None, metavar="HZ",
-                    help="on target: magnetometer sample rate (default 1 Hz); SITL takes it from the scenario")
+                    help="magnetometer sample rate, up to 1000 Hz (default: on target 1 Hz, in SITL the scenario's; "
+                         "SITL then picks the chip's bandwidth and continuous mode to suit)")
     ap.add_argument("--sigma-uT", type=float, default=1.5,
                     help="on target: 1-sigma field error per axis used by the estimators (default 1.5 uT)")
     ap.add_argument("--max-sample-tlm-hz", type=float, default=20.0,
@@ -177,6 +211,8 @@ class Run:
     score: Score
     t_s: float
     wall_s: float
+    #: paced against the wall clock (speed > 0, or on target)
+    real_time: bool = False
 
 
 def run(args, out=sys.stdout) -> Run:
@@ -185,7 +221,7 @@ def run(args, out=sys.stdout) -> Run:
     if args.sitl:
         scn, sim, source, sigma_b = build_sitl(args)
         truth = sim.truth
-        sample_rate = scn.sample_rate_hz
+        sample_rate = 1.0 / source.sample_period_s
         header = (f"SITL scenario {scn.name}: {scn.description}\n"
                   f"loop {args.rate:g} Hz, sensor {sample_rate:g} Hz, speed "
                   f"{'max' if args.speed == 0 else f'{args.speed:g}x'}, seed {args.seed}, link {args.link}")
@@ -286,6 +322,9 @@ def run(args, out=sys.stdout) -> Run:
                 wait = wall0 + (k * period) / (args.speed or 1.0) - time.monotonic()
                 if wait > 0:
                     time.sleep(wait)
+                elif -wait > period:  # the next tick starts more than a period late
+                    score.late_ticks += 1
+                    score.max_late_s = max(score.max_late_s, -wait)
     finally:
         if in_main_thread:
             signal.signal(signal.SIGINT, old[0])
@@ -296,7 +335,8 @@ def run(args, out=sys.stdout) -> Run:
     if replay is not None and getattr(args, "rates_out", None):
         write_replay_rates(args.rates_out, replay, rates, args.replay)
         print(f"wrote {len(rates)} Kalman estimates for {len(replay.t)} samples: {args.rates_out}", file=out)
-    return Run(fsw, tlm, score, t, time.monotonic() - wall0)
+    return Run(fsw, tlm, score, t, time.monotonic() - wall0,
+               real_time=args.speed > 0 or (sim is None and replay is None))
 
 
 def write_replay_rates(path, replay, rates: dict, source: str) -> None:
@@ -331,16 +371,17 @@ def main(argv=None) -> int:
 
 
 def status_line(t_s: float, fsw: FlightSoftware, tr) -> str:
-    """One line: time, |B|, the derivative formula's estimate; with `tr` (truth at the sample time)
-    the true rate and the errors of both formulas."""
+    """One line: time, |B|, the Kalman filter's estimate and 1-σ; with `tr` (truth at the sample time)
+    the true rate, the filter's error and the Boer formula's."""
     b = fsw.sample_b_T
-    d = fsw.estimators["derivative"]
+    d = fsw.estimators["kalman"]
     bo = fsw.estimators["boer"]
     line = f"t={t_s:7.1f} s  |B|={np.linalg.norm(b) * 1e6:6.2f} uT"
     if d.flags & d.NO_ESTIMATE:
         return line + "  (waiting for samples)"
     w = _deg(d.omega_radps)
-    line += f"  w_est=[{w[0]:7.2f} {w[1]:7.2f} {w[2]:7.2f}] dps"
+    sg = _deg(d.sigma_radps)
+    line += f"  w_est=[{w[0]:7.2f} {w[1]:7.2f} {w[2]:7.2f}] +-[{sg[0]:5.2f} {sg[1]:5.2f} {sg[2]:5.2f}] dps"
     if tr is not None:
         wt = _deg(tr.omega_radps)
         line += (f"  w_true=[{wt[0]:7.2f} {wt[1]:7.2f} {wt[2]:7.2f}] dps"
@@ -361,12 +402,17 @@ def summary(r: Run) -> str:
     if score.boer_err or score.deriv_err:
         lines.append("rate error vs truth (deg/s)         RMS      max     n")
         for name, errs in (("Boer (perpendicular part)", score.boer_err),
-                           ("derivative (full vector)", score.deriv_err)):
+                           ("derivative (full vector)", score.deriv_err),
+                           ("Kalman filter (full vector)", score.kalman_err)):
             rms, mx, n = Score._rms_max(errs)
             lines.append(f"  {name:<30s} {np.degrees(rms):7.3f}  {np.degrees(mx):7.3f}  {n:4d}")
     lines.append(f"loop: {st.ticks} ticks at {fsw.scheduler.rate_hz:g} Hz; step time mean {work.mean_us():.0f} us, "
                  f"p50 {work.percentile_us(50):.0f} us, p99 {work.percentile_us(99):.0f} us, "
                  f"max {work.max_s * 1e6:.0f} us; overruns {st.overruns}, task overruns {st.task_overruns}")
+    lines.append("step time histogram: " + ", ".join(f"{label} {n}" for label, n in work.buckets()))
+    if r.real_time:
+        lines.append(f"schedule: {score.late_ticks} ticks started more than one period late"
+                     + (f" (at most {score.max_late_s * 1e3:.1f} ms)" if score.late_ticks else ""))
     rate = tlm.bytes_sent / max(t_s, 1e-9)
     lines.append(f"link: {tlm.frames_sent} frames, {tlm.bytes_sent} bytes ({rate:.0f} B/s = "
                  f"{100 * rate / RADIO_BYTES_PER_S:.1f} % of a 57600-baud radio), send errors {tlm.send_errors}")

@@ -14,8 +14,8 @@ Two filters:
   inertial space over a step, so B turns rigidly: B_{k+1} = exp(−[ω Δt]ₓ) B_k (exact for constant ω,
   any angle per step). ω is a random walk whose strength follows the physics of a torque-free body:
   |ω̇| = |J⁻¹(ω × Jω)| ≤ κ|ω|² with κ ≈ 0.5 for bodies with principal moments within a factor of two.
-  Written on plain floats with the block structure of F = [[E, G], [0, I]] and H = [I, 0] (no array
-  is created per step: see the class docstring).
+  Its predict and update are compiled pure functions over (x, P) in :mod:`fsw.estimation.rate_kf`
+  (no array is created per step: see the class docstring).
 - :class:`AttitudeRateKalman` — a multiplicative EKF (Markley 2003; Trawny & Roumeliotis 2005) with
   the attitude as state: nominal q (body → ECI), ω, optional inertia shape p, optional inertial field
   β; error state δθ (body axes), δω, δp, δβ. With a field model B_I(t) along the orbit it removes the
@@ -32,11 +32,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from operator import add as _add, sub as _sub
 from typing import Callable
 
 import numpy as np
 
+from . import rate_kf
 from .rate_formulas import SIGMA_UNOBSERVED_RADPS
 
 UT_PER_T = 1e6
@@ -92,12 +92,7 @@ def so3_right_jacobian(phi: np.ndarray) -> np.ndarray:
     return np.eye(3) - a * K + c * K @ K
 
 
-def _jr_coefficients(th2: float) -> tuple[float, float]:
-    """(1 − cos θ)/θ² and (θ − sin θ)/θ³, with their series near θ = 0."""
-    if th2 < 1e-6:
-        return 0.5 - th2 / 24.0, 1.0 / 6.0 - th2 / 120.0
-    th = math.sqrt(th2)
-    return (1.0 - math.cos(th)) / th2, (th - math.sin(th)) / (th2 * th)
+_jr_coefficients = rate_kf.jr_coefficients
 
 
 def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -169,30 +164,6 @@ def _m3(a, b):
             a6 * b0 + a7 * b3 + a8 * b6, a6 * b1 + a7 * b4 + a8 * b7, a6 * b2 + a7 * b5 + a8 * b8)
 
 
-def _m3t(a, b):
-    """a bᵀ for row-major 9-tuples."""
-    a0, a1, a2, a3, a4, a5, a6, a7, a8 = a
-    b0, b1, b2, b3, b4, b5, b6, b7, b8 = b
-    return (a0 * b0 + a1 * b1 + a2 * b2, a0 * b3 + a1 * b4 + a2 * b5, a0 * b6 + a1 * b7 + a2 * b8,
-            a3 * b0 + a4 * b1 + a5 * b2, a3 * b3 + a4 * b4 + a5 * b5, a3 * b6 + a4 * b7 + a5 * b8,
-            a6 * b0 + a7 * b1 + a8 * b2, a6 * b3 + a7 * b4 + a8 * b5, a6 * b6 + a7 * b7 + a8 * b8)
-
-
-def _tm3(a, b):
-    """aᵀ b for row-major 9-tuples."""
-    a0, a1, a2, a3, a4, a5, a6, a7, a8 = a
-    b0, b1, b2, b3, b4, b5, b6, b7, b8 = b
-    return (a0 * b0 + a3 * b3 + a6 * b6, a0 * b1 + a3 * b4 + a6 * b7, a0 * b2 + a3 * b5 + a6 * b8,
-            a1 * b0 + a4 * b3 + a7 * b6, a1 * b1 + a4 * b4 + a7 * b7, a1 * b2 + a4 * b5 + a7 * b8,
-            a2 * b0 + a5 * b3 + a8 * b6, a2 * b1 + a5 * b4 + a8 * b7, a2 * b2 + a5 * b5 + a8 * b8)
-
-
-def _sym(a):
-    a0, a1, a2, a3, a4, a5, a6, a7, a8 = a
-    u, v, w = 0.5 * (a1 + a3), 0.5 * (a2 + a6), 0.5 * (a5 + a7)
-    return (a0, u, v, u, a4, w, v, w, a8)
-
-
 @dataclass
 class RateKalmanTuning:
     """Process and initial uncertainty of :class:`RateKalman` (SI units).
@@ -236,10 +207,10 @@ class RateKalman:
     Interface as the streaming formulas (fsw/estimation/rate_formulas.py): :meth:`update` with a
     sample, then `omega_radps`, `sigma_radps` (1-σ per axis), `flags`, `t_s`.
 
-    Allocation: the state lives in Python floats (B in µT, ω in rad/s; P as the 3×3 blocks
-    P_BB, P_Bω, P_ωω, row-major 9-tuples); a step builds only small tuples and writes the published
-    arrays in place. The field's rotation over a step is exact (Rodrigues) and its Jacobian closed form:
-    F = [[E, G], [0, I]], E = exp(−[ωΔt]ₓ), G = Δt [B⁻]ₓ J_r(ωΔt).
+    The step is :func:`fsw.estimation.rate_kf.predict` and :func:`~fsw.estimation.rate_kf.update`
+    (compiled, in place) on x = [B (µT), ω (rad/s)] and the 6×6 P this wrapper owns, with work arrays
+    allocated once here: a step creates no array. The field's rotation over a step is exact (Rodrigues)
+    and its Jacobian closed form: F = [[E, G], [0, I]], E = exp(−[ωΔt]ₓ), G = Δt [B⁻]ₓ J_r(ωΔt).
     """
 
     PERPENDICULAR_ONLY, DEGENERATE, NO_ESTIMATE, DATA_GAP = PERPENDICULAR_ONLY, DEGENERATE, NO_ESTIMATE, DATA_GAP
@@ -259,6 +230,10 @@ class RateKalman:
         self.t_s = 0.0
         self.nis = 0.0
         self.resets = 0
+        self.x = np.zeros(6)
+        self._P = np.zeros((6, 6))
+        self._z = np.zeros(3)
+        self._F, self._T, self._K = np.zeros((6, 6)), np.zeros((6, 6)), np.zeros((6, 3))
         self._started = False
         self._dt_nominal = math.inf
         self._gap = False
@@ -278,17 +253,12 @@ class RateKalman:
     @property
     def b_T(self) -> np.ndarray:
         """The filtered field (tesla, body axes)."""
-        return np.array(self._b) / UT_PER_T
+        return self.x[:3] / UT_PER_T
 
     @property
     def P(self) -> np.ndarray:
-        """The 6×6 covariance (B in µT, ω in rad/s)."""
-        out = np.zeros((6, 6))
-        out[:3, :3] = np.reshape(self._pbb, (3, 3))
-        out[:3, 3:] = np.reshape(self._pbw, (3, 3))
-        out[3:, :3] = out[:3, 3:].T
-        out[3:, 3:] = np.reshape(self._pww, (3, 3))
-        return out
+        """The 6×6 covariance (B in µT, ω in rad/s), a copy."""
+        return self._P.copy()
 
     def update(self, t_s: float, b_T) -> bool:
         """Add a field sample (tesla, body axes) taken at `t_s`; True when an estimate was published.
@@ -308,14 +278,30 @@ class RateKalman:
         tun = self.tuning
         gap = self._gap or dt > tun.gap_factor * self._dt_nominal
         self._gap = False
-        self._dt_nominal = min(self._dt_nominal, dt)
-        w = self._w
-        if dt > tun.max_gap_s or dt * math.sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2) > tun.max_step_angle_rad:
+        if dt < self._dt_nominal:
+            self._dt_nominal = dt
+        x = self.x
+        b0, b1, b2_, wx, wy, wz = x.tolist()
+        w2 = wx * wx + wy * wy + wz * wz
+        if dt > tun.max_gap_s or dt * math.sqrt(w2) > tun.max_step_angle_rad:
             self.resets += 1
             self._start(t_s, bx, by, bz, DATA_GAP)
             return True
-        self._predict(dt)
-        self._update(bx, by, bz)
+        # process noise: ω a random walk (q_ω), B a random walk (field motion, q_B). |B| and ω·B are
+        # the same before and after the step's rotation about ω, so they are taken from B here.
+        b2 = b0 * b0 + b1 * b1 + b2_ * b2_
+        wb = wx * b0 + wy * b1 + wz * b2_
+        wp2 = max(w2 - wb * wb / b2, 0.0) if b2 > 0 else w2
+        # κ|ω||ω⊥| rather than κ|ω|²: the part of ω along B is seen only through the dynamics, and a
+        # noise that grew with its (unobserved) size would let it run away
+        acc = tun.kappa * math.sqrt(w2 * wp2)
+        q_w = (acc * acc / 3.0 + self.adapt * tun.rate_accel_radps2 ** 2) * dt
+        q_b = tun.field_rate_radps ** 2 * b2 * dt * dt
+        phi = math.exp(-dt / tun.rate_time_constant_s)
+        rate_kf.predict(x, self._P, dt, q_w, q_b, phi, self._F, self._T)
+        z = self._z
+        z[0], z[1], z[2] = bx, by, bz
+        self.nis = rate_kf.update(x, self._P, z, self._r, self._K, self._T)
         self.t_s = t_s
         self._publish(DATA_GAP if gap else 0)
         return True
@@ -324,11 +310,12 @@ class RateKalman:
     def _start(self, t_s: float, bx: float, by: float, bz: float, flags: int = 0) -> None:
         r = self._r
         s0 = self.tuning.sigma_rate0_radps ** 2
-        self._b = (bx, by, bz)
-        self._w = (0.0, 0.0, 0.0)
-        self._pbb = (r, 0.0, 0.0, 0.0, r, 0.0, 0.0, 0.0, r)
-        self._pbw = (0.0,) * 9
-        self._pww = (s0, 0.0, 0.0, 0.0, s0, 0.0, 0.0, 0.0, s0)
+        x, P = self.x, self._P
+        x[0], x[1], x[2] = bx, by, bz
+        x[3:] = 0.0
+        P[:, :] = 0.0
+        P[0, 0] = P[1, 1] = P[2, 2] = r
+        P[3, 3] = P[4, 4] = P[5, 5] = s0
         self._started = True
         self._bad = 0
         self.adapt = 1.0
@@ -338,114 +325,31 @@ class RateKalman:
         self.sigma_radps[:] = SIGMA_UNOBSERVED_RADPS
         self.flags = NO_ESTIMATE | flags
 
-    def _predict(self, dt: float) -> None:
-        wx, wy, wz = self._w
-        bx, by, bz = self._b
-        px, py, pz = wx * dt, wy * dt, wz * dt
-        th2 = px * px + py * py + pz * pz
-        # E = exp(−[φ]ₓ) = I − s[φ]ₓ + a[φ]ₓ² with s = sin θ/θ, a = (1 − cos θ)/θ²
-        a, c = _jr_coefficients(th2)
-        s = 1.0 - th2 * c  # sin θ/θ = 1 − θ² (θ − sin θ)/θ³
-        # [φ]ₓ² = φφᵀ − θ² I
-        k2 = (px * px - th2, px * py, px * pz, px * py, py * py - th2, py * pz, px * pz, py * pz, pz * pz - th2)
-        sx, sy, sz = s * px, s * py, s * pz
-        E = (1.0 + a * k2[0], sz + a * k2[1], -sy + a * k2[2], -sz + a * k2[3], 1.0 + a * k2[4], sx + a * k2[5],
-             sy + a * k2[6], -sx + a * k2[7], 1.0 + a * k2[8])
-        # J_r(φ) = I − a[φ]ₓ + c[φ]ₓ²
-        ax, ay, az = a * px, a * py, a * pz
-        Jr = (1.0 + c * k2[0], az + c * k2[1], -ay + c * k2[2], -az + c * k2[3], 1.0 + c * k2[4], ax + c * k2[5],
-              ay + c * k2[6], -ax + c * k2[7], 1.0 + c * k2[8])
-        nbx = E[0] * bx + E[1] * by + E[2] * bz
-        nby = E[3] * bx + E[4] * by + E[5] * bz
-        nbz = E[6] * bx + E[7] * by + E[8] * bz
-        Bx = (0.0, -nbz, nby, nbz, 0.0, -nbx, -nby, nbx, 0.0)
-        G = tuple(map(dt.__mul__, _m3(Bx, Jr)))
-        pbb, pbw, pww = self._pbb, self._pbw, self._pww
-        # X = E P_BB + G P_ωB,  Y = E P_Bω + G P_ωω;  P_BB⁻ = X Eᵀ + Y Gᵀ,  P_Bω⁻ = Y
-        X = tuple(map(_add, _m3(E, pbb), _m3t(G, pbw)))
-        Y = tuple(map(_add, _m3(E, pbw), _m3(G, pww)))
-        pbb_n = tuple(map(_add, _m3t(X, E), _m3t(Y, G)))
-        # process noise: ω a random walk (q_ω), B a random walk (field motion, q_B)
-        tun = self.tuning
-        w2 = wx * wx + wy * wy + wz * wz
-        b2 = nbx * nbx + nby * nby + nbz * nbz
-        wb = (wx * nbx + wy * nby + wz * nbz)
-        wp2 = max(w2 - wb * wb / b2, 0.0) if b2 > 0 else w2
-        # κ|ω||ω⊥| rather than κ|ω|²: the part of ω along B is seen only through the dynamics, and a
-        # noise that grew with its (unobserved) size would let it run away
-        acc = tun.kappa * math.sqrt(w2 * wp2)
-        q_w = (acc * acc / 3.0 + self.adapt * tun.rate_accel_radps2 ** 2) * dt
-        q_b = tun.field_rate_radps ** 2 * b2 * dt * dt
-        # Q_BB = q_ω Δt²/3 [B]ₓ[B]ₓᵀ + q_B I, Q_Bω = q_ω Δt/2 [B]ₓ, Q_ωω = q_ω I  (q_ω per step)
-        f3, f2 = q_w * dt * dt / 3.0, q_w * dt / 2.0
-        bbt = (b2 - nbx * nbx, -nbx * nby, -nbx * nbz, -nbx * nby, b2 - nby * nby, -nby * nbz,
-               -nbx * nbz, -nby * nbz, b2 - nbz * nbz)
-        p0, p1, p2, p3, p4, p5, p6, p7, p8 = pbb_n
-        u, v, w_ = 0.5 * (p1 + p3) + f3 * bbt[1], 0.5 * (p2 + p6) + f3 * bbt[2], 0.5 * (p5 + p7) + f3 * bbt[5]
-        self._pbb = (p0 + f3 * bbt[0] + q_b, u, v, u, p4 + f3 * bbt[4] + q_b, w_, v, w_, p8 + f3 * bbt[8] + q_b)
-        # ω: a random walk, optionally pulled to zero (time constant τ, Ornstein–Uhlenbeck)
-        phi = math.exp(-dt / tun.rate_time_constant_s)
-        self._pbw = (phi * Y[0], phi * Y[1] - f2 * nbz, phi * Y[2] + f2 * nby, phi * Y[3] + f2 * nbz, phi * Y[4],
-                     phi * Y[5] - f2 * nbx, phi * Y[6] - f2 * nby, phi * Y[7] + f2 * nbx, phi * Y[8])
-        f = phi * phi
-        self._pww = (f * pww[0] + q_w, f * pww[1], f * pww[2], f * pww[3], f * pww[4] + q_w, f * pww[5],
-                     f * pww[6], f * pww[7], f * pww[8] + q_w)
-        self._w = (phi * wx, phi * wy, phi * wz)
-        self._b = (nbx, nby, nbz)
-
-    def _update(self, zx: float, zy: float, zz: float) -> None:
-        r = self._r
-        pbb, pbw, pww = self._pbb, self._pbw, self._pww
-        s0, s1, s2, _, s4, s5, _, _, s8 = pbb
-        s0 += r
-        s4 += r
-        s8 += r
-        # S⁻¹ by the adjugate (S symmetric positive definite)
-        c0, c1, c2 = s4 * s8 - s5 * s5, s2 * s5 - s1 * s8, s1 * s5 - s2 * s4
-        det = s0 * c0 + s1 * c1 + s2 * c2
-        c4, c5, c8 = s0 * s8 - s2 * s2, s1 * s2 - s0 * s5, s0 * s4 - s1 * s1
-        inv = 1.0 / det
-        Si = (c0 * inv, c1 * inv, c2 * inv, c1 * inv, c4 * inv, c5 * inv, c2 * inv, c5 * inv, c8 * inv)
-        bx, by, bz = self._b
-        yx, yy, yz = zx - bx, zy - by, zz - bz
-        self.nis = (yx * (Si[0] * yx + Si[1] * yy + Si[2] * yz) + yy * (Si[3] * yx + Si[4] * yy + Si[5] * yz)
-                    + yz * (Si[6] * yx + Si[7] * yy + Si[8] * yz))
-        Kb = _m3(pbb, Si)
-        Kw = _tm3(pbw, Si)  # P_ωB S⁻¹ = P_Bωᵀ S⁻¹
-        self._b = (bx + Kb[0] * yx + Kb[1] * yy + Kb[2] * yz, by + Kb[3] * yx + Kb[4] * yy + Kb[5] * yz,
-                   bz + Kb[6] * yx + Kb[7] * yy + Kb[8] * yz)
-        wx, wy, wz = self._w
-        self._w = (wx + Kw[0] * yx + Kw[1] * yy + Kw[2] * yz, wy + Kw[3] * yx + Kw[4] * yy + Kw[5] * yz,
-                   wz + Kw[6] * yx + Kw[7] * yy + Kw[8] * yz)
-        # P⁺ = P − K H P: P_BB −= K_B P_BB, P_Bω −= K_B P_Bω, P_ωω −= K_ω P_Bω
-        self._pbb = _sym(tuple(map(_sub, pbb, _m3(Kb, pbb))))
-        self._pbw = tuple(map(_sub, pbw, _m3(Kb, pbw)))
-        self._pww = _sym(tuple(map(_sub, pww, _m3(Kw, pbw))))
-
     def _publish(self, flags: int) -> None:
-        w = self._w
-        p = self._pww
-        b = self._b
+        P = self._P
+        bx, by, bz, wx, wy, wz = self.x.tolist()
+        p0, p4, p8 = float(P[3, 3]), float(P[4, 4]), float(P[5, 5])
         # a NaN or inf anywhere makes the sum non-finite
-        if not math.isfinite(w[0] + w[1] + w[2] + p[0] + p[4] + p[8] + b[0] + b[1] + b[2]) \
-                or p[0] < 0 or p[4] < 0 or p[8] < 0:
+        if not math.isfinite(wx + wy + wz + p0 + p4 + p8 + bx + by + bz) or p0 < 0 or p4 < 0 or p8 < 0:
             self.resets += 1
-            b = b if math.isfinite(b[0] + b[1] + b[2]) else (0.0, 0.0, 0.0)
-            self._start(self.t_s, *b, DEGENERATE | flags)
+            if not math.isfinite(bx + by + bz):
+                bx = by = bz = 0.0
+            self._start(self.t_s, bx, by, bz, DEGENERATE | flags)
             return
         tun = self.tuning
         self._bad = self._bad + 1 if self.nis > tun.nis_reset else 0
         self.adapt = adapt_noise(self, tun.adapt_samples, tun.adapt_max)
-        sx, sy, sz = math.sqrt(p[0]), math.sqrt(p[4]), math.sqrt(p[8])
-        if max(sx, sy, sz) > tun.sigma_flag_radps or b[0] * b[0] + b[1] * b[1] + b[2] * b[2] < 9.0 * self._r:
+        sx, sy, sz = math.sqrt(p0), math.sqrt(p4), math.sqrt(p8)
+        if max(sx, sy, sz) > tun.sigma_flag_radps or bx * bx + by * by + bz * bz < 9.0 * self._r:
             flags |= DEGENERATE
         if self._bad >= 3:  # lost: the innovations are far outside what P allows
             flags |= DEGENERATE
             self.resets += 1
-            self._start(self.t_s, *b, flags)
+            self._start(self.t_s, bx, by, bz, flags)
             return
-        self.omega_radps[:] = w
-        self.sigma_radps[:] = (min(sx, SIGMA_UNOBSERVED_RADPS), min(sy, SIGMA_UNOBSERVED_RADPS),
+        om, sg = self.omega_radps, self.sigma_radps
+        om[0], om[1], om[2] = wx, wy, wz
+        sg[0], sg[1], sg[2] = (min(sx, SIGMA_UNOBSERVED_RADPS), min(sy, SIGMA_UNOBSERVED_RADPS),
                                min(sz, SIGMA_UNOBSERVED_RADPS))
         self.flags = flags
 

@@ -21,7 +21,10 @@ worst-case bounds for a measurement error ±δ_B.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import njit
 
 #: Reported 1-σ (rad/s) when a formula has no information (degenerate geometry): wide, finite.
 SIGMA_UNOBSERVED_RADPS = 10.0
@@ -47,58 +50,103 @@ def _safe_div(num: np.ndarray, den: np.ndarray) -> np.ndarray:
     return out
 
 
-# --- kernels on (..., 3) arrays -----------------------------------------------------------------
+# --- kernels: compiled loops over the rows of a record, shared by the array and streaming forms ---
 
-def boer_kernel(b_prev: np.ndarray, b_k: np.ndarray, dt_s) -> np.ndarray:
-    """ω⊥ = (ΔB × B_k) / (Δt |B_k|²)."""
-    return _safe_div(np.cross(b_k - b_prev, b_k), np.asarray(dt_s) * np.einsum("...i,...i", b_k, b_k))
+@njit(cache=True, inline="always")
+def _skew_ij(v0: float, v1: float, v2: float, i: int, j: int) -> float:
+    """Element (i, j) of [v]ₓ."""
+    if i == j:
+        return 0.0
+    if i == 0:
+        return -v2 if j == 1 else v1
+    if i == 1:
+        return v2 if j == 0 else -v0
+    return -v1 if j == 0 else v0
 
 
-def derivative_kernel(b_2: np.ndarray, b_1: np.ndarray, b_k: np.ndarray, dt_prev_s, dt_s) -> np.ndarray:
-    """ω = (Ḃ_k × Ḃ_{k−1}) / (Δt_k |Ḃ_k|²) with backward differences Ḃ_k = (B_k − B_{k−1})/Δt_k."""
-    d_k = (b_k - b_1) / np.asarray(dt_s)[..., None]
-    d_1 = (b_1 - b_2) / np.asarray(dt_prev_s)[..., None]
-    return _safe_div(np.cross(d_k, d_1), np.asarray(dt_s) * np.einsum("...i,...i", d_k, d_k))
+@njit(cache=True)
+def _add_jjt(J: np.ndarray, n: int, s2: float, cov: np.ndarray, k: int) -> None:
+    """cov[k] = s2 Σ_m J[m] J[m]ᵀ over the first n Jacobians."""
+    for i in range(3):
+        for j in range(3):
+            acc = 0.0
+            for m in range(n):
+                for c in range(3):
+                    acc += J[m, i, c] * J[m, j, c]
+            cov[k, i, j] = s2 * acc
 
 
-def boer_jacobians(b_prev: np.ndarray, b_k: np.ndarray, dt_s) -> tuple[np.ndarray, np.ndarray]:
-    """∂ω⊥/∂B_{k−1}, ∂ω⊥/∂B_k (each (..., 3, 3)).
+@njit(cache=True)
+def boer_rows(t: np.ndarray, b: np.ndarray, s2: float, k0: int, w: np.ndarray, cov: np.ndarray,
+              J: np.ndarray) -> None:
+    """Boer rate and its first-order covariance for rows k ≥ max(k0, 1), in place.
 
-    ω⊥ = (B_k × B_{k−1}) / (Δt |B_k|²), so ∂/∂B_{k−1} = [B_k]ₓ / (Δt|B_k|²) and
-    ∂/∂B_k = −[B_{k−1}]ₓ / (Δt|B_k|²) − 2 ω⊥ B_kᵀ / |B_k|².
+    ω⊥_k = (ΔB_k × B_k) / (Δt_k |B_k|²) = (B_k × B_{k−1}) / (Δt_k |B_k|²) (0 where |B_k| = 0, which the
+    callers flag). Jacobians: ∂ω⊥/∂B_{k−1} = [B_k]ₓ / (Δt|B_k|²) and
+    ∂ω⊥/∂B_k = −[B_{k−1}]ₓ / (Δt|B_k|²) − 2 ω⊥ B_kᵀ / |B_k|²; cov = s2 Σ J Jᵀ for white per-axis
+    noise of variance s2. J is a (3, 3, 3) work array.
     """
-    dt = np.asarray(dt_s, dtype=float)[..., None, None]
-    n2 = np.einsum("...i,...i", b_k, b_k)[..., None, None]
-    n2 = np.where(n2 > 0, n2, np.inf)
-    w = boer_kernel(b_prev, b_k, dt_s)
-    j_prev = skew(b_k) / (dt * n2)
-    j_k = -skew(b_prev) / (dt * n2) - 2.0 * w[..., :, None] * b_k[..., None, :] / n2
-    return j_prev, j_k
+    for k in range(max(k0, 1), t.shape[0]):
+        dt = t[k] - t[k - 1]
+        p0, p1, p2 = b[k - 1, 0], b[k - 1, 1], b[k - 1, 2]
+        c0, c1, c2 = b[k, 0], b[k, 1], b[k, 2]
+        n2 = c0 * c0 + c1 * c1 + c2 * c2
+        if n2 > 0.0:
+            f = 1.0 / (dt * n2)
+            w0, w1, w2 = (c1 * p2 - c2 * p1) * f, (c2 * p0 - c0 * p2) * f, (c0 * p1 - c1 * p0) * f
+            g = 2.0 / n2
+        else:
+            f = w0 = w1 = w2 = g = 0.0
+        w[k, 0], w[k, 1], w[k, 2] = w0, w1, w2
+        wv = (w0, w1, w2)
+        cv = (c0, c1, c2)
+        for i in range(3):
+            for j in range(3):
+                J[0, i, j] = _skew_ij(c0, c1, c2, i, j) * f
+                J[1, i, j] = -_skew_ij(p0, p1, p2, i, j) * f - g * wv[i] * cv[j]
+        _add_jjt(J, 2, s2, cov, k)
 
 
-def derivative_jacobians(b_2, b_1, b_k, dt_prev_s, dt_s) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """∂ω/∂B_{k−2}, ∂ω/∂B_{k−1}, ∂ω/∂B_k of the derivative formula (each (..., 3, 3)).
+@njit(cache=True)
+def derivative_rows(t: np.ndarray, b: np.ndarray, s2: float, k0: int, w: np.ndarray, cov: np.ndarray,
+                    J: np.ndarray) -> None:
+    """Derivative-formula rate and its first-order covariance for rows k ≥ max(k0, 2), in place.
 
-    With d_k = Ḃ_k, d_1 = Ḃ_{k−1}: ∂ω/∂d_1 = [d_k]ₓ/(Δt|d_k|²), ∂ω/∂d_k = −[d_1]ₓ/(Δt|d_k|²) − 2ω d_kᵀ/|d_k|²,
-    then the chain rule through the backward differences.
+    ω_k = (Ḃ_k × Ḃ_{k−1}) / (Δt_k |Ḃ_k|²) with backward differences Ḃ_k = (B_k − B_{k−1})/Δt_k (0 where
+    Ḃ_k = 0, which the callers flag). With d_k = Ḃ_k, d_1 = Ḃ_{k−1}: A₁ = ∂ω/∂d_1 = [d_k]ₓ/(Δt|d_k|²),
+    A_k = ∂ω/∂d_k = −[d_1]ₓ/(Δt|d_k|²) − 2ω d_kᵀ/|d_k|², then the chain rule through the differences:
+    ∂ω/∂B_{k−2} = −A₁/Δt_{k−1}, ∂ω/∂B_{k−1} = A₁/Δt_{k−1} − A_k/Δt_k, ∂ω/∂B_k = A_k/Δt_k.
     """
-    dt = np.asarray(dt_s, dtype=float)[..., None, None]
-    dtp = np.asarray(dt_prev_s, dtype=float)[..., None, None]
-    d_k = (b_k - b_1) / dt[..., 0]
-    d_1 = (b_1 - b_2) / dtp[..., 0]
-    n2 = np.einsum("...i,...i", d_k, d_k)[..., None, None]
-    n2 = np.where(n2 > 0, n2, np.inf)
-    w = derivative_kernel(b_2, b_1, b_k, dt_prev_s, dt_s)
-    a_1 = skew(d_k) / (dt * n2)
-    a_k = -skew(d_1) / (dt * n2) - 2.0 * w[..., :, None] * d_k[..., None, :] / n2
-    return -a_1 / dtp, a_1 / dtp - a_k / dt, a_k / dt
+    for k in range(max(k0, 2), t.shape[0]):
+        dt, dtp = t[k] - t[k - 1], t[k - 1] - t[k - 2]
+        d0, d1, d2 = (b[k, 0] - b[k - 1, 0]) / dt, (b[k, 1] - b[k - 1, 1]) / dt, (b[k, 2] - b[k - 1, 2]) / dt
+        e0, e1, e2 = ((b[k - 1, 0] - b[k - 2, 0]) / dtp, (b[k - 1, 1] - b[k - 2, 1]) / dtp,
+                      (b[k - 1, 2] - b[k - 2, 2]) / dtp)
+        n2 = d0 * d0 + d1 * d1 + d2 * d2
+        if n2 > 0.0:
+            f = 1.0 / (dt * n2)
+            w0, w1, w2 = (d1 * e2 - d2 * e1) * f, (d2 * e0 - d0 * e2) * f, (d0 * e1 - d1 * e0) * f
+            g = 2.0 / n2
+        else:
+            f = w0 = w1 = w2 = g = 0.0
+        w[k, 0], w[k, 1], w[k, 2] = w0, w1, w2
+        wv = (w0, w1, w2)
+        dv = (d0, d1, d2)
+        for i in range(3):
+            for j in range(3):
+                a1 = _skew_ij(d0, d1, d2, i, j) * f
+                ak = -_skew_ij(e0, e1, e2, i, j) * f - g * wv[i] * dv[j]
+                J[0, i, j] = -a1 / dtp
+                J[1, i, j] = a1 / dtp - ak / dt
+                J[2, i, j] = ak / dt
+        _add_jjt(J, 3, s2, cov, k)
 
 
 # --- whole-recording forms ----------------------------------------------------------------------
 
 def _check(t_s: np.ndarray, b_T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    t = np.asarray(t_s, dtype=float)
-    b = np.asarray(b_T, dtype=float)
+    t = np.ascontiguousarray(t_s, dtype=float)
+    b = np.ascontiguousarray(b_T, dtype=float)
     if b.ndim != 2 or b.shape[1] != 3 or t.shape != (b.shape[0],):
         raise ValueError(f"expected t_s (N,) and b_T (N, 3), got {t.shape} and {b.shape}")
     if t.size > 1 and not np.all(np.diff(t) > 0):
@@ -106,13 +154,19 @@ def _check(t_s: np.ndarray, b_T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return t, b
 
 
+def _rows(kernel, first: int, t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float) -> tuple[np.ndarray, np.ndarray]:
+    """(rate (N, 3), covariance (N, 3, 3)) of a row kernel over a record; rows before `first` NaN."""
+    t, b = _check(t_s, b_T)
+    w = np.full(b.shape, np.nan)
+    cov = np.full((len(t), 3, 3), np.nan)
+    if len(t) > first:
+        kernel(t, b, float(sigma_b_T) ** 2, first, w, cov, np.empty((3, 3, 3)))
+    return w, cov
+
+
 def boer_rate(t_s: np.ndarray, b_T: np.ndarray) -> np.ndarray:
     """Boer formula over a recording: (N, 3) perpendicular rate in rad/s, row 0 NaN."""
-    t, b = _check(t_s, b_T)
-    out = np.full(b.shape, np.nan)
-    if len(t) > 1:
-        out[1:] = boer_kernel(b[:-1], b[1:], np.diff(t))
-    return out
+    return _rows(boer_rows, 1, t_s, b_T, 0.0)[0]
 
 
 def boer_rate_printed(t_s: np.ndarray, b_T: np.ndarray) -> np.ndarray:
@@ -130,33 +184,17 @@ def boer_rate_printed(t_s: np.ndarray, b_T: np.ndarray) -> np.ndarray:
 
 def derivative_rate(t_s: np.ndarray, b_T: np.ndarray) -> np.ndarray:
     """Derivative formula over a recording: (N, 3) rate in rad/s, rows 0 and 1 NaN."""
-    t, b = _check(t_s, b_T)
-    out = np.full(b.shape, np.nan)
-    if len(t) > 2:
-        dt = np.diff(t)
-        out[2:] = derivative_kernel(b[:-2], b[1:-1], b[2:], dt[:-1], dt[1:])
-    return out
+    return _rows(derivative_rows, 2, t_s, b_T, 0.0)[0]
 
 
 def boer_covariance(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float) -> np.ndarray:
     """First-order covariance (N, 3, 3) of :func:`boer_rate` for white per-axis noise σ_B; row 0 NaN."""
-    t, b = _check(t_s, b_T)
-    out = np.full((len(t), 3, 3), np.nan)
-    if len(t) > 1:
-        jp, jk = boer_jacobians(b[:-1], b[1:], np.diff(t))
-        out[1:] = sigma_b_T**2 * (jp @ jp.swapaxes(-1, -2) + jk @ jk.swapaxes(-1, -2))
-    return out
+    return _rows(boer_rows, 1, t_s, b_T, sigma_b_T)[1]
 
 
 def derivative_covariance(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float) -> np.ndarray:
     """First-order covariance (N, 3, 3) of :func:`derivative_rate`; rows 0 and 1 NaN."""
-    t, b = _check(t_s, b_T)
-    out = np.full((len(t), 3, 3), np.nan)
-    if len(t) > 2:
-        dt = np.diff(t)
-        js = derivative_jacobians(b[:-2], b[1:-1], b[2:], dt[:-1], dt[1:])
-        out[2:] = sigma_b_T**2 * sum(j @ j.swapaxes(-1, -2) for j in js)
-    return out
+    return _rows(derivative_rows, 2, t_s, b_T, sigma_b_T)[1]
 
 
 def boer_error_bound_eq5(t_s: np.ndarray, b_T: np.ndarray, delta_b_T: float) -> np.ndarray:
@@ -196,8 +234,22 @@ def derivative_error_bound_eq10(t_s: np.ndarray, b_T: np.ndarray, delta_b_T: flo
 
 # --- streaming forms for the flight loop --------------------------------------------------------
 
+@njit(cache=True)
+def _shift_in(t: np.ndarray, b: np.ndarray, t_s: float, bx: float, by: float, bz: float) -> None:
+    """Drop the oldest row of a short history, append (t_s, B)."""
+    n = t.shape[0]
+    for k in range(n - 1):
+        t[k] = t[k + 1]
+        b[k, 0], b[k, 1], b[k, 2] = b[k + 1, 0], b[k + 1, 1], b[k + 1, 2]
+    t[n - 1] = t_s
+    b[n - 1, 0], b[n - 1, 1], b[n - 1, 2] = bx, by, bz
+
+
 class _StreamBase:
-    """Common state of the streaming estimators: latest estimate, 1-σ per axis and flags."""
+    """Common state of the streaming estimators: latest estimate, 1-σ per axis and flags.
+
+    They run the same compiled row kernels as the array forms, on a history of `history` rows that
+    they own; a sample allocates no array."""
 
     #: flags, same bit values as DEBRIS_ESTIMATE_FLAGS in the telemetry dialect
     PERPENDICULAR_ONLY, DEGENERATE, NO_ESTIMATE, DATA_GAP = 1, 2, 4, 8
@@ -212,6 +264,9 @@ class _StreamBase:
         self.t_s = 0.0
         self._t = np.full(history, np.nan)
         self._b = np.zeros((history, 3))
+        self._w = np.zeros((history, 3))
+        self._cov = np.zeros((history, 3, 3))
+        self._J = np.zeros((3, 3, 3))
         self._n = 0
 
     def reset(self) -> None:
@@ -221,27 +276,34 @@ class _StreamBase:
         self.sigma_radps[:] = SIGMA_UNOBSERVED_RADPS
         self.flags = self.NO_ESTIMATE
 
-    def _push(self, t_s: float, b_T: np.ndarray) -> bool:
-        if self._n and not t_s > self._t[-1]:
+    def _push(self, t_s: float, b_T) -> bool:
+        """Append a sample; False for a repeated or out-of-order one, or before the history is full."""
+        if self._n and not t_s > self.t_s:
             return False  # repeated or out-of-order sample: ignored by the caller's contract
-        self._t[:-1] = self._t[1:]
-        self._b[:-1] = self._b[1:]
-        self._t[-1] = t_s
-        self._b[-1] = b_T
-        self._n = min(self._n + 1, len(self._t))
+        _shift_in(self._t, self._b, t_s, float(b_T[0]), float(b_T[1]), float(b_T[2]))
+        h = len(self._t)
+        self._n = min(self._n + 1, h)
         self.t_s = t_s
-        return True
+        return self._n == h
 
-    def _publish(self, omega: np.ndarray, cov: np.ndarray, degenerate: bool, base_flags: int) -> None:
+    def _publish(self, degenerate: bool, base_flags: int) -> None:
+        """Publish the newest row of the kernel's output."""
         flags = base_flags
-        sigma = np.sqrt(np.clip(np.diagonal(cov), 0.0, None))
-        if degenerate or not (np.all(np.isfinite(omega)) and np.all(np.isfinite(sigma))):
+        k = len(self._t) - 1
+        w0, w1, w2 = self._w[k].tolist()
+        c = self._cov[k]
+        s0, s1, s2 = math.sqrt(max(float(c[0, 0]), 0.0)), math.sqrt(max(float(c[1, 1]), 0.0)), \
+            math.sqrt(max(float(c[2, 2]), 0.0))
+        finite_w = math.isfinite(w0 + w1 + w2)
+        if degenerate or not (finite_w and math.isfinite(s0 + s1 + s2)):
             flags |= self.DEGENERATE
-            if not np.all(np.isfinite(omega)):
-                omega = np.zeros(3)
-            sigma = np.full(3, SIGMA_UNOBSERVED_RADPS)
-        self.omega_radps[:] = omega
-        self.sigma_radps[:] = np.minimum(sigma, SIGMA_UNOBSERVED_RADPS)
+            if not finite_w:
+                w0 = w1 = w2 = 0.0
+            s0 = s1 = s2 = SIGMA_UNOBSERVED_RADPS
+        om, sg = self.omega_radps, self.sigma_radps
+        om[0], om[1], om[2] = w0, w1, w2
+        sg[0], sg[1], sg[2] = (min(s0, SIGMA_UNOBSERVED_RADPS), min(s1, SIGMA_UNOBSERVED_RADPS),
+                               min(s2, SIGMA_UNOBSERVED_RADPS))
         self.flags = flags
 
 
@@ -255,16 +317,11 @@ class BoerStream(_StreamBase):
         """Add a sample; True when a new estimate is available in omega_radps / sigma_radps / flags."""
         if not self._push(t_s, b_T):
             return False
-        if self._n < 2:
-            return False
-        b0, b1 = self._b[0], self._b[1]
-        dt = self._t[1] - self._t[0]
-        w = boer_kernel(b0, b1, dt)
-        jp, jk = boer_jacobians(b0, b1, dt)
-        cov = self.sigma_b_T**2 * (jp @ jp.T + jk @ jk.T)
+        boer_rows(self._t, self._b, self.sigma_b_T ** 2, 1, self._w, self._cov, self._J)
         # a field change within the noise still gives an honest (wide) estimate; only |B| → 0 degenerates
-        degenerate = float(np.dot(b1, b1)) < (3.0 * self.sigma_b_T) ** 2
-        self._publish(w, cov, degenerate, base_flags=self.PERPENDICULAR_ONLY)
+        bx, by, bz = self._b[1].tolist()
+        degenerate = bx * bx + by * by + bz * bz < (3.0 * self.sigma_b_T) ** 2
+        self._publish(degenerate, base_flags=self.PERPENDICULAR_ONLY)
         return True
 
 
@@ -277,14 +334,10 @@ class DerivativeStream(_StreamBase):
     def update(self, t_s: float, b_T: np.ndarray) -> bool:
         if not self._push(t_s, b_T):
             return False
-        if self._n < 3:
-            return False
-        b2, b1, bk = self._b
-        dtp, dt = self._t[1] - self._t[0], self._t[2] - self._t[1]
-        w = derivative_kernel(b2, b1, bk, dtp, dt)
-        js = derivative_jacobians(b2, b1, bk, dtp, dt)
-        cov = self.sigma_b_T**2 * sum(j @ j.T for j in js)
+        derivative_rows(self._t, self._b, self.sigma_b_T ** 2, 2, self._w, self._cov, self._J)
         # the formula divides by |ΔB_k|²: below the noise it has no information (ω ∥ B, or ω → 0)
-        snr = float(np.linalg.norm(bk - b1) / (np.sqrt(2.0) * self.sigma_b_T))
-        self._publish(w, cov, snr < DEGENERATE_SNR, base_flags=0)
+        b = self._b
+        dx, dy, dz = float(b[2, 0] - b[1, 0]), float(b[2, 1] - b[1, 1]), float(b[2, 2] - b[1, 2])
+        snr = math.sqrt(dx * dx + dy * dy + dz * dz) / (math.sqrt(2.0) * self.sigma_b_T)
+        self._publish(snr < DEGENERATE_SNR, base_flags=0)
         return True

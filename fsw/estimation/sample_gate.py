@@ -74,8 +74,8 @@ class SampleGate:
         self.in_a_row = 0
         self._spikes_in_a_row = 0
         self._ref_t = math.nan
-        self._ref_b = np.zeros(3)
-        self._prev_raw = np.full(3, np.nan)
+        self._ref_b = (0.0, 0.0, 0.0)
+        self._prev_raw = (math.nan, math.nan, math.nan)
 
     @property
     def rejecting(self) -> bool:
@@ -85,17 +85,19 @@ class SampleGate:
     def check(self, t_s: float, b_T: np.ndarray) -> bool:
         """True when the sample may go to the estimators; else `flags` tells why."""
         flags = 0
-        b = b_T
-        if not (math.isfinite(t_s) and np.all(np.isfinite(b))):
+        bx, by, bz = float(b_T[0]), float(b_T[1]), float(b_T[2])
+        if not (math.isfinite(t_s) and math.isfinite(bx) and math.isfinite(by) and math.isfinite(bz)):
             flags = self.NON_FINITE
         else:
-            if np.any(np.abs(b) >= self.saturation_T):
+            sat = self.saturation_T
+            if abs(bx) >= sat or abs(by) >= sat or abs(bz) >= sat:
                 flags |= self.SATURATED
-            if np.array_equal(b, self._prev_raw):
+            prev = self._prev_raw
+            if bx == prev[0] and by == prev[1] and bz == prev[2]:
                 flags |= self.STUCK
-            if not flags and not math.isnan(self._ref_t) and self._is_spike(t_s, b):
+            if not flags and not math.isnan(self._ref_t) and self._is_spike(t_s, bx, by, bz):
                 flags |= self.SPIKE
-            self._prev_raw[:] = b
+            self._prev_raw = (bx, by, bz)
         if flags == self.SPIKE:
             self._spikes_in_a_row += 1
             if self._spikes_in_a_row > self.reseed_after:  # the reference itself is doubtful: move on
@@ -117,27 +119,27 @@ class SampleGate:
         else:
             self.gap_samples = max(0, int(round((t_s - self._ref_t) / self.sample_period_s)) - 1)
         self._ref_t = float(t_s)
-        self._ref_b[:] = b
+        self._ref_b = (bx, by, bz)
         return True
 
-    def _is_spike(self, t_s: float, b: np.ndarray) -> bool:
+    def _is_spike(self, t_s: float, bx: float, by: float, bz: float) -> bool:
         dt = max(t_s - self._ref_t, 0.0)
-        bp = self._ref_b
-        np_ = float(np.linalg.norm(bp))
-        nk = float(np.linalg.norm(b))
+        px, py, pz = self._ref_b
+        np_ = math.sqrt(px * px + py * py + pz * pz)
+        nk = math.sqrt(bx * bx + by * by + bz * bz)
         noise = self.n_sigma * math.sqrt(2.0) * self.sigma_b_T
         if abs(nk - np_) > noise + self.max_rel_change_per_s * np_ * dt:
             return True
         if np_ <= noise or nk <= noise:
             return False  # direction undefined near zero field
-        cos = float(np.dot(b, bp)) / (nk * np_)
+        cos = (bx * px + by * py + bz * pz) / (nk * np_)
         angle = math.acos(min(1.0, max(-1.0, cos)))
         return angle > self.max_rate_radps * dt + noise / np_
 
     def reset(self) -> None:
         """Forget the reference (a new sensor configuration): the next finite sample is accepted."""
         self._ref_t = math.nan
-        self._prev_raw[:] = np.nan
+        self._prev_raw = (math.nan, math.nan, math.nan)
         self._spikes_in_a_row = 0
 
 
