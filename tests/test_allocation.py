@@ -8,16 +8,8 @@ from scipy.spatial.transform import Rotation
 
 from fsw.flight import FlightSoftware
 from fsw.replay import RecordingReplay
-from fsw.telemetry.dialect import FSW_COMPID, FSW_SYSID, mavlink
 from fsw.telemetry.telemetry import Telemetry
-
-
-class NullLink:
-    def __init__(self):
-        self.mav = mavlink.MAVLink(self, srcSystem=FSW_SYSID, srcComponent=FSW_COMPID)
-
-    def write(self, b):
-        pass
+from support import NullLink
 
 
 def test_no_growth_in_allocated_blocks_over_10000_ticks():

@@ -2,7 +2,6 @@
 end-to-end path from `ground.command` to the flight software over UDP."""
 import io
 import math
-import socket
 import threading
 from types import SimpleNamespace
 
@@ -20,6 +19,7 @@ from fsw.telemetry.telemetry import Telemetry
 from ground import command as ground_command
 from ground.command import GroundLink, Session, parse_params, resolve_command
 from hil.faults import FaultyLink
+from support import free_udp_port
 
 KEY = bytes(range(100, 132))
 T0 = unix_to_timestamp(1_750_000_000.0)
@@ -220,12 +220,6 @@ def test_command_names_and_parameters():
 
 
 # --- end to end over UDP ------------------------------------------------------------------------
-def free_udp_port():
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture
 def key_file(tmp_path):
     path = tmp_path / "mission.key"

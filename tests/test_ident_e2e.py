@@ -2,7 +2,6 @@
 the onboard fit → DEBRIS_INERTIA_ESTIMATE over UDP → decoded on the ground → refined on the ground from
 the decoded recording; all against the simulator's truth."""
 import io
-import socket
 import threading
 from types import SimpleNamespace
 
@@ -19,16 +18,11 @@ from fsw.telemetry.telemetry import Telemetry
 from ground import inertia as ground_inertia
 from ground.decode import Decoder
 from hil.ident_sitl import build_ident
+from support import free_udp_port
 
 pytestmark = pytest.mark.sitl
 TRUTH = np.array([175.0, 200.0, 285.0, 0.0, 0.0, 0.0])
 M = (0.2, 0.15, -0.1)
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")

@@ -1,7 +1,6 @@
 """Closed loop: SITL (simulator → emulated MMC5983MA → driver → loop → MAVLink over UDP) decoded by the
 ground decoder, asserting on decoded values against the simulator's truth."""
 import io
-import socket
 import subprocess
 import sys
 import threading
@@ -15,14 +14,9 @@ from fsw.telemetry import dialect
 from fsw.telemetry.dialect import mavlink
 from ground.decode import Decoder
 from ground.recording import read_recording, read_rate_estimates
+from support import free_udp_port
 
 pytestmark = pytest.mark.sitl
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def perpendicular(w, b):

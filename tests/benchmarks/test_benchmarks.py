@@ -5,22 +5,14 @@ import pytest
 
 from fsw.drivers.mmc5983ma_regs import decode_field_T
 from fsw.flight import FlightSoftware
-from fsw.telemetry.dialect import FSW_COMPID, FSW_SYSID, mavlink
+from fsw.telemetry.dialect import mavlink
 from fsw.telemetry.telemetry import Telemetry
 from fsw.drivers.mmc5983ma import Mmc5983ma
 from fsw.drivers.mmc5983ma_regs import Bandwidth
 from ground.decode import Decoder
 from hil import scenario
 from hil.sim import Simulator
-
-
-class NullLink:
-    def __init__(self):
-        self.mav = mavlink.MAVLink(self, srcSystem=FSW_SYSID, srcComponent=FSW_COMPID)
-        self.bytes = 0
-
-    def write(self, b):
-        self.bytes += len(b)
+from support import NullLink
 
 
 def test_driver_decode(benchmark):

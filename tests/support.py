@@ -1,0 +1,23 @@
+"""Helpers shared by the test modules (importable from tests/ and its sub-directories: tests/conftest.py
+puts this directory on the path)."""
+import socket
+
+from fsw.telemetry.dialect import FSW_COMPID, FSW_SYSID, mavlink
+
+
+def free_udp_port() -> int:
+    """A UDP port on the loopback that is free now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class NullLink:
+    """A telemetry connection that packs with the flight software's ids, counts bytes and drops them."""
+
+    def __init__(self):
+        self.mav = mavlink.MAVLink(self, srcSystem=FSW_SYSID, srcComponent=FSW_COMPID)
+        self.bytes = 0
+
+    def write(self, b):
+        self.bytes += len(b)
