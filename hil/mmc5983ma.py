@@ -294,9 +294,9 @@ class EmulatedMmc5983ma:
             sigma = math.hypot(self.bandwidth.noise_rms_T, self.extra_noise_T)
             b = polarity * (np.asarray(self._field_T(t_mid), dtype=float) + self.fault_field_T) + self.bridge_offset_T
             b = b + self._rng.normal(0.0, sigma, 3)
-            c = np.clip(np.rint(b / TESLA_PER_COUNT_18) + NULL_FIELD_18, 0, COUNTS_MAX_18)
+            # nearest count (half to even, as np.rint), clipped to the 18-bit range
+            cx, cy, cz = (min(max(round(v / TESLA_PER_COUNT_18) + NULL_FIELD_18, 0), COUNTS_MAX_18) for v in b.tolist())
             old = self._out
-            cx, cy, cz = (int(v) for v in c)
             if self._ctrl[1] & InternalControl1.X_INHIBIT:
                 cx = (old[0] << 10) | (old[1] << 2) | (old[6] >> 6)
             if self._ctrl[1] & _YZ_INHIBIT == _YZ_INHIBIT:

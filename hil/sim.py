@@ -9,7 +9,7 @@ lets the chip sample the field at its own measurement instant inside a loop peri
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -29,6 +29,8 @@ class Truth:
     q_body_to_eci: np.ndarray
     b_body_T: np.ndarray
     moment_Nm: np.ndarray
+    #: the field in inertial axes (kept so that interpolating between snapshots needs no rotation back)
+    b_eci_T: np.ndarray | None = field(default=None, repr=False, compare=False)
 
 
 class Simulator:
@@ -57,7 +59,7 @@ class Simulator:
         b_eci = self.field.b_eci_T(self.orbit.position_eci_m(self.t_s), self.t_s)
         q = self.body.q.copy()
         return Truth(self.t_s, self.body.omega_radps.copy(), q,
-                     dynamics.quat_to_dcm(q).T @ b_eci, self.scenario.moment_Nm(self.t_s).copy())
+                     dynamics.quat_to_dcm(q).T @ b_eci, self.scenario.moment_Nm(self.t_s).copy(), b_eci)
 
     def advance_to(self, t_s: float) -> None:
         """Integrate the dynamics up to `t_s` in steps no longer than `max_step_s`."""
@@ -97,12 +99,16 @@ class Simulator:
         q = (1 - f) * a.q_body_to_eci + f * qb
         q /= np.linalg.norm(q)
         # interpolate the inertial field (smooth along the orbit), then rotate into the body
-        b_eci_a = dynamics.quat_to_dcm(a.q_body_to_eci) @ a.b_body_T
-        b_eci_b = dynamics.quat_to_dcm(b.q_body_to_eci) @ b.b_body_T
-        b_body = dynamics.quat_to_dcm(q).T @ ((1 - f) * b_eci_a + f * b_eci_b)
+        b_eci = (1 - f) * _b_eci(a) + f * _b_eci(b)
+        b_body = dynamics.quat_to_dcm(q).T @ b_eci
         return Truth(t_s, (1 - f) * a.omega_radps + f * b.omega_radps, q, b_body,
-                     a.moment_Nm if f < 1 else b.moment_Nm)
+                     a.moment_Nm if f < 1 else b.moment_Nm, b_eci)
 
     def field_body_T(self, t_s: float) -> np.ndarray:
         """The true field in body (= sensor) axes at `t_s`: what the emulated chip measures."""
         return self.truth(t_s).b_body_T
+
+
+def _b_eci(tr: Truth) -> np.ndarray:
+    """A snapshot's field in inertial axes (rotated back from the body when the snapshot did not keep it)."""
+    return tr.b_eci_T if tr.b_eci_T is not None else dynamics.quat_to_dcm(tr.q_body_to_eci) @ tr.b_body_T
