@@ -183,6 +183,25 @@ def test_principal_axes_and_physical_checks():
     np.testing.assert_allclose(inr.principal_ratios(AIST), [175 / 285, 200 / 285])
 
 
+def test_covariance_of_the_principal_ratios_is_their_spread():
+    """First-order covariance of (I1/I3, I2/I3) against Monte-Carlo tensors drawn from N(p, C) (products of
+    inertia included), and exact for a diagonal tensor with independent moments."""
+    p = inr.params(ASYM)
+    rng = np.random.default_rng(5)
+    A = rng.standard_normal((6, 6))
+    C = 0.04 * A @ A.T                                       # ~0.5 kg·m² on each component
+    r, cov = inr.principal_ratios_cov(p, C)
+    np.testing.assert_allclose(r, inr.principal_ratios(ASYM))
+    draws = rng.multivariate_normal(p, C, size=20000)
+    R = np.array([inr.principal_ratios(inr.tensor(x)) for x in draws])
+    np.testing.assert_allclose(np.sqrt(np.diag(cov)), R.std(axis=0), rtol=0.03)
+    assert cov[0, 1] / np.sqrt(cov[0, 0] * cov[1, 1]) == pytest.approx(np.corrcoef(R.T)[0, 1], abs=0.03)
+    # diag(175, 200, 285), σ = 1, 2, 3 kg·m²: σ(I1/I3)² = (1/285)² + (175·3/285²)²
+    _, c = inr.principal_ratios_cov(inr.params(AIST), np.diag([1.0, 4.0, 9.0, 0, 0, 0]))
+    assert c[0, 0] == pytest.approx((1 / 285) ** 2 + (175 * 3 / 285 ** 2) ** 2)
+    assert c[0, 1] == pytest.approx(175 * 200 * 9 / 285 ** 4)
+
+
 def test_intervals_and_their_coverage_in_a_linear_regression():
     """β = 0.95 / 0.99 half-widths (z = 1.960 / 2.576); with noise only in the moment (classical
     regression) the least-squares 95 % intervals cover the truth in about 95 % of Monte-Carlo runs."""

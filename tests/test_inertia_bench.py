@@ -37,3 +37,34 @@ def test_command_line_short_run(tmp_path, capsys):
     assert all(0.0 <= c <= 1.0 for c in f["coverage95"] + f["coverage99"])
     assert all(a <= b for a, b in zip(f["coverage95"], f["coverage99"]))
     assert 0.7 < f["chi2_per_dof_mean"] < 1.3
+
+
+def test_binomial_interval_and_shape_data():
+    lo, hi = ib.wilson(19, 20)                        # Wilson score interval, z = 1.96
+    assert (lo, hi) == (pytest.approx(0.7639, abs=1e-4), pytest.approx(0.9911, abs=1e-4))
+    lo, hi = ib.wilson(570, 600)
+    assert lo < 0.95 < hi and hi - lo < 0.04
+    tr = ib.truth_record("cellular_debris", 400.0)
+    sel, unknown = ib.shape_data(tr, "all")
+    assert sel.all() and unknown == [(215.0, 216.0)]
+    sel, unknown = ib.shape_data(tr, "free")
+    assert sel.sum() == 215 and unknown == []
+    with pytest.raises(ValueError):
+        ib.shape_data(tr, "some")
+
+
+def test_shape_command_line_reports_the_cramer_rao_bound(tmp_path, capsys):
+    """The shape fit of the whole record (pulses as unknown moments) against its Cramér–Rao bound."""
+    out = tmp_path / "bench.json"
+    assert ib.main(["--runs", "2", "--duration", "330", "--scenarios", "aist2d", "--no-linear", "--fits", "shape",
+                    "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "fitted as unknown moments" in text and "Cramér–Rao" in text and "shape ratios within 0.5 %" in text
+    s = json.loads(out.read_text())["results"][0]["shape"]
+    assert s["data"] == "all" and s["samples"] == 330 and len(s["unknown_moments_s"]) == 3
+    crb = np.array(s["ratio_crb_pct"])
+    assert np.all(crb > 0.05) and np.all(crb < 2.0)
+    # each fit's own σ is the bound (white noise); no run stopped in another minimum than the truth's
+    np.testing.assert_allclose(s["ratio_sd_fit_pct_mean"], crb, rtol=0.15)
+    assert s["local_minimum_runs"] == 0 and s["chi2_above_truth_start_max"] < 1.0
+    assert max(s["ratio_err_pct_max"]) < 5 * max(crb)

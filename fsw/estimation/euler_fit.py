@@ -14,8 +14,13 @@ removes the errors-in-variables bias of the linear methods (inertia.py): the onl
 the measurement.
 
 Torque-free data fix the tensor only up to scale (the motion is the same for λJ); a known torque
-fixes it. The attitude about B_I is fixed only by the field's motion along the orbit (about twice the
-orbital rate), which is why the field model is part of the model.
+fixes it. A torque whose size is not to be relied on (the shape of the cellular-rotation-slowdown
+paper, then κ from the known impulse) is modelled as a constant moment of unknown size on its
+interval (``unknown_moments``): the record on both sides of it, and the interval itself, then all
+serve the shape. :func:`cramer_rao` gives the covariance no unbiased estimator beats with the given
+noise, sampling and record (the Fisher information at the truth). The attitude about B_I is fixed
+only by the field's motion along the orbit (about twice the orbital rate), which is why the field
+model is part of the model.
 
 A single trajectory over a long record ("single shooting") has a small basin of attraction: a rate
 that is slightly wrong early makes the prediction wrap around later. The fit therefore starts with
@@ -154,7 +159,8 @@ class Segments:
 
     Segment g starts at sample ``bounds[g]`` and ends at sample ``bounds[g+1]`` (for the last one the
     last sample); its local samples are those from its start to its end inclusive. Steps never cross a
-    switch of the known action.
+    switch of the known action nor an end of an interval with an unknown moment (``unknown``: the
+    interval of each step, −1 for none).
     """
 
     t_samples: np.ndarray
@@ -168,6 +174,7 @@ class Segments:
     b_local: np.ndarray         # (G, L, 3) B_I at the local samples
     n_local: np.ndarray         # (G,)
     steps: np.ndarray           # (G,) real steps per segment
+    unknown: np.ndarray | None = None   # (T, G) unknown-moment interval of the step, −1 none
 
     @property
     def G(self) -> int:
@@ -175,14 +182,16 @@ class Segments:
 
     @staticmethod
     def build(t_samples: np.ndarray, bounds, action: KnownAction, b_inertial: FieldFn,
-              h_max_s: float = 1.0, b_samples: np.ndarray | None = None) -> "Segments":
+              h_max_s: float = 1.0, b_samples: np.ndarray | None = None,
+              unknown_intervals=()) -> "Segments":
         t = np.asarray(t_samples, float)
         if t.ndim != 1 or t.size < 2 or np.any(np.diff(t) <= 0):
             raise ValueError("sample times must be a strictly increasing 1-D array of 2 or more")
         bounds = np.asarray(bounds, int)
         if b_samples is None:
             b_samples = np.asarray(b_inertial(t), float).reshape(-1, 3)
-        sw = action.switch_times()
+        ui = np.asarray(unknown_intervals, float).reshape(-1, 2)
+        sw = np.union1d(action.switch_times(), ui.ravel())
         G = len(bounds) - 1
         per = []
         for g in range(G):
@@ -226,7 +235,12 @@ class Segments:
         for g in range(G):
             b_local[g, :n_local[g]] = b_samples[bounds[g]:bounds[g + 1] + 1]
         steps = np.array([len(p[0]) for p in per])
-        return Segments(t, bounds, H, moment, dipole, magnetic, b_stage, REC, b_local, n_local, steps)
+        unknown = None
+        if len(ui):
+            unknown = np.full((T, G), -1)
+            for k, (u0, u1) in enumerate(ui):
+                unknown[(mid > u0) & (mid < u1) & (H > 0)] = k
+        return Segments(t, bounds, H, moment, dipole, magnetic, b_stage, REC, b_local, n_local, steps, unknown)
 
 
 def segment_bounds(n: int, length: int) -> np.ndarray:
@@ -293,16 +307,18 @@ class Pass:
     """One propagation of a batch of trajectories through their segments, resumable.
 
     ``group`` (nb,) segment of each trajectory; ``J6`` (6, nb); ``q0`` (4, nb); ``w0`` (3, nb);
-    ``bias`` (3, nb). When :meth:`advance` returns True, ``pred`` (nb, L, 3) holds the predicted field
-    at each trajectory's local samples, ``y`` (7, nb) the end states, and ``states`` (nb, L, 7) the
-    states at the samples when ``keep_states``.
+    ``bias`` (3, nb); ``u`` (K, 3, nb) the moments [N·m] on the segments' unknown-moment intervals
+    (``seg.unknown``), added to the known one. When :meth:`advance` returns True, ``pred`` (nb, L, 3)
+    holds the predicted field at each trajectory's local samples, ``y`` (7, nb) the end states, and
+    ``states`` (nb, L, 7) the states at the samples when ``keep_states``.
     """
 
     def __init__(self, seg: Segments, group: np.ndarray, J6: np.ndarray, q0: np.ndarray, w0: np.ndarray,
-                 bias: np.ndarray, keep_states: bool = False) -> None:
+                 bias: np.ndarray, keep_states: bool = False, u: np.ndarray | None = None) -> None:
         self.seg = seg
         self.g = np.asarray(group, int)
         self.single = bool(np.all(self.g == self.g[0]))
+        self.u = u if (u is not None and seg.unknown is not None and u.shape[0]) else None
         self.J = J6
         with np.errstate(divide="ignore", invalid="ignore"):
             self.K = _inv_sym(J6)
@@ -349,10 +365,18 @@ class Pass:
                     h = s.h[i, g0]
                     M = s.moment[i, g0]
                     rec = s.rec[i, g0]
+                    if self.u is not None and s.unknown[i, g0] >= 0:
+                        M = M[:, None] + self.u[s.unknown[i, g0]]
                 else:
                     h = s.h[i, g]
                     M = s.moment[i, g].T
                     rec = s.rec[i, g]
+                    if self.u is not None:
+                        k = s.unknown[i, g]
+                        on = k >= 0
+                        if np.any(on):
+                            M = M.copy()
+                            M[:, on] += self.u[k[on], :, np.flatnonzero(on)].T
                 if s.magnetic[i]:
                     dip = s.dipole[i, g].T
                     bs = s.b_stage[i, g]                                     # (nb, 3, 3)
@@ -441,61 +465,112 @@ def retilt(q: np.ndarray, b_body: np.ndarray, b_inertial: np.ndarray) -> np.ndar
 
 # --- parametrisation of the tensor ---------------------------------------------------------------------
 
+#: Unknown moments are parametrised as θ_u = M / (I_ref · MOMENT_SCALE_RADPS2): order one for an
+#: angular acceleration of 1e-3 rad/s² (0.2 N·m on Aist-2D's 200 kg·m²).
+MOMENT_SCALE_RADPS2 = 1e-3
+
+
 @dataclass
 class InertiaParam:
-    """Maps the inertia block of θ to the tensor components p (6,): p = T θ_I + c.
+    """Maps the global dynamic block of θ to the tensor components p (6,) and the unknown moments.
 
-    ``full`` p/I_ref (6), ``diag`` (Ixx, Iyy, Izz)/I_ref (3), ``shape`` the tensor with Ixx fixed to
-    I_ref (5: the others /I_ref), ``shape_diag`` (Iyy, Izz)/I_ref (2), ``scale`` κ with p = κ·p_shape (1).
+    θ_I = [tensor part | unknown moments]. The tensor part: p = T θ_I + c with ``full`` p/I_ref (6),
+    ``diag`` (Ixx, Iyy, Izz)/I_ref (3), ``shape`` the tensor with Ixx fixed to I_ref (5: the others
+    /I_ref), ``shape_diag`` (Iyy, Izz)/I_ref (2), ``scale`` κ with p = κ·p_shape (1). Then one constant
+    moment vector (3 parameters, N·m / (I_ref · MOMENT_SCALE_RADPS2)) per interval of
+    ``unknown_intervals`` ((t0, t1) pairs, not overlapping): a torque known to act there but not known
+    in size — e.g. a tug pulse, for a shape that must not rely on the torque's calibration.
     """
 
     mode: str
     I_ref: float
     p_shape: np.ndarray | None = None     # (R, 6) for "scale"
+    unknown_intervals: tuple = ()
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {sorted(MODES)}")
         if self.mode == "scale":
             self.p_shape = np.atleast_2d(np.asarray(self.p_shape, float))
+        ui = tuple((float(a), float(b)) for a, b in self.unknown_intervals)
+        if any(b <= a for a, b in ui) or any(ui[k + 1][0] < ui[k][1] for k in range(len(ui) - 1)):
+            raise ValueError("unknown-moment intervals must be increasing, non-empty and not overlapping")
+        self.unknown_intervals = ui
+
+    @property
+    def n_tensor(self) -> int:
+        return MODES[self.mode]
+
+    @property
+    def n_moments(self) -> int:
+        return 3 * len(self.unknown_intervals)
 
     @property
     def n(self) -> int:
-        return MODES[self.mode]
+        return self.n_tensor + self.n_moments
 
     @property
     def full(self) -> bool:
         return self.mode in ("full", "shape", "scale")
 
+    @property
+    def moment_scale_Nm(self) -> float:
+        return self.I_ref * MOMENT_SCALE_RADPS2
+
+    def subset(self, runs: np.ndarray) -> "InertiaParam":
+        """The same parametrisation for the runs ``runs`` (their fixed shapes, mode "scale")."""
+        if self.p_shape is None:
+            return self
+        return InertiaParam(self.mode, self.I_ref, self.p_shape[runs], self.unknown_intervals)
+
     def affine(self, run: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        n = self.n
-        T = np.zeros((6, n))
+        """T (6, n), c (6,) with p = T θ_I + c (zero columns for the moments)."""
+        T = np.zeros((6, self.n))
         c = np.zeros(6)
         if self.mode == "full":
-            T[:, :] = np.eye(6) * self.I_ref
+            T[:, :6] = np.eye(6) * self.I_ref
         elif self.mode == "diag":
             T[:3, :3] = np.eye(3) * self.I_ref
         elif self.mode == "shape":
             c[0] = self.I_ref
-            T[1:, :] = np.eye(5) * self.I_ref
+            T[1:, :5] = np.eye(5) * self.I_ref
         elif self.mode == "shape_diag":
             c[0] = self.I_ref
-            T[1:3, :] = np.eye(2) * self.I_ref
+            T[1:3, :2] = np.eye(2) * self.I_ref
         else:
             T[:, 0] = self.p_shape[run]
         return T, c
 
     def to_p(self, theta_I: np.ndarray, runs: np.ndarray) -> np.ndarray:
         """θ_I (nb, n) → p (nb, 6)."""
-        nb = len(theta_I)
         if self.mode == "scale":
             return theta_I[:, :1] * self.p_shape[runs]
         T, c = self.affine()
         return theta_I @ T.T + c
 
-    def from_p(self, p: np.ndarray, run: int = 0) -> np.ndarray:
+    def to_moments(self, theta_I: np.ndarray) -> np.ndarray | None:
+        """θ_I (nb, n) → the unknown moments (K, 3, nb) [N·m], None when there are none."""
+        if not self.n_moments:
+            return None
+        u = theta_I[:, self.n_tensor:].reshape(len(theta_I), -1, 3) * self.moment_scale_Nm
+        return np.ascontiguousarray(u.transpose(1, 2, 0))
+
+    def from_p(self, p: np.ndarray, run: int = 0, moments_Nm: np.ndarray | None = None) -> np.ndarray:
+        """θ_I of a tensor p (and of the unknown moments (K, 3), zero when not given)."""
         T, c = self.affine(run)
-        return np.linalg.lstsq(T, np.asarray(p, float) - c, rcond=None)[0]
+        th = np.zeros(self.n)
+        nt = self.n_tensor
+        th[:nt] = np.linalg.lstsq(T[:, :nt], np.asarray(p, float) - c, rcond=None)[0]
+        if moments_Nm is not None and self.n_moments:
+            th[nt:] = np.asarray(moments_Nm, float).ravel() / self.moment_scale_Nm
+        return th
+
+    def moments_of(self, theta_I: np.ndarray, cov_I: np.ndarray | None = None):
+        """The unknown moments (K, 3) [N·m] of one θ_I and their covariance (3K, 3K)."""
+        nt, s = self.n_tensor, self.moment_scale_Nm
+        m = np.asarray(theta_I[nt:], float).reshape(-1, 3) * s
+        cov = None if cov_I is None else np.asarray(cov_I)[nt:, nt:] * s * s
+        return m, cov
 
 
 # --- normal matrices -----------------------------------------------------------------------------
@@ -786,7 +861,8 @@ class SingleShooting:
         self.omega_scale = omega_scale
         self.step = fd_step
         self.seg = Segments.build(self.t[:self.n], [0, self.n - 1], action, b_inertial, h_max_s,
-                                  b_samples=np.asarray(b_samples)[:self.n])
+                                  b_samples=np.asarray(b_samples)[:self.n],
+                                  unknown_intervals=inertia.unknown_intervals)
 
     @property
     def n_params(self) -> int:
@@ -802,7 +878,8 @@ class SingleShooting:
 
     def start(self, thetas: np.ndarray, runs: np.ndarray, keep_states: bool = False) -> Pass:
         p, q0, w0, bias = self.unpack(thetas, runs)
-        return Pass(self.seg, np.zeros(len(thetas), int), p.T, q0.T, w0.T, bias.T, keep_states)
+        return Pass(self.seg, np.zeros(len(thetas), int), p.T, q0.T, w0.T, bias.T, keep_states,
+                    u=self.inertia.to_moments(thetas[:, :self.inertia.n]))
 
     def begin(self, thetas: np.ndarray, runs: np.ndarray) -> tuple[Pass, tuple]:
         R, k = thetas.shape
@@ -861,7 +938,8 @@ class MultipleShooting:
         self.action, self.b_inertial, self.h_max_s = action, b_inertial, h_max_s
         n_used = self.bounds[-1] + 1
         self.seg = Segments.build(self.t[:n_used], self.bounds, action, b_inertial, h_max_s,
-                                  b_samples=np.asarray(b_samples)[:n_used])
+                                  b_samples=np.asarray(b_samples)[:n_used],
+                                  unknown_intervals=inertia.unknown_intervals)
         # which local samples each segment predicts (its end belongs to the next segment)
         L = self.seg.b_local.shape[1]
         self.own = np.zeros((self.G, L), bool)
@@ -883,8 +961,7 @@ class MultipleShooting:
         out.__dict__.update(self.__dict__)
         out.b_meas = self.b_meas[idx]
         out.q_ref = self.q_ref[idx].copy()
-        par = self.inertia
-        out.inertia = par if par.p_shape is None else InertiaParam(par.mode, par.I_ref, par.p_shape[idx])
+        out.inertia = self.inertia.subset(idx)
         return out
 
     def rechain(self, theta: np.ndarray, runs: np.ndarray, b_samples: np.ndarray) -> np.ndarray:
@@ -897,10 +974,11 @@ class MultipleShooting:
         n_I, G = self.inertia.n, self.G
         own = theta[:, n_I:n_I + 6 * G].reshape(R, G, 6)
         q_start = quat_mul(self.q_ref[runs], quat_exp(own[..., 3:]))           # (R, G, 4)
-        p = self.inertia.to_p(np.repeat(theta[:, :n_I], G, axis=0), np.repeat(runs, G))
+        th_I = np.repeat(theta[:, :n_I], G, axis=0)
+        p = self.inertia.to_p(th_I, np.repeat(runs, G))
         bias = (np.repeat(theta[:, -3:], G, axis=0) * self.sigma if self.fit_bias else np.zeros((R * G, 3)))
         ps = Pass(self.seg, np.tile(np.arange(G), R), p.T, q_start.reshape(-1, 4).T,
-                  (own[..., :3] * self.omega_scale).reshape(-1, 3).T, bias.T)
+                  (own[..., :3] * self.omega_scale).reshape(-1, 3).T, bias.T, u=self.inertia.to_moments(th_I))
         ps.advance()
         q_end = ps.y[:4].T.reshape(R, G, 4)
         dq = quat_mul(quat_conj(q_start), q_end)                              # body-frame increments
@@ -935,6 +1013,7 @@ class MultipleShooting:
         thI = th_I.reshape(R, G, k, n_I)
         thI[:, :, 7:, :] += np.eye(n_I) * self.step
         p = self.inertia.to_p(thI.reshape(nb, n_I), runs_b)
+        u = self.inertia.to_moments(thI.reshape(nb, n_I))
         qref = np.repeat(self.q_ref[runs][:, :, None, :], k, axis=2).reshape(nb, 4)
         st = st.reshape(nb, 6)
         q0 = quat_mul(qref, quat_exp(st[:, 3:]))
@@ -944,7 +1023,7 @@ class MultipleShooting:
         else:
             bias = np.zeros((nb, 3))
         group = np.tile(np.repeat(np.arange(G), k), R)
-        return Pass(self.seg, group, p.T, q0.T, w0.T, bias.T), (thetas, runs)
+        return Pass(self.seg, group, p.T, q0.T, w0.T, bias.T, u=u), (thetas, runs)
 
     def finish(self, ps: Pass, ctx: tuple):
         thetas, runs = ctx
@@ -1052,6 +1131,9 @@ class FitResult:
     mode: str
     theta: np.ndarray
     cov_theta: np.ndarray
+    unknown_intervals: tuple = ()              # (t0, t1) of the moments fitted as unknowns
+    moments_Nm: np.ndarray | None = None       # (K, 3) their fitted values (in the tensor's scale)
+    cov_moments: np.ndarray | None = None      # (3K, 3K)
 
     @property
     def s2(self) -> float:
@@ -1156,21 +1238,25 @@ class FitOptions:
 def identify(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, action: KnownAction,
              sigma_b_T: float, p_guess: np.ndarray, opts: FitOptions | None = None, *,
              p_shape: np.ndarray | None = None, b_samples: np.ndarray | None = None,
-             log: Callable[[str], None] | None = None) -> list[FitResult]:
+             unknown_moments=(), log: Callable[[str], None] | None = None) -> list[FitResult]:
     """Identify the tensor (and the motion) from R runs of samples ``b_meas`` (R, n, 3) at ``t_s`` (n,).
 
     ``b_inertial`` the field model along the orbit, ``action`` the known moment/dipole, ``sigma_b_T``
     the per-axis noise, ``p_guess`` (6,) the starting tensor (also the mean of the weak prior),
-    ``p_shape`` (R, 6) the fixed shape for mode ``"scale"``. Returns one :class:`FitResult` per run.
+    ``p_shape`` (R, 6) the fixed shape for mode ``"scale"``. ``unknown_moments``: (t0, t1) intervals on
+    which a constant moment of unknown size acts (added to ``action``; fitted, started at zero, no
+    prior) — with mode ``"shape"`` the whole record, pulses included, gives the tensor up to scale
+    without relying on the size of the torque. Returns one :class:`FitResult` per run.
     """
     return complete(identify_steps(t_s, b_meas, b_inertial, action, sigma_b_T, p_guess, opts,
-                                   p_shape=p_shape, b_samples=b_samples, log=log))
+                                   p_shape=p_shape, b_samples=b_samples, unknown_moments=unknown_moments,
+                                   log=log))
 
 
 def identify_steps(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, action: KnownAction,
                    sigma_b_T: float, p_guess: np.ndarray, opts: FitOptions | None = None, *,
                    p_shape: np.ndarray | None = None, b_samples: np.ndarray | None = None,
-                   log: Callable[[str], None] | None = None, chunk: int | None = None):
+                   unknown_moments=(), log: Callable[[str], None] | None = None, chunk: int | None = None):
     """Generator form of :func:`identify`: yields every ``chunk`` integration steps; its value (the
     ``StopIteration`` value) is the list of results."""
     opts = opts or FitOptions()
@@ -1182,7 +1268,9 @@ def identify_steps(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, act
     if b_samples is None:
         b_samples = np.asarray(b_inertial(t), float).reshape(-1, 3)
     I_ref = float(np.mean(np.asarray(p_guess, float)[:3]))
-    par = InertiaParam(opts.mode, I_ref, p_shape)
+    par = InertiaParam(opts.mode, I_ref, p_shape, tuple(unknown_moments))
+    if any(b <= t[0] or a >= t[-1] for a, b in par.unknown_intervals):
+        raise ValueError("an unknown-moment interval lies outside the record: nothing could fix its moment")
     bounds = segment_bounds(n, segment_length(t, b_meas[0], opts))
     G = len(bounds) - 1
     n_I = par.n
@@ -1259,7 +1347,7 @@ def identify_steps(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, act
     alive = np.arange(V)
     windows = _ss_windows(n, opts.ss_first_window, opts.ss_growth)
     for wi, nw in enumerate(windows):
-        pv = InertiaParam(opts.mode, I_ref, None if p_shape_v is None else p_shape_v[alive])
+        pv = InertiaParam(opts.mode, I_ref, None if p_shape_v is None else p_shape_v[alive], par.unknown_intervals)
         ss = SingleShooting(t, bv[alive], b_samples, action, b_inertial, pv, q0[alive], sigma_b_T, n=nw,
                             fit_bias=opts.fit_bias, omega_scale=opts.omega_scale, h_max_s=opts.h_max_s)
         prior = _prior(ss.n_params, n_I, th_I0[0], opts, sigma_b_T, pv)
@@ -1332,7 +1420,7 @@ def _turned(ms: "MultipleShooting", theta: np.ndarray, cand: np.ndarray, t: np.n
             o[:, 3:] = 0.0
             th[v, n_I:n_I + 6 * G] = o.ravel()
     par = ms.inertia
-    parw = par if par.p_shape is None else InertiaParam(par.mode, par.I_ref, par.p_shape[vrun])
+    parw = par.subset(vrun)
     msw = MultipleShooting(ms.t, ms.b_meas[vrun], b_samples, ms.action, ms.b_inertial, parw, ms.bounds, q_new,
                            ms.sigma, fit_bias=ms.fit_bias, omega_scale=ms.omega_scale, h_max_s=ms.h_max_s,
                            fd_step=ms.step, sigma_q_rad=ms.sigma_q, sigma_w_radps=ms.sigma_w)
@@ -1352,7 +1440,8 @@ def _prior(P: int, n_I: int, th_I0: np.ndarray, opts: FitOptions, sigma_b_T: flo
     sig = np.full(P, np.inf)
     mean[:n_I] = th_I0
     rel = opts.inertia_prior_rel
-    sig[:n_I] = rel if par.mode != "scale" else rel * max(abs(th_I0[0]), 1.0)
+    nt = par.n_tensor                      # the unknown moments have no prior
+    sig[:nt] = rel if par.mode != "scale" else rel * max(abs(th_I0[0]), 1.0)
     if opts.fit_bias:
         sig[-3:] = opts.bias_sigma_T / sigma_b_T
     return Prior(mean, sig)
@@ -1372,9 +1461,10 @@ def results(ss: SingleShooting, runs: LMRuns, prior: Prior | None) -> list[FitRe
         T, c = par.affine(r)
         p = T @ runs.theta[r, :n_I] + c
         pp, q0, w0, bias = ss.unpack(runs.theta[r:r + 1], np.array([r]))
+        mom, cov_m = par.moments_of(runs.theta[r, :n_I], cov[:n_I, :n_I]) if par.n_moments else (None, None)
         out.append(FitResult(p, T @ cov[:n_I, :n_I] @ T.T, w0[0], q0[0], bias[0], float(runs.data_cost[r]),
                              runs.dof, ss.n, int(runs.iterations[r]), bool(runs.converged[r]), par.mode,
-                             runs.theta[r].copy(), cov))
+                             runs.theta[r].copy(), cov, par.unknown_intervals, mom, cov_m))
     return out
 
 
@@ -1389,16 +1479,48 @@ def single_shooting_for(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn
         b_samples = np.asarray(b_inertial(t), float).reshape(-1, 3)
     p_ref = result.p if p_shape is None else np.asarray(p_shape, float)
     par = InertiaParam(result.mode, float(np.mean(p_ref[:3])) if result.mode != "shape" else float(result.p[0]),
-                       None if p_shape is None else np.atleast_2d(p_shape))
+                       None if p_shape is None else np.atleast_2d(p_shape), result.unknown_intervals)
     ss = SingleShooting(t, np.asarray(b_meas, float)[None], b_samples, action, b_inertial, par,
                         result.q0[None], sigma_b_T, n=n, fit_bias=opts.fit_bias, omega_scale=opts.omega_scale,
                         h_max_s=opts.h_max_s)
     theta = np.zeros(ss.n_params)
-    theta[:par.n] = par.from_p(result.p)
+    theta[:par.n] = par.from_p(result.p, moments_Nm=result.moments_Nm)
     theta[par.n:par.n + 3] = result.omega0_radps / opts.omega_scale
     if opts.fit_bias:
         theta[par.n + 6:] = result.bias_T / sigma_b_T
     return ss, theta
+
+
+def cramer_rao(t_s: np.ndarray, b_inertial: FieldFn, action: KnownAction, sigma_b_T: float, p: np.ndarray,
+               q0: np.ndarray, omega0_radps: np.ndarray, opts: FitOptions | None = None, *,
+               unknown_moments=(), moments_Nm: np.ndarray | None = None,
+               b_samples: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Cramér–Rao bound of the fit: the covariance (F + prior)⁻¹ of (p, unknown moments) that an efficient
+    estimator reaches, F = JᵀJ/σ_B² the Fisher information of white noise σ_B per axis, J the Jacobian
+    of the predicted samples at the given parameters (the truth, in a simulation) — tensor ``p`` (for
+    ``opts.mode`` "shape" its scale is the one of ``p``), start state (``q0``, ``omega0_radps``) at
+    ``t_s[0]``, zero offset, ``moments_Nm`` (K, 3) on ``unknown_moments``. Returns (cov_p (6, 6),
+    cov of the moments (3K, 3K))."""
+    opts = opts or FitOptions()
+    t = np.asarray(t_s, float)
+    if b_samples is None:
+        b_samples = np.asarray(b_inertial(t), float).reshape(-1, 3)
+    p = np.asarray(p, float)
+    I_ref = float(p[0]) if opts.mode in ("shape", "shape_diag") else float(np.mean(p[:3]))
+    par = InertiaParam(opts.mode, I_ref, p[None] if opts.mode == "scale" else None, tuple(unknown_moments))
+    ss = SingleShooting(t, np.zeros((1, len(t), 3)), b_samples, action, b_inertial, par,
+                        np.asarray(q0, float)[None], sigma_b_T, fit_bias=opts.fit_bias,
+                        omega_scale=opts.omega_scale, h_max_s=opts.h_max_s)
+    theta = np.zeros(ss.n_params)
+    theta[:par.n] = par.from_p(p, moments_Nm=moments_Nm)
+    theta[par.n:par.n + 3] = np.asarray(omega0_radps, float) / opts.omega_scale
+    _, _, A, _, _ = ss.evaluate(theta[None], np.zeros(1, int))
+    prior = _prior(ss.n_params, par.n, theta[:par.n], opts, sigma_b_T, par)
+    cov = A.inverse((prior.w ** 2)[None])[0]
+    T, _ = par.affine()
+    nI, nt = par.n, par.n_tensor
+    s = par.moment_scale_Nm
+    return T @ cov[:nI, :nI] @ T.T, cov[nt:nI, nt:nI] * s * s
 
 
 def trajectory(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, action: KnownAction,

@@ -405,6 +405,22 @@ def principal_ratios(J: np.ndarray) -> np.ndarray:
     return I[:2] / I[2]
 
 
+def principal_ratios_cov(p: np.ndarray, cov_p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(I1/I3, I2/I3) of the tensor p (6,) and their covariance (2, 2) from the covariance of p.
+
+    First order: dI_i/dJ = v_i v_iᵀ (v_i the unit principal axis; a product of inertia enters J twice),
+    d(I_i/I3) = (dI_i − (I_i/I3) dI3)/I3. Valid while the principal moments are distinct by more than
+    their uncertainty.
+    """
+    I, R = principal_axes(tensor(p))
+    G = np.zeros((3, 6))
+    for k, (a, b) in enumerate(INDEX):
+        G[:, k] = R[a, :] * R[b, :] * (1.0 if a == b else 2.0)
+    r = I[:2] / I[2]
+    D = (G[:2] - np.outer(r, G[2])) / I[2]
+    return r, D @ np.asarray(cov_p, float) @ D.T
+
+
 # --- method 6: physical checks -------------------------------------------------------------------
 
 def physical_checks(J: np.ndarray, rel_tol: float = 1e-9) -> dict:

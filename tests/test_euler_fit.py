@@ -1,0 +1,119 @@
+"""Output-error fit (fsw.estimation.euler_fit) with moments of unknown size and its Cramér–Rao bound,
+against a rigid body integrated by hil.dynamics: the shape of the tensor from the whole record, pulses
+included, without the torque's size."""
+import numpy as np
+import pytest
+
+from fsw.estimation import euler_fit as ef
+from fsw.estimation import inertia as inr
+from hil.dynamics import RigidBody, quat_to_dcm
+from hil.field import DipoleField, FieldAlongOrbit
+from hil.orbit import CircularOrbit
+
+FIELD = FieldAlongOrbit(CircularOrbit(600e3, 97.8, 30.0, 45.0), DipoleField(2025.5))
+ASYM = np.array([[161.1, -27.0, -18.0], [-27.0, 207.6, -39.1], [-18.0, -39.1, 271.2]])
+PULSE = (60.0, 120.0)
+M_PULSE = np.array([0.0, 0.2, -0.1])
+Q0 = np.array([0.9, 0.1, -0.3, 0.3]) / np.linalg.norm([0.9, 0.1, -0.3, 0.3])
+
+
+def simulate(J, omega0_dps, T, moment_fn, h=0.25, seed=0, sigma=1.5e-6):
+    """Samples at 1 Hz (t = 0.5, 1.5, ...) of a rigid body under a moment; also the state at t = 0.5 s."""
+    body = RigidBody(J, Q0, np.radians(omega0_dps))
+    rng = np.random.default_rng(seed)
+    t, out_t, out_b, first = 0.0, [], [], None
+    while t < T:
+        body.step(h, moment_fn(t + h / 2))
+        t += h
+        if abs((t - 0.5) % 1.0) < 1e-9:
+            first = first or (body.q.copy(), body.omega_radps.copy())
+            out_t.append(t)
+            out_b.append(quat_to_dcm(body.q).T @ FIELD.b_eci_T(t) + sigma * rng.standard_normal(3))
+    return np.array(out_t), np.array(out_b), first
+
+
+def pulse(t):
+    return M_PULSE if PULSE[0] <= t < PULSE[1] else np.zeros(3)
+
+
+def test_an_unknown_moment_set_to_the_known_one_is_the_known_action():
+    """The same trajectory whether a moment is known (KnownAction) or an unknown one given its value."""
+    t = np.arange(0.5, 200.0, 1.0)
+    p = inr.params(ASYM)
+    w0 = np.radians([1.0, 0.6, -0.9])
+    known = ef.propagate(Q0, w0, p, 0.0, t, ef.KnownAction.pulses([(PULSE[0], PULSE[1] - PULSE[0], M_PULSE)]),
+                         FIELD.b_eci_T, h_max_s=1.0)
+    tt = np.concatenate([[0.0], t])
+    seg = ef.Segments.build(tt, [0, len(tt) - 1], ef.KnownAction.none(), FIELD.b_eci_T, 1.0,
+                            unknown_intervals=[PULSE])
+    ends = np.cumsum(seg.h[:, 0])                      # steps end on the pulse's edges, never cross them
+    assert np.any(np.isclose(ends, PULSE[0])) and np.any(np.isclose(ends, PULSE[1]))
+    assert seg.h[seg.unknown[:, 0] == 0, 0].sum() == pytest.approx(PULSE[1] - PULSE[0])
+    for u, ref in ((M_PULSE, known["omega_radps"]), (np.zeros(3), None)):
+        ps = ef.Pass(seg, np.zeros(1, int), p[:, None], Q0[:, None], w0[:, None], np.zeros((3, 1)), keep_states=True,
+                     u=u.reshape(1, 3, 1))
+        ps.advance()
+        w = ps.states[0, 1:, 4:]
+        if ref is not None:
+            np.testing.assert_allclose(w, ref, atol=1e-12)
+        else:                                          # no moment: the angular momentum is conserved
+            R = np.array([quat_to_dcm(q) for q in ps.states[0, 1:, :4]])
+            H = np.einsum("kij,jl,kl->ki", R, ASYM, w)
+            np.testing.assert_allclose(H, np.broadcast_to(H[0], H.shape), atol=1e-9 * np.linalg.norm(H[0]))
+
+
+def test_unknown_intervals_must_not_overlap():
+    with pytest.raises(ValueError):
+        ef.InertiaParam("shape", 100.0, None, ((10.0, 30.0), (20.0, 40.0)))
+    with pytest.raises(ValueError):
+        ef.InertiaParam("shape", 100.0, None, ((30.0, 30.0),))
+    par = ef.InertiaParam("shape", 100.0, None, ((10.0, 30.0), (40.0, 50.0)))
+    assert (par.n_tensor, par.n_moments, par.n) == (5, 6, 11)
+    th = par.from_p(inr.params(ASYM) / ASYM[0, 0] * 100.0, moments_Nm=[[0.1, 0.2, 0.3], [0, 0, -0.2]])
+    np.testing.assert_allclose(par.to_p(th[None], np.zeros(1, int))[0], inr.params(ASYM) / ASYM[0, 0] * 100.0)
+    np.testing.assert_allclose(par.to_moments(th[None])[:, :, 0], [[0.1, 0.2, 0.3], [0, 0, -0.2]])
+
+
+@pytest.fixture(scope="module")
+def shape_fit():
+    """One shape fit of 400 s of an asymmetric body with products of inertia, with a pulse of unknown
+    size; sensor noise 0.5 µT."""
+    sigma = 0.5e-6
+    t, b, (q_first, w_first) = simulate(ASYM, [1.0, 0.6, -0.9], 400.0, pulse, sigma=sigma)
+    fit = ef.identify(t, b[None], FIELD.b_eci_T, ef.KnownAction.none(), sigma, np.array([150.0] * 3 + [0.0] * 3),
+                      ef.FitOptions(mode="shape"), unknown_moments=[PULSE])[0]
+    crb_p, crb_m = ef.cramer_rao(t, FIELD.b_eci_T, ef.KnownAction.none(), sigma, inr.params(ASYM), q_first, w_first,
+                                 ef.FitOptions(mode="shape"), unknown_moments=[PULSE], moments_Nm=[M_PULSE])
+    return fit, crb_p, crb_m
+
+
+def test_shape_from_the_whole_record_without_the_torque_size(shape_fit):
+    fit, crb_p, crb_m = shape_fit
+    assert 0.8 < fit.s2 < 1.2
+    r_true = inr.principal_ratios(ASYM)
+    r, cov_r = inr.principal_ratios_cov(fit.p, fit.cov_p)
+    sd = np.sqrt(np.diag(cov_r))
+    assert np.all(np.abs(r - r_true) < 4 * sd) and np.all(np.abs(r / r_true - 1) < 0.01), (r, r_true, sd)
+    # the moment comes out in the shape's scale: times κ = true/fitted it is the applied one
+    kappa = ASYM[0, 0] / fit.p[0]
+    assert fit.unknown_intervals == (PULSE,) and fit.moments_Nm.shape == (1, 3)
+    sd_m = np.sqrt(np.diag(fit.cov_moments)) * kappa
+    np.testing.assert_array_less(np.abs(fit.moments_Nm[0] * kappa - M_PULSE), 4 * sd_m + 1e-4)
+
+
+def test_the_fits_covariance_is_the_cramer_rao_bound(shape_fit):
+    """At the optimum the fit's s²(JᵀJ)⁻¹ and the bound at the truth agree (white noise, known σ)."""
+    fit, crb_p, crb_m = shape_fit
+    scale = fit.p[0] / ASYM[0, 0]
+    _, c_fit = inr.principal_ratios_cov(fit.p, fit.cov_p)
+    _, c_crb = inr.principal_ratios_cov(inr.params(ASYM), crb_p)
+    np.testing.assert_allclose(np.sqrt(np.diag(c_fit)), np.sqrt(np.diag(c_crb)), rtol=0.2)
+    np.testing.assert_allclose(np.sqrt(np.diag(fit.cov_moments)), np.sqrt(np.diag(crb_m)) * scale, rtol=0.2)
+
+
+def test_an_unknown_moment_outside_the_record_is_refused():
+    t = np.arange(0.5, 50.0, 1.0)
+    b = np.tile([2e-5, 0.0, 1e-5], (len(t), 1))
+    with pytest.raises(ValueError, match="outside the record"):
+        ef.identify(t, b[None], FIELD.b_eci_T, ef.KnownAction.none(), 1e-6, np.array([1.0] * 3 + [0.0] * 3),
+                    ef.FitOptions(mode="shape"), unknown_moments=[(60.0, 70.0)])
