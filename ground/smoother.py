@@ -31,6 +31,7 @@ from fsw.estimation import kalman as kl
 from fsw.estimation.rate_formulas import SIGMA_UNOBSERVED_RADPS
 
 FieldFn = Callable[[float], np.ndarray]
+SHAPE_SIGMA_FLOOR = 0.01  # 1-σ floor of ln(J₂/J₁), ln(J₃/J₁) carried into the Euler RTS smoother
 
 
 @dataclass
@@ -92,6 +93,26 @@ def rts(log: dict, n_att: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         x_s[k] = x_f[k] + dx[n_att:]
         P_s[k] = P_f[k] + C @ (P_s[k + 1] - P_p[k + 1]) @ C.T
     return q_s, x_s, P_s
+
+
+def variance_scale(log: dict, skip: int = 10) -> float:
+    """Variance of unit weight of a filter pass from its normalised innovations (NIS, 3 per sample):
+    ĉ = Σ yᵀS⁻¹y / (3 n) over the samples at least `skip` after a (re)start, where the prior still
+    dominates. For a linear-Gaussian model with every covariance (P₀, Q, R) scaled by c, ĉ is the
+    maximum-likelihood c (Bar-Shalom et al. 2001 §5.4, the filter's χ² consistency test); the
+    smoothed covariance scales by it too. Returns max(1, ĉ): the noise levels are known or fitted
+    at least as large, a smaller ĉ is the samples' scatter, not a reason to trust the model more."""
+    nis = np.asarray(log.get("nis", []), float)
+    restart = np.asarray(log.get("restart", [False] * len(nis)), bool)[:len(nis)]
+    since = np.zeros(len(nis), int)
+    c = skip
+    for k in range(len(nis)):
+        c = 0 if restart[k] else c + 1
+        since[k] = c
+    use = (since >= skip) & np.isfinite(nis)
+    if use.sum() < 3:
+        return 1.0
+    return max(1.0, float(np.mean(nis[use])) / 3.0)
 
 
 def _forward(t, b, sigma_b_T, field_eci_T, noise, angle, start=None, store=False):
@@ -159,12 +180,13 @@ def rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_
         start["beta_uT"] = back.beta
     kf = _forward(t, b, sigma_b_T, field_eci_T, noise, angle, start=start, store=True)
     q_s, x_s, P_s = rts(kf.log)
-    sig = np.sqrt(np.clip(np.einsum("kii->ki", P_s[:, 3:6, 3:6]), 0.0, None))
+    c = variance_scale(kf.log)
+    sig = np.sqrt(c * np.clip(np.einsum("kii->ki", P_s[:, 3:6, 3:6]), 0.0, None))
     chi2 = _chi2(t, b, sigma_b_T * noise[2], q_s, x_s, field_eci_T)
     return Smoothed(t, x_s[:, :3].copy(), np.minimum(sig, SIGMA_UNOBSERVED_RADPS), q_s, "smoother",
                     chi2 / max(3 * len(t) - 6, 1), info={"kappa": noise[0], "rate_accel_radps2": noise[1],
                                                           "sigma_factor": noise[2], "angle_about_b_rad": angle,
-                                                          "nll": kf.nll})
+                                                          "nll": kf.nll, "variance_scale": c})
 
 
 def _chi2(t, b, sigma_b_T, q, x, field_eci_T) -> float:
@@ -425,17 +447,26 @@ def euler_rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, fiel
     field_eci_T = tabulated(field_eci_T, t)
     init = init or euler_fit(t, b, sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2)
     J = inertia_kgm2
+    shape = None
     if J is None:
-        J = np.diag(init.inertia_shape if init.inertia_shape is not None else np.ones(3))
+        if init.inertia_shape is not None:
+            shape = init.inertia_shape
+        else:
+            J = np.eye(3)
 
     def run(accel, store):
-        kf = kl.AttitudeRateKalman(sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=J, store=store,
-                                   tuning=kl.AttitudeKalmanTuning(rate_accel_radps2=accel, adapt_max=1.0,
-                                                                  max_substep_rad=0.25, max_substeps=400))
+        tun = kl.AttitudeKalmanTuning(rate_accel_radps2=accel, adapt_max=1.0, max_substep_rad=0.25,
+                                      max_substeps=400)
+        kf = kl.AttitudeRateKalman(sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=J,
+                                   estimate_inertia=shape is not None, store=store, tuning=tun)
         n = kf.n
         P0 = np.zeros((n, n))
         P0[3:6, 3:6] = 0.05 ** 2 * np.eye(3)
         start = {"q": init.q[0], "omega_radps": init.w_radps[0], "P": P0}
+        if shape is not None:  # the fitted shape with its uncertainty (the fit's covariance, floored)
+            start["p"] = np.log(shape[1:])
+            cov_p = np.asarray(init.info.get("cov_x0", np.zeros((n, n))))[6:8, 6:8]
+            P0[6:8, 6:8] = cov_p + SHAPE_SIGMA_FLOOR ** 2 * np.eye(2)
         if field_eci_T is None:
             start["beta_uT"] = init.info.get("beta_uT")
             P0[kf.i_beta:, kf.i_beta:] = (3 * sigma_b_T * kl.UT_PER_T) ** 2 * np.eye(3)
@@ -455,11 +486,14 @@ def euler_rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, fiel
     accel = min(fits, key=fits.get)
     kf = run(accel, True)
     q_s, x_s, P_s = rts(kf.log)
-    sig = np.sqrt(np.clip(np.einsum("kii->ki", P_s[:, 3:6, 3:6]), 0.0, None))
+    c = variance_scale(kf.log)
+    sig = np.sqrt(c * np.clip(np.einsum("kii->ki", P_s[:, 3:6, 3:6]), 0.0, None))
     chi2 = _chi2(t, b, sigma_b_T, q_s, x_s, field_eci_T)
+    if shape is not None:
+        shape = np.concatenate([[1.0], np.exp(x_s[0, 3:5])])
     return Smoothed(t, x_s[:, :3].copy(), np.minimum(sig, SIGMA_UNOBSERVED_RADPS), q_s, "euler_rts",
-                    chi2 / max(3 * len(t) - kf.n, 1), init.inertia_shape,
-                    info={"rate_accel_radps2": accel, "nll": kf.nll, "resets": kf.resets})
+                    chi2 / max(3 * len(t) - kf.n, 1), init.inertia_shape if shape is None else shape,
+                    info={"rate_accel_radps2": accel, "nll": kf.nll, "resets": kf.resets, "variance_scale": c})
 
 
 def smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,

@@ -4,6 +4,7 @@ sedelnikov2024 Table 3.
     python -m hil.accuracy                       # the full table (README), a few minutes on 2 cores
     python -m hil.accuracy --json acc.json --jobs 2
     python -m hil.accuracy --quick               # two rows, one run each: a smoke test
+    python -m hil.accuracy --rows orbital --methods smoother   # a subset of rows; boer + the ground smoothers
 
 Rows: mode × sampling step (1 s, 3 s) × noise (0.5 µT, the paper's 1.5 µT) × body.
 
@@ -31,7 +32,9 @@ Each run: the onboard filters run from t = 0 over a warm-up (`warmup_s`, as they
 the scored record of `record_samples` samples; the formulas and the ground smoothers see only the
 record. Errors are taken against the truth at the sample times, pooled over the runs of a row:
 the full vector (for the methods that estimate it) and the part perpendicular to the true B.
-Coverage: share of per-axis errors inside ±1σ.
+Coverage: share of per-axis errors inside ±1σ, with its spread over the runs (a run's error is one
+draw for all its samples: `coverage_se`, `runs_for_coverage_pm10` in the JSON). Orbital rows also
+carry the information limit of the random-walk model on the record (:func:`information_limit`).
 
 Methods: ``boer`` (perpendicular), ``derivative``, ``kotelnikov`` (series, analytic form); onboard:
 ``kalman`` (fsw RateKalman, fixed field, the filter flown by default), ``kalman_orbit`` (attitude
@@ -83,6 +86,7 @@ class Run:
     record: slice
     field: fm.OrbitField
     meta: dict = field(default_factory=dict)
+    q_true: np.ndarray | None = None   # (N, 4) body → ECI, for the information limit
 
 
 def _random_unit(rng) -> np.ndarray:
@@ -108,13 +112,13 @@ def simulate(mode: str, body: str, dt_s: float, sigma_T: float, rng: np.random.G
     b_i = truth_field.b_eci_T(t)
     rate = math.radians(rng.uniform(lo, hi))
     if mode == "orbital":
-        b_true, w = _orbital(t, truth_field.orbit, b_i, rate, rng)
+        b_true, w, q = _orbital(t, truth_field.orbit, b_i, rate, rng)
         b_meas = _measure(b_true, sigma_T, rng)
     else:
-        b_true, w, b_meas = _tumble(t, BODIES[body], b_i, truth_field, rate, mode == "bdot", sigma_T, rng)
+        b_true, w, b_meas, q = _tumble(t, BODIES[body], b_i, truth_field, rate, mode == "bdot", sigma_T, rng)
     return Run(t, b_meas, b_true, w, slice(n_warm, n), est_field,
                {"mode": mode, "body": body, "dt_s": dt_s, "sigma_uT": sigma_T * 1e6, "raan_deg": raan,
-                "arg_lat0_deg": u0, "rate0_dps": math.degrees(rate)})
+                "arg_lat0_deg": u0, "rate0_dps": math.degrees(rate)}, q)
 
 
 def _tumble(t, J, b_i, truth_field, rate, bdot, sigma_T, rng):
@@ -123,6 +127,7 @@ def _tumble(t, J, b_i, truth_field, rate, bdot, sigma_T, rng):
     body_ = dynamics.RigidBody(J, q0, _random_unit(rng) * rate)
     n = len(t)
     b_true, w, b_meas = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
+    q = np.zeros((n, 4))
     k_gain = float(np.trace(J)) / 3.0 / (BDOT_TAU_S * BDOT_B_NOM_T ** 2)
     m_max = k_gain * BDOT_B_NOM_T * BDOT_SAT_RADPS
     m = np.zeros(3)
@@ -139,6 +144,7 @@ def _tumble(t, J, b_i, truth_field, rate, bdot, sigma_T, rng):
                     M = np.cross(m, b_body)
                 body_.step(h, M)
         b_true[k] = dynamics.quat_to_dcm(body_.q).T @ b_i[k]
+        q[k] = body_.q
         w[k] = body_.omega_radps
         meas = _measure(b_true[k], sigma_T, rng)
         if bdot:
@@ -146,7 +152,7 @@ def _tumble(t, J, b_i, truth_field, rate, bdot, sigma_T, rng):
             if k:
                 m = np.clip(-k_gain * (meas - b_meas[k - 1]) / (t[k] - t[k - 1]), -m_max, m_max)
         b_meas[k] = meas
-    return b_true, w, b_meas
+    return b_true, w, b_meas, q
 
 
 def _orbital(t, orbit, b_i, rate, rng):
@@ -167,14 +173,82 @@ def _orbital(t, orbit, b_i, rate, rng):
         return R_lo @ kl.so3_exp(amp * np.sin(2 * math.pi * tt / periods + phases))
 
     n = len(t)
-    b_true, w = np.zeros((n, 3)), np.zeros((n, 3))
+    b_true, w, q = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 4))
     h = 1e-3
     for k in range(n):
         R = dcm(t[k])
         b_true[k] = R.T @ b_i[k]
+        q[k] = sm._quat_from_dcm(R)
         dR = dcm(t[k] - h).T @ dcm(t[k] + h)
         w[k] = kl.quat_log(sm._quat_from_dcm(dR)) / (2 * h)
-    return b_true, w
+    return b_true, w, q
+
+
+# --- the information limit --------------------------------------------------------------------------
+
+def information_limit(run: Run, sigma_b_T: float, accel_radps2: float | None = None,
+                      sigma_angle0_rad: float = math.pi, sigma_rate0_radps: float = 0.5) -> dict:
+    """Posterior Cramér–Rao bound (Tichavský et al. 1998) of ω on the record, linearised on the truth.
+
+    The error state [δθ, δω] (body-frame attitude error, rate error) of the attitude filter's model:
+    δθ_{k+1} = exp(−[ω_kΔt]ₓ) δθ_k + Δt J_r(ω_kΔt) δω_k, δω a random walk of per-step variance
+    a²Δt; z_k = R_kᵀ B_I(t_k) + v, H_k = [[h_k]ₓ, 0], v ~ N(0, σ_B² I); a diffuse prior (σ_θ = π,
+    σ_ω = 0.5 rad/s). For a linear-Gaussian model the RTS covariance is the Bayesian information
+    limit: no estimator that knows only this model (and the field along the orbit, and σ_B) can do
+    better on average. `accel_radps2` = a; by default the truth's own: a² = mean |Δω|² / (3Δt).
+    With a → 0 the motion is "known up to a constant rate offset and the initial attitude", the most
+    favourable smooth model. Returns per-sample 1-σ of the component along the true B and the RMS
+    over the record of the along-B and full-vector σ (rad/s), smoothed and causal (the filter's bound
+    from a diffuse prior at the record's first sample, i.e. without the onboard warm-up).
+    """
+    rec = run.record
+    t, q, w = run.t_s[rec], run.q_true[rec], run.w_true_radps[rec]
+    dt = np.diff(t)
+    if accel_radps2 is None:
+        dw = np.diff(w, axis=0)
+        accel_radps2 = math.sqrt(float(np.mean(np.sum(dw ** 2, axis=1) / (3.0 * dt))))
+    b_i = np.asarray(run.field.b_eci_T(t), float).reshape(len(t), 3)
+    n = len(t)
+    Rm = sigma_b_T ** 2 * np.eye(3)
+    P = np.diag([sigma_angle0_rad ** 2] * 3 + [sigma_rate0_radps ** 2] * 3)
+    Pf, Pp, Fs = np.zeros((n, 6, 6)), np.zeros((n, 6, 6)), np.zeros((n, 6, 6))
+    bh = np.zeros((n, 3))
+    for k in range(n):
+        if k:
+            phi = w[k - 1] * dt[k - 1]
+            F = np.eye(6)
+            F[:3, :3] = kl.so3_exp(-phi)
+            F[:3, 3:] = dt[k - 1] * kl.so3_right_jacobian(phi)
+            qw = accel_radps2 ** 2 * dt[k - 1]
+            d = dt[k - 1]
+            Q = np.zeros((6, 6))
+            Q[:3, :3] = qw * d * d / 3 * np.eye(3)
+            Q[:3, 3:] = Q[3:, :3] = qw * d / 2 * np.eye(3)
+            Q[3:, 3:] = qw * np.eye(3)
+            P = F @ P @ F.T + Q
+            Fs[k] = F
+        Pp[k] = P
+        h = kl.quat_to_dcm(q[k]).T @ b_i[k]
+        bh[k] = h / np.linalg.norm(h)
+        H = np.hstack([kl.skew(h), np.zeros((3, 3))])
+        S = H @ P @ H.T + Rm
+        K = np.linalg.solve(S, H @ P).T
+        IKH = np.eye(6) - K @ H
+        P = IKH @ P @ IKH.T + K @ Rm @ K.T
+        Pf[k] = P
+    Ps = Pf.copy()
+    for k in range(n - 2, -1, -1):
+        C = np.linalg.solve(Pp[k + 1], Fs[k + 1] @ Pf[k]).T
+        Ps[k] = Pf[k] + C @ (Ps[k + 1] - Pp[k + 1]) @ C.T
+    Pw, Pc = Ps[:, 3:, 3:], Pf[:, 3:, 3:]
+    along = np.sqrt(np.einsum("ki,kij,kj->k", bh, Pw, bh))
+
+    def rms(a):
+        return float(np.sqrt(np.mean(a)))
+    return {"accel_radps2": accel_radps2, "sigma_along_b_radps": along,
+            "rms_along_b_radps": rms(along ** 2), "rms_full_radps": rms(np.einsum("kii->k", Pw)),
+            "rms_causal_along_b_radps": rms(np.einsum("ki,kij,kj->k", bh, Pc, bh)),
+            "rms_causal_full_radps": rms(np.einsum("kii->k", Pc))}
 
 
 # --- the estimators ---------------------------------------------------------------------------------
@@ -268,7 +342,7 @@ def all_rows() -> list[Row]:
 def run_row(row: Row, runs: int, seed: int, record_samples: int, warmup_s: float,
             methods=METHODS) -> dict:
     """Monte-Carlo runs of a row (seed from the row's position and `seed`); the pooled statistics."""
-    pooled: dict[str, dict[str, list]] = {m: {"perp": [], "full": [], "z": []} for m in methods}
+    pooled: dict[str, dict[str, list]] = {m: {"perp": [], "full": [], "z": [], "cov_run": []} for m in methods}
     rates, meta = [], []
     row_seed = [seed, list(MODES).index(row.mode), list(BODIES).index(row.body), int(row.dt_s),
                 int(round(10 * row.sigma_uT))]
@@ -281,7 +355,12 @@ def run_row(row: Row, runs: int, seed: int, record_samples: int, warmup_s: float
         for name, d in errors(run, est).items():
             for k, v in d.items():
                 pooled[name][k].append(v)
+            if "z" in d and d["z"].size:
+                pooled[name]["cov_run"].append(float(np.mean(d["z"] < 1.0)))
         rates.append(np.linalg.norm(run.w_true_radps[run.record], axis=1))
+        if row.mode == "orbital":  # the information limit of the random-walk model (see information_limit)
+            lim = information_limit(run, sigma_b)
+            run.meta["information_limit"] = {k: v for k, v in lim.items() if k != "sigma_along_b_radps"}
         meta.append(run.meta)
     out = {"row": row.__dict__, "key": row.key, "runs": runs,
            "mean_rate_dps": math.degrees(float(np.mean(np.concatenate(rates)))), "methods": {}, "meta": meta}
@@ -295,7 +374,13 @@ def run_row(row: Row, runs: int, seed: int, record_samples: int, warmup_s: float
         if d["z"]:
             z = np.concatenate(d["z"])
             res["coverage_1sigma"] = float(np.mean(z < 1.0)) if z.size else math.nan
+            res.update(coverage_spread(d["cov_run"]))
         out["methods"][name] = res
+    lims = [m["information_limit"] for m in meta if "information_limit" in m]
+    if lims:
+        out["information_limit"] = {k.replace("radps", "dps"): math.degrees(math.sqrt(np.mean([d[k] ** 2
+                                                                                               for d in lims])))
+                                    for k in lims[0] if k.startswith("rms_")}
     boer = out["methods"].get("boer", {}).get("perp_rms_dps", math.nan)
 
     def best(names):
@@ -309,9 +394,23 @@ def run_row(row: Row, runs: int, seed: int, record_samples: int, warmup_s: float
     return out
 
 
+def coverage_spread(per_run: list[float], half_width: float = 0.10) -> dict:
+    """The coverage's own uncertainty. A run's error is one draw for all its samples (the record's few
+    poorly known parameters set it), so the runs, not the samples, are the independent trials: the
+    standard error of the pooled coverage is the spread of the per-run coverages / √runs, and
+    (1.96 · spread / `half_width`)² runs give a 95 % interval ±`half_width` (±10 points resolves
+    60–80 % around 70 %)."""
+    c = np.asarray(per_run, float)
+    if c.size < 2:
+        return {"coverage_runs": c.tolist()}
+    sd = float(np.std(c, ddof=1))
+    return {"coverage_runs": c.tolist(), "coverage_se": sd / math.sqrt(c.size),
+            "runs_for_coverage_pm10": int(math.ceil((1.96 * sd / half_width) ** 2))}
+
+
 def run_benchmark(rows: list[Row], runs: int = 3, seed: int = 2024, record_samples: int = 120,
-                  warmup_s: float = 300.0, jobs: int = 1, log=print) -> dict:
-    args = [(row, runs, seed, record_samples, warmup_s) for row in rows]
+                  warmup_s: float = 300.0, jobs: int = 1, log=print, methods=METHODS) -> dict:
+    args = [(row, runs, seed, record_samples, warmup_s, methods) for row in rows]
     t0 = time.monotonic()
     results = []
     if jobs > 1:
@@ -336,10 +435,11 @@ def _row_job(a):
 
 def _progress(res, t0) -> str:
     bo, bg = res["best_onboard"], res["best_ground"]
+    cov = res["methods"].get(bg["method"] or "", {}).get("coverage_1sigma", math.nan)
     return (f"[{time.monotonic() - t0:6.0f} s] {res['key']:<38s} |ω| {res['mean_rate_dps']:5.1f} °/s  "
             f"Boer⊥ {res['methods']['boer']['perp_rms_dps']:6.3f}  onboard {bo['method']} "
             f"{bo['full_rms_dps']:6.3f} ({bo['ratio_to_boer_perp']:.2f})  ground {bg['method']} "
-            f"{bg['full_rms_dps']:6.3f} ({bg['ratio_to_boer_perp']:.3f})")
+            f"{bg['full_rms_dps']:6.3f} ({bg['ratio_to_boer_perp']:.3f}) cov {100 * cov:.0f} %")
 
 
 def targets(results: list[dict]) -> dict:
@@ -445,6 +545,8 @@ def main(argv=None) -> int:
     ap.add_argument("--warmup-s", type=float, default=300.0, help="onboard filters' warm-up (default 300 s)")
     ap.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
     ap.add_argument("--rows", default="", help="only rows whose key contains this text (e.g. 'undirected')")
+    ap.add_argument("--methods", default="",
+                    help="comma-separated subset of " + ",".join(METHODS) + " (boer always; default all)")
     ap.add_argument("--quick", action="store_true", help="two rows, one short run each (smoke test)")
     ap.add_argument("--real", metavar="DIR", help="instead: the table on the real recordings (*.csv) in DIR")
     ap.add_argument("--max-s", type=float, default=None, help="with --real: only the first S seconds of each")
@@ -466,7 +568,16 @@ def main(argv=None) -> int:
         runs, rec, warm = 1, 60, 120.0
     if not rows:
         ap.error(f"no row matches {args.rows!r}")
-    bench = run_benchmark(rows, runs, args.seed, rec, warm, args.jobs)
+    methods = METHODS
+    if args.methods:
+        wanted = {m.strip() for m in args.methods.split(",") if m.strip()}
+        unknown = wanted - set(METHODS)
+        if unknown:
+            ap.error(f"unknown method(s) {sorted(unknown)}; choose from {', '.join(METHODS)}")
+        if wanted & set(GROUND):
+            wanted |= set(GROUND)  # computed together ("auto" chooses among them)
+        methods = tuple(m for m in METHODS if m == "boer" or m in wanted)
+    bench = run_benchmark(rows, runs, args.seed, rec, warm, args.jobs, methods=methods)
     print()
     print(markdown(bench))
     for name, items in bench["targets"].items():

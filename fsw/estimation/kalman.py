@@ -570,8 +570,8 @@ class AttitudeRateKalman:
     shape would absorb the large early errors and the filter would diverge. Innovations far outside S
     (NIS > `nis_reset` three times in a row) send it back to acquisition.
 
-    `store=True` keeps, per sample, the predicted and filtered states, covariances and transition
-    matrices for the RTS smoother (ground/smoother.py).
+    `store=True` keeps, per sample, the predicted and filtered states, covariances, transition
+    matrices and normalised innovations (NIS) for the RTS smoother (ground/smoother.py).
     """
 
     PERPENDICULAR_ONLY, DEGENERATE, NO_ESTIMATE, DATA_GAP = PERPENDICULAR_ONLY, DEGENERATE, NO_ESTIMATE, DATA_GAP
@@ -603,7 +603,8 @@ class AttitudeRateKalman:
         self.angle_about_b_rad = float(angle_about_b_rad)
         self.R = ((self.sigma_b_T ** 2 + tun.field_sigma_T ** 2) * UT_PER_T ** 2) * np.eye(3)
         self.store = store
-        self.log: dict[str, list] = {k: [] for k in ("t", "qp", "xp", "Pp", "F", "q", "x", "P", "restart")}
+        self.log: dict[str, list] = {k: [] for k in ("t", "qp", "xp", "Pp", "F", "q", "x", "P", "restart",
+                                                     "nis")}
         self.omega_radps = np.zeros(3)
         self.sigma_radps = np.full(3, SIGMA_UNOBSERVED_RADPS)
         self.flags = NO_ESTIMATE
@@ -820,6 +821,7 @@ class AttitudeRateKalman:
             lg["q"].append(self.q.copy())
             lg["x"].append(self._x())
             lg["P"].append(self.P.copy())
+            lg["nis"].append(self.nis)
 
     def _x(self) -> np.ndarray:
         return np.concatenate([self.w, self.p, self.beta])
