@@ -86,6 +86,9 @@ def estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, fie
     if method == "kalman":
         w, s, _ = kl.kalman_rate(t, b, sigma_b_T)
         return w, s, notes
+    if method == "kalman-euler" and inertia_kgm2 is None:  # shape unknown: the parallel-hypothesis acquisition
+        w, s, _ = kl.attitude_kalman_rate(t, b, sigma_b_T, field_eci_T=sm.tabulated(field, t), hypotheses=True)
+        return w, s, notes
     if method in ("kalman-orbit", "kalman-euler"):
         w, s, _ = kl.attitude_kalman_rate(t, b, sigma_b_T, field_eci_T=sm.tabulated(field, t),
                                           estimate_inertia=method == "kalman-euler" and inertia_kgm2 is None,

@@ -39,8 +39,11 @@ carry the information limit of the random-walk model on the record (:func:`infor
 Methods: ``boer`` (perpendicular), ``derivative``, ``kotelnikov`` (series, analytic form); onboard:
 ``kalman`` (fsw RateKalman, fixed field, the filter flown by default), ``kalman_orbit`` (attitude
 filter with the field along the orbit), ``kalman_euler`` (that plus Euler's equations with the inertia
-shape estimated); ground: ``smoother`` (RTS with the field model), ``euler`` (batch torque-free fit with
-the field model), ``auto`` (the Euler fit when χ²/dof ≤ 1.5, else the RTS smoother).
+shape estimated, acquired by parallel shape hypotheses: kalman.EulerAcquisitionKalman); ground:
+``smoother`` (RTS with the field model), ``euler`` (batch torque-free fit with the field model),
+``euler_rts`` (RTS over the Euler filter), ``auto`` (ground.smoother.auto_choice: the Euler fit when
+χ²/dof ≤ 1.5 and it agrees with the Euler RTS smoother within 3 combined σ, else that smoother, else
+the random-walk RTS smoother).
 """
 from __future__ import annotations
 
@@ -270,7 +273,7 @@ def estimate(run: Run, sigma_b_T: float, methods=METHODS) -> dict[str, tuple[np.
         "kalman": lambda: kl.kalman_rate(run.t_s, run.b_T, sigma_b_T),
         "kalman_orbit": lambda: kl.attitude_kalman_rate(run.t_s, run.b_T, sigma_b_T, field_eci_T=field),
         "kalman_euler": lambda: kl.attitude_kalman_rate(run.t_s, run.b_T, sigma_b_T, field_eci_T=field,
-                                                        estimate_inertia=True),
+                                                        hypotheses=True),
     }
     for name, fn in onboard.items():
         if name in methods:
@@ -289,13 +292,10 @@ def estimate(run: Run, sigma_b_T: float, methods=METHODS) -> dict[str, tuple[np.
         except (RuntimeError, ValueError, np.linalg.LinAlgError):
             pass
         # "auto" as ground.smoother.smooth chooses
-        if eu is not None and np.isfinite(eu.chi2_dof) and eu.chi2_dof <= 1.5:
-            out["auto"], choice = out["euler"], "euler"
-        elif er is not None and er.info["resets"] == 0:
-            out["auto"], choice = out["euler_rts"], "euler_rts"
-        else:
-            out["auto"], choice = out["smoother"], "random_walk"
+        choice = sm.auto_choice(eu, er)
+        out["auto"] = out[{"euler": "euler", "euler_rts": "euler_rts", "random_walk": "smoother"}[choice]]
         run.meta["euler_chi2_dof"] = None if eu is None else float(eu.chi2_dof)
+        run.meta["euler_vs_rts_z"] = None if eu is None or er is None else sm.disagreement(eu, er)
         run.meta["auto_model"] = choice
     return {k: v for k, v in out.items() if k in methods}
 

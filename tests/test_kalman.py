@@ -241,3 +241,55 @@ def test_quat_aligning():
     for angle in (0.0, 1.0, math.pi):
         q = kl.quat_aligning(bb, bi, angle)
         np.testing.assert_allclose(kl.quat_to_dcm(q) @ (bb / np.linalg.norm(bb)), bi / np.linalg.norm(bi), atol=1e-12)
+
+
+# --- acquisition of the Euler filter by parallel shape hypotheses ----------------------------------
+
+def test_shape_hypotheses_acquire_a_fast_asymmetric_tumble_at_a_3_s_step():
+    """20 °/s, 3 s a sample (60° a step): the random-walk phase lags ω by several °/s and its NIS stays
+    high, so the single filter never switches Euler's equations on; the hypothesis bank locks onto
+    the shape (Aist-2D, J₂/J₁ = 1.143, J₃/J₁ = 1.629) and the rate."""
+    J = np.diag([175.0, 200.0, 285.0])
+    t, b, w = tumble(J, [12.0, -10.0, 13.0], 3.0, 100, 0.5e-6, 3, FIELD)
+    single = kl.AttitudeRateKalman(0.5e-6, field_eci_T=FIELD.b_eci_T, estimate_inertia=True)
+    bank = kl.EulerAcquisitionKalman(0.5e-6, field_eci_T=FIELD.b_eci_T)
+    e_single, e_bank = [], []
+    for k in range(len(t)):
+        single.update(t[k], b[k])
+        bank.update(t[k], b[k])
+        e_single.append(np.linalg.norm(single.omega_radps - w[k]))
+        e_bank.append(np.linalg.norm(bank.omega_radps - w[k]))
+    rms_single = math.degrees(math.sqrt(np.mean(np.square(e_single[-30:]))))
+    rms_bank = math.degrees(math.sqrt(np.mean(np.square(e_bank[-30:]))))
+    assert not single.euler and rms_single > 3.0
+    assert bank.euler and bank.trials >= 1 and rms_bank < 0.5
+    np.testing.assert_allclose(bank.inertia_shape, [1.0, 200 / 175, 285 / 175], rtol=0.03)
+    # causal: the estimates up to a sample do not depend on later samples
+    again = kl.attitude_kalman_rate(t[:60], b[:60], 0.5e-6, field_eci_T=FIELD.b_eci_T, hypotheses=True)[0]
+    full = kl.attitude_kalman_rate(t, b, 0.5e-6, field_eci_T=FIELD.b_eci_T, hypotheses=True)[0]
+    np.testing.assert_array_equal(again, full[:60])
+
+
+def test_clone_is_independent_and_start_euler_sets_the_shape_prior():
+    t, b = constant_rate_field(np.radians([3.0, -2.0, 4.0]), 1.0, 5)
+    kf = kl.AttitudeRateKalman(0.2e-6, estimate_inertia=True)  # fixed field, as the samples
+    for tk, bk in zip(t, b):
+        kf.update(tk, bk)
+    w0, P0 = kf.w.copy(), kf.P.copy()
+    twin = kf.clone()
+    twin.start_euler(np.array([0.1, 0.4]), 0.2)
+    twin.update(t[-1] + 1.0, Rotation.from_rotvec(-np.radians([3.0, -2.0, 4.0]) * 5.0).apply(B_I_T))
+    np.testing.assert_array_equal(kf.w, w0)
+    np.testing.assert_array_equal(kf.P, P0)
+    assert twin.euler and not kf.euler
+    np.testing.assert_allclose(np.diag(twin.P)[6:8], 0.2 ** 2, rtol=0.1)
+    with pytest.raises(ValueError):
+        kl.AttitudeRateKalman(0.2e-6, field_eci_T=FIELD.b_eci_T).start_euler(np.zeros(2), 0.2)
+
+
+def test_shape_grid_is_physical_and_holds_the_sphere():
+    grid = kl.shape_grid()
+    assert (0.0, 0.0) in grid and len(grid) >= 9
+    for p in grid:
+        j = sorted([1.0, math.exp(p[0]), math.exp(p[1])])
+        assert j[2] <= 1.02 * (j[0] + j[1])

@@ -107,3 +107,36 @@ def test_euler_rts_follows_a_small_unknown_torque():
 def test_smooth_rejects_unknown_models():
     with pytest.raises(ValueError):
         sm.smooth(np.arange(5.0), np.ones((5, 3)) * 1e-5, 1e-6, model="magic")
+
+
+def _smoothed(w, sigma_dps, chi2_dof=math.nan, resets=0, method="x"):
+    n = len(w)
+    return sm.Smoothed(np.arange(n, dtype=float), w, np.full((n, 3), math.radians(sigma_dps)),
+                       np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)), method, chi2_dof, info={"resets": resets})
+
+
+def test_auto_rejects_a_batch_fit_in_a_wrong_minimum():
+    """The case seen on −Ḃ, near-symmetric, 1 s, 1.5 µT: the batch fit explains the data (χ²/dof 1.12)
+    with a rate 5.7 °/s off, where the Euler RTS smoother is within 0.64 °/s. The χ² test alone keeps
+    the fit; the check against the RTS solution (difference / combined σ) rejects it."""
+    rng = np.random.default_rng(7)
+    n = 120
+    truth = np.radians(10.0) * np.tile([0.6, -0.48, 0.64], (n, 1))
+    off = np.radians(5.7 / math.sqrt(3)) * np.ones(3)
+    wrong = _smoothed(truth + off, 0.15, chi2_dof=1.12, method="euler")
+    rts = _smoothed(truth + rng.normal(scale=math.radians(0.64 / math.sqrt(3)), size=(n, 3)), 0.45,
+                    method="euler_rts")
+    assert sm.disagreement(wrong, rts) > 5.0  # 3.3 °/s per axis over a combined 0.47 °/s
+    assert sm.auto_choice(wrong, rts) == "euler_rts"
+    # a fit in the right minimum, as precise and consistent: kept
+    good = _smoothed(truth + rng.normal(scale=math.radians(0.1), size=(n, 3)), 0.15, chi2_dof=1.05,
+                     method="euler")
+    assert sm.disagreement(good, rts) < 1.5
+    assert sm.auto_choice(good, rts) == "euler"
+    assert sm.disagreement(good, good) == 0.0
+    # the rest of the rule is unchanged: a fit that does not explain the data, an RTS pass that restarted
+    assert sm.auto_choice(_smoothed(good.w_radps, 0.15, chi2_dof=2.0), rts) == "euler_rts"
+    assert sm.auto_choice(wrong, _smoothed(rts.w_radps, 0.45, resets=1)) == "random_walk"
+    assert sm.auto_choice(None, None) == "random_walk"
+    nan = _smoothed(np.full((n, 3), np.nan), 0.15, chi2_dof=1.0)
+    assert sm.disagreement(nan, rts) == math.inf and sm.auto_choice(nan, rts) == "euler_rts"

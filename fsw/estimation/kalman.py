@@ -31,7 +31,7 @@ interfaces take tesla.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
@@ -539,9 +539,11 @@ class AttitudeKalmanTuning:
     euler_after_samples: int = 20
     euler_sigma_rate_radps: float = 0.01
     euler_sigma_rate_rel: float = 0.3
+    euler_nis_max: float = 6.0
     nis_reset: float = 1e3
     adapt_samples: float = 10.0
     adapt_max: float = 1e4
+    euler_adapt_max: float | None = None
     max_rate_radps: float = 100.0
     max_step_angle_rad: float = 2.5
     max_gap_s: float = 60.0
@@ -723,6 +725,40 @@ class AttitudeRateKalman:
         """Estimated J / J₁ = diag(1, e^p₁, e^p₂) (ones when not estimated)."""
         return np.concatenate([[1.0], np.exp(self.p)]) if self.n_p else np.ones(3)
 
+    def clone(self) -> AttitudeRateKalman:
+        """An independent copy of the running filter (state, covariance, adaptation; no stored log):
+        a hypothesis to run in parallel (:class:`EulerAcquisitionKalman`)."""
+        new = AttitudeRateKalman.__new__(AttitudeRateKalman)
+        new.__dict__.update(self.__dict__)
+        for k in ("q", "w", "p", "beta", "P", "omega_radps", "sigma_radps"):
+            if k in self.__dict__:
+                setattr(new, k, np.array(getattr(self, k), float))
+        new.store = False
+        new.log = {k: [] for k in self.log}
+        return new
+
+    def start_euler(self, p: np.ndarray, sigma_p: float) -> None:
+        """Switch Euler's equations on now, from the shape `p` (ln J₂/J₁, ln J₃/J₁) with 1-σ `sigma_p`
+        (uncorrelated with the rest); the noise adaptation of the random-walk phase starts again."""
+        if not self.n_p:
+            raise ValueError("start_euler needs a filter that estimates the inertia shape")
+        self.euler = True
+        self.p = np.array(p, float)
+        ip = slice(6, 6 + self.n_p)
+        self.P[ip, :] = 0.0
+        self.P[:, ip] = 0.0
+        self.P[ip, ip] = sigma_p ** 2 * np.eye(self.n_p)
+        self.adapt = 1.0
+        self._nis_mean = 3.0
+
+    def rate_found(self) -> bool:
+        """The acquisition test of the random-walk phase: enough samples and every 1-σ of ω below
+        `euler_sigma_rate_radps` + `euler_sigma_rate_rel`·|ω| (the innovation test excluded)."""
+        tun = self.tuning
+        return (self._started and self._samples >= tun.euler_after_samples
+                and float(self.sigma_radps.max()) < tun.euler_sigma_rate_radps
+                + tun.euler_sigma_rate_rel * float(np.linalg.norm(self.w)))
+
     # -- model ------------------------------------------------------------------------------------
     def _euler_params(self):
         if self.J is not None:
@@ -849,8 +885,9 @@ class AttitudeRateKalman:
         tun = self.tuning
         self._samples += 1
         self._bad = self._bad + 1 if self.nis > tun.nis_reset else 0
-        if tun.adapt_max > 1.0:
-            self.adapt = adapt_noise(self, tun.adapt_samples, tun.adapt_max)
+        amax = tun.adapt_max if not self.euler or tun.euler_adapt_max is None else tun.euler_adapt_max
+        if amax > 1.0:
+            self.adapt = adapt_noise(self, tun.adapt_samples, amax)
         if self._bad >= 3:  # lost: back to acquisition
             self._bad = 0
             self.resets += 1
@@ -865,7 +902,7 @@ class AttitudeRateKalman:
             self.P[3:6, 3:6] += tun.sigma_rate0_radps ** 2 * np.eye(3)
             flags |= DEGENERATE
         elif (self.euler_model and not self.euler and self._samples >= tun.euler_after_samples
-              and self._nis_mean < 6.0
+              and self._nis_mean < tun.euler_nis_max
               and s.max() < tun.euler_sigma_rate_radps + tun.euler_sigma_rate_rel * float(np.linalg.norm(w))):
             self.euler = True
         elif self.euler and self.n_p and not _physical_shape(self.p):
@@ -886,7 +923,128 @@ class AttitudeRateKalman:
         self.flags = flags
 
 
-def attitude_kalman_rate(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, **kwargs
-                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Run :class:`AttitudeRateKalman` (keyword arguments as its constructor) over a recording."""
+def shape_grid(step: float = 0.35, half_width: int = 2) -> tuple[tuple[float, float], ...]:
+    """Inertia shapes (ln J₂/J₁, ln J₃/J₁) on a square grid of `step` (2·`half_width` + 1 values per
+    axis, centred on the sphere), those a body can have (:func:`_physical_shape`)."""
+    v = [step * i for i in range(-half_width, half_width + 1)]
+    return tuple((a, b) for a in v for b in v if _physical_shape((a, b)))
+
+
+#: Cap of the innovation-driven process-noise factor once Euler's equations run (the bank's default):
+#: unmodelled torques up to √30 × `rate_accel_radps2`; above, a persistent NIS excess (e.g. a
+#: magnetorquer's field on the magnetometer) would let the poorly observed component along B wander.
+EULER_ADAPT_MAX = 30.0
+
+
+class EulerAcquisitionKalman:
+    """:class:`AttitudeRateKalman` with the inertia shape estimated, acquired by parallel hypotheses.
+
+    A single filter switching Euler's equations on from a sphere fails at large steps (3 s at
+    15–28 °/s, 45–84° of rotation a step): the random-walk phase lags an ω that turns by 5–10 °/s a
+    step, its innovations stay at NIS ≈ 10–25, so the single filter's innovation test never lets it
+    switch, and when it does switch the first update throws the shape out of the physical region
+    (e.g. ln J₃/J₁ = 1.1 for a true 0.49) and back to acquisition.
+
+    Here the random-walk filter (`main`) runs until it has found the rate (:meth:`AttitudeRateKalman.
+    rate_found`); then one Euler hypothesis per shape of `shapes` (default :func:`shape_grid`, 1-σ
+    `sigma_shape` about each) is started from a copy of it, all run in parallel with the random-walk
+    filter for `trial_samples` samples, and the one with the least negative log-likelihood of its
+    innovations over the trial (Σ ½(NIS + ln det S), Bar-Shalom et al. 2001 §11.6) becomes `main`.
+    A hypothesis that restarts or leaves the physical region is dropped. When the random-walk filter
+    wins, the trial is repeated after `retry_samples`. An Euler filter that is lost (its own NIS test,
+    a shape no body has) falls back to the random-walk phase and the bank acquires again. Causal: each
+    sample is used once, when it arrives; the published estimate is `main`'s (the random-walk filter's
+    during a trial).
+    """
+
+    def __init__(self, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
+                 tuning: AttitudeKalmanTuning | None = None, shapes=None, sigma_shape: float = 0.2,
+                 trial_samples: int = 15, retry_samples: int = 15, angle_about_b_rad: float = 0.0) -> None:
+        # the bank decides when Euler's equations start: the filters' own innovation test is off
+        tun = replace(tuning or AttitudeKalmanTuning(euler_adapt_max=EULER_ADAPT_MAX), euler_nis_max=-math.inf)
+        self.main = AttitudeRateKalman(sigma_b_T, field_eci_T=field_eci_T, estimate_inertia=True, tuning=tun,
+                                       angle_about_b_rad=angle_about_b_rad)
+        self.shapes = tuple(tuple(map(float, p)) for p in (shape_grid() if shapes is None else shapes))
+        self.sigma_shape = float(sigma_shape)
+        self.trial_samples = int(trial_samples)
+        self.retry_samples = int(retry_samples)
+        self.trials = 0
+        self._trial: list[tuple[AttitudeRateKalman, float, int]] = []
+        self._trial_left = 0
+        self._wait = 0
+
+    @property
+    def omega_radps(self) -> np.ndarray:
+        return self.main.omega_radps
+
+    @property
+    def sigma_radps(self) -> np.ndarray:
+        return self.main.sigma_radps
+
+    @property
+    def flags(self) -> int:
+        return self.main.flags
+
+    @property
+    def euler(self) -> bool:
+        return self.main.euler
+
+    @property
+    def inertia_shape(self) -> np.ndarray:
+        return self.main.inertia_shape
+
+    def update(self, t_s: float, b_T) -> bool:
+        """Add a field sample (tesla, body axes) at `t_s` to every running hypothesis; True when an
+        estimate was published."""
+        main = self.main
+        resets = main.resets
+        out = main.update(t_s, b_T)
+        if self._trial:
+            if main.resets != resets:  # the random-walk filter restarted: the trial's start is void
+                self._trial = []
+            else:
+                with np.errstate(all="ignore"):  # a wrong hypothesis may diverge: it is dropped below
+                    for kf, _, _ in self._trial:
+                        kf.update(t_s, b_T)
+                self._trial = [h for h in self._trial if h[0].resets == h[2] and h[0].euler]
+                self._trial_left -= 1
+                if self._trial_left <= 0:
+                    self._decide()
+        elif self._wait > 0:
+            self._wait -= 1
+        elif not main.euler and main.rate_found():
+            self._start_trial()
+        return out
+
+    def _start_trial(self) -> None:
+        self.trials += 1
+        self._trial = []
+        for p in self.shapes:
+            kf = self.main.clone()
+            kf.start_euler(np.array(p), self.sigma_shape)
+            self._trial.append((kf, kf.nll, kf.resets))
+        self._trial_left = self.trial_samples
+        self._nll0 = self.main.nll
+
+    def _decide(self) -> None:
+        best, best_nll = None, self.main.nll - self._nll0
+        for kf, nll0, _ in self._trial:
+            d = kf.nll - nll0
+            if d < best_nll:
+                best, best_nll = kf, d
+        self._trial = []
+        if best is None:
+            self._wait = self.retry_samples
+        else:
+            self.main = best
+
+
+def attitude_kalman_rate(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, hypotheses: bool = False,
+                         **kwargs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Run :class:`AttitudeRateKalman` (keyword arguments as its constructor) over a recording; with
+    `hypotheses` (and the shape estimated) the parallel-hypothesis acquisition of
+    :class:`EulerAcquisitionKalman` instead (keyword arguments `field_eci_T`, `tuning`, and its own)."""
+    if hypotheses:
+        kwargs.pop("estimate_inertia", None)
+        return _run_stream(EulerAcquisitionKalman(sigma_b_T, **kwargs), t_s, b_T)
     return _run_stream(AttitudeRateKalman(sigma_b_T, **kwargs), t_s, b_T)
