@@ -45,13 +45,13 @@ import numpy as np
 
 from fsw.estimation import euler_fit as ef
 from fsw.estimation import inertia as inr
+from fsw.main import BANDWIDTH
 
 from . import scenario as scenarios
 from .ident_sitl import field_model
 from .sim import Simulator
 
 SCENARIOS = ("aist2d", "asymmetric", "cellular_debris")
-CHIP_NOISE_T = {100: 0.04e-6, 200: 0.06e-6, 400: 0.08e-6, 800: 0.12e-6}   # fsw.main, datasheet
 LINEAR_SIGMA_OMEGA_RADPS = math.radians(0.05)
 LINEAR_SIGMA_OMEGA_DOT_RADPS2 = math.radians(0.005)
 
@@ -92,7 +92,7 @@ def truth_record(name: str, duration_s: float, phase_s: float = 0.5) -> TruthRec
         tr = sim.truth()
         b[i], w[i], q[i], m[i] = tr.b_body_T, tr.omega_radps, tr.q_body_to_eci, tr.moment_Nm
     action = ef.KnownAction.pulses([(p.start_s, p.duration_s, p.moment_Nm) for p in scn.torques])
-    sigma = math.hypot(scn.noise_T, CHIP_NOISE_T[scn.bandwidth_hz])
+    sigma = math.hypot(scn.noise_T, BANDWIDTH[scn.bandwidth_hz].noise_rms_T)
     return TruthRecord(scn, t, b, w, q, m, sigma, field_model(scn).b_eci_T, action)
 
 
