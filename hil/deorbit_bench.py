@@ -17,6 +17,7 @@ Figures 3-8: yaw, pitch, the control moments and the pulses of both channels).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -140,6 +141,7 @@ class BenchResult:
         return {
             "scenario": self.scenario, "law": self.law, "duration_s": self.duration_s,
             "settle_s": self.settle_s, "loop_rate_hz": self.rate_hz, "dynamics_step_s": self.step_s,
+            "arg_lat0_deg": self.sim.orbit.arg_lat0_deg,
             "attitude_source": self.attitude_source, "density_model": self.density,
             "yaw_err_max_rad": self.yaw_err_max_rad, "pitch_err_max_rad": self.pitch_err_max_rad,
             "converged_at_s": self.converged_at_s,
@@ -162,8 +164,11 @@ class BenchResult:
 
 def run_bench(scenario_name: str = DEFAULT_SCENARIO, *, duration_s: float | None = None, rate_hz: float = 10.0,
               law: str = "mpc", faults: list[Fault] | tuple = (), seed: int = 0,
-              settle_s: float | None = None, controller: ControllerConfig | None = None) -> BenchResult:
+              settle_s: float | None = None, controller: ControllerConfig | None = None,
+              arg_lat0_deg: float | None = None) -> BenchResult:
     scn = scenarios.load(scenario_name)
+    if arg_lat0_deg is not None:  # start elsewhere on the same orbit
+        scn = dataclasses.replace(scn, arg_lat0_deg=float(arg_lat0_deg))
     spec = scn.deorbit
     if spec is None:
         raise ValueError(f"scenario {scn.name!r} has no [deorbit] table")
@@ -225,7 +230,8 @@ def report(r: BenchResult) -> str:
     o, tu, e = d["capsule_openings"], d["magnet_turns"], d["energy_J"]
     conv = d["converged_at_s"]
     lines = [
-        f"de-orbit kit closed loop: scenario {r.scenario}, {r.duration_s:.0f} s, law {r.law}",
+        f"de-orbit kit closed loop: scenario {r.scenario}, {r.duration_s:.0f} s, law {r.law}, "
+        f"start at argument of latitude {r.sim.orbit.arg_lat0_deg:g}°",
         f"  loop {r.rate_hz:g} Hz (fsw.scheduler), dynamics step {r.step_s:g} s, wall {r.wall_s:.1f} s",
         f"  attitude for the controller: {r.attitude_source}",
         f"  atmosphere: {r.density}",
@@ -294,6 +300,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenario", default=DEFAULT_SCENARIO, metavar="NAME|FILE")
     ap.add_argument("--duration", type=float, default=None, metavar="S", help="default: the scenario's (10,800 s)")
     ap.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="loop rate (default 10 Hz)")
+    ap.add_argument("--arg-lat0", type=float, default=None, metavar="DEG",
+                    help="argument of latitude at t = 0 (default: the scenario's, 0°): start elsewhere on the orbit")
     ap.add_argument("--law", choices=("mpc", "paper"), default="mpc",
                     help="what produces M_theor: the receding-horizon choice (default) or the PD law")
     ap.add_argument("--fault", action="append", default=[], metavar="KIND:CH:T[:VALUE]",
@@ -305,7 +313,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--rate must be in [1, 100] Hz")
     try:
         faults = [Fault.parse(f) for f in args.fault]
-        r = run_bench(args.scenario, duration_s=args.duration, rate_hz=args.rate, law=args.law, faults=faults)
+        r = run_bench(args.scenario, duration_s=args.duration, rate_hz=args.rate, law=args.law, faults=faults,
+                      arg_lat0_deg=args.arg_lat0)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

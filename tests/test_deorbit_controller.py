@@ -11,6 +11,8 @@ from fsw.deorbit.controller import (
     ControllerConfig,
     DiscreteController,
     aero_stiffness_Nm_per_rad,
+    box_lasso,
+    coast_amplitude_sqrt,
     discrete_moment_Nm,
     euler_zyx,
     lvlh_model,
@@ -172,3 +174,67 @@ def test_config_is_validated():
         ControllerConfig(period_s=60.0, min_impulse_s=80.0)
     with pytest.raises(ValueError):
         ControllerConfig(widths_s=(50.0,))
+    with pytest.raises(ValueError):
+        ControllerConfig(continuation_l1=-1.0)
+    with pytest.raises(ValueError):
+        ControllerConfig(r_duty=0.0)
+
+
+def _lasso_objective(H, b, lam, v):
+    return v @ H @ v - 2.0 * b @ v + lam * np.abs(v).sum()
+
+
+@pytest.mark.parametrize("lam", [0.0, 0.03, 1.0])
+def test_box_lasso_reaches_the_optimum_of_a_box_constrained_lasso(lam):
+    rng = np.random.default_rng(5)
+    M = rng.normal(size=(30, 8))
+    H = M.T @ M
+    B = rng.normal(scale=8.0, size=(8, 4))  # large enough that the box binds
+    V = box_lasso(H, B, lam, sweeps=500, tol=1e-13)
+    assert np.all(np.abs(V) <= 1.0)
+    for c in range(B.shape[1]):
+        v, b = V[:, c], B[:, c]
+        # KKT of vᵀHv − 2bᵀv + λ|v|₁ on the box: g = 2(Hv − b)
+        g = 2.0 * (H @ v - b)
+        for i in range(len(v)):
+            if abs(v[i]) < 1e-12:
+                assert abs(g[i]) <= lam + 1e-8  # zero: the subgradient contains 0
+            elif abs(v[i]) < 1.0 - 1e-12:
+                assert g[i] + lam * np.sign(v[i]) == pytest.approx(0.0, abs=1e-7)  # interior: stationary
+            else:
+                assert (g[i] + lam * np.sign(v[i])) * np.sign(v[i]) <= 1e-8  # at the bound: pushes outwards
+        # and no random feasible point does better
+        trials = np.clip(v + rng.normal(scale=0.05, size=(200, len(v))), -1.0, 1.0)
+        best = _lasso_objective(H, b, lam, v)
+        assert all(_lasso_objective(H, b, lam, t) >= best - 1e-9 for t in trials)
+
+
+def test_box_lasso_without_box_or_l1_is_least_squares():
+    rng = np.random.default_rng(6)
+    M = rng.normal(size=(20, 5))
+    y = rng.normal(scale=0.1, size=20)
+    v = box_lasso(M.T @ M, (M.T @ y)[:, None], 0.0, sweeps=2000, tol=1e-15)[:, 0]
+    assert v == pytest.approx(np.linalg.lstsq(M, y, rcond=None)[0], abs=1e-9)
+
+
+def test_coast_amplitude_is_the_amplitude_of_the_free_libration():
+    n, ka = 1.0831e-3, 6.1e-6
+    A = lvlh_model(J, n, ka)
+    q = (0.05, 1.0, 1.0)
+    L = coast_amplitude_sqrt(A, q)
+    # pitch is decoupled: θ(t) = θ0 cos ω t + θ̇0/ω sin ω t, amplitude² = θ0² + (θ̇0/ω)²
+    w_pitch = math.sqrt((3 * n * n * (J[0] - J[2]) + ka) / J[1])
+    x = np.array([0.0, 0.1, 0.0, 0.0, 2e-4, 0.0])
+    assert float(np.sum((L @ x) ** 2)) == pytest.approx(q[1] * (0.1**2 + (2e-4 / w_pitch) ** 2), rel=1e-9)
+    # roll-yaw (coupled, two frequencies): 2 × the time average of Σ q_a angle_a², by propagation
+    from scipy.linalg import expm
+
+    x = np.array([0.05, 0.0, 0.1, 1e-4, 0.0, -1e-4])
+    ts = np.linspace(0.0, 2e6, 200_001)
+    step = expm(A * (ts[1] - ts[0]))
+    xs = np.empty((len(ts), 6))
+    xs[0] = x
+    for k in range(1, len(ts)):
+        xs[k] = step @ xs[k - 1]
+    mean_sq = 2.0 * np.mean(q[0] * xs[:, 0] ** 2 + q[2] * xs[:, 2] ** 2)
+    assert float(np.sum((L @ x) ** 2)) == pytest.approx(mean_sq, rel=0.01)
