@@ -68,3 +68,21 @@ def test_shape_command_line_reports_the_cramer_rao_bound(tmp_path, capsys):
     np.testing.assert_allclose(s["ratio_sd_fit_pct_mean"], crb, rtol=0.15)
     assert s["local_minimum_runs"] == 0 and s["chi2_above_truth_start_max"] < 1.0
     assert max(s["ratio_err_pct_max"]) < 5 * max(crb)
+
+
+def test_record_design_picks_the_shortest_record_that_reaches_the_bound():
+    ladder = (330.0, 660.0)
+    loose = ib.design_record("aist2d", ladder, bound_pct=100.0)
+    assert loose["chosen_s"] == 330.0 and len(loose["tried"]) == 1
+    tight = ib.design_record("aist2d", ladder, bound_pct=1e-6)
+    assert tight["chosen_s"] == 660.0 and len(tight["tried"]) == 2  # none reaches it: the longest
+    short, long_ = (np.array(t["crb_pct"]) for t in tight["tried"])
+    assert np.all(long_ < short)  # more record, more information
+    between = float(np.max(long_)) * 1.01
+    assert ib.design_record("aist2d", ladder, bound_pct=between)["chosen_s"] == 660.0
+
+
+def test_duration_must_be_seconds_or_auto():
+    for bad in ("soon", "60"):
+        with pytest.raises(SystemExit):
+            ib.main(["--duration", bad, "--scenarios", "aist2d"])
