@@ -323,6 +323,59 @@ def euler_fit(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T
                           "p": kf.p.copy(), "minima_chi2": [c for _, c in cands]})
 
 
+def euler_fit_from_filter(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *,
+                          field_eci_T: FieldFn | None = None) -> Smoothed | None:
+    """The batch fit of :func:`euler_fit` started from where the parallel-hypothesis Euler filter
+    (:class:`fsw.estimation.kalman.EulerAcquisitionKalman`) ends, for the records where the random-walk
+    start leads the fit astray (a 3 s step at 15–28 °/s: the random-walk smoother lags the turning ω).
+    The filter's estimate is good at the record's end, not at its start, so the fit runs in reversed
+    time: t' = t_N − t, ω'(t') = −ω(t_N − t'), the same attitudes in reverse order; torque-free Euler
+    and the kinematics are the same equations in t' (J ω̇' = −ω' × Jω', q̇' = ½ q' ⊗ ω'). The result
+    is mapped back. None when the filter did not lock on Euler's equations or a field model is missing
+    (without one the attitude's gauge is the first sample's)."""
+    if field_eci_T is None:
+        return None
+    t = np.asarray(t_s, float)
+    b = np.asarray(b_T, float)
+    kf = kl.EulerAcquisitionKalman(sigma_b_T, field_eci_T=field_eci_T)
+    with np.errstate(all="ignore"):  # a wrong hypothesis may diverge: the filter drops it
+        for k in range(len(t)):
+            kf.update(t[k], b[k])
+    if not kf.euler or kf.flags & kl.NO_ESTIMATE:
+        return None
+    t_end = float(t[-1])
+    tr = t_end - t[::-1]
+    n = len(t)
+    init = Smoothed(tr, np.tile(-kf.omega_radps, (n, 1)), np.tile(kf.sigma_radps, (n, 1)),
+                    np.tile(kf.main.q, (n, 1)), "euler_acquisition")
+    rev = euler_fit(tr, b[::-1], sigma_b_T, field_eci_T=lambda s: field_eci_T(t_end - s), init=init)
+    info = dict(rev.info, reversed=True)
+    info.pop("cov_x0", None)  # that is the covariance at t_N: keep only the shape's part, time-invariant
+    cov = np.zeros_like(rev.info["cov_x0"])
+    cov[6:, 6:] = rev.info["cov_x0"][6:, 6:]
+    info["cov_x0"] = cov
+    return Smoothed(t, -rev.w_radps[::-1].copy(), rev.sigma_radps[::-1].copy(), rev.q[::-1].copy(), "euler",
+                    rev.chi2_dof, rev.inertia_shape, info=info)
+
+
+def euler_fit_checked(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
+                      inertia_kgm2: np.ndarray | None = None, init: Smoothed | None = None,
+                      chi2_accept: float = 1.5) -> Smoothed:
+    """:func:`euler_fit`; when it does not explain the data (χ²/dof > `chi2_accept`) and the tensor is
+    not known, again from the Euler filter's end (:func:`euler_fit_from_filter`), keeping the better."""
+    eu = euler_fit(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2, init=init)
+    if inertia_kgm2 is not None or (np.isfinite(eu.chi2_dof) and eu.chi2_dof <= chi2_accept):
+        return eu
+    try:
+        other = euler_fit_from_filter(t_s, b_T, sigma_b_T, field_eci_T=tabulated(field_eci_T, t_s))
+    except (RuntimeError, ValueError, np.linalg.LinAlgError):
+        other = None
+    if other is not None and np.isfinite(other.chi2_dof) and not other.chi2_dof >= eu.chi2_dof:
+        other.info["first_chi2_dof"] = eu.chi2_dof
+        return other
+    return eu
+
+
 def _wahba_start(kf, t, z, field_eci_T, n) -> np.ndarray:
     """The attitude at t₀ that best explains all samples for the fitted relative motion.
 
@@ -538,7 +591,8 @@ def smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: F
     if model == "random_walk":
         return rw
     try:
-        eu = euler_fit(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2, init=rw)
+        eu = euler_fit_checked(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2, init=rw,
+                               chi2_accept=chi2_accept)
     except (RuntimeError, ValueError, np.linalg.LinAlgError):
         if model == "auto":
             return rw

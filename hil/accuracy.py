@@ -285,7 +285,7 @@ def estimate(run: Run, sigma_b_T: float, methods=METHODS) -> dict[str, tuple[np.
         out["smoother"] = (rw.w_radps, rw.sigma_radps)
         eu = er = None
         try:
-            eu = sm.euler_fit(t, b, sigma_b_T, field_eci_T=fld, init=rw)
+            eu = sm.euler_fit_checked(t, b, sigma_b_T, field_eci_T=fld, init=rw)
             out["euler"] = (eu.w_radps, eu.sigma_radps)
             er = sm.euler_rts_smooth(t, b, sigma_b_T, field_eci_T=fld, init=eu)
             out["euler_rts"] = (er.w_radps, er.sigma_radps)

@@ -69,6 +69,32 @@ def test_euler_fit_with_the_field_model_removes_the_floor():
     assert np.all(res.sigma_radps > 0)
 
 
+def test_a_failed_batch_fit_is_redone_from_the_euler_filters_end_in_reversed_time():
+    """A fast asymmetric tumble at a 3 s step (about 60° a step): started from a wrong rate the batch fit
+    ends far from the data (χ²/dof ≫ 1); the checked fit starts it again, in reversed time, from where
+    the parallel-hypothesis Euler filter ends, and gets the rate and the shape."""
+    t, b, w, b_true = tumble(ASYM, [12.0, -15.0, 10.0], 3.0, 120, 0.5e-6, 11)
+    q0 = np.tile(kl.quat_aligning(b[0], FIELD(0.0)), (len(t), 1))
+    wrong = sm.Smoothed(t, np.tile(np.radians([-5.0, 9.0, 2.0]), (len(t), 1)), np.zeros_like(w), q0, "wrong")
+    first = sm.euler_fit(t, b, 0.5e-6, field_eci_T=FIELD, init=wrong)
+    assert first.chi2_dof > 1.5  # the premise: this start leads the fit astray
+    res = sm.euler_fit_checked(t, b, 0.5e-6, field_eci_T=FIELD, init=wrong)
+    assert res.info.get("reversed") and res.info["first_chi2_dof"] == pytest.approx(first.chi2_dof)
+    assert res.chi2_dof < 1.5
+    assert rms_dps(res.w_radps - w) < 0.2  # of a 22 °/s tumble (the Boer formula's ⊥ error: ~4 °/s)
+    assert float(np.sqrt(np.mean(((res.w_radps - w) / res.sigma_radps) ** 2))) < 3.0  # its σ is not far off
+    np.testing.assert_allclose(res.inertia_shape, [1.0, 200 / 175, 285 / 175], rtol=0.02)
+    assert np.all(np.diff(res.t_s) > 0) and np.all(res.sigma_radps > 0)
+    # the attitude is the forward one: it maps each sample's true body field onto the model's field
+    for k in (0, 60, 119):
+        b_i = kl.quat_to_dcm(res.q[k]) @ b_true[k]
+        b_m = FIELD(t[k])
+        assert math.degrees(math.acos(np.dot(b_i, b_m) / np.linalg.norm(b_i) / np.linalg.norm(b_m))) < 0.5
+    # a fit that explains the data is kept as it is; from the reversed fit's start it is the same solution
+    good = sm.euler_fit_checked(t, b, 0.5e-6, field_eci_T=FIELD, init=res)
+    assert not good.info.get("reversed") and good.chi2_dof == pytest.approx(res.chi2_dof, rel=1e-3)
+
+
 def test_fixed_field_euler_fit_sees_the_floor_and_auto_falls_back():
     """The same tumble taken as in a fixed field: the field's own motion leaves a misfit (χ²/dof ≫ 1) —
     the fixed-field assumption's floor — and `smooth(model="auto")` does not return that fit."""
