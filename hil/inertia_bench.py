@@ -37,6 +37,7 @@ of 0.75 × the mean true moment (prior 1-σ 3 × that).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -80,6 +81,15 @@ class TruthRecord:
     sigma_b_T: float
     b_inertial: object
     action: ef.KnownAction
+
+    def prefix(self, duration_s: float, phase_s: float = 0.5) -> "TruthRecord":
+        """The first `duration_s` seconds: the record `truth_record` gives for that duration (the
+        simulation is deterministic, so a shorter run is a prefix of a longer one)."""
+        n = int((duration_s - phase_s) * self.scenario.sample_rate_hz) + 1
+        if n > len(self.t_s):
+            raise ValueError(f"a {duration_s:g} s prefix of a {self.t_s[-1]:g} s record")
+        return dataclasses.replace(self, t_s=self.t_s[:n], b_T=self.b_T[:n], omega_radps=self.omega_radps[:n],
+                                   q=self.q[:n], moment_Nm=self.moment_Nm[:n])
 
 
 def truth_record(name: str, duration_s: float, phase_s: float = 0.5) -> TruthRecord:
@@ -200,11 +210,12 @@ def wilson(k: float, n: int, beta: float = 0.95) -> tuple[float, float]:
 
 def bench_scenario(name: str, runs: int, seed: int, duration_s: float,
                    log=lambda m: None, linear: bool = True, fits: tuple = ("full", "shape"),
-                   shape_from: str = "all") -> dict:
+                   shape_from: str = "all", truth: TruthRecord | None = None) -> dict:
     """The fits of one scenario over ``runs`` noise draws (``fits``: "full" and/or "shape", which
-    includes κ; ``shape_from``: see :func:`shape_data`); a JSON-ready dict."""
+    includes κ; ``shape_from``: see :func:`shape_data`; ``truth``: the noise-free record of `duration_s`
+    if already simulated); a JSON-ready dict."""
     t0 = time.time()
-    tr = truth_record(name, duration_s)
+    tr = truth if truth is not None else truth_record(name, duration_s)
     rng = np.random.default_rng(seed)
     bm = noisy(tr, runs, rng)
     p_true = inr.params(tr.scenario.inertia_kgm2)
@@ -453,8 +464,9 @@ def crb_table(names: list[str], durations: list[float]) -> dict:
     out = {}
     for name in names:
         rows = []
+        longest = truth_record(name, max(durations))
         for d in durations:
-            tr = truth_record(name, d)
+            tr = longest.prefix(d)
             row = {"duration_s": d}
             for k in ("all", "free"):
                 sel, unknown = shape_data(tr, k)
@@ -473,15 +485,16 @@ SHAPE_TARGET_PCT = 0.5
 DESIGN_MARGIN = 1.5
 
 
-def design_record(name: str, ladder: tuple[float, ...] = RECORD_LADDER_S,
+def design_record(longest: TruthRecord, ladder: tuple[float, ...] = RECORD_LADDER_S,
                   bound_pct: float = SHAPE_TARGET_PCT / DESIGN_MARGIN) -> dict:
     """Experiment design before any noise is drawn: the shortest record of `ladder` whose Cramér–Rao
     bound on both shape ratios (whole record, pulses as unknown moments) is at most `bound_pct`; the
-    longest if none is. Returns {"chosen_s", "bound_pct", "tried": [{"duration_s", "crb_pct"}]}."""
+    longest if none is. `longest`: the noise-free record of the ladder's longest duration (the shorter
+    ones are its prefixes). Returns {"chosen_s", "bound_pct", "tried": [{"duration_s", "crb_pct"}]}."""
     tried = []
     chosen = ladder[-1]
     for d in ladder:
-        tr = truth_record(name, d)
+        tr = longest.prefix(d)
         sel, unknown = shape_data(tr, "all")
         crb = shape_crb(tr, sel, unknown)
         tried.append({"duration_s": d, "crb_pct": crb.tolist()})
@@ -545,10 +558,12 @@ def main(argv: list[str] | None = None) -> int:
     results = []
     try:
         for name in names:
-            design = None
+            design = truth = None
             if args.duration == "auto":
-                design = design_record(name)
+                longest = truth_record(name, RECORD_LADDER_S[-1])
+                design = design_record(longest)
                 duration = design["chosen_s"]
+                truth = longest.prefix(duration)
                 print(f"  {name}: record {duration:g} s, the shortest with a shape bound <= "
                       f"{design['bound_pct']:.2f} % (" + ", ".join(
                           f"{t['duration_s']:g} s: {max(t['crb_pct']):.2f} %" for t in design["tried"]) + ")",
@@ -559,7 +574,7 @@ def main(argv: list[str] | None = None) -> int:
                                log=lambda m: print("  " + m, file=sys.stderr, flush=True),
                                linear=not args.no_linear,
                                fits=tuple(f.strip() for f in args.fits.split(",")),
-                               shape_from=args.shape_data)
+                               shape_from=args.shape_data, truth=truth)
             if design is not None:
                 r["record_design"] = design
             print(table(r), flush=True)

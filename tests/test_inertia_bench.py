@@ -70,16 +70,26 @@ def test_shape_command_line_reports_the_cramer_rao_bound(tmp_path, capsys):
     assert max(s["ratio_err_pct_max"]) < 5 * max(crb)
 
 
+def test_a_prefix_of_a_longer_truth_is_the_shorter_simulation():
+    short, long_ = ib.truth_record("aist2d", 330.0), ib.truth_record("aist2d", 660.0)
+    p = long_.prefix(330.0)
+    for name in ("t_s", "b_T", "omega_radps", "q", "moment_Nm"):
+        np.testing.assert_array_equal(getattr(p, name), getattr(short, name))
+    with pytest.raises(ValueError):
+        short.prefix(660.0)
+
+
 def test_record_design_picks_the_shortest_record_that_reaches_the_bound():
     ladder = (330.0, 660.0)
-    loose = ib.design_record("aist2d", ladder, bound_pct=100.0)
+    longest = ib.truth_record("aist2d", 660.0)
+    loose = ib.design_record(longest, ladder, bound_pct=100.0)
     assert loose["chosen_s"] == 330.0 and len(loose["tried"]) == 1
-    tight = ib.design_record("aist2d", ladder, bound_pct=1e-6)
+    tight = ib.design_record(longest, ladder, bound_pct=1e-6)
     assert tight["chosen_s"] == 660.0 and len(tight["tried"]) == 2  # none reaches it: the longest
     short, long_ = (np.array(t["crb_pct"]) for t in tight["tried"])
     assert np.all(long_ < short)  # more record, more information
     between = float(np.max(long_)) * 1.01
-    assert ib.design_record("aist2d", ladder, bound_pct=between)["chosen_s"] == 660.0
+    assert ib.design_record(longest, ladder, bound_pct=between)["chosen_s"] == 660.0
 
 
 def test_duration_must_be_seconds_or_auto():
