@@ -349,11 +349,10 @@ def euler_fit_from_filter(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *,
     init = Smoothed(tr, np.tile(-kf.omega_radps, (n, 1)), np.tile(kf.sigma_radps, (n, 1)),
                     np.tile(kf.main.q, (n, 1)), "euler_acquisition")
     rev = euler_fit(tr, b[::-1], sigma_b_T, field_eci_T=lambda s: field_eci_T(t_end - s), init=init)
-    info = dict(rev.info, reversed=True)
-    info.pop("cov_x0", None)  # that is the covariance at t_N: keep only the shape's part, time-invariant
+    # the fit's state covariance is at t_N; only the shape's block (time-invariant) holds at t₀
     cov = np.zeros_like(rev.info["cov_x0"])
     cov[6:, 6:] = rev.info["cov_x0"][6:, 6:]
-    info["cov_x0"] = cov
+    info = dict(rev.info, reversed=True, cov_x0=cov)
     return Smoothed(t, -rev.w_radps[::-1].copy(), rev.sigma_radps[::-1].copy(), rev.q[::-1].copy(), "euler",
                     rev.chi2_dof, rev.inertia_shape, info=info)
 

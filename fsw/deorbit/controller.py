@@ -338,11 +338,10 @@ class DiscreteController:
         joules = np.array([self._move_joules(0, a, acting, polarity) + self._move_joules(1, b, acting, polarity)
                            for a, b in U0])
         k = int(np.argmin(cost + c.energy_price_per_J * joules))
-        best = (float(cost[k]), float(U0[k, 0]), float(U0[k, 1]))
         bx = float(att.b_body_T[0])
         m_ctrl = c.dipole_Am2 * abs(bx)
         out = []
-        for ch, u in enumerate(best[1:]):
+        for ch, u in enumerate(float(v) for v in U0[k]):
             pol = int(np.sign(u))
             # the moment this pulse makes about the channel's axis, averaged over T (eq. 6 backwards)
             m_theor = abs(u) * m_ctrl * pol * float(np.sign(bx)) * (1.0 if ch == 0 else -1.0)

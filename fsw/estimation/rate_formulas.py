@@ -77,6 +77,28 @@ def _add_jjt(J: np.ndarray, n: int, s2: float, cov: np.ndarray, k: int) -> None:
 
 
 @njit(cache=True)
+def _chord(c0: float, c1: float, c2: float, p0: float, p1: float, p2: float, dt: float, w: np.ndarray, k: int,
+           J: np.ndarray) -> None:
+    """The chord rate of two consecutive vectors, c (now) and p (before), the form both formulas share:
+    w[k] = (c × p) / (Δt |c|²) (0 where c = 0), with J[0] = ∂ω/∂p = [c]ₓ/(Δt|c|²) and
+    J[1] = ∂ω/∂c = −[p]ₓ/(Δt|c|²) − 2ω cᵀ/|c|²."""
+    n2 = c0 * c0 + c1 * c1 + c2 * c2
+    if n2 > 0.0:
+        f = 1.0 / (dt * n2)
+        w0, w1, w2 = (c1 * p2 - c2 * p1) * f, (c2 * p0 - c0 * p2) * f, (c0 * p1 - c1 * p0) * f
+        g = 2.0 / n2
+    else:
+        f = w0 = w1 = w2 = g = 0.0
+    w[k, 0], w[k, 1], w[k, 2] = w0, w1, w2
+    wv = (w0, w1, w2)
+    cv = (c0, c1, c2)
+    for i in range(3):
+        for j in range(3):
+            J[0, i, j] = _skew_ij(c0, c1, c2, i, j) * f
+            J[1, i, j] = -_skew_ij(p0, p1, p2, i, j) * f - g * wv[i] * cv[j]
+
+
+@njit(cache=True)
 def boer_rows(t: np.ndarray, b: np.ndarray, s2: float, k0: int, w: np.ndarray, cov: np.ndarray,
               J: np.ndarray) -> None:
     """Boer rate and its first-order covariance for rows k ≥ max(k0, 1), in place.
@@ -87,23 +109,7 @@ def boer_rows(t: np.ndarray, b: np.ndarray, s2: float, k0: int, w: np.ndarray, c
     noise of variance s2. J is a (3, 3, 3) work array.
     """
     for k in range(max(k0, 1), t.shape[0]):
-        dt = t[k] - t[k - 1]
-        p0, p1, p2 = b[k - 1, 0], b[k - 1, 1], b[k - 1, 2]
-        c0, c1, c2 = b[k, 0], b[k, 1], b[k, 2]
-        n2 = c0 * c0 + c1 * c1 + c2 * c2
-        if n2 > 0.0:
-            f = 1.0 / (dt * n2)
-            w0, w1, w2 = (c1 * p2 - c2 * p1) * f, (c2 * p0 - c0 * p2) * f, (c0 * p1 - c1 * p0) * f
-            g = 2.0 / n2
-        else:
-            f = w0 = w1 = w2 = g = 0.0
-        w[k, 0], w[k, 1], w[k, 2] = w0, w1, w2
-        wv = (w0, w1, w2)
-        cv = (c0, c1, c2)
-        for i in range(3):
-            for j in range(3):
-                J[0, i, j] = _skew_ij(c0, c1, c2, i, j) * f
-                J[1, i, j] = -_skew_ij(p0, p1, p2, i, j) * f - g * wv[i] * cv[j]
+        _chord(b[k, 0], b[k, 1], b[k, 2], b[k - 1, 0], b[k - 1, 1], b[k - 1, 2], t[k] - t[k - 1], w, k, J)
         _add_jjt(J, 2, s2, cov, k)
 
 
@@ -122,20 +128,10 @@ def derivative_rows(t: np.ndarray, b: np.ndarray, s2: float, k0: int, w: np.ndar
         d0, d1, d2 = (b[k, 0] - b[k - 1, 0]) / dt, (b[k, 1] - b[k - 1, 1]) / dt, (b[k, 2] - b[k - 1, 2]) / dt
         e0, e1, e2 = ((b[k - 1, 0] - b[k - 2, 0]) / dtp, (b[k - 1, 1] - b[k - 2, 1]) / dtp,
                       (b[k - 1, 2] - b[k - 2, 2]) / dtp)
-        n2 = d0 * d0 + d1 * d1 + d2 * d2
-        if n2 > 0.0:
-            f = 1.0 / (dt * n2)
-            w0, w1, w2 = (d1 * e2 - d2 * e1) * f, (d2 * e0 - d0 * e2) * f, (d0 * e1 - d1 * e0) * f
-            g = 2.0 / n2
-        else:
-            f = w0 = w1 = w2 = g = 0.0
-        w[k, 0], w[k, 1], w[k, 2] = w0, w1, w2
-        wv = (w0, w1, w2)
-        dv = (d0, d1, d2)
+        _chord(d0, d1, d2, e0, e1, e2, dt, w, k, J)  # J[0] = A₁, J[1] = A_k
         for i in range(3):
             for j in range(3):
-                a1 = _skew_ij(d0, d1, d2, i, j) * f
-                ak = -_skew_ij(e0, e1, e2, i, j) * f - g * wv[i] * dv[j]
+                a1, ak = J[0, i, j], J[1, i, j]
                 J[0, i, j] = -a1 / dtp
                 J[1, i, j] = a1 / dtp - ak / dt
                 J[2, i, j] = ak / dt

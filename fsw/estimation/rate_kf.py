@@ -33,6 +33,17 @@ def jr_coefficients(th2: float) -> tuple[float, float]:
 
 
 @njit(cache=True)
+def _add_skew(M: np.ndarray, k: float, px: float, py: float, pz: float) -> None:
+    """M[:3, :3] += k [φ]ₓ."""
+    M[0, 1] -= k * pz
+    M[0, 2] += k * py
+    M[1, 0] += k * pz
+    M[1, 2] -= k * px
+    M[2, 0] -= k * py
+    M[2, 1] += k * px
+
+
+@njit(cache=True)
 def predict(x: np.ndarray, P: np.ndarray, dt: float, q_w: float, q_b: float, phi: float,
             F: np.ndarray, T: np.ndarray) -> None:
     """x, P ← x⁻, P⁻ over `dt` seconds, in place.
@@ -52,18 +63,8 @@ def predict(x: np.ndarray, P: np.ndarray, dt: float, q_w: float, q_b: float, phi
             k2 = ph[i] * ph[j] - (th2 if i == j else 0.0)
             F[i, j] = (1.0 if i == j else 0.0) + a * k2
             T[i, j] = (1.0 if i == j else 0.0) + c * k2   # J_r, kept in T's corner for a moment
-    F[0, 1] += s * pz
-    F[0, 2] -= s * py
-    F[1, 0] -= s * pz
-    F[1, 2] += s * px
-    F[2, 0] += s * py
-    F[2, 1] -= s * px
-    T[0, 1] += a * pz
-    T[0, 2] -= a * py
-    T[1, 0] -= a * pz
-    T[1, 2] += a * px
-    T[2, 0] += a * py
-    T[2, 1] -= a * px
+    _add_skew(F, -s, px, py, pz)
+    _add_skew(T, -a, px, py, pz)
     bx = F[0, 0] * x[0] + F[0, 1] * x[1] + F[0, 2] * x[2]
     by = F[1, 0] * x[0] + F[1, 1] * x[1] + F[1, 2] * x[2]
     bz = F[2, 0] * x[0] + F[2, 1] * x[1] + F[2, 2] * x[2]
