@@ -15,7 +15,8 @@ fixed in inertial space otherwise (laboratory recordings):
   motion depends only on the ratios) or a known tensor, and, with no field model, the inertial field.
   Residual Jacobians come from the error-state transition matrices of the same propagation; the
   record is brought in over growing windows (continuation), so that a rate known only roughly at
-  first never has to be extrapolated far. 1-σ from s²(JᵀJ)⁻¹ mapped through the transition matrices.
+  first never has to be extrapolated far. 1-σ from s²(JᵀJ)⁻¹ mapped through the transition matrices,
+  widened by the spread between the fit's near-equivalent minima.
   An asymmetric tumbling body has ω varying in body axes; a random walk then lags, this model does not.
 - :func:`smooth` — both, and the Euler fit kept when it explains the data (χ²/dof ≤ `chi2_accept`) and
   agrees with the Euler RTS smoother within their combined σ (:func:`auto_choice`).
@@ -33,6 +34,9 @@ from fsw.estimation.rate_formulas import SIGMA_UNOBSERVED_RADPS
 
 FieldFn = Callable[[float], np.ndarray]
 SHAPE_SIGMA_FLOOR = 0.01  # 1-σ floor of ln(J₂/J₁), ln(J₃/J₁) carried into the Euler RTS smoother
+#: other minima of the batch fit: polished when within MODE_SEARCH_DCHI2 of the best after their first
+#: iterations, kept in σ (weight e^(−Δχ²/2)) when within MODE_KEEP_DCHI2 after polishing
+MODE_SEARCH_DCHI2, MODE_KEEP_DCHI2 = 30.0, 20.0
 
 
 @dataclass
@@ -118,10 +122,11 @@ def variance_scale(log: dict, skip: int = 10) -> float:
 
 def _forward(t, b, sigma_b_T, field_eci_T, noise, angle, start=None, store=False):
     """One pass of the random-walk attitude filter over (t, b) from `start` (or the first sample);
-    `noise` = (κ, rate floor [rad/s²], factor on σ_B)."""
-    kappa, accel, sfac = noise
+    `noise` = (κ, rate floor [rad/s²], factor on σ_B, Gauss–Markov time of ω [s], ∞ for a random walk)."""
+    kappa, accel, sfac, tau = noise
     kf = kl.AttitudeRateKalman(sigma_b_T * sfac, field_eci_T=field_eci_T,
-                               tuning=kl.AttitudeKalmanTuning(kappa=kappa, rate_accel_radps2=accel, adapt_max=1.0),
+                               tuning=kl.AttitudeKalmanTuning(kappa=kappa, rate_accel_radps2=accel, adapt_max=1.0,
+                                                              rate_tau_s=tau),
                                angle_about_b_rad=angle, store=store)
     kf.start(t[0], b[0], **(start or {}))
     for k in range(1, len(t)):
@@ -138,8 +143,10 @@ def _reversed(t, b, field_eci_T):
 def rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
                kappas: tuple[float, ...] = (0.03, 0.1, 0.3, 0.6),
                accels_radps2: tuple[float, ...] = (1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0),
-               sigma_factors: tuple[float, ...] = (1.0, 3.0), angles: int = 6) -> Smoothed:
-    """RTS smoother with ω a random walk.
+               sigma_factors: tuple[float, ...] = (1.0, 3.0),
+               rate_taus_s: tuple[float, ...] = (math.inf, 300.0, 100.0, 30.0, 10.0), angles: int = 6) -> Smoothed:
+    """RTS smoother with ω a random walk, or a first-order Gauss–Markov process (ω̇ = −ω/τ + w) for a
+    motion bounded about zero such as a libration, whichever the likelihood prefers.
 
     The pass is linearised where the filter has converged: first a filter runs backwards in time (τ = −t,
     the body turning at −ω) and its end state at t₀ — which has seen the whole record — becomes the
@@ -147,19 +154,24 @@ def rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_
     only a tenth again); the RTS pass then runs over that forward filter. The random walk's strength
     (κ for the torque-free part, a floor for other torques: 10⁻⁴ rad/s² for a tumbling body up to
     100 rad/s² for a hand-held sensor), a factor on σ_B (a field that is not quite uniform, a sensor
-    not quite calibrated) and, with a field model, the starting angle about B are chosen by maximum
-    likelihood on the backward pass (a coordinate search over the grids).
+    not quite calibrated), the Gauss–Markov time τ (∞: the random walk) and, with a field model, the
+    starting angle about B are chosen by maximum likelihood on the backward pass (a coordinate search
+    over the grids). A finite τ matters where the samples say little about ω along B (a slow motion:
+    B barely turns in the body): that component then falls back to zero with the process's stationary
+    spread instead of wandering off.
     """
     t = np.asarray(t_s, float)
     b = np.asarray(b_T, float)
     field_eci_T = tabulated(field_eci_T, t)
     tr, br, fr = _reversed(t, b, field_eci_T)
-    mid = (kappas[len(kappas) // 2], accels_radps2[min(2, len(accels_radps2) - 1)], sigma_factors[0])
+    mid = (kappas[len(kappas) // 2], accels_radps2[min(2, len(accels_radps2) - 1)], sigma_factors[0], rate_taus_s[0])
     angle = 0.0
     if fr is not None:
         angle = min((2 * math.pi * a / angles for a in range(angles)),
                     key=lambda g: _forward(tr, br, sigma_b_T, fr, mid, g).nll)
-    # coordinate search: the floor, then κ, then the measurement-noise factor
+    # search: the floor and the Gauss–Markov time together (the stationary spread a√(τ/2) couples them,
+    # and one at a time sticks: a random walk at 10⁻² rad/s² can beat every τ at that floor while
+    # τ = 10 s at the same floor beats both), then κ, the measurement-noise factor, and the pair again
     runs = {}
 
     def nll(n):
@@ -168,8 +180,15 @@ def rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_
         return runs[n].nll
 
     noise = mid
-    for axis, values in ((1, accels_radps2), (0, kappas), (2, sigma_factors)):
-        noise = min((noise[:axis] + (v,) + noise[axis + 1:] for v in values), key=nll)
+    for axes, values in (((1, 3), [(a, tau) for a in accels_radps2 for tau in rate_taus_s]),
+                         ((0,), [(k,) for k in kappas]), ((2,), [(f,) for f in sigma_factors]),
+                         ((1, 3), [(a, tau) for a in accels_radps2 for tau in rate_taus_s])):
+        def with_(v, noise=noise, axes=axes):
+            n = list(noise)
+            for i, x in zip(axes, v):
+                n[i] = x
+            return tuple(n)
+        noise = min((with_(v) for v in values), key=nll)
     back = runs[noise]
     # the backward estimate at t₀ as the forward start; its covariance (block-diagonal, reversed rate
     # sign irrelevant there) inflated tenfold, so that the samples it has seen weigh only a tenth again
@@ -186,7 +205,8 @@ def rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_
     chi2 = _chi2(t, b, sigma_b_T * noise[2], q_s, x_s, field_eci_T)
     return Smoothed(t, x_s[:, :3].copy(), np.minimum(sig, SIGMA_UNOBSERVED_RADPS), q_s, "smoother",
                     chi2 / max(3 * len(t) - 6, 1), info={"kappa": noise[0], "rate_accel_radps2": noise[1],
-                                                          "sigma_factor": noise[2], "angle_about_b_rad": angle,
+                                                          "sigma_factor": noise[2], "rate_tau_s": noise[3],
+                                                          "angle_about_b_rad": angle,
                                                           "nll": kf.nll, "variance_scale": c})
 
 
@@ -237,7 +257,7 @@ def _trajectory(kf: kl.AttitudeRateKalman, t, z_uT, sb_uT, n) -> _Trajectory:
 
 def euler_fit(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
               inertia_kgm2: np.ndarray | None = None, init: Smoothed | None = None,
-              first_window: int = 8, growth: float = 1.4, iterations: int = 10, starts_about_b: int = 6,
+              first_window: int = 8, growth: float = 1.4, iterations: int = 10, starts_about_b: int = 24,
               wahba_rounds: int = 2,
               max_substep_rad: float = 0.25) -> Smoothed:
     """Torque-free Euler + kinematics fitted to the whole record (see the module docstring).
@@ -248,6 +268,13 @@ def euler_fit(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T
     about B_I(t₀) (a few iterations each), the best is polished, then the attitude at t₀ is solved
     globally for the fitted relative motion (Wahba's problem, :func:`_wahba_start`) and the record
     fitted again from there while that lowers the cost.
+
+    1-σ: the posterior can have several modes as good as the best within a few units of χ² (another
+    attitude about B with a slightly different motion: truths 40–80° away in attitude and 0.1–0.2 °/s
+    in ω, a Mahalanobis distance of thousands in the best minimum's own covariance). Every other start
+    that ends within `MODE_SEARCH_DCHI2` is polished; the distinct minima within `MODE_KEEP_DCHI2` are
+    weighted by e^(−Δχ²/2s²) and σ² is the mixture's second moment about the best: Σ wᵢ (σᵢ² +
+    (ωᵢ − ω̂)²). The estimate stays the best minimum's.
     """
     t = np.asarray(t_s, float)
     b = np.asarray(b_T, float)
@@ -305,22 +332,49 @@ def euler_fit(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T
             kf, cost = other, c
         cands.insert(0, (kf, cost))
     cands.sort(key=lambda kc: kc[1])
-    kf = cands[0][0]
-    traj = _trajectory(kf, t, z, sb, N)
-    A = traj.Jr.reshape(-1, nn)[:, free]
-    r = traj.r.reshape(-1)
-    chi2 = float(r @ r)
-    dof = max(r.size - int(free.sum()), 1)
-    s2 = max(1.0, chi2 / dof)
-    cov_f = s2 * np.linalg.pinv(A.T @ A + np.diag(prior_w[free] ** 2))
-    cov = np.zeros((nn, nn))
-    cov[np.ix_(free, free)] = cov_f
-    Pw = traj.Phi[:, 3:6, :] @ cov @ traj.Phi[:, 3:6, :].transpose(0, 2, 1)
-    sig = np.sqrt(np.clip(np.einsum("kii->ki", Pw), 0.0, None))
+    kf, cost = cands[0]
+    traj, cov, chi2, s2 = _local_solution(kf, t, z, sb, N, free, prior_w)
+    dof = max(3 * N - int(free.sum()), 1)
+    var = np.clip(np.einsum("kii->ki", traj.Phi[:, 3:6, :] @ cov @ traj.Phi[:, 3:6, :].transpose(0, 2, 1)), 0.0, None)
+    # other minima as good as this one within a few units of χ² (the attitude about B, a mirror of the
+    # motion): the posterior has several modes, and the spread between them belongs in σ
+    modes = [(0.0, traj.w, var)]
+    for other, c in cands[1:]:
+        if not c - cost < MODE_SEARCH_DCHI2 * s2:
+            continue
+        other, c = _lm(other, t, z, sb, N, free, prior_w, iterations)
+        if not (np.isfinite(c) and c - cost < MODE_KEEP_DCHI2 * s2):
+            continue
+        o_traj, o_cov, _, _ = _local_solution(other, t, z, sb, N, free, prior_w, s2)
+        if any(np.max(np.abs(o_traj.w - w_m) / np.sqrt(v + 1e-18)) < 0.3 for _, w_m, v in modes):
+            continue  # the same minimum again (within a third of its σ)
+        o_var = np.einsum("kii->ki", o_traj.Phi[:, 3:6, :] @ o_cov @ o_traj.Phi[:, 3:6, :].transpose(0, 2, 1))
+        modes.append((max(c - cost, 0.0) / s2, o_traj.w, np.clip(o_var, 0.0, None)))
+    weights = np.exp(-0.5 * np.array([d for d, _, _ in modes]))
+    weights /= weights.sum()
+    between = sum(wt * (w_m - traj.w) ** 2 for wt, (_, w_m, _) in zip(weights, modes))
+    sig = np.sqrt(sum(wt * v for wt, (_, _, v) in zip(weights, modes)) + between)
     shape = kf.inertia_shape if kf.n_p else None
     return Smoothed(t, traj.w, np.minimum(sig, SIGMA_UNOBSERVED_RADPS), traj.q, "euler", chi2 / dof, shape,
                     info={"s2": s2, "windows": windows, "cov_x0": cov, "beta_uT": kf.beta.copy(),
-                          "p": kf.p.copy(), "minima_chi2": [c for _, c in cands]})
+                          "p": kf.p.copy(), "minima_chi2": [c for _, c in cands],
+                          "modes_dchi2": [d for d, _, _ in modes], "modes_weight": weights.tolist(),
+                          "modes_var_radps2": between})
+
+
+def _local_solution(kf, t, z, sb, n, free, prior_w, s2: float | None = None):
+    """The trajectory at a minimum and its state covariance s²(JᵀJ + W²)⁻¹ at t₀ (s² = max(1, χ²/dof)
+    unless given); (trajectory, covariance, χ², s²)."""
+    nn = kf.n
+    traj = _trajectory(kf, t, z, sb, n)
+    A = traj.Jr.reshape(-1, nn)[:, free]
+    r = traj.r.reshape(-1)
+    chi2 = float(r @ r)
+    if s2 is None:
+        s2 = max(1.0, chi2 / max(r.size - int(free.sum()), 1))
+    cov = np.zeros((nn, nn))
+    cov[np.ix_(free, free)] = s2 * np.linalg.pinv(A.T @ A + np.diag(prior_w[free] ** 2))
+    return traj, cov, chi2, s2
 
 
 def euler_fit_from_filter(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *,
@@ -352,7 +406,7 @@ def euler_fit_from_filter(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *,
     # the fit's state covariance is at t_N; only the shape's block (time-invariant) holds at t₀
     cov = np.zeros_like(rev.info["cov_x0"])
     cov[6:, 6:] = rev.info["cov_x0"][6:, 6:]
-    info = dict(rev.info, reversed=True, cov_x0=cov)
+    info = dict(rev.info, reversed=True, cov_x0=cov, modes_var_radps2=rev.info["modes_var_radps2"][::-1].copy())
     return Smoothed(t, -rev.w_radps[::-1].copy(), rev.sigma_radps[::-1].copy(), rev.q[::-1].copy(), "euler",
                     rev.chi2_dof, rev.inertia_shape, info=info)
 
@@ -437,7 +491,8 @@ def _lm(kf, t, z, sb, n, free, prior_w, iterations, lam: float = 1e-3):
             step = np.linalg.solve(JtJ + lam * np.diag(np.diag(JtJ) + 1e-12), -g)
             trial = _apply(kf, step, free)
             try:
-                tr = _trajectory(trial, t, z, sb, n)
+                with np.errstate(invalid="ignore", over="ignore"):  # a step too far: a non-finite cost, refused
+                    tr = _trajectory(trial, t, z, sb, n)
                 tc = float(tr.r.reshape(-1) @ tr.r.reshape(-1)) + _prior_cost(trial, prior_w)
             except (ValueError, OverflowError, FloatingPointError):
                 tc = math.inf
@@ -540,7 +595,10 @@ def euler_rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, fiel
     kf = run(accel, True)
     q_s, x_s, P_s = rts(kf.log)
     c = variance_scale(kf.log)
-    sig = np.sqrt(c * np.clip(np.einsum("kii->ki", P_s[:, 3:6, 3:6]), 0.0, None))
+    # the batch fit's other minima (another attitude about B, another motion as good): their spread
+    # is not in this pass's covariance, which is linearised about one of them
+    between = np.asarray(init.info.get("modes_var_radps2", 0.0))
+    sig = np.sqrt(c * np.clip(np.einsum("kii->ki", P_s[:, 3:6, 3:6]), 0.0, None) + between)
     chi2 = _chi2(t, b, sigma_b_T, q_s, x_s, field_eci_T)
     if shape is not None:
         shape = np.concatenate([[1.0], np.exp(x_s[0, 3:5])])

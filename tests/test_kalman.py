@@ -293,3 +293,30 @@ def test_shape_grid_is_physical_and_holds_the_sphere():
     for p in grid:
         j = sorted([1.0, math.exp(p[0]), math.exp(p[1])])
         assert j[2] <= 1.02 * (j[0] + j[1])
+
+
+@pytest.mark.parametrize("tau_s", [100.0, math.inf])
+def test_gauss_markov_rate_decays_and_settles_at_its_stationary_spread(tau_s):
+    """`rate_tau_s`: over a step ω decays by e^(−dt/τ) and the attitude turns by its integral
+    ω τ (1 − e^(−dt/τ)); with no samples the rate covariance settles at a²τ/2 per axis (exact for the
+    discretised process). τ = ∞ is the random walk: ω kept, per-step variance a²dt."""
+    a, dt = 1e-3, 2.0
+    tun = kl.AttitudeKalmanTuning(kappa=0.0, rate_accel_radps2=a, rate_tau_s=tau_s, adapt_max=1.0)
+    kf = kl.AttitudeRateKalman(1e-6, field_eci_T=lambda t: np.array([20e-6, 0.0, 30e-6]), tuning=tun)
+    w0 = np.radians([1.0, -2.0, 0.5])
+    kf.set_nominal(0.0, np.array([1.0, 0.0, 0.0, 0.0]), w0, euler=False)
+    kf._bhat, kf.adapt = np.array([0.0, 0.0, 1.0]), 1.0
+    F = kf.propagate(dt)
+    decay = math.exp(-dt / tau_s)
+    turned = w0 * (tau_s * (1.0 - decay) if math.isfinite(tau_s) else dt)
+    np.testing.assert_allclose(kf.w, w0 * decay, rtol=1e-12)
+    np.testing.assert_allclose(kl.quat_log(kf.q), turned, rtol=1e-9)
+    np.testing.assert_allclose(F[3:6, 3:6], decay * np.eye(3), rtol=1e-12)
+    Q = kf._process_noise(dt)
+    if not math.isfinite(tau_s):
+        np.testing.assert_allclose(Q[3:6, 3:6], a * a * dt * np.eye(3), rtol=1e-12)
+        return
+    P = np.zeros((6, 6))
+    for _ in range(3000):
+        P = F @ P @ F.T + Q
+    np.testing.assert_allclose(np.diagonal(P)[3:6], a * a * tau_s / 2.0, rtol=1e-6)

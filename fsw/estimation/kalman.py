@@ -525,10 +525,16 @@ class AttitudeKalmanTuning:
     field_sigma_T: 1-σ per axis of the field model's error, added to the measurement noise; with no
       field model, `field_rate_radps` lets the (unknown, fixed) inertial field drift instead.
     max_substep_rad: rotation per integration substep of Euler's equations (RK4).
+    rate_tau_s: with a finite value the random-walk phase's ω is a first-order Gauss–Markov process
+      instead, ω̇ = −ω/τ + w (stationary 1-σ per axis `rate_accel_radps2`·√(τ/2)): a motion that stays
+      bounded about zero (a libration about a held attitude). The component of ω along B, which the
+      samples see only as B turns in the body, then falls back to zero with a σ that grows back to
+      the stationary one instead of wandering off. Infinite (the default): a random walk.
     """
 
     kappa: float = 0.5
     rate_accel_radps2: float = 1e-4
+    rate_tau_s: float = math.inf
     inertia_shape_rate: float = 0.0
     field_rate_radps: float = 2.5e-3
     field_sigma_T: float = 0.0
@@ -698,11 +704,13 @@ class AttitudeRateKalman:
             return True
         marks = {k: len(v) for k, v in self.log.items()}
         try:
-            F = self.propagate(dt)
-            self.P = F @ self.P @ F.T + self._process_noise(dt)
-            self.t_s = t_s
-            self._record_prediction(t_s, F)
-            self._update(t_s, b * UT_PER_T)
+            # a state that blows up is caught just below (non-finite → restart, counted), not warned about
+            with np.errstate(invalid="ignore", over="ignore"):
+                F = self.propagate(dt)
+                self.P = F @ self.P @ F.T + self._process_noise(dt)
+                self.t_s = t_s
+                self._record_prediction(t_s, F)
+                self._update(t_s, b * UT_PER_T)
         except (ValueError, OverflowError, FloatingPointError, np.linalg.LinAlgError):
             ok = False
         else:
@@ -776,11 +784,14 @@ class AttitudeRateKalman:
         n = self.n
         F = np.eye(n)
         if not self.euler:
-            phi = self.w * dt
+            decay, mean = self._rate_decay(dt)
+            phi = self.w * (mean * dt)
             self.q = quat_mul(self.q, quat_exp(phi))
             self.q /= np.linalg.norm(self.q)
+            self.w = self.w * decay
             F[:3, :3] = so3_exp(-phi)
-            F[:3, 3:6] = dt * so3_right_jacobian(phi)
+            F[:3, 3:6] = (mean * dt) * so3_right_jacobian(phi)
+            F[3:6, 3:6] = decay * np.eye(3)
             return F
         tun = self.tuning
         wn = math.sqrt(float(self.w @ self.w))
@@ -802,12 +813,23 @@ class AttitudeRateKalman:
         self.w = np.array(w)
         return F
 
+    def _rate_decay(self, dt: float) -> tuple[float, float]:
+        """Gauss–Markov ω over a step: (e^(−dt/τ), mean of e^(−s/τ) over the step); (1, 1) for a
+        random walk."""
+        tau = self.tuning.rate_tau_s
+        if not math.isfinite(tau):
+            return 1.0, 1.0
+        x = dt / tau
+        return math.exp(-x), -math.expm1(-x) / x
+
     def _process_noise(self, dt: float) -> np.ndarray:
         tun = self.tuning
         n = self.n
         Q = np.zeros((n, n))
         q_w = self.adapt * tun.rate_accel_radps2 ** 2 * dt
         if not self.euler:  # κ|ω||ω⊥| (see RateKalman)
+            if math.isfinite(tun.rate_tau_s):  # Gauss–Markov: a²τ/2 (1 − e^(−2dt/τ)) per step
+                q_w *= -math.expm1(-2.0 * dt / tun.rate_tau_s) * tun.rate_tau_s / (2.0 * dt)
             w2 = float(self.w @ self.w)
             wb = float(self.w @ self._bhat)
             q_w += tun.kappa ** 2 * w2 * max(w2 - wb * wb, 0.0) / 3.0 * dt
