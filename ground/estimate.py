@@ -11,7 +11,8 @@ RMS and maximum error, of the full vector and of the part perpendicular to B.
 
 Methods: boer (perpendicular part; `boer-printed` is the paper's sign, for comparison), derivative,
 kotelnikov (`kotelnikov-paper`: sedelnikov2023's discrete pairing), kalman (the onboard filter),
-kalman-orbit / kalman-euler (attitude filter; need an orbit for the field's motion unless the field
+kalman-orbit / kalman-euler / kalman-mm (attitude filter; -mm: a bank of rate models, random walk
+and Gauss–Markov, for a slow libration; need an orbit for the field's motion unless the field
 is fixed), smoother (RTS), euler (batch torque-free fit), auto (euler when it explains the data, else
 smoother).
 
@@ -35,7 +36,7 @@ from ground import smoother as sm
 from ground.recording import RateEstimates, Recording, RecordingError, read_recording, write_rate_estimates
 
 METHODS = ("boer", "boer-printed", "derivative", "kotelnikov", "kotelnikov-paper", "kalman", "kalman-orbit",
-           "kalman-euler", "smoother", "euler", "auto")
+           "kalman-euler", "kalman-mm", "smoother", "euler", "auto")
 PERPENDICULAR = ("boer", "boer-printed")
 
 
@@ -88,6 +89,9 @@ def estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, fie
         return w, s, notes
     if method == "kalman-euler" and inertia_kgm2 is None:  # shape unknown: the parallel-hypothesis acquisition
         w, s, _ = kl.attitude_kalman_rate(t, b, sigma_b_T, field_eci_T=sm.tabulated(field, t), hypotheses=True)
+        return w, s, notes
+    if method == "kalman-mm":
+        w, s, _ = kl.attitude_kalman_rate(t, b, sigma_b_T, field_eci_T=sm.tabulated(field, t), models=True)
         return w, s, notes
     if method in ("kalman-orbit", "kalman-euler"):
         w, s, _ = kl.attitude_kalman_rate(t, b, sigma_b_T, field_eci_T=sm.tabulated(field, t),

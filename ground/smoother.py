@@ -270,7 +270,7 @@ def euler_fit(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T
     fitted again from there while that lowers the cost.
 
     1-σ: the posterior can have several modes as good as the best within a few units of χ² (another
-    attitude about B with a slightly different motion: truths 40–80° away in attitude and 0.1–0.2 °/s
+    attitude about B with a slightly different motion: truths 60–100° away in attitude and 0.1–0.2 °/s
     in ω, a Mahalanobis distance of thousands in the best minimum's own covariance). Every other start
     that ends within `MODE_SEARCH_DCHI2` is polished; the distinct minima within `MODE_KEEP_DCHI2` are
     weighted by e^(−Δχ²/2s²) and σ² is the mixture's second moment about the best: Σ wᵢ (σᵢ² +

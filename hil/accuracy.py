@@ -32,6 +32,8 @@ Each run: the onboard filters run from t = 0 over a warm-up (`warmup_s`, as they
 the scored record of `record_samples` samples; the formulas and the ground smoothers see only the
 record. Errors are taken against the truth at the sample times, pooled over the runs of a row:
 the full vector (for the methods that estimate it) and the part perpendicular to the true B.
+A method that gives nothing on a run (a batch fit that cannot be evaluated) is counted there
+(`failed_runs`, `missing_samples` for non-finite rows) and is not eligible as a row's best method.
 Coverage: share of per-axis errors inside ±1σ, with its spread over the runs (a run's error is one
 draw for all its samples: `coverage_se`, `runs_for_coverage_pm10` in the JSON). Orbital rows also
 carry the information limit of the random-walk model on the record (:func:`information_limit`).
@@ -39,7 +41,9 @@ carry the information limit of the random-walk model on the record (:func:`infor
 Methods: ``boer`` (perpendicular), ``derivative``, ``kotelnikov`` (series, analytic form); onboard:
 ``kalman`` (fsw RateKalman, fixed field, the filter flown by default), ``kalman_orbit`` (attitude
 filter with the field along the orbit), ``kalman_euler`` (that plus Euler's equations with the inertia
-shape estimated, acquired by parallel shape hypotheses: kalman.EulerAcquisitionKalman); ground:
+shape estimated, acquired by parallel shape hypotheses: kalman.EulerAcquisitionKalman), ``kalman_mm``
+(the attitude filter as a bank of rate models, random walk and Gauss–Markov, the likeliest
+publishing: kalman.RateModelBank); ground:
 ``smoother`` (RTS with the field model), ``euler`` (batch torque-free fit with the field model),
 ``euler_rts`` (RTS over the Euler filter), ``auto`` (ground.smoother.auto_choice: the Euler fit when
 χ²/dof ≤ 1.5 and it agrees with the Euler RTS smoother within 3 combined σ, else that smoother, else
@@ -72,7 +76,7 @@ BODIES = {"asymmetric": np.diag([175.0, 200.0, 285.0]), "near_symmetric": np.dia
 MODES = {"undirected": (5.0, 28.0), "bdot": (5.0, 23.0), "orbital": (0.5, 3.0)}
 BDOT_TAU_S, BDOT_B_NOM_T, BDOT_SAT_RADPS, BDOT_DISTURB_T = 1800.0, 35e-6, math.radians(10.0), 0.3e-6
 
-ONBOARD = ("kalman", "kalman_orbit", "kalman_euler")
+ONBOARD = ("kalman", "kalman_orbit", "kalman_euler", "kalman_mm")
 GROUND = ("smoother", "euler", "euler_rts", "auto")
 FULL = ("derivative", "kotelnikov") + ONBOARD + GROUND
 METHODS = ("boer",) + FULL
@@ -274,6 +278,7 @@ def estimate(run: Run, sigma_b_T: float, methods=METHODS) -> dict[str, tuple[np.
         "kalman_orbit": lambda: kl.attitude_kalman_rate(run.t_s, run.b_T, sigma_b_T, field_eci_T=field),
         "kalman_euler": lambda: kl.attitude_kalman_rate(run.t_s, run.b_T, sigma_b_T, field_eci_T=field,
                                                         hypotheses=True),
+        "kalman_mm": lambda: kl.attitude_kalman_rate(run.t_s, run.b_T, sigma_b_T, field_eci_T=field, models=True),
     }
     for name, fn in onboard.items():
         if name in methods:
@@ -342,7 +347,8 @@ def all_rows() -> list[Row]:
 def run_row(row: Row, runs: int, seed: int, record_samples: int, warmup_s: float,
             methods=METHODS) -> dict:
     """Monte-Carlo runs of a row (seed from the row's position and `seed`); the pooled statistics."""
-    pooled: dict[str, dict[str, list]] = {m: {"perp": [], "full": [], "z": [], "cov_run": []} for m in methods}
+    pooled: dict[str, dict[str, list]] = {m: {"perp": [], "full": [], "z": [], "cov_run": [], "failed": [],
+                                              "missing": []} for m in methods}
     rates, meta = [], []
     row_seed = [seed, list(MODES).index(row.mode), list(BODIES).index(row.body), int(row.dt_s),
                 int(round(10 * row.sigma_uT))]
@@ -352,6 +358,11 @@ def run_row(row: Row, runs: int, seed: int, record_samples: int, warmup_s: float
                        warmup_s=warmup_s)
         sigma_b = math.hypot(row.sigma_uT * 1e-6, CHIP_NOISE_T)
         est = estimate(run, sigma_b, methods)
+        for name in methods:  # a method that gave nothing on a run is counted, not left out of the pool
+            if name not in est:
+                pooled[name]["failed"].append(r)
+            else:
+                pooled[name]["missing"].append(int(np.sum(~np.all(np.isfinite(est[name][0]), axis=1))))
         for name, d in errors(run, est).items():
             for k, v in d.items():
                 pooled[name][k].append(v)
@@ -371,6 +382,8 @@ def run_row(row: Row, runs: int, seed: int, record_samples: int, warmup_s: float
                 a = np.concatenate(d[part])
                 res[f"{part}_rms_dps"] = math.degrees(float(np.sqrt(np.mean(a ** 2)))) if a.size else math.nan
                 res[f"{part}_max_dps"] = math.degrees(float(np.max(a))) if a.size else math.nan
+        res["failed_runs"] = list(d["failed"])
+        res["missing_samples"] = int(sum(d["missing"]))
         if d["z"]:
             z = np.concatenate(d["z"])
             res["coverage_1sigma"] = float(np.mean(z < 1.0)) if z.size else math.nan
@@ -383,9 +396,9 @@ def run_row(row: Row, runs: int, seed: int, record_samples: int, warmup_s: float
                                     for k in lims[0] if k.startswith("rms_")}
     boer = out["methods"].get("boer", {}).get("perp_rms_dps", math.nan)
 
-    def best(names):
+    def best(names):  # among the methods that answered on every run
         cands = [(out["methods"][n]["full_rms_dps"], n) for n in names if n in out["methods"]
-                 and "full_rms_dps" in out["methods"][n]]
+                 and "full_rms_dps" in out["methods"][n] and not out["methods"][n]["failed_runs"]]
         return min(cands) if cands else (math.nan, None)
 
     for label, names in (("onboard", ONBOARD), ("ground", GROUND)):
@@ -458,9 +471,9 @@ def targets(results: list[dict]) -> dict:
 def markdown(bench: dict) -> str:
     """The README table: one line per row, RMS (max) in °/s."""
     head = ("| mode | body | Δt s | σ_B µT | mean \\|ω\\| °/s | Boer ⊥ RMS (max) | derivative | Kotelnikov | "
-            "kalman | kalman_euler | best onboard (÷Boer⊥) | smoother | euler | best ground (÷Boer⊥) | "
+            "kalman | kalman_euler | kalman_mm | best onboard (÷Boer⊥) | smoother | euler | best ground (÷Boer⊥) | "
             "ground 1σ cov. |")
-    lines = [head, "|" + "---|" * 15]
+    lines = [head, "|" + "---|" * 16]
     for r in bench["rows"]:
         m = r["methods"]
         row = r["row"]
@@ -476,7 +489,7 @@ def markdown(bench: dict) -> str:
         lines.append(
             f"| {row['mode']} | {row['body'].replace('_', '-')} | {row['dt_s']:g} | {row['sigma_uT']:g} | "
             f"{r['mean_rate_dps']:.1f} | {f('boer', 'perp')} | {f('derivative')} | {f('kotelnikov')} | "
-            f"{f('kalman')} | {f('kalman_euler')} | {bo['full_rms_dps']:.2f} {bo['method']} "
+            f"{f('kalman')} | {f('kalman_euler')} | {f('kalman_mm')} | {bo['full_rms_dps']:.2f} {bo['method']} "
             f"({bo['ratio_to_boer_perp']:.2f}) | {f('smoother')} | {f('euler')} | "
             f"{bg['full_rms_dps']:.3f} {bg['method']} ({bg['ratio_to_boer_perp']:.3f}) | {100 * cov:.0f} % |")
     return "\n".join(lines)
@@ -512,7 +525,8 @@ def real_recordings(paths, rates_hz=(None, 10.0), max_s: float | None = None, lo
             row["methods"]["kalman"] = score(r, kl.kalman_rate(r.t_s, r.b_T, sigma)[0], False)
             sm_res = sm.rts_smooth(r.t_s, r.b_T, sigma)
             row["methods"]["smoother"] = score(r, sm_res.w_radps, False)
-            row["smoother_noise"] = {k: sm_res.info[k] for k in ("kappa", "rate_accel_radps2", "sigma_factor")}
+            row["smoother_noise"] = {k: sm_res.info[k] for k in ("kappa", "rate_accel_radps2", "sigma_factor",
+                                                                 "rate_tau_s")}
             best = min(REAL_METHODS, key=lambda n: row["methods"][n]["perp_rms_dps"])
             row["best"] = best
             row["best_beats_boer"] = row["methods"][best]["perp_rms_dps"] < row["methods"]["boer"]["perp_rms_dps"]

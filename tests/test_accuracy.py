@@ -73,3 +73,27 @@ def test_short_benchmark_rows(row):
     assert all(np.isfinite(v["perp_rms_dps"]) for v in m.values())
     table = acc.markdown({"rows": [res]})
     assert table.count("\n") == 2 and row.mode in table
+
+
+def test_a_method_that_fails_on_a_run_is_counted_and_not_the_best(monkeypatch):
+    """A method that gives nothing on one run is listed in `failed_runs` (its pooled errors would
+    otherwise come from the runs where it worked) and cannot be the row's best method; non-finite rows
+    are counted in `missing_samples`."""
+    real = acc.estimate
+    calls = []
+
+    def flaky(run, sigma_b_T, methods=acc.METHODS):
+        est = real(run, sigma_b_T, methods)
+        calls.append(len(calls))
+        if len(calls) == 1:
+            del est["kalman"]
+        else:
+            est["kalman_orbit"][0][0] = np.nan
+        return est
+    monkeypatch.setattr(acc, "estimate", flaky)
+    res = acc.run_row(acc.Row("undirected", "near_symmetric", 1.0, 0.5), runs=2, seed=3, record_samples=20,
+                      warmup_s=20.0, methods=("boer", "kalman", "kalman_orbit"))
+    m = res["methods"]
+    assert m["kalman"]["failed_runs"] == [0] and m["kalman_orbit"]["failed_runs"] == []
+    assert m["kalman_orbit"]["missing_samples"] == 1 and m["kalman"]["missing_samples"] == 0
+    assert res["best_onboard"]["method"] == "kalman_orbit"

@@ -1061,12 +1061,89 @@ class EulerAcquisitionKalman:
             self.main = best
 
 
+#: the process models of :class:`RateModelBank`: (τ s, a rad/s²) of a Gauss–Markov rate, stationary 1-σ
+#: a√(τ/2) per axis 0.2–2.2 °/s (a libration, a held attitude); (∞, None) is the random walk of the
+#: tuning given (the tumble). The ground smoother's likelihood picks from the same family.
+RATE_MODELS = ((math.inf, None), (30.0, 1e-3), (30.0, 3e-3), (10.0, 3e-3), (10.0, 1e-2), (30.0, 1e-2))
+
+
+class RateModelBank:
+    """Multiple-model estimation over the rate's process model (Magill 1965; Bar-Shalom et al. 2001
+    §11.6): one :class:`AttitudeRateKalman` per model of `models`, all updated with every sample.
+
+    The component of ω along B shows only as B turns in the body. A random walk lets it wander without
+    bound when B barely turns (a slow libration: 1.3–4 °/s RMS error for a motion of 1.5 °/s); a
+    Gauss–Markov rate, ω̇ = −ω/τ + w, brings it back to zero with its stationary spread, but would drag
+    a tumble down. Each member's negative log-likelihood of its innovations, ½(NIS + ln det S), is summed
+    with a forgetting factor 1 − 1/`memory_samples`, and the member with the least sum publishes. The
+    Gauss–Markov members take the tuning (its innovation-driven noise adaptation included) with κ set to
+    `kappa_gm`. Causal, one sample at a time; a member that restarts keeps its score (its restarts show
+    in its innovations). The likelihood judges the part of the motion the samples see; along B, where
+    they see little, it cannot tell the models apart, and a random walk that fits the perpendicular part
+    a little better can still win there (see the README's orbital rows).
+    """
+
+    def __init__(self, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
+                 tuning: AttitudeKalmanTuning | None = None, models=RATE_MODELS, memory_samples: float = 200.0,
+                 kappa_gm: float = 0.03, angle_about_b_rad: float = 0.0) -> None:
+        base = tuning or AttitudeKalmanTuning()
+        if not memory_samples >= 1.0:
+            raise ValueError(f"memory_samples must be >= 1, got {memory_samples!r}")
+        self.models = tuple((float(tau), a) for tau, a in models)
+        self.members = []
+        for tau, a in self.models:
+            tun = base if not math.isfinite(tau) else replace(base, rate_tau_s=tau, rate_accel_radps2=float(a),
+                                                                kappa=kappa_gm)
+            self.members.append(AttitudeRateKalman(sigma_b_T, field_eci_T=field_eci_T, tuning=tun,
+                                                   angle_about_b_rad=angle_about_b_rad))
+        self.forget = 1.0 - 1.0 / float(memory_samples)
+        self.score = np.zeros(len(self.members))
+        self.best = 0
+
+    @property
+    def main(self) -> AttitudeRateKalman:
+        return self.members[self.best]
+
+    @property
+    def omega_radps(self) -> np.ndarray:
+        return self.main.omega_radps
+
+    @property
+    def sigma_radps(self) -> np.ndarray:
+        return self.main.sigma_radps
+
+    @property
+    def flags(self) -> int:
+        return self.main.flags
+
+    @property
+    def model(self) -> tuple[float, float | None]:
+        """(τ, a) of the publishing member."""
+        return self.models[self.best]
+
+    def update(self, t_s: float, b_T) -> bool:
+        """Add a field sample (tesla, body axes) at `t_s` to every member; True when an estimate was
+        published."""
+        out = False
+        for i, kf in enumerate(self.members):
+            nll0 = kf.nll
+            published = kf.update(t_s, b_T)
+            out = out or published
+            d = kf.nll - nll0
+            self.score[i] = self.forget * self.score[i] + (d if math.isfinite(d) else 1e6)
+        self.best = int(np.argmin(self.score))
+        return out
+
+
 def attitude_kalman_rate(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, hypotheses: bool = False,
-                         **kwargs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                         models: bool = False, **kwargs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Run :class:`AttitudeRateKalman` (keyword arguments as its constructor) over a recording; with
     `hypotheses` (and the shape estimated) the parallel-hypothesis acquisition of
-    :class:`EulerAcquisitionKalman` instead (keyword arguments `field_eci_T`, `tuning`, and its own)."""
+    :class:`EulerAcquisitionKalman` instead (keyword arguments `field_eci_T`, `tuning`, and its own);
+    with `models` the bank of rate models :class:`RateModelBank` (its keyword arguments)."""
     if hypotheses:
         kwargs.pop("estimate_inertia", None)
         return _run_stream(EulerAcquisitionKalman(sigma_b_T, **kwargs), t_s, b_T)
+    if models:
+        return _run_stream(RateModelBank(sigma_b_T, **kwargs), t_s, b_T)
     return _run_stream(AttitudeRateKalman(sigma_b_T, **kwargs), t_s, b_T)
