@@ -1,8 +1,8 @@
 """Accuracy benchmark of the rate estimators: seeded Monte-Carlo SITL runs, a table shaped like
 sedelnikov2024 Table 3.
 
-    python -m hil.accuracy                       # the full table (README), a few minutes on 2 cores
-    python -m hil.accuracy --json acc.json --jobs 2
+    python -m hil.accuracy                       # the full table, 3 runs per row (~17 min on 1 core)
+    python -m hil.accuracy --runs 20 --jobs 2 --json acc.json   # the README's (~55 min on 2 cores)
     python -m hil.accuracy --quick               # two rows, one run each: a smoke test
     python -m hil.accuracy --rows orbital --methods smoother   # a subset of rows; boer + the ground smoothers
 
