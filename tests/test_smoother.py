@@ -168,19 +168,25 @@ def test_auto_rejects_a_batch_fit_in_a_wrong_minimum():
     assert sm.disagreement(nan, rts) == math.inf and sm.auto_choice(nan, rts) == "euler_rts"
 
 
+def benchmark_record(mode, body, run_index):
+    """The scored record of a run of hil.accuracy's row (mode, body, 1 s, 0.5 µT), seeded as the benchmark
+    seeds it: t, B, true ω, σ_B, the field along the orbit."""
+    from hil import accuracy as acc
+    seed = [2024, list(acc.MODES).index(mode), list(acc.BODIES).index(body), 1, 5, run_index]
+    run = acc.simulate(mode, body, 1.0, 0.5e-6, np.random.default_rng(seed))
+    rec = run.record
+    t = run.t_s[rec]
+    return (t, run.b_T[rec], run.w_true_radps[rec], math.hypot(0.5e-6, acc.CHIP_NOISE_T),
+            sm.tabulated(run.field, t))
+
+
 def test_a_libration_is_smoothed_with_a_bounded_rate_model():
     """Orbital-frame attitude with a libration (the benchmark's orbital mode, 1 s step, 0.5 µT): the
     component of ω along B shows only as B turns in the body. The likelihood picks a Gauss–Markov rate
     (finite τ) over the random walk, and its estimate along B falls back towards zero instead of
     wandering off: the full-vector error drops well below the random walk's, and below the motion's own
     RMS (an estimate of zero)."""
-    from hil import accuracy as acc
-    rng = np.random.default_rng([2024, 2, 0, 1, 5, 3])
-    run = acc.simulate("orbital", "asymmetric", 1.0, 0.5e-6, rng)
-    rec = run.record
-    t, b, w = run.t_s[rec], run.b_T[rec], run.w_true_radps[rec]
-    sb = math.hypot(0.5e-6, acc.CHIP_NOISE_T)
-    fld = sm.tabulated(run.field, t)
+    t, b, w, sb, fld = benchmark_record("orbital", "asymmetric", 3)
     gm = sm.rts_smooth(t, b, sb, field_eci_T=fld)
     rw = sm.rts_smooth(t, b, sb, field_eci_T=fld, rate_taus_s=(math.inf,))
     assert math.isfinite(gm.info["rate_tau_s"])
@@ -193,13 +199,7 @@ def test_batch_fit_sigma_spans_its_near_equivalent_minima(monkeypatch):
     this happens): the fit's best minimum and another one are equally good (Δχ² < 1) but 0.1–0.2 °/s
     apart in ω, and the truth lies in neither's linearised 1-σ. σ as the mixture's second moment about
     the best minimum covers the truth within 2σ RMS; the best minimum's own σ alone leaves it beyond 3σ."""
-    from hil import accuracy as acc
-    rng = np.random.default_rng([2024, 0, 1, 1, 5, 4])
-    run = acc.simulate("undirected", "near_symmetric", 1.0, 0.5e-6, rng)
-    rec = run.record
-    t, b, w = run.t_s[rec], run.b_T[rec], run.w_true_radps[rec]
-    sb = math.hypot(0.5e-6, acc.CHIP_NOISE_T)
-    fld = sm.tabulated(run.field, t)
+    t, b, w, sb, fld = benchmark_record("undirected", "near_symmetric", 4)
     init = sm.rts_smooth(t, b, sb, field_eci_T=fld)
     mixed = sm.euler_fit(t, b, sb, field_eci_T=fld, init=init)
     assert len(mixed.info["modes_dchi2"]) >= 2 and max(mixed.info["modes_dchi2"]) < 1.0

@@ -958,7 +958,25 @@ def shape_grid(step: float = 0.35, half_width: int = 2) -> tuple[tuple[float, fl
 EULER_ADAPT_MAX = 30.0
 
 
-class EulerAcquisitionKalman:
+class _Bank:
+    """Several :class:`AttitudeRateKalman` run side by side; the one in `main` publishes."""
+
+    main: AttitudeRateKalman
+
+    @property
+    def omega_radps(self) -> np.ndarray:
+        return self.main.omega_radps
+
+    @property
+    def sigma_radps(self) -> np.ndarray:
+        return self.main.sigma_radps
+
+    @property
+    def flags(self) -> int:
+        return self.main.flags
+
+
+class EulerAcquisitionKalman(_Bank):
     """:class:`AttitudeRateKalman` with the inertia shape estimated, acquired by parallel hypotheses.
 
     A single filter switching Euler's equations on from a sphere fails at large steps (3 s at
@@ -994,18 +1012,6 @@ class EulerAcquisitionKalman:
         self._trial: list[tuple[AttitudeRateKalman, float, int]] = []
         self._trial_left = 0
         self._wait = 0
-
-    @property
-    def omega_radps(self) -> np.ndarray:
-        return self.main.omega_radps
-
-    @property
-    def sigma_radps(self) -> np.ndarray:
-        return self.main.sigma_radps
-
-    @property
-    def flags(self) -> int:
-        return self.main.flags
 
     @property
     def euler(self) -> bool:
@@ -1067,7 +1073,7 @@ class EulerAcquisitionKalman:
 RATE_MODELS = ((math.inf, None), (30.0, 1e-3), (30.0, 3e-3), (10.0, 3e-3), (10.0, 1e-2), (30.0, 1e-2))
 
 
-class RateModelBank:
+class RateModelBank(_Bank):
     """Multiple-model estimation over the rate's process model (Magill 1965; Bar-Shalom et al. 2001
     §11.6): one :class:`AttitudeRateKalman` per model of `models`, all updated with every sample.
 
@@ -1103,18 +1109,6 @@ class RateModelBank:
     @property
     def main(self) -> AttitudeRateKalman:
         return self.members[self.best]
-
-    @property
-    def omega_radps(self) -> np.ndarray:
-        return self.main.omega_radps
-
-    @property
-    def sigma_radps(self) -> np.ndarray:
-        return self.main.sigma_radps
-
-    @property
-    def flags(self) -> int:
-        return self.main.flags
 
     @property
     def model(self) -> tuple[float, float | None]:
