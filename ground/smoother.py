@@ -155,8 +155,8 @@ def rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_
     (κ for the torque-free part, a floor for other torques: 10⁻⁴ rad/s² for a tumbling body up to
     100 rad/s² for a hand-held sensor), a factor on σ_B (a field that is not quite uniform, a sensor
     not quite calibrated), the Gauss–Markov time τ (∞: the random walk) and, with a field model, the
-    starting angle about B are chosen by maximum likelihood on the backward pass (a coordinate search
-    over the grids). A finite τ matters where the samples say little about ω along B (a slow motion:
+    starting angle about B are chosen by maximum likelihood on the backward pass (a search over the
+    grids: the floor and τ jointly, then κ and the factor, then the floor and τ again). A finite τ matters where the samples say little about ω along B (a slow motion:
     B barely turns in the body): that component then falls back to zero with the process's stationary
     spread instead of wandering off.
     """
@@ -333,11 +333,10 @@ def euler_fit(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T
         cands.insert(0, (kf, cost))
     cands.sort(key=lambda kc: kc[1])
     kf, cost = cands[0]
-    traj, cov, chi2, s2 = _local_solution(kf, t, z, sb, N, free, prior_w)
+    traj, cov, var, chi2, s2 = _local_solution(kf, t, z, sb, N, free, prior_w)
     dof = max(3 * N - int(free.sum()), 1)
-    var = np.clip(np.einsum("kii->ki", traj.Phi[:, 3:6, :] @ cov @ traj.Phi[:, 3:6, :].transpose(0, 2, 1)), 0.0, None)
-    # other minima as good as this one within a few units of χ² (the attitude about B, a mirror of the
-    # motion): the posterior has several modes, and the spread between them belongs in σ
+    # other minima as good as this one within a few units of χ² (another attitude about B with a slightly
+    # different motion): the posterior has several modes, and the spread between them belongs in σ
     modes = [(0.0, traj.w, var)]
     for other, c in cands[1:]:
         if not c - cost < MODE_SEARCH_DCHI2 * s2:
@@ -345,11 +344,10 @@ def euler_fit(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T
         other, c = _lm(other, t, z, sb, N, free, prior_w, iterations)
         if not (np.isfinite(c) and c - cost < MODE_KEEP_DCHI2 * s2):
             continue
-        o_traj, o_cov, _, _ = _local_solution(other, t, z, sb, N, free, prior_w, s2)
+        o_traj, _, o_var, _, _ = _local_solution(other, t, z, sb, N, free, prior_w, s2)
         if any(np.max(np.abs(o_traj.w - w_m) / np.sqrt(v + 1e-18)) < 0.3 for _, w_m, v in modes):
             continue  # the same minimum again (within a third of its σ)
-        o_var = np.einsum("kii->ki", o_traj.Phi[:, 3:6, :] @ o_cov @ o_traj.Phi[:, 3:6, :].transpose(0, 2, 1))
-        modes.append((max(c - cost, 0.0) / s2, o_traj.w, np.clip(o_var, 0.0, None)))
+        modes.append((max(c - cost, 0.0) / s2, o_traj.w, o_var))
     weights = np.exp(-0.5 * np.array([d for d, _, _ in modes]))
     weights /= weights.sum()
     between = sum(wt * (w_m - traj.w) ** 2 for wt, (_, w_m, _) in zip(weights, modes))
@@ -363,8 +361,9 @@ def euler_fit(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T
 
 
 def _local_solution(kf, t, z, sb, n, free, prior_w, s2: float | None = None):
-    """The trajectory at a minimum and its state covariance s²(JᵀJ + W²)⁻¹ at t₀ (s² = max(1, χ²/dof)
-    unless given); (trajectory, covariance, χ², s²)."""
+    """The trajectory at a minimum, its state covariance s²(JᵀJ + W²)⁻¹ at t₀ (s² = max(1, χ²/dof)
+    unless given) and the variance of ω at every sample through the transition matrices;
+    (trajectory, covariance, ω variances (n, 3), χ², s²)."""
     nn = kf.n
     traj = _trajectory(kf, t, z, sb, n)
     A = traj.Jr.reshape(-1, nn)[:, free]
@@ -374,7 +373,8 @@ def _local_solution(kf, t, z, sb, n, free, prior_w, s2: float | None = None):
         s2 = max(1.0, chi2 / max(r.size - int(free.sum()), 1))
     cov = np.zeros((nn, nn))
     cov[np.ix_(free, free)] = s2 * np.linalg.pinv(A.T @ A + np.diag(prior_w[free] ** 2))
-    return traj, cov, chi2, s2
+    Pw = traj.Phi[:, 3:6, :] @ cov @ traj.Phi[:, 3:6, :].transpose(0, 2, 1)
+    return traj, cov, np.clip(np.einsum("kii->ki", Pw), 0.0, None), chi2, s2
 
 
 def euler_fit_from_filter(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *,
