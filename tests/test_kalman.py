@@ -320,6 +320,9 @@ def test_gauss_markov_rate_decays_and_settles_at_its_stationary_spread(tau_s):
     for _ in range(3000):
         P = F @ P @ F.T + Q
     np.testing.assert_allclose(np.diagonal(P)[3:6], a * a * tau_s / 2.0, rtol=1e-6)
+    for bad in (0.0, -5.0, math.nan):
+        with pytest.raises(ValueError):
+            kl.AttitudeRateKalman(1e-6, tuning=kl.AttitudeKalmanTuning(rate_tau_s=bad))
 
 
 def test_rate_model_bank_holds_a_libration_and_keeps_the_random_walk_for_a_tumble():

@@ -598,6 +598,8 @@ class AttitudeRateKalman:
             raise ValueError("a known torque needs the absolute inertia tensor")
         self.sigma_b_T = float(sigma_b_T)
         self.tuning = tun = tuning or AttitudeKalmanTuning()
+        if not tun.rate_tau_s > 0:
+            raise ValueError(f"rate_tau_s must be > 0 (inf for a random walk), got {tun.rate_tau_s!r}")
         self.field = field_eci_T
         self.J = None if inertia_kgm2 is None else np.array(inertia_kgm2, float)
         self.J_inv = None if self.J is None else np.linalg.inv(self.J)
