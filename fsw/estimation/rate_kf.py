@@ -34,7 +34,7 @@ def jr_coefficients(th2: float) -> tuple[float, float]:
 
 @njit(cache=True)
 def _add_skew(M: np.ndarray, k: float, px: float, py: float, pz: float) -> None:
-    """M[:3, :3] += k [φ]ₓ."""
+    """M[:3, :3] += k [φ]ₓ (M may be a view: a block of a larger matrix)."""
     M[0, 1] -= k * pz
     M[0, 2] += k * py
     M[1, 0] += k * pz
@@ -99,12 +99,7 @@ def predict(x: np.ndarray, P: np.ndarray, dt: float, q_w: float, q_b: float, phi
         P[i, i] += q_b
         P[3 + i, 3 + i] += q_w
     # Q_Bω = f₂ [B⁻]ₓ and its transpose
-    P[0, 4] -= f2 * bz
-    P[0, 5] += f2 * by
-    P[1, 3] += f2 * bz
-    P[1, 5] -= f2 * bx
-    P[2, 3] -= f2 * by
-    P[2, 4] += f2 * bx
+    _add_skew(P[:3, 3:], f2, bx, by, bz)
     for i in range(3):
         for j in range(3, 6):
             P[j, i] = P[i, j]
