@@ -34,6 +34,7 @@ from .estimation.rate_formulas import BoerStream, DerivativeStream
 from .estimation.sample_gate import SampleGate, mark_gap
 from .scheduler import Scheduler, Task
 from .telemetry.dialect import mavlink
+from .telemetry.sample_store import Resender, SampleStore
 from .telemetry.telemetry import Telemetry
 from .telemetry.uplink import Uplink
 
@@ -65,13 +66,15 @@ class FlightSoftware:
     def __init__(self, source: FieldSource, telemetry: Telemetry, *, rate_hz: float, sigma_b_T: float,
                  truth: Callable[[float], object] | None = None, max_sample_tlm_hz: float = 20.0,
                  sample_rate_hz: float | None = None, uplink=None, key: bytes | None = None,
-                 ident=None, deorbit=None, rate_filter=None) -> None:
+                 ident=None, deorbit=None, rate_filter=None, sample_store: SampleStore | None = None) -> None:
         """`uplink`: the connection commands arrive on (usually the telemetry link itself, `telemetry.conn`;
         None: no uplink); `key`: the mission key (None: every state-changing command is refused);
         `ident`: the inertia identification experiment (`fsw.ident.IdentExperiment`), or None;
         `deorbit`: the de-orbit kit (`fsw.deorbit.kit.DeorbitKit`), or None;
         `rate_filter`: the Kalman filter sent as DEBRIS_RATE_METHOD_KALMAN (default
-        `estimation.kalman.RateKalman`; e.g. an `AttitudeRateKalman` with the field along the orbit)."""
+        `estimation.kalman.RateKalman`; e.g. an `AttitudeRateKalman` with the field along the orbit);
+        `sample_store`: where the numbered samples are kept for the ground's requests (default: in
+        memory, run id 0)."""
         self.source = source
         self.tlm = telemetry
         self.truth = truth
@@ -87,6 +90,8 @@ class FlightSoftware:
         self._tlm_every = max(1, int(np.ceil((sample_rate_hz or rate_hz) / max_sample_tlm_hz)))
         self.gate = SampleGate(sigma_b_T, 1.0 / (sample_rate_hz or rate_hz))
         self.tlm_samples = 0  # samples handed to telemetry
+        self.sample_store = sample_store if sample_store is not None else SampleStore()
+        self.resender = Resender(self.sample_store)
         self._gap, self._gap_left = 0, {}
         self.commands = CommandRouter()
         self.params = ParamTable()
@@ -102,7 +107,7 @@ class FlightSoftware:
         self.uplink = None if uplink is None else Uplink(
             uplink, self.commands, sysid=telemetry.mav.srcSystem, compid=telemetry.mav.srcComponent, key=key,
             clock=telemetry.clock, reply=telemetry.send_now if uplink is telemetry.conn else None,
-            params=self.params)
+            params=self.params, handlers={"DEBRIS_SAMPLE_REQUEST": self._sample_request})
         period = 1.0 / rate_hz
         self.scheduler = Scheduler(rate_hz, [
             Task("uplink", self._uplink, rate_hz, 0.1 * period),
@@ -126,6 +131,8 @@ class FlightSoftware:
             self._tlm_every = max(1, int(np.ceil(sample_rate_hz / hz)))
 
         self.params.register("TLM_SAMPLE_HZ", lambda: sample_rate_hz / self._tlm_every, set_tlm_hz, 0.01, 1000.0)
+        rs = self.resender
+        self.params.register("RESEND_BPS", lambda: rs.bytes_per_s, lambda v: setattr(rs, "bytes_per_s", v), 0.0, 1e6)
         store = self.tlm.store
         if store is not None:
             self.params.register("SF_REPLAY_BPS", lambda: store.replay_bytes_per_s,
@@ -141,6 +148,11 @@ class FlightSoftware:
         else:
             return mavlink.MAV_RESULT_DENIED
         return mavlink.MAV_RESULT_ACCEPTED
+
+    def _sample_request(self, msg, now_s: float, authenticated: bool) -> None:
+        """DEBRIS_SAMPLE_REQUEST: queue the range for the resender (signed only, with a mission key: the
+        uplink drops unauthenticated frames before they get here)."""
+        self.resender.request(msg.first_seq, msg.count)
 
     def _link_counters(self) -> dict:
         if self.uplink is not None:
@@ -202,11 +214,16 @@ class FlightSoftware:
 
     def _telemetry(self, now_s: float) -> None:
         self.tlm.service(now_s)
+        self._live_sample()
+        self.resender.service(now_s, self.tlm.resend_sample)
+
+    def _live_sample(self) -> None:
         if not self.new_sample or (self.samples - 1) % self._tlm_every:
             return
         t = self.sample_t_s
         self.tlm_samples += 1
-        self.tlm.mag_sample(t, self.sample_b_T)
+        seq = self.sample_store.append(t, self.sample_b_T)
+        self.tlm.mag_sample(t, self.sample_b_T, seq, self.sample_store.run_id)
         for name, est in self.estimators.items():
             if self.new_estimate[name]:
                 self.tlm.rate_estimate(t, est.omega_radps, est.sigma_radps, METHODS[name], est.flags)
@@ -236,6 +253,8 @@ class FlightSoftware:
             self.tlm.mag_status(now_s, src)
         if self.deorbit is not None:
             self.tlm.deorbit_status(now_s, self.deorbit.status(now_s))
+        self.tlm.sample_store_status(now_s, self.sample_store, self.resender)
+        self.sample_store.sync()
         st.reset_window()
 
     def _deorbit_event(self, event) -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import gc
 import math
+import os
 import signal
 import sys
 import threading
@@ -24,6 +25,7 @@ from .drivers.mmc5983ma import Mmc5983ma
 from .drivers.mmc5983ma_regs import Bandwidth, ContinuousFrequency
 from .flight import FlightSoftware
 from .telemetry.dialect import FSW_COMPID, FSW_SYSID, open_link
+from .telemetry.sample_store import SampleStore
 from .telemetry.signing import SigningClock, key_fingerprint, load_key
 from .telemetry.store_forward import DEFAULT_CAPACITY, StoreForward
 from .telemetry.telemetry import Telemetry
@@ -174,6 +176,9 @@ def parse_args(argv=None):
     ap.add_argument("--buffer-frames", type=int, default=DEFAULT_CAPACITY, metavar="N",
                     help=f"store-and-forward ring: telemetry frames kept while the link is down "
                          f"(default {DEFAULT_CAPACITY}; 0 = none)")
+    ap.add_argument("--sample-store", metavar="FILE", default=None,
+                    help="keep the numbered samples the ground may ask for again in this file, so that they and "
+                         "their numbering survive a restart (default: in memory)")
     ap.add_argument("--seed", type=int, default=0, help="random seed of the simulator (default 0)")
     ap.add_argument("--sample-rate", type=float, default=None, metavar="HZ",
                     help="magnetometer sample rate, up to 1000 Hz (default: on target 1 Hz, in SITL the scenario's; "
@@ -265,9 +270,13 @@ def run(args, out=sys.stdout) -> Run:
         from hil.deorbit_sim import build_kit
         deorbit = build_kit(sim)
         header += f"\nde-orbit kit: emulated; controller attitude from {deorbit.attitude.description}"
+    # a new run id at every start (this is the program's edge): the ground tells runs apart by it
+    store = SampleStore(run_id=int.from_bytes(os.urandom(4), "little"), path=getattr(args, "sample_store", None))
+    if store.reset_reason:
+        header += f"\nsample store: {store.reset_reason}"
     fsw = FlightSoftware(source, tlm, rate_hz=args.rate, sigma_b_T=sigma_b, truth=truth,
                          max_sample_tlm_hz=args.max_sample_tlm_hz, sample_rate_hz=sample_rate,
-                         uplink=uplink, key=key, ident=ident, deorbit=deorbit)
+                         uplink=uplink, key=key, ident=ident, deorbit=deorbit, sample_store=store)
     header += (f"\nmission key {key_fingerprint(key)}: commands must be signed, telemetry is signed" if key else
                "\nno mission key: commands that change state are refused")
     if uplink is not link:
@@ -338,6 +347,7 @@ def run(args, out=sys.stdout) -> Run:
         link.close()
         if uplink is not link:
             uplink.close()
+        store.close()
     if replay is not None and getattr(args, "rates_out", None):
         write_replay_rates(args.rates_out, replay, rates, args.replay)
         print(f"wrote {len(rates)} Kalman estimates for {len(replay.t)} samples: {args.rates_out}", file=out)

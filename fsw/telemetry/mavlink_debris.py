@@ -492,6 +492,14 @@ enums["DEBRIS_DEORBIT_FAULT"][8] = EnumEntry("DEBRIS_DEORBIT_FAULT_TIMEOUT", """
 DEBRIS_DEORBIT_FAULT_ENUM_END = 9
 enums["DEBRIS_DEORBIT_FAULT"][9] = EnumEntry("DEBRIS_DEORBIT_FAULT_ENUM_END", """""")
 
+# DEBRIS_SAMPLE_FLAGS
+enums["DEBRIS_SAMPLE_FLAGS"] = Enum()
+enums["DEBRIS_SAMPLE_FLAGS"].bitmask = True
+DEBRIS_SAMPLE_FLAGS_RESENT = 1
+enums["DEBRIS_SAMPLE_FLAGS"][1] = EnumEntry("DEBRIS_SAMPLE_FLAGS_RESENT", """Sent again from the box's sample store at the ground's request (DEBRIS_SAMPLE_REQUEST), not live.""")
+DEBRIS_SAMPLE_FLAGS_ENUM_END = 2
+enums["DEBRIS_SAMPLE_FLAGS"][2] = EnumEntry("DEBRIS_SAMPLE_FLAGS_ENUM_END", """""")
+
 # MAV_CMD
 enums["MAV_CMD"] = Enum()
 enums["MAV_CMD"].bitmask = False
@@ -6547,6 +6555,9 @@ MAVLINK_MSG_ID_DEBRIS_MAG_STATUS = 54003
 MAVLINK_MSG_ID_DEBRIS_INERTIA_ESTIMATE = 54004
 MAVLINK_MSG_ID_DEBRIS_DEORBIT_STATUS = 54005
 MAVLINK_MSG_ID_DEBRIS_LINK_STATUS = 54006
+MAVLINK_MSG_ID_DEBRIS_MAG_SAMPLE = 54007
+MAVLINK_MSG_ID_DEBRIS_SAMPLE_STORE = 54008
+MAVLINK_MSG_ID_DEBRIS_SAMPLE_REQUEST = 54009
 MAVLINK_MSG_ID_SYS_STATUS = 1
 MAVLINK_MSG_ID_SYSTEM_TIME = 2
 MAVLINK_MSG_ID_PING = 4
@@ -7091,6 +7102,142 @@ class MAVLink_debris_link_status_message(MAVLink_message):
 # Define name on the class for backwards compatibility (it is now msgname).
 # Done with setattr to hide the class variable from mypy.
 setattr(MAVLink_debris_link_status_message, "name", mavlink_msg_deprecated_name_property())
+
+
+class MAVLink_debris_mag_sample_message(MAVLink_message):
+    """
+    One magnetometer sample, numbered: the box's data product. Every
+    sample handed to telemetry gets the next number and is kept in the
+    box's sample store, from which the ground can ask for it again
+    (DEBRIS_SAMPLE_REQUEST).
+    """
+
+    id = MAVLINK_MSG_ID_DEBRIS_MAG_SAMPLE
+    msgname = "DEBRIS_MAG_SAMPLE"
+    fieldnames = ["time_usec", "seq", "run_id", "mag", "flags"]
+    ordered_fieldnames = ["time_usec", "seq", "run_id", "mag", "flags"]
+    fieldtypes = ["uint64_t", "uint32_t", "uint32_t", "float", "uint8_t"]
+    fielddisplays_by_name: Dict[str, str] = {"flags": "bitmask"}
+    fieldenums_by_name: Dict[str, str] = {"flags": "DEBRIS_SAMPLE_FLAGS"}
+    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "mag": "gauss"}
+    native_format = bytearray(b"<QIIfB")
+    orders = [0, 1, 2, 3, 4]
+    lengths = [1, 1, 1, 3, 1]
+    array_lengths = [0, 0, 0, 3, 0]
+    crc_extra = 77
+    unpacker = struct.Struct("<QII3fB")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(self, time_usec: int, seq: int, run_id: int, mag: Sequence[float], flags: int):
+        MAVLink_message.__init__(self, MAVLink_debris_mag_sample_message.id, MAVLink_debris_mag_sample_message.msgname)
+        self._fieldnames = MAVLink_debris_mag_sample_message.fieldnames
+        self._instance_field = MAVLink_debris_mag_sample_message.instance_field
+        self._instance_offset = MAVLink_debris_mag_sample_message.instance_offset
+        self.time_usec = time_usec
+        self.seq = seq
+        self.run_id = run_id
+        self.mag = mag
+        self.flags = flags
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.seq, self.run_id, self.mag[0], self.mag[1], self.mag[2], self.flags), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_debris_mag_sample_message, "name", mavlink_msg_deprecated_name_property())
+
+
+class MAVLink_debris_sample_store_message(MAVLink_message):
+    """
+    State of the box's sample store and of the answers to the ground's
+    requests for samples.
+    """
+
+    id = MAVLINK_MSG_ID_DEBRIS_SAMPLE_STORE
+    msgname = "DEBRIS_SAMPLE_STORE"
+    fieldnames = ["time_usec", "run_id", "run_first_seq", "stored_first_seq", "next_seq", "resend_queued", "resent", "requests", "requests_refused", "persistent"]
+    ordered_fieldnames = ["time_usec", "run_id", "run_first_seq", "stored_first_seq", "next_seq", "resend_queued", "resent", "requests", "requests_refused", "persistent"]
+    fieldtypes = ["uint64_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint8_t"]
+    fielddisplays_by_name: Dict[str, str] = {}
+    fieldenums_by_name: Dict[str, str] = {}
+    fieldunits_by_name: Dict[str, str] = {"time_usec": "us"}
+    native_format = bytearray(b"<QIIIIIIIIB")
+    orders = [0, 1, 2, 3, 4, 5, 6, 7, 8, 9]
+    lengths = [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]
+    array_lengths = [0, 0, 0, 0, 0, 0, 0, 0, 0, 0]
+    crc_extra = 19
+    unpacker = struct.Struct("<QIIIIIIIIB")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(self, time_usec: int, run_id: int, run_first_seq: int, stored_first_seq: int, next_seq: int, resend_queued: int, resent: int, requests: int, requests_refused: int, persistent: int):
+        MAVLink_message.__init__(self, MAVLink_debris_sample_store_message.id, MAVLink_debris_sample_store_message.msgname)
+        self._fieldnames = MAVLink_debris_sample_store_message.fieldnames
+        self._instance_field = MAVLink_debris_sample_store_message.instance_field
+        self._instance_offset = MAVLink_debris_sample_store_message.instance_offset
+        self.time_usec = time_usec
+        self.run_id = run_id
+        self.run_first_seq = run_first_seq
+        self.stored_first_seq = stored_first_seq
+        self.next_seq = next_seq
+        self.resend_queued = resend_queued
+        self.resent = resent
+        self.requests = requests
+        self.requests_refused = requests_refused
+        self.persistent = persistent
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.run_id, self.run_first_seq, self.stored_first_seq, self.next_seq, self.resend_queued, self.resent, self.requests, self.requests_refused, self.persistent), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_debris_sample_store_message, "name", mavlink_msg_deprecated_name_property())
+
+
+class MAVLink_debris_sample_request_message(MAVLink_message):
+    """
+    Ground to box: send the samples numbered first_seq .. first_seq +
+    count - 1 again, from the sample store, within the box's resend
+    budget. With a mission key loaded the request must be signed.
+    """
+
+    id = MAVLINK_MSG_ID_DEBRIS_SAMPLE_REQUEST
+    msgname = "DEBRIS_SAMPLE_REQUEST"
+    fieldnames = ["target_system", "target_component", "first_seq", "count"]
+    ordered_fieldnames = ["first_seq", "count", "target_system", "target_component"]
+    fieldtypes = ["uint8_t", "uint8_t", "uint32_t", "uint16_t"]
+    fielddisplays_by_name: Dict[str, str] = {}
+    fieldenums_by_name: Dict[str, str] = {}
+    fieldunits_by_name: Dict[str, str] = {}
+    native_format = bytearray(b"<IHBB")
+    orders = [2, 3, 0, 1]
+    lengths = [1, 1, 1, 1]
+    array_lengths = [0, 0, 0, 0]
+    crc_extra = 208
+    unpacker = struct.Struct("<IHBB")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(self, target_system: int, target_component: int, first_seq: int, count: int):
+        MAVLink_message.__init__(self, MAVLink_debris_sample_request_message.id, MAVLink_debris_sample_request_message.msgname)
+        self._fieldnames = MAVLink_debris_sample_request_message.fieldnames
+        self._instance_field = MAVLink_debris_sample_request_message.instance_field
+        self._instance_offset = MAVLink_debris_sample_request_message.instance_offset
+        self.target_system = target_system
+        self.target_component = target_component
+        self.first_seq = first_seq
+        self.count = count
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.first_seq, self.count, self.target_system, self.target_component), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_debris_sample_request_message, "name", mavlink_msg_deprecated_name_property())
 
 
 class MAVLink_sys_status_message(MAVLink_message):
@@ -17173,6 +17320,9 @@ mavlink_map: Dict[int, Type[MAVLink_message]] = {
     MAVLINK_MSG_ID_DEBRIS_INERTIA_ESTIMATE: MAVLink_debris_inertia_estimate_message,
     MAVLINK_MSG_ID_DEBRIS_DEORBIT_STATUS: MAVLink_debris_deorbit_status_message,
     MAVLINK_MSG_ID_DEBRIS_LINK_STATUS: MAVLink_debris_link_status_message,
+    MAVLINK_MSG_ID_DEBRIS_MAG_SAMPLE: MAVLink_debris_mag_sample_message,
+    MAVLINK_MSG_ID_DEBRIS_SAMPLE_STORE: MAVLink_debris_sample_store_message,
+    MAVLINK_MSG_ID_DEBRIS_SAMPLE_REQUEST: MAVLink_debris_sample_request_message,
     MAVLINK_MSG_ID_SYS_STATUS: MAVLink_sys_status_message,
     MAVLINK_MSG_ID_SYSTEM_TIME: MAVLink_system_time_message,
     MAVLINK_MSG_ID_PING: MAVLink_ping_message,
@@ -18038,6 +18188,106 @@ class MAVLink(object):
 
         """
         self.send(self.debris_link_status_encode(time_usec, cmd_accepted, rejected_unsigned, rejected_bad_signature, rejected_replay, rejected_invalid, tlm_buffered, tlm_replayed, tlm_dropped, link_up, frames_sent), force_mavlink1=force_mavlink1)
+
+    def debris_mag_sample_encode(self, time_usec: int, seq: int, run_id: int, mag: Sequence[float], flags: int) -> MAVLink_debris_mag_sample_message:
+        """
+        One magnetometer sample, numbered: the box's data product. Every
+        sample handed to telemetry gets the next number and is kept in
+        the box's sample store, from which the ground can ask for it
+        again (DEBRIS_SAMPLE_REQUEST).
+
+        time_usec                 : Sample time (time since this run of the flight software started). [us] (type:uint64_t)
+        seq                       : Sample number: consecutive over the samples sent, continued across restarts when the store is kept in a file. (type:uint32_t)
+        run_id                    : Identifier of the run of the flight software that took the sample (new at every start). (type:uint32_t)
+        mag                       : Field in the sensor axes (X, Y, Z). [gauss] (type:float)
+        flags                     : Sample flags. (type:uint8_t, values:DEBRIS_SAMPLE_FLAGS)
+
+        """
+        return MAVLink_debris_mag_sample_message(time_usec, seq, run_id, mag, flags)
+
+    def debris_mag_sample_send(self, time_usec: int, seq: int, run_id: int, mag: Sequence[float], flags: int, force_mavlink1: bool = False) -> None:
+        """
+        One magnetometer sample, numbered: the box's data product. Every
+        sample handed to telemetry gets the next number and is kept in
+        the box's sample store, from which the ground can ask for it
+        again (DEBRIS_SAMPLE_REQUEST).
+
+        time_usec                 : Sample time (time since this run of the flight software started). [us] (type:uint64_t)
+        seq                       : Sample number: consecutive over the samples sent, continued across restarts when the store is kept in a file. (type:uint32_t)
+        run_id                    : Identifier of the run of the flight software that took the sample (new at every start). (type:uint32_t)
+        mag                       : Field in the sensor axes (X, Y, Z). [gauss] (type:float)
+        flags                     : Sample flags. (type:uint8_t, values:DEBRIS_SAMPLE_FLAGS)
+
+        """
+        self.send(self.debris_mag_sample_encode(time_usec, seq, run_id, mag, flags), force_mavlink1=force_mavlink1)
+
+    def debris_sample_store_encode(self, time_usec: int, run_id: int, run_first_seq: int, stored_first_seq: int, next_seq: int, resend_queued: int, resent: int, requests: int, requests_refused: int, persistent: int) -> MAVLink_debris_sample_store_message:
+        """
+        State of the box's sample store and of the answers to the ground's
+        requests for samples.
+
+        time_usec                 : Loop time. [us] (type:uint64_t)
+        run_id                    : Identifier of this run of the flight software. (type:uint32_t)
+        run_first_seq             : Number of the first sample of this run. (type:uint32_t)
+        stored_first_seq          : Oldest sample number still in the store (older ones cannot be sent again). (type:uint32_t)
+        next_seq                  : Number the next sample will get (all before it have been sent once). (type:uint32_t)
+        resend_queued             : Samples requested and not yet sent again. (type:uint32_t)
+        resent                    : Samples sent again since start. (type:uint32_t)
+        requests                  : Requests accepted since start. (type:uint32_t)
+        requests_refused          : Requests refused since start (unauthenticated, malformed, or the queue full). (type:uint32_t)
+        persistent                : 1 when the store is kept in a file that survives a restart. (type:uint8_t)
+
+        """
+        return MAVLink_debris_sample_store_message(time_usec, run_id, run_first_seq, stored_first_seq, next_seq, resend_queued, resent, requests, requests_refused, persistent)
+
+    def debris_sample_store_send(self, time_usec: int, run_id: int, run_first_seq: int, stored_first_seq: int, next_seq: int, resend_queued: int, resent: int, requests: int, requests_refused: int, persistent: int, force_mavlink1: bool = False) -> None:
+        """
+        State of the box's sample store and of the answers to the ground's
+        requests for samples.
+
+        time_usec                 : Loop time. [us] (type:uint64_t)
+        run_id                    : Identifier of this run of the flight software. (type:uint32_t)
+        run_first_seq             : Number of the first sample of this run. (type:uint32_t)
+        stored_first_seq          : Oldest sample number still in the store (older ones cannot be sent again). (type:uint32_t)
+        next_seq                  : Number the next sample will get (all before it have been sent once). (type:uint32_t)
+        resend_queued             : Samples requested and not yet sent again. (type:uint32_t)
+        resent                    : Samples sent again since start. (type:uint32_t)
+        requests                  : Requests accepted since start. (type:uint32_t)
+        requests_refused          : Requests refused since start (unauthenticated, malformed, or the queue full). (type:uint32_t)
+        persistent                : 1 when the store is kept in a file that survives a restart. (type:uint8_t)
+
+        """
+        self.send(self.debris_sample_store_encode(time_usec, run_id, run_first_seq, stored_first_seq, next_seq, resend_queued, resent, requests, requests_refused, persistent), force_mavlink1=force_mavlink1)
+
+    def debris_sample_request_encode(self, target_system: int, target_component: int, first_seq: int, count: int) -> MAVLink_debris_sample_request_message:
+        """
+        Ground to box: send the samples numbered first_seq .. first_seq +
+        count - 1 again, from the sample store, within the box's
+        resend budget. With a mission key loaded the request must be
+        signed.
+
+        target_system             : System ID. (type:uint8_t)
+        target_component          : Component ID. (type:uint8_t)
+        first_seq                 : First sample number wanted. (type:uint32_t)
+        count                     : Number of consecutive samples wanted (at most 1000). (type:uint16_t)
+
+        """
+        return MAVLink_debris_sample_request_message(target_system, target_component, first_seq, count)
+
+    def debris_sample_request_send(self, target_system: int, target_component: int, first_seq: int, count: int, force_mavlink1: bool = False) -> None:
+        """
+        Ground to box: send the samples numbered first_seq .. first_seq +
+        count - 1 again, from the sample store, within the box's
+        resend budget. With a mission key loaded the request must be
+        signed.
+
+        target_system             : System ID. (type:uint8_t)
+        target_component          : Component ID. (type:uint8_t)
+        first_seq                 : First sample number wanted. (type:uint32_t)
+        count                     : Number of consecutive samples wanted (at most 1000). (type:uint16_t)
+
+        """
+        self.send(self.debris_sample_request_encode(target_system, target_component, first_seq, count), force_mavlink1=force_mavlink1)
 
     def sys_status_encode(self, onboard_control_sensors_present: int, onboard_control_sensors_enabled: int, onboard_control_sensors_health: int, load: int, voltage_battery: int, current_battery: int, battery_remaining: int, drop_rate_comm: int, errors_comm: int, errors_count1: int, errors_count2: int, errors_count3: int, errors_count4: int, onboard_control_sensors_present_extended: int = 0, onboard_control_sensors_enabled_extended: int = 0, onboard_control_sensors_health_extended: int = 0) -> MAVLink_sys_status_message:
         """

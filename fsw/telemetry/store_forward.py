@@ -2,7 +2,7 @@
 and is sent again, oldest first, when the link returns.
 
 What is kept: the data products, whose loss the ground cannot make up for — magnetometer samples
-(HIGHRES_IMU), rate estimates, simulator truth, inertia estimates (`STORED_IDS`). Status messages
+(DEBRIS_MAG_SAMPLE), rate estimates, simulator truth, inertia estimates (`STORED_IDS`). Status messages
 (HEARTBEAT, SYS_STATUS, loop / magnetometer / link status, de-orbit status) describe the present; an old
 one is worth nothing, so they are dropped during an outage. Every stored message carries its own
 time (time_usec), so the ground merges the replayed ones by time.
@@ -28,7 +28,7 @@ from __future__ import annotations
 from .dialect import mavlink
 
 STORED_IDS = frozenset({
-    mavlink.MAVLINK_MSG_ID_HIGHRES_IMU,
+    mavlink.MAVLINK_MSG_ID_DEBRIS_MAG_SAMPLE,
     mavlink.MAVLINK_MSG_ID_DEBRIS_RATE_ESTIMATE,
     mavlink.MAVLINK_MSG_ID_DEBRIS_SIM_STATE,
     mavlink.MAVLINK_MSG_ID_DEBRIS_INERTIA_ESTIMATE,

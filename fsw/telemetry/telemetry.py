@@ -18,10 +18,6 @@ from .store_forward import StoreForward
 
 GAUSS_PER_TESLA = 1e4
 
-MAG_FIELDS_UPDATED = (mavlink.HIGHRES_IMU_UPDATED_XMAG | mavlink.HIGHRES_IMU_UPDATED_YMAG
-                      | mavlink.HIGHRES_IMU_UPDATED_ZMAG)
-
-
 def usec(t_s: float) -> int:
     return int(round(t_s * 1e6))
 
@@ -145,12 +141,33 @@ class Telemetry:
             *(min(int(x), u32) for x in ((sf.buffered, sf.replayed, sf.dropped) if sf else (0, 0, 0))),
             1 if sf is None or sf.link_up else 0, (self.frames_sent + 1) & u32))
 
-    def mag_sample(self, t_s: float, b_T: np.ndarray) -> None:
-        """HIGHRES_IMU with the field in gauss; only the magnetometer bits set in fields_updated."""
+    def mag_sample(self, t_s: float, b_T: np.ndarray, seq: int, run_id: int) -> None:
+        """DEBRIS_MAG_SAMPLE: the numbered sample (field in gauss), live."""
         g = b_T * GAUSS_PER_TESLA
-        self._send(mavlink.MAVLink_highres_imu_message(
-            usec(t_s), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, float(g[0]), float(g[1]), float(g[2]),
-            0.0, 0.0, 0.0, 0.0, MAG_FIELDS_UPDATED, 0))
+        self._send(mavlink.MAVLink_debris_mag_sample_message(
+            usec(t_s), seq & 0xFFFFFFFF, run_id, [float(g[0]), float(g[1]), float(g[2])], 0))
+
+    def resend_sample(self, seq: int, run_id: int, t_us: int, b_T: np.ndarray) -> int | None:
+        """DEBRIS_MAG_SAMPLE flagged RESENT, from the sample store: the bytes written, or None while the
+        link is down (nothing is stored for later: the ground asks again)."""
+        sf = self.store
+        if sf is not None and not sf.link_up:
+            return None
+        g = b_T * GAUSS_PER_TESLA
+        n = self._write(mavlink.MAVLink_debris_mag_sample_message(
+            t_us, seq & 0xFFFFFFFF, run_id, [float(g[0]), float(g[1]), float(g[2])],
+            mavlink.DEBRIS_SAMPLE_FLAGS_RESENT))
+        if sf is not None:
+            sf.write_failed() if n is None else sf.write_ok()
+        return n
+
+    def sample_store_status(self, t_s: float, store, resender) -> None:
+        """DEBRIS_SAMPLE_STORE (`fsw.telemetry.sample_store`)."""
+        u32 = 0xFFFFFFFF
+        self._send(mavlink.MAVLink_debris_sample_store_message(
+            usec(t_s), store.run_id, store.run_first_seq & u32, store.first_seq & u32, store.next_seq & u32,
+            min(resender.queued, u32), resender.resent & u32, resender.requests & u32, resender.refused & u32,
+            1 if store.persistent else 0))
 
     def rate_estimate(self, t_s: float, omega_radps: np.ndarray, sigma_radps: np.ndarray,
                       method: int, flags: int) -> None:

@@ -72,10 +72,14 @@ class Uplink:
     def __init__(self, conn, router: CommandRouter, *, sysid: int, compid: int, key: bytes | None = None,
                  clock: SigningClock | None = None, reply: Callable[[object], bool] | None = None,
                  params: ParamTable | None = None, max_bytes_per_tick: int = 4096,
-                 max_future_s: float = 600.0) -> None:
+                 max_future_s: float = 600.0,
+                 handlers: dict[str, Callable[[object, float, bool], None]] | None = None) -> None:
+        """`handlers`: message type → handler(msg, now_s, authenticated) for the messages addressed to
+        us beyond commands and parameters (e.g. DEBRIS_SAMPLE_REQUEST)."""
         self.conn = conn
         self.router = router
         self.params = params if params is not None else ParamTable()
+        self.handlers = dict(handlers or {})
         self.sysid = sysid
         self.compid = compid
         self.clock = clock if clock is not None else SigningClock()
@@ -159,11 +163,15 @@ class Uplink:
                 return
             authenticated = True
             self.last_authenticated_s = now_s
-        if kind in ("COMMAND_LONG", "COMMAND_INT", "PARAM_SET", "PARAM_REQUEST_READ", "PARAM_REQUEST_LIST"):
+        handler = self.handlers.get(kind)
+        if handler is not None or kind in ("COMMAND_LONG", "COMMAND_INT", "PARAM_SET", "PARAM_REQUEST_READ",
+                                           "PARAM_REQUEST_LIST"):
             if not self._for_us(msg):
                 c.not_for_us += 1
                 return
-        if kind == "COMMAND_LONG":
+        if handler is not None:
+            handler(msg, now_s, authenticated)
+        elif kind == "COMMAND_LONG":
             c.commands += 1
             result = self.router.handle(msg, now_s, authenticated=authenticated)
             self._answer(msg, mavlink.MAVLink_command_ack_message(
