@@ -1,7 +1,8 @@
 """Decode the box's MAVLink telemetry: live status, loss accounting, tlog and recording-format CSVs.
 
-    python -m ground.decode URL [--baud B] [--tlog FILE] [--csv FILE] [--rates-csv FILE]
-                                [--method boer|derivative|...] [--duration S] [--count N] [--quiet]
+    python -m ground.decode URL [--baud B] [--tlog FILE] [--csv FILE] [--rates-csv FILE] [--key FILE]
+                                [--method boer|derivative|kalman] [--duration S] [--count N] [--quiet]
+                                [--no-resend]
 
 URL is any pymavlink connection string: ``udpin:0.0.0.0:14550``, ``tcp:host:port``, a serial device
 (with ``--baud``) or a ``.tlog`` file (read to its end, on its recorded timeline).
@@ -15,22 +16,23 @@ all of them in `Decoder.inertia_estimates`), and the loss so far. At the end a s
 
 Outputs
 - ``--tlog``: every intact frame as received (pymavlink tlog: 8-byte big-endian µs time stamp, then
-  the raw frame), streamed while running so that a crash keeps what came before it.
-- ``--csv``: the magnetometer samples (HIGHRES_IMU with the mag bits in fields_updated, gauss → µT) in
-  recording format v1, time = the flight software's sample time; with DEBRIS_SIM_STATE present (SITL)
-  the reference rate w*_dps and the applied moment m*_Nm of the same sample (matched on time_usec;
-  NaN for a sample whose truth frame was lost).
+  the raw frame), flushed after every read so that a crash keeps what came before it.
+- ``--csv``: the magnetometer samples (DEBRIS_MAG_SAMPLE, or HIGHRES_IMU with the mag bits in
+  fields_updated from other systems; gauss → µT) in recording format v1, time = the flight software's
+  sample time; with DEBRIS_SIM_STATE present (SITL) the reference rate w*_dps and the applied moment
+  m*_Nm of the same sample (matched on time_usec; NaN for a sample whose truth frame was lost).
 - ``--rates-csv``: the onboard estimates of the selected method, one row per magnetometer sample, NaN
   where none arrived or the estimate is flagged DEBRIS_ESTIMATE_FLAGS_NO_ESTIMATE.
-The CSVs are written atomically when decoding stops: duration or count reached, end of a tlog, or
-Ctrl-C. Frames with non-finite values (or a negative σ) are counted and left out, never
-written. Samples are taken from one source, the first that sends magnetometer samples. When the
-flight software restarts (its DEBRIS_LOOP_STATUS tick count goes back, or a sample is older than any of
-the current run), a new segment begins; the CSVs hold the last one.
+The CSVs are written while the frames arrive, one file per run of each source's flight software
+(`ground.recorder`: names, order, what a crash leaves), and completed when decoding stops: duration or
+count reached, end of a tlog, SIGINT or SIGTERM. Frames with non-finite values (or a negative σ) are
+counted and left out, never written. Every source (sysid, compid) is kept apart (`ground.streams`).
 
-Store and forward: samples the box kept during a link outage arrive later, older than the newest;
-they are merged by time (``late`` in the summary), and the summary lists what is still missing
-(gaps in the sample times, at the median sample period).
+Nothing lost to the link: the box numbers its samples and keeps them (`fsw.telemetry.sample_store`).
+On a live link the decoder asks again for the numbers that did not arrive (DEBRIS_SAMPLE_REQUEST,
+`ground.gaps`; ``--no-resend`` to stop it); they come back flagged RESENT and go into their place.
+Samples the box kept during an outage of a serial link arrive later too. The summary says what is still
+missing.
 
 ``--key FILE``: verify every frame's MAVLink 2 signature with the mission key (`fsw.telemetry.signing`,
 with a 64-frame reorder window); unsigned, wrongly signed or replayed frames are counted by reason
@@ -40,11 +42,11 @@ from __future__ import annotations
 
 import argparse
 import math
+import signal
 import struct
 import sys
 import time
 from collections import Counter
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -59,8 +61,11 @@ from fsw.telemetry.signing import (TICKS_PER_S, UNIX_TO_MAVLINK_EPOCH_S, Signing
 
 from fsw.telemetry.framing import Deframer
 
+from .command import GroundLink
 from .link_stats import MAG_FIELDS, LinkStats
+from .recorder import Recorder
 from .recording import RateEstimates, Recording, write_rate_estimates, write_recording
+from .streams import Segment, Stream
 from .tlog import check_tlog
 
 #: DEBRIS_RATE_METHOD values by their short lower-case name (boer, derivative, ...).
@@ -71,10 +76,14 @@ METHODS: dict[str, int] = {
 METHOD_NAMES = {value: name for name, value in METHODS.items()}
 
 T_PER_GAUSS = 1e-4
-#: Sample time going back by more than this means the flight software restarted.
-RESTART_BACKSTEP_S = 1.0
 #: Messages whose time_usec is the magnetometer sample time.
-SAMPLE_MESSAGES = frozenset({"HIGHRES_IMU", "DEBRIS_RATE_ESTIMATE", "DEBRIS_SIM_STATE"})
+SAMPLE_MESSAGES = frozenset({"DEBRIS_MAG_SAMPLE", "HIGHRES_IMU", "DEBRIS_RATE_ESTIMATE", "DEBRIS_SIM_STATE"})
+#: how often missing samples are asked for and settled rows written
+SERVICE_PERIOD_S = 0.5
+#: with no way to ask the box (a .tlog, no uplink), how long a missing sample is waited for
+NO_REQUESTS_WAIT_S = 10.0
+#: the signing link id of the decoder's requests (ground.command signs on link 0)
+REQUEST_LINK_ID = 2
 
 
 def f32(*values: float) -> tuple[float, ...]:
@@ -84,33 +93,25 @@ def f32(*values: float) -> tuple[float, ...]:
     return tuple(float(str(np.float32(v))) for v in values)
 
 
-@dataclass
-class _Segment:
-    """Samples of one run of the flight software, keyed by sample time (µs)."""
-
-    mag_gauss: dict[int, tuple[float, float, float]] = field(default_factory=dict)
-    estimate: dict[int, tuple[tuple[float, ...], tuple[float, ...], int]] = field(default_factory=dict)
-    truth: dict[int, tuple[tuple[float, ...], tuple[float, ...]]] = field(default_factory=dict)
-    latest_us: int = -1
-    first_us: int = -1
-    late: int = 0  # magnetometer samples that arrived after a newer one (store-and-forward replay)
-    arrivals: list[int] = field(default_factory=list)  # sample times since the last DEBRIS_LOOP_STATUS
-
-
 class Decoder:
     """Stateful decoding of a telemetry stream; feed it every message pymavlink returns."""
 
     def __init__(self, method: int = mavlink.DEBRIS_RATE_METHOD_BOER,
                  source: tuple[int, int] | None = None,
                  on_line: Callable[[str], None] | None = None, origin: str = "",
-                 line_period_s: float = 1.0, key: bytes | None = None) -> None:
+                 line_period_s: float = 1.0, key: bytes | None = None,
+                 recorder: Recorder | None = None, requests: GroundLink | None = None) -> None:
         """`method`: the DEBRIS_RATE_METHOD exported and shown; `source`: (sysid, compid) to record
-        from, None = the first to send samples; `on_line`: receives the live line about every
-        `line_period_s` of `now_s`; `origin`: the link, for the CSVs' ``# source:``; `key`: verify
-        signatures with this mission key (`now_s` is then Unix time, or 0 when unknown)."""
+        from, None = every source (the first to send samples is the one shown); `on_line`: receives
+        the live line about every `line_period_s` of `now_s`; `origin`: the link, for the CSVs'
+        ``# source:``; `key`: verify signatures with this mission key (`now_s` is then Unix time, or 0
+        when unknown); `recorder`: writes the recordings as they settle (`ground.recorder`);
+        `requests`: where to send DEBRIS_SAMPLE_REQUEST for missing numbered samples (None: they are
+        waited for a while, then given up)."""
         if method not in METHOD_NAMES:
             raise ValueError(f"unknown DEBRIS_RATE_METHOD {method}")
         self.method = method
+        self.only = source
         self.source = source
         self.on_line = on_line
         self.origin = origin
@@ -119,8 +120,11 @@ class Decoder:
         self.frames_by_type: Counter[str] = Counter()
         #: Intact frames whose values cannot be a sample (NaN/inf field, negative σ), by type.
         self.invalid: Counter[str] = Counter()
-        self.segments: list[_Segment] = [_Segment()]
+        self.streams: dict[tuple[int, int], Stream] = {}
+        self.recorder = recorder
+        self.requests = requests
         self._next_line_s: float | None = None
+        self._next_service_s: float | None = None
         self._last_est: tuple[float, ...] | None = None
         self._last_truth: tuple[float, ...] | None = None
         self.interrupted = False
@@ -129,9 +133,10 @@ class Decoder:
             key, SigningClock(epoch=-UNIX_TO_MAVLINK_EPOCH_S * TICKS_PER_S), window=64)
         #: intact frames refused by the signature check, by reason
         self.unauthenticated: Counter[str] = Counter()
-        self._loop_time_us: int | None = None
         #: decoded DEBRIS_INERTIA_ESTIMATE messages, in arrival order (see `_inertia`)
         self.inertia_estimates: list[dict] = []
+        #: DEBRIS_SAMPLE_REQUEST frames sent
+        self.requests_sent = 0
 
     # --- input -------------------------------------------------------------------------------
 
@@ -148,12 +153,33 @@ class Decoder:
                     self.tick(now_s)
                     return
             if kind in SAMPLE_MESSAGES:
-                self._sample_message(kind, msg)
+                self._sample_message(kind, msg, now_s)
             elif kind == "DEBRIS_LOOP_STATUS" and self.stats.last_verdict == "new":
-                self._loop_status(msg)
+                stream = self._stream(msg, create=False)
+                if stream is not None:
+                    stream.loop_status(int(msg.time_usec))
+                    self._restarts(stream)
+            elif kind == "DEBRIS_SAMPLE_STORE":
+                stream = self._stream(msg)
+                if stream is not None:
+                    stream.store_status(msg)
             elif kind == "DEBRIS_INERTIA_ESTIMATE":
                 self._inertia(msg)
         self.tick(now_s)
+
+    def _stream(self, msg, create: bool = True) -> Stream | None:
+        src = (msg.get_srcSystem(), msg.get_srcComponent())
+        if self.only is not None and src != self.only:
+            return None
+        stream = self.streams.get(src)
+        if stream is None and create:
+            stream = self.streams[src] = Stream(src)
+        return stream
+
+    def _restarts(self, stream: Stream) -> None:
+        while stream.restarts:
+            who = f"{stream.source[0]}/{stream.source[1]}: " if len(self.streams) > 1 else ""
+            self._say(who + stream.restarts.pop(0))
 
     def _inertia(self, msg) -> None:
         """DEBRIS_INERTIA_ESTIMATE (the identification experiment's running/final estimate), kept in
@@ -169,58 +195,35 @@ class Decoder:
             "state_name": state.name.removeprefix("DEBRIS_IDENT_STATE_").lower() if state else str(msg.state),
             "flags": int(msg.flags)})
 
-    def _loop_status(self, msg) -> None:
-        """The live loop time going back means the flight software restarted: a new segment, which takes
-        the samples that arrived since the previous DEBRIS_LOOP_STATUS and are not after this one."""
-        if self.source is not None and (msg.get_srcSystem(), msg.get_srcComponent()) != self.source:
-            return
-        t_us = int(msg.time_usec)
-        seg = self.segments[-1]
-        if self._loop_time_us is not None and t_us < self._loop_time_us - RESTART_BACKSTEP_S * 1e6:
-            self._say(f"loop time went back from {self._loop_time_us * 1e-6:.3f} s to {t_us * 1e-6:.3f} s: "
-                      "flight software restarted, new recording segment")
-            new = _Segment()
-            for t in seg.arrivals:
-                if t <= t_us:
-                    for table in ("mag_gauss", "estimate", "truth"):
-                        old = getattr(seg, table)
-                        if t in old:
-                            getattr(new, table)[t] = old.pop(t)
-            if new.mag_gauss or new.estimate or new.truth:
-                times = [*new.mag_gauss, *new.estimate, *new.truth]
-                new.first_us, new.latest_us = min(times), max(times)
-            self.segments.append(new)
-            seg = new
-        self._loop_time_us = t_us
-        seg.arrivals.clear()
-
-    def _sample_message(self, kind: str, msg) -> None:
-        src = (msg.get_srcSystem(), msg.get_srcComponent())
+    def _sample_message(self, kind: str, msg, now_s: float) -> None:
         if kind == "HIGHRES_IMU" and msg.fields_updated & MAG_FIELDS != MAG_FIELDS:
             return
-        if self.source is None:
-            self.source = src
-        if src != self.source:
+        stream = self._stream(msg)
+        if stream is None:
             return
         t_us = int(msg.time_usec)
-        seg = self.segments[-1]
-        if t_us < seg.latest_us - RESTART_BACKSTEP_S * 1e6 and t_us < seg.first_us:
-            self._say(f"sample time went back from {seg.latest_us * 1e-6:.3f} s to {t_us * 1e-6:.3f} s: "
-                      "flight software restarted, new recording segment")
-            seg = _Segment()
-            self.segments.append(seg)
-        if kind == "HIGHRES_IMU" and t_us < seg.latest_us and t_us not in seg.mag_gauss:
-            seg.late += 1  # kept on board during an outage, replayed: merged by time
-        seg.latest_us = max(seg.latest_us, t_us)
-        seg.first_us = t_us if seg.first_us < 0 else min(seg.first_us, t_us)
-        seg.arrivals.append(t_us)
-        if kind == "HIGHRES_IMU":
-            b = f32(msg.xmag, msg.ymag, msg.zmag)
+        if kind in ("DEBRIS_MAG_SAMPLE", "HIGHRES_IMU"):
+            b = f32(*msg.mag) if kind == "DEBRIS_MAG_SAMPLE" else f32(msg.xmag, msg.ymag, msg.zmag)
             if not all(map(math.isfinite, b)):
                 self.invalid[kind] += 1
                 return
-            seg.mag_gauss[t_us] = b
-        elif kind == "DEBRIS_RATE_ESTIMATE":
+            if kind == "DEBRIS_MAG_SAMPLE":
+                seg = stream.numbered_sample(msg, now_s, b)
+                if seg is not None:
+                    seg.requester.arrived(int(msg.seq))
+            else:
+                seg = stream.plain_sample(t_us, now_s, b)
+            self._restarts(stream)
+            if seg is not None:
+                if self.source is None:
+                    self.source = stream.source
+                if self.recorder is not None:
+                    self.recorder.added(seg, t_us)
+            return
+        seg = stream.current
+        if seg is None:
+            return
+        if kind == "DEBRIS_RATE_ESTIMATE":
             if msg.method == self.method:
                 w, sigma = f32(msg.wx, msg.wy, msg.wz), f32(msg.sx, msg.sy, msg.sz)
                 if not all(map(math.isfinite, w + sigma)) or min(sigma) < 0:
@@ -238,12 +241,41 @@ class Decoder:
             self._last_truth = w
 
     def tick(self, now_s: float) -> None:
-        """Emit the live line when one is due (call also when nothing arrives)."""
+        """Emit the live line when one is due, ask for missing samples and write what has settled (call
+        also when nothing arrives)."""
         if self._next_line_s is None:
             self._next_line_s = now_s + self.line_period_s
         elif now_s >= self._next_line_s:
             self._next_line_s = max(self._next_line_s + self.line_period_s, now_s)
             self._say(self.status_line())
+        if self._next_service_s is None or now_s >= self._next_service_s:
+            self._next_service_s = now_s + SERVICE_PERIOD_S
+            self.service(now_s)
+
+    def service(self, now_s: float) -> None:
+        """Ask the box again for the numbered samples that are missing (or give them up), then write the
+        rows that have settled."""
+        for stream in self.streams.values():
+            for seg in stream.segments:
+                if not seg.numbered or seg.gaps.lo is None:
+                    continue
+                if seg is not stream.current and not seg.persistent:
+                    seg.gaps.give_up_all()  # an earlier run whose store went with it
+                    continue
+                if self.requests is None:
+                    seg.requester.max_attempts = 0  # nobody to ask: wait a while, then give up
+                    seg.requester.hold_s = NO_REQUESTS_WAIT_S
+                for first, count in seg.requester.due(seg.gaps, now_s, seg.stored_first_seq):
+                    self.requests.send(mavlink.MAVLink_debris_sample_request_message(
+                        stream.source[0], stream.source[1], first, count), now_s)
+                    self.requests_sent += 1
+        if self.recorder is not None:
+            self.recorder.service(self, now_s)
+
+    def finish(self) -> None:
+        """End of decoding: write everything that is left (`recorder`)."""
+        if self.recorder is not None:
+            self.recorder.finish(self)
 
     def _say(self, line: str) -> None:
         if self.on_line is not None:
@@ -251,15 +283,21 @@ class Decoder:
 
     # --- views -------------------------------------------------------------------------------
 
-    def _recorded(self) -> _Segment:
-        """The last segment that holds magnetometer samples (or the current one)."""
+    @property
+    def segments(self) -> list[Segment]:
+        """The runs of the source shown (the first to send samples)."""
+        stream = self.streams.get(self.source) if self.source is not None else None
+        return stream.segments if stream is not None else [Segment()]
+
+    def _recorded(self) -> Segment:
+        """The last segment of the source shown that holds magnetometer samples (or its last one)."""
         return next((s for s in reversed(self.segments) if s.mag_gauss), self.segments[-1])
 
     def status_line(self) -> str:
         seg = self._recorded()
         parts = []
         if seg.mag_gauss:
-            t_us = max(seg.mag_gauss)
+            t_us = seg.latest_us
             b_uT = math.sqrt(sum(x * x for x in seg.mag_gauss[t_us])) * T_PER_GAUSS * 1e6
             parts.append(f"t {t_us * 1e-6:9.3f} s  |B| {b_uT:6.2f} µT")
         else:
@@ -283,25 +321,43 @@ class Decoder:
         received, lost = self.stats.received(), self.stats.lost()
         pct = 100.0 * lost / (received + lost) if received + lost else 0.0
         parts.append(f"frames {received} lost {lost} ({pct:.1f} %)")
+        if seg.numbered and seg.gaps.lo is not None:
+            parts.append(f"samples missing {len(seg.gaps.missing())}")
         return "  ".join(parts)
 
-    def _metadata(self) -> dict[str, str]:
+    def _where(self, seg: Segment) -> tuple[tuple[int, int] | None, int, int]:
+        for stream in self.streams.values():
+            if seg in stream.segments:
+                return stream.source, stream.segments.index(seg), len(stream.segments)
+        return self.source, 0, 1
+
+    def metadata(self, seg: Segment | None = None) -> dict[str, str]:
+        """The recording's ``# key: value`` lines for a segment (default: the one shown)."""
+        seg = self._recorded() if seg is None else seg
+        src, index, runs = self._where(seg)
         where = f" from {self.origin}" if self.origin else ""
-        who = f", system {self.source[0]} component {self.source[1]}" if self.source else ""
+        who = f", system {src[0]} component {src[1]}" if src else ""
         meta = {"source": f"MAVLink telemetry{where}{who}, decoded by ground.decode",
-                "time": "flight software sample time (HIGHRES_IMU time_usec) since it started"}
-        if len(self.segments) > 1:
-            meta["segment"] = (f"last of {len(self.segments)} runs of the flight software "
-                               "(restarts seen in the stream)")
+                "time": "flight software sample time since that run of it started"}
+        if seg.numbered:
+            meta["run_id"] = f"{seg.run_id:#010x}"
+        if runs > 1:
+            meta["segment"] = f"run {index + 1} of {runs} runs of the flight software seen in the stream"
         return meta
 
-    def recording(self) -> Recording:
-        """The magnetometer samples as a Recording (SI), with simulation truth where it arrived."""
-        seg = self._recorded()
-        times = sorted(seg.mag_gauss)
+    def rate_metadata(self, seg: Segment | None = None) -> dict[str, str]:
+        meta = self.metadata(seg)
+        meta["method"] = f"{METHOD_NAMES[self.method]} (onboard, DEBRIS_RATE_ESTIMATE)"
+        return meta
+
+    def recording(self, seg: Segment | None = None, times: list[int] | None = None) -> Recording:
+        """The magnetometer samples of a segment (default: the last one with samples of the source
+        shown) as a Recording (SI), with simulation truth where it arrived; `times`: only these."""
+        seg = self._recorded() if seg is None else seg
+        times = seg.times() if times is None else times
         t_s = np.array(times, dtype=float) / 1e6
         b_T = np.array([seg.mag_gauss[t] for t in times], dtype=float).reshape(-1, 3) * T_PER_GAUSS
-        meta = self._metadata()
+        meta = self.metadata(seg)
         if not seg.truth:
             return Recording(t_s=t_s, b_T=b_T, metadata=meta)
         nan3 = ((math.nan,) * 3, (math.nan,) * 3)
@@ -311,21 +367,19 @@ class Decoder:
         meta["reference"] = "DEBRIS_SIM_STATE: simulation truth, for scoring only"
         return Recording(t_s=t_s, b_T=b_T, m_Nm=m, w_ref_radps=w, metadata=meta)
 
-    def rate_estimates(self) -> RateEstimates:
+    def rate_estimates(self, seg: Segment | None = None, times: list[int] | None = None) -> RateEstimates:
         """Onboard estimates of the selected method, one row per magnetometer sample (NaN where
         none arrived or the estimate is flagged NO_ESTIMATE)."""
-        seg = self._recorded()
-        times = sorted(seg.mag_gauss)
+        seg = self._recorded() if seg is None else seg
+        times = seg.times() if times is None else times
         w = np.full((len(times), 3), np.nan)
         s = np.full((len(times), 3), np.nan)
         for i, t in enumerate(times):
             est = seg.estimate.get(t)
             if est is not None and not est[2] & mavlink.DEBRIS_ESTIMATE_FLAGS_NO_ESTIMATE:
                 w[i], s[i] = est[0], est[1]
-        meta = self._metadata()
-        meta["method"] = f"{METHOD_NAMES[self.method]} (onboard, DEBRIS_RATE_ESTIMATE)"
         return RateEstimates(t_s=np.array(times, dtype=float) / 1e6, w_radps=w, sigma_radps=s,
-                             metadata=meta)
+                             metadata=self.rate_metadata(seg))
 
     def summary_text(self) -> str:
         """Frames by type, loss per source, rejected data: the end-of-run report."""
@@ -335,46 +389,43 @@ class Decoder:
         for (sysid, compid), s in summary["sources"].items():
             out.append(f"source {sysid}/{compid}: received {s['received']}, lost {s['lost']} "
                        f"({100 * s['loss_fraction']:.2f} %), duplicates {s['duplicates']}, late {s['late']}, "
-                       f"out of sequence {s['out_of_sequence']}, unknown ids {s['unknown']}; "
-                       f"magnetometer samples {s['samples']}, missing {s['samples_missing']}")
+                       f"out of sequence {s['out_of_sequence']}, unknown ids {s['unknown']}")
         out.append(f"rejected: {summary['garbage_bytes']} garbage bytes in {summary['garbage_chunks']} runs, "
                    f"{summary['bad_crc']} bad CRC, {summary['malformed']} malformed, "
                    f"{summary['unknown']} unknown message ids")
-        rep = self.sample_report()
-        if rep["samples"]:
-            late = f", {rep['late']} of them replayed after an outage and merged by time" if rep["late"] else ""
-            if rep["missing"]:
-                shown = ", ".join(f"{a:.3f}–{b:.3f} s ({k})" for a, b, k in rep["gaps"][:5])
-                more = f" and {len(rep['gaps']) - 5} more" if len(rep["gaps"]) > 5 else ""
-                lost = f"{rep['missing']} missing in {len(rep['gaps'])} gaps: {shown}{more}"
-            else:
-                lost = "none missing"
-            out.append(f"magnetometer samples recorded: {rep['samples']}{late}; {lost}")
+        for stream in self.streams.values():
+            for index, seg in enumerate(stream.segments):
+                rep = seg.report()
+                if not rep["samples"]:
+                    continue
+                who = f"{stream.source[0]}/{stream.source[1]}"
+                run = f" run {index + 1} of {len(stream.segments)}" if len(stream.segments) > 1 else ""
+                late = (f", {rep['late']} of them sent again after an outage or on request and merged in order"
+                        if rep["late"] else "")
+                if rep["missing"]:
+                    shown = ", ".join(f"{a:.3f}–{b:.3f} s ({k})" for a, b, k in rep["gaps"][:5])
+                    more = f" and {len(rep['gaps']) - 5} more" if len(rep["gaps"]) > 5 else ""
+                    lost = f"{rep['missing']} missing in {len(rep['gaps'])} gaps: {shown}{more}"
+                else:
+                    lost = "none missing"
+                out.append(f"magnetometer samples recorded from {who}{run}: {rep['samples']}{late}; {lost}")
+        if self.requests_sent:
+            out.append(f"requests for missing samples sent: {self.requests_sent}")
         if self.verifier is not None:
             refused = ", ".join(f"{k} {n}" for k, n in sorted(self.unauthenticated.items())) or "none"
             out.append(f"signatures: {self.verifier.counts[Verdict.OK]} frames verified; refused: {refused}")
         if self.invalid:
             out.append("not recorded, non-finite values: "
                        + ", ".join(f"{k} {n}" for k, n in sorted(self.invalid.items())))
-        if len(self.segments) > 1:
-            out.append(f"flight software restarts seen: {len(self.segments) - 1}; CSVs hold the last run")
         return "\n".join(out)
 
     def sample_report(self) -> dict:
-        """The recorded run's magnetometer samples: ``samples``, ``late`` (arrived after a newer one:
-        replayed from the box's store-and-forward buffer), ``missing`` and the ``gaps`` still open, as
-        (last time before, first time after, samples missing) at the median sample period."""
-        seg = self._recorded()
-        t = np.array(sorted(seg.mag_gauss), dtype=np.int64)
-        gaps: list[tuple[float, float, int]] = []
-        if t.size >= 3:
-            dt = np.diff(t)
-            k = np.rint(dt / float(np.median(dt))).astype(np.int64) - 1
-            gaps = [(t[i] * 1e-6, t[i + 1] * 1e-6, int(k[i])) for i in np.flatnonzero(k > 0)]
-        return {"samples": int(t.size), "late": seg.late, "missing": sum(g[2] for g in gaps), "gaps": gaps}
+        """The shown run's magnetometer samples: ``samples``, ``late`` (arrived after a newer one),
+        ``missing`` and the ``gaps`` still open (`ground.streams.Segment.report`)."""
+        return self._recorded().report()
 
     def write(self, csv: str | Path | None = None, rates_csv: str | Path | None = None) -> None:
-        """Write the recording and/or rate-estimate CSVs (atomically)."""
+        """Write the shown run's recording and/or rate-estimate CSVs at once (atomically)."""
         if csv is not None:
             write_recording(csv, self.recording())
         if rates_csv is not None:
@@ -391,30 +442,39 @@ def run(url: str, *, duration_s: float | None = None, count: int | None = None,
         tlog: str | Path | None = None, csv: str | Path | None = None,
         rates_csv: str | Path | None = None, method: int = mavlink.DEBRIS_RATE_METHOD_BOER,
         quiet: bool = False, on_line: Callable[[str], None] = print, baud: int = 115200,
-        clock: Callable[[], float] = time.time, key: bytes | None = None) -> Decoder:
+        clock: Callable[[], float] = time.time, key: bytes | None = None, resend: bool = True,
+        should_stop: Callable[[], bool] = lambda: False) -> Decoder:
     """Decode `url` until `duration_s` (of the link's time line: `clock` for live links, the
-    recorded time stamps for a tlog) or `count` intact frames, the end of a tlog, or Ctrl-C; then
-    write the CSVs. Waits on the link in 0.1 s slices, never spins.
+    recorded time stamps for a tlog) or `count` intact frames, the end of a tlog, `should_stop()`
+    (SIGINT/SIGTERM in `main`) or Ctrl-C. Waits on the link in 0.1 s slices, never spins.
 
-    A tlog is checked first (`ground.tlog.check_tlog`): a damaged one raises TlogError and nothing is
-    written. Live links are framed by `fsw.telemetry.framing.Deframer` (byte-wise resync, so no intact
-    frame is lost to line noise); a serial port that goes away is reopened every second until it is back.
-    The CSVs are written on a normal end or Ctrl-C, never after an error."""
+    The recordings are written while the frames arrive (`ground.recorder`): one file per run of each
+    source, rows in order as they settle, completed at the end. The tlog gets every intact frame as
+    received, flushed after every read. On a live link (`resend`) the decoder asks the box again for
+    numbered samples that did not arrive (DEBRIS_SAMPLE_REQUEST, signed with `key` when given).
+
+    A tlog is checked first (`ground.tlog.check_tlog`). Live links are framed by
+    `fsw.telemetry.framing.Deframer` (byte-wise resync, so no intact frame is lost to line noise); a
+    serial port that goes away is reopened every second until it is back."""
     if tlog is not None and Path(tlog).resolve() == Path(url).resolve():
         raise ValueError("--tlog would overwrite the input")
-    decoder = Decoder(method=method, on_line=None if quiet else on_line, origin=url, key=key)
     if Path(url).is_file():
         check_tlog(url)
+    recorder = Recorder(csv, rates_csv, protect=[p for p in (url, tlog) if p is not None and Path(p).exists()])
+    decoder = Decoder(method=method, on_line=None if quiet else on_line, origin=url, key=key, recorder=recorder)
     live = _LiveLink(url, baud, decoder._say)
     conn = live.conn
     is_log = isinstance(conn, mavutil.mavlogfile)
+    if resend and not is_log:
+        decoder.requests = GroundLink(live.write, key, SigningClock(epoch=-UNIX_TO_MAVLINK_EPOCH_S * TICKS_PER_S),
+                                      link_id=REQUEST_LINK_ID)
     log_out = None
     frames = 0
-    start_s = flushed_s = None
+    start_s = None
     done = False
     try:
         log_out = open(tlog, "wb") if tlog is not None else None
-        while not done:
+        while not done and not should_stop():
             if is_log:
                 msg = conn.recv_match(blocking=False)
                 if msg is None:
@@ -423,7 +483,7 @@ def run(url: str, *, duration_s: float | None = None, count: int | None = None,
             else:
                 batch, now_s = live.read(), clock()
             if start_s is None:
-                start_s = flushed_s = now_s
+                start_s = now_s
             if not batch:
                 decoder.tick(now_s)
             for msg in batch:
@@ -435,9 +495,8 @@ def run(url: str, *, duration_s: float | None = None, count: int | None = None,
                 if count is not None and frames >= count:
                     done = True
                     break
-            if log_out is not None and now_s - flushed_s >= 1.0:
+            if log_out is not None and batch and not is_log:
                 log_out.flush()
-                flushed_s = now_s
             if duration_s is not None and now_s - start_s >= duration_s:
                 break
         if not is_log and not done:
@@ -445,13 +504,16 @@ def run(url: str, *, duration_s: float | None = None, count: int | None = None,
                 decoder.handle(msg, now_s)
                 if msg.get_type() != "BAD_DATA" and log_out is not None:
                     log_out.write(tlog_record(msg, now_s))
+        if should_stop():
+            decoder.interrupted = True
     except KeyboardInterrupt:
         decoder.interrupted = True
     finally:
         live.close()
         if log_out is not None:
             log_out.close()
-    decoder.write(csv=csv, rates_csv=rates_csv)
+    decoder.frames = frames
+    decoder.finish()
     return decoder
 
 
@@ -505,9 +567,31 @@ class _LiveLink:
     def flush(self) -> list:
         return self.deframer.flush()
 
+    def write(self, frame: bytes) -> None:
+        """Send a frame back on the link (requests for missing samples); dropped while it is down."""
+        if self.conn is None:
+            return
+        try:
+            self.conn.write(frame)
+        except OSError:
+            pass
+
     def close(self) -> None:
         if self.conn is not None:
             self.conn.close()
+
+
+def _missing_path(url: str) -> str | None:
+    """Why `url` cannot be opened, when it names a file or serial device that is not there (pymavlink
+    would say "could not open port" for both)."""
+    if url.partition(":")[0] in _SCHEMES or Path(url).exists():
+        return None
+    if url.startswith("/dev/"):
+        return f"{url}: no such serial device"
+    return f"{url}: no such file (nor a connection string: udpin:HOST:PORT, tcp:HOST:PORT, a serial device)"
+
+
+_SCHEMES = frozenset({"udp", "udpin", "udpout", "udpbcast", "tcp", "tcpin", "mcast", "wsserver", "ws"})
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -516,7 +600,8 @@ def main(argv: list[str] | None = None) -> int:
                                 "a serial device, or a .tlog file")
     ap.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
     ap.add_argument("--tlog", help="record every intact frame to this tlog")
-    ap.add_argument("--csv", help="write the magnetometer samples as a recording-format CSV")
+    ap.add_argument("--csv", help="write the magnetometer samples as a recording-format CSV (one file per run "
+                                  "of each source: see ground.recorder)")
     ap.add_argument("--rates-csv", help="write the onboard rate estimates of --method as CSV")
     ap.add_argument("--method", choices=sorted(METHODS, key=METHODS.get), default="boer",
                     help="onboard estimator to show and export (default boer)")
@@ -524,22 +609,43 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--count", type=int, help="stop after this many intact frames")
     ap.add_argument("--quiet", action="store_true", help="no live lines, only the summary")
     ap.add_argument("--key", metavar="FILE", help="mission key file: verify the frames' signatures, use only "
-                                                  "authentic ones")
+                                                  "authentic ones; sign the requests for missing samples")
+    ap.add_argument("--no-resend", action="store_true",
+                    help="do not ask the box again for numbered samples that did not arrive")
     args = ap.parse_args(argv)
+    missing = _missing_path(args.url)
+    if missing:
+        print(f"ground.decode: {missing}", file=sys.stderr)
+        return 1
+    stop = []
+
+    def on_signal(signum, frame):
+        stop.append(signum)
+
+    old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         key = load_key(args.key) if args.key else None
         decoder = run(args.url, duration_s=args.duration, count=args.count, tlog=args.tlog, csv=args.csv,
                       rates_csv=args.rates_csv, method=METHODS[args.method], quiet=args.quiet,
-                      baud=args.baud, key=key)
+                      baud=args.baud, key=key, resend=not args.no_resend, should_stop=lambda: bool(stop))
     except (OSError, ValueError) as e:
         print(f"ground.decode: {e}", file=sys.stderr)
         return 1
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
     if decoder.interrupted:
-        print("interrupted")
+        print("interrupted" if not stop or stop[0] == signal.SIGINT else "terminated")
     print(decoder.summary_text())
-    for what, path in (("recording", args.csv), ("rate estimates", args.rates_csv), ("tlog", args.tlog)):
-        if path:
-            print(f"wrote {what}: {path}")
+    if not decoder.frames:
+        print(f"ground.decode: nothing received from {args.url}", file=sys.stderr)
+        return 1
+    for what, path in decoder.recorder.written:
+        print(f"wrote {what}: {path}")
+    if (args.csv or args.rates_csv) and not decoder.recorder.written:
+        print("no magnetometer samples received: no recording written")
+    if args.tlog:
+        print(f"wrote tlog: {args.tlog}")
     return 0
 
 

@@ -415,21 +415,101 @@ def _table_lines(path: PathLike, metadata: dict[str, str],
     names = [c for g, _ in blocks for c in g.columns]
     lines.append(",".join(names))
     table = np.hstack([v for _, v in blocks])
-    nan_ok = np.array([g.nan_ok for g, _ in blocks for _ in g.columns])
-    nonneg = np.array([g.nonnegative for g, _ in blocks for _ in g.columns])
-    first_row_line = len(lines) + 1
+    lines.extend(_row_lines(path, [g for g, _ in blocks], table, len(lines) + 1))
+    return lines
+
+
+def _row_lines(path: PathLike, groups: Sequence[_Group], table: np.ndarray, first_row_line: int,
+               previous_t: float | None = None) -> list[str]:
+    """Rows of a table (file units) as CSV lines, checked as the reader checks them (`previous_t`: the
+    time of the row before, already written)."""
+    names = [c for g in groups for c in g.columns]
+    nan_ok = np.array([g.nan_ok for g in groups for _ in g.columns])
+    nonneg = np.array([g.nonnegative for g in groups for _ in g.columns])
     with np.errstate(invalid="ignore"):
         bad = (np.isinf(table) | (np.isnan(table) & ~nan_ok) | ((table < 0) & nonneg))
     if bad.any():
         r, c = np.argwhere(bad)[0]
         raise RecordingError(path, first_row_line + int(r), names[c], f"cannot write {table[r, c]!r}")
-    later = table[1:, 0] > table[:-1, 0]
+    t = table[:, 0] if previous_t is None else np.concatenate([[previous_t], table[:, 0]])
+    later = t[1:] > t[:-1]
     if not later.all():
         r = int(np.argmin(later)) + 1
-        raise RecordingError(path, first_row_line + r, names[0],
-                             f"time {table[r, 0]!r} not after the previous row's {table[r - 1, 0]!r}")
-    lines.extend(",".join([_format_exact(row[0]), *map(_format, row[1:])]) for row in table.tolist())
-    return lines
+        row = r - (previous_t is not None)
+        raise RecordingError(path, first_row_line + row, names[0],
+                             f"time {t[r]!r} not after the previous row's {t[r - 1]!r}")
+    return [",".join([_format_exact(row[0]), *map(_format, row[1:])]) for row in table.tolist()]
+
+
+class _Appender:
+    """A format-v1 CSV written while its rows arrive: metadata and header when opened, then rows in
+    time order, each batch with one write(2) of whole lines. A process killed at any moment leaves a
+    file that reads up to its last complete row; nothing is buffered in the process."""
+
+    def __init__(self, path: PathLike, groups: Sequence[_Group], metadata: dict[str, str]) -> None:
+        self.path = Path(path)
+        self.groups = tuple(groups)
+        lines = _metadata_lines(path, metadata)
+        lines.append(",".join(c for g in groups for c in g.columns))
+        self.line = len(lines)  # lines in the file so far
+        self.rows = 0
+        self.last_t: float | None = None
+        self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        self._write(lines)
+
+    def _write(self, lines: list[str]) -> None:
+        data = ("\n".join(lines) + "\n").encode("utf-8")
+        while data:
+            n = os.write(self._fd, data)
+            data = data[n:]
+
+    def _append(self, table: np.ndarray) -> None:
+        if not len(table):
+            return
+        lines = _row_lines(self.path, self.groups, table, self.line + 1, self.last_t)
+        self._write(lines)
+        self.line += len(lines)
+        self.rows += len(lines)
+        self.last_t = float(table[-1, 0])
+
+    def comment(self, key: str, value: str) -> None:
+        """A ``# key: value`` line after the rows (the reader takes metadata from any comment line)."""
+        lines = _metadata_lines(self.path, {key: value})
+        self._write(lines)
+        self.line += len(lines)
+
+    def close(self) -> None:
+        if self._fd >= 0:
+            os.fsync(self._fd)
+            os.close(self._fd)
+            self._fd = -1
+
+
+class RecordingAppender(_Appender):
+    """A recording written row by row (SI in, µT / N·m / °/s in the file); `truth`: with the moment and
+    reference-rate columns."""
+
+    def __init__(self, path: PathLike, metadata: dict[str, str], *, truth: bool) -> None:
+        t, b, m, w = _RECORDING_GROUPS
+        super().__init__(path, (t, b, m, w) if truth else (t, b), metadata)
+        self.truth = truth
+
+    def append(self, t_s, b_T, m_Nm=None, w_ref_radps=None) -> None:
+        cols = [np.asarray(t_s, dtype=float)[:, None], np.asarray(b_T, dtype=float) / T_PER_UT]
+        if self.truth:
+            cols += [np.asarray(m_Nm, dtype=float), np.rad2deg(np.asarray(w_ref_radps, dtype=float))]
+        self._append(np.hstack(cols))
+
+
+class RateAppender(_Appender):
+    """Rate estimates written row by row (rad/s in, °/s in the file)."""
+
+    def __init__(self, path: PathLike, metadata: dict[str, str]) -> None:
+        super().__init__(path, _RATE_GROUPS, metadata)
+
+    def append(self, t_s, w_radps, sigma_radps) -> None:
+        self._append(np.hstack([np.asarray(t_s, dtype=float)[:, None], np.rad2deg(np.asarray(w_radps, dtype=float)),
+                                np.rad2deg(np.asarray(sigma_radps, dtype=float))]))
 
 
 def _write_atomic(path: PathLike, lines: Iterable[str]) -> None:

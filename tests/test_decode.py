@@ -226,7 +226,8 @@ def test_flight_software_restart_starts_a_new_segment() -> None:
     rec = dec.recording()
     np.testing.assert_allclose(rec.t_s, np.arange(5) * 0.1)
     assert any("restarted" in ln for ln in lines)
-    assert "last of 2 runs" in rec.metadata["segment"]
+    assert rec.metadata["segment"].startswith("run 2 of 2 runs")
+    assert len(dec.recording(dec.segments[0])) == 30            # the first run is kept, not discarded
 
 
 def test_tlog_record_format() -> None:

@@ -65,12 +65,13 @@ def test_message_rates_and_contents():
     assert hb.type == mavlink.MAV_TYPE_ONBOARD_CONTROLLER and hb.autopilot == mavlink.MAV_AUTOPILOT_INVALID
     assert len(by_type(msgs, "SYS_STATUS")) == 5
     assert len(by_type(msgs, "DEBRIS_LOOP_STATUS")) == 5
-    imu = by_type(msgs, "HIGHRES_IMU")
+    imu = by_type(msgs, "DEBRIS_MAG_SAMPLE")
     assert len(imu) == 50
-    assert imu[0].fields_updated == 0x1C0
-    np.testing.assert_allclose([imu[3].xmag, imu[3].ymag, imu[3].zmag],
-                               Rotation.from_rotvec(-W_RADPS * 0.3).apply(B_I_T) * 1e4, rtol=1e-6)
+    assert [m.seq for m in imu] == list(range(50)) and all(m.flags == 0 for m in imu)   # numbered, live
+    np.testing.assert_allclose(imu[3].mag, Rotation.from_rotvec(-W_RADPS * 0.3).apply(B_I_T) * 1e4, rtol=1e-6)
     assert imu[3].time_usec == 300_000
+    store = by_type(msgs, "DEBRIS_SAMPLE_STORE")
+    assert len(store) == 5 and store[-1].next_seq == 41 and store[-1].stored_first_seq == 0   # at t = 4 s
     assert all(m.get_header().srcSystem == FSW_SYSID for m in msgs)
     est = by_type(msgs, "DEBRIS_RATE_ESTIMATE")
     boer = [m for m in est if m.method == mavlink.DEBRIS_RATE_METHOD_BOER]
@@ -87,7 +88,7 @@ def test_message_rates_and_contents():
 def test_sample_telemetry_is_decimated_to_the_link_budget():
     fsw, msgs = run(2.0, rate_hz=100.0, sample_period_s=0.01, max_sample_tlm_hz=20.0)
     assert fsw.samples == 200
-    imu = by_type(msgs, "HIGHRES_IMU")
+    imu = by_type(msgs, "DEBRIS_MAG_SAMPLE")
     assert len(imu) == 40
     assert np.diff([m.time_usec for m in imu]) == pytest.approx(50_000)
 
@@ -108,9 +109,9 @@ def test_link_errors_are_counted_not_raised():
 
 def test_estimator_matches_pure_function_on_the_same_samples():
     fsw, msgs = run(3.0)
-    imu = by_type(msgs, "HIGHRES_IMU")
+    imu = by_type(msgs, "DEBRIS_MAG_SAMPLE")
     t = np.array([m.time_usec for m in imu]) * 1e-6
-    b = np.array([[m.xmag, m.ymag, m.zmag] for m in imu]) * 1e-4
+    b = np.array([m.mag for m in imu]) * 1e-4
     boer = [m for m in by_type(msgs, "DEBRIS_RATE_ESTIMATE") if m.method == mavlink.DEBRIS_RATE_METHOD_BOER]
     np.testing.assert_allclose([[m.wx, m.wy, m.wz] for m in boer], rf.boer_rate(t, b)[1:], rtol=1e-4,
                                atol=1e-6)

@@ -72,8 +72,8 @@ def test_every_frame_arrives_and_is_counted(sitl_20s):
     assert by_type["HEARTBEAT"] == 21           # 1 Hz over 0..20 s
     assert by_type["SYS_STATUS"] == 21
     assert by_type["DEBRIS_LOOP_STATUS"] == 21
-    assert by_type["HIGHRES_IMU"] == run.fsw.samples == 20   # 1 Hz from the first sample at ~0.1 s
-    assert by_type["DEBRIS_SIM_STATE"] == by_type["HIGHRES_IMU"]
+    assert by_type["DEBRIS_MAG_SAMPLE"] == run.fsw.samples == 20   # 1 Hz from the first sample at ~0.1 s
+    assert by_type["DEBRIS_SIM_STATE"] == by_type["DEBRIS_MAG_SAMPLE"]
     assert by_type["DEBRIS_RATE_ESTIMATE"] == 19 + 18 + 20   # Boer, derivative, Kalman (every sample)
 
 

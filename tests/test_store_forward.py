@@ -27,7 +27,7 @@ def test_ring_is_fifo_and_drops_the_oldest_when_full():
 
 
 def test_only_data_products_are_kept():
-    assert stored(mavlink.MAVLink_highres_imu_message(0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0))
+    assert stored(mavlink.MAVLink_debris_mag_sample_message(0, 0, 0, [0, 0, 0], 0))
     assert stored(mavlink.MAVLink_debris_rate_estimate_message(0, 0, 0, 0, 0, 0, 0, 1, 0))
     assert not stored(mavlink.MAVLink_heartbeat_message(0, 0, 0, 0, 0, 3))
     assert not stored(mavlink.MAVLink_debris_loop_status_message(0, 0, 0, 0, 0, 0, 0, 0, 0))
@@ -85,7 +85,7 @@ def test_a_short_outage_loses_no_sample():
     assert rep["missing"] == 0 and rep["late"] > 100 and len(dec.segments) == 1
     stats = dec.stats.summary()["totals"]
     assert stats["lost"] == 0                                  # replays go out with fresh sequence numbers
-    assert "none missing" in dec.summary_text() and "replayed after an outage" in dec.summary_text()
+    assert "none missing" in dec.summary_text() and "sent again after an outage" in dec.summary_text()
     est = dec.rate_estimates()
     assert np.isfinite(est.w_radps[2:]).all()                  # the replayed estimates are merged too
 
@@ -169,7 +169,7 @@ def test_loss_of_more_than_255_frames_is_counted_from_the_senders_frame_count():
         if deliver:
             for m in parser.parse_buffer(frame):
                 stats.on_frame(m, 0.0)
-                if m.get_type() == "HIGHRES_IMU" and stats.last_verdict != "new":
+                if m.get_type() == "DEBRIS_MAG_SAMPLE" and stats.last_verdict != "new":
                     raise AssertionError(stats.last_verdict)
 
     def status():

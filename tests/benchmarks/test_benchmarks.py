@@ -68,8 +68,7 @@ def test_ground_parse(benchmark, tmp_path):
     frames = []
     for k in range(250):
         t = k * 0.05
-        for msg in (mavlink.MAVLink_highres_imu_message(int(t * 1e6), 0, 0, 0, 0, 0, 0, 0.2, -0.1, 0.3,
-                                                        0, 0, 0, 0, 0x1C0, 0),
+        for msg in (mavlink.MAVLink_debris_mag_sample_message(int(t * 1e6), k, 7, [0.2, -0.1, 0.3], 0),
                     mavlink.MAVLink_debris_rate_estimate_message(int(t * 1e6), 0.1, 0.2, 0.3, 0.01, 0.01,
                                                                  0.01, 1, 1),
                     mavlink.MAVLink_debris_rate_estimate_message(int(t * 1e6), 0.1, 0.2, 0.3, 0.01, 0.01,
@@ -89,7 +88,7 @@ def test_ground_parse(benchmark, tmp_path):
         return d
 
     d = benchmark(parse)
-    assert d.frames_by_type["HIGHRES_IMU"] == 250
+    assert d.frames_by_type["DEBRIS_MAG_SAMPLE"] == 250
     assert d.stats.summary()["totals"]["lost"] == 0
 
 
