@@ -56,8 +56,7 @@ from fsw.telemetry import dialect
 from fsw.telemetry.dialect import mavlink
 from pymavlink import mavutil  # after dialect: it selects MAVLink 2
 
-from fsw.telemetry.signing import (TICKS_PER_S, UNIX_TO_MAVLINK_EPOCH_S, SigningClock, Verdict, Verifier,
-                                   load_key)
+from fsw.telemetry.signing import Verdict, Verifier, load_key, unix_clock
 
 from fsw.telemetry.framing import Deframer
 
@@ -130,7 +129,7 @@ class Decoder:
         self.interrupted = False
         # now_s is Unix time: the signing clock's epoch maps it to 10 µs since 2015
         self.verifier = None if key is None else Verifier(
-            key, SigningClock(epoch=-UNIX_TO_MAVLINK_EPOCH_S * TICKS_PER_S), window=64)
+            key, unix_clock(), window=64)
         #: intact frames refused by the signature check, by reason
         self.unauthenticated: Counter[str] = Counter()
         #: decoded DEBRIS_INERTIA_ESTIMATE messages, in arrival order (see `_inertia`)
@@ -466,7 +465,7 @@ def run(url: str, *, duration_s: float | None = None, count: int | None = None,
     conn = live.conn
     is_log = isinstance(conn, mavutil.mavlogfile)
     if resend and not is_log:
-        decoder.requests = GroundLink(live.write, key, SigningClock(epoch=-UNIX_TO_MAVLINK_EPOCH_S * TICKS_PER_S),
+        decoder.requests = GroundLink(live.write, key, unix_clock(),
                                       link_id=REQUEST_LINK_ID)
     log_out = None
     frames = 0

@@ -91,6 +91,10 @@ class Recorder:
                 f = self._files.get(id(seg))
                 if f is None:
                     continue
+                if f.csv is not None and not f.dirty:
+                    missing = seg.report()["missing"]
+                    if missing:
+                        f.csv.comment("samples_missing", str(missing))
                 for app in (f.csv, f.rates):
                     if app is not None:
                         app.close()
@@ -99,10 +103,6 @@ class Recorder:
                         write_recording(f.paths["csv"], decoder.recording(seg))
                     if "rates" in f.paths:
                         write_rate_estimates(f.paths["rates"], decoder.rate_estimates(seg))
-                elif f.csv is not None:
-                    missing = seg.report()["missing"]
-                    if missing:
-                        f.csv.comment("samples_missing", str(missing))
 
     def added(self, seg: Segment, t_us: int) -> None:
         """A new sample in `seg` (the decoder calls this for every one)."""

@@ -234,3 +234,9 @@ def sign_ready(mav, clock: SigningClock, now_s: float) -> None:
     ts = max(mav.signing.timestamp, clock.now(now_s))
     mav.signing.timestamp = ts
     clock.advance_to(ts)
+
+
+def unix_clock(**kwargs) -> SigningClock:
+    """A signing clock whose time argument is Unix time (the ground tools pass the wall clock or a
+    tlog's time stamps)."""
+    return SigningClock(epoch=-UNIX_TO_MAVLINK_EPOCH_S * TICKS_PER_S, **kwargs)
