@@ -442,7 +442,7 @@ def run(url: str, *, duration_s: float | None = None, count: int | None = None,
         rates_csv: str | Path | None = None, method: int = mavlink.DEBRIS_RATE_METHOD_BOER,
         quiet: bool = False, on_line: Callable[[str], None] = print, baud: int = 115200,
         clock: Callable[[], float] = time.time, key: bytes | None = None, resend: bool = True,
-        should_stop: Callable[[], bool] = lambda: False) -> Decoder:
+        uplink: str | None = None, should_stop: Callable[[], bool] = lambda: False) -> Decoder:
     """Decode `url` until `duration_s` (of the link's time line: `clock` for live links, the
     recorded time stamps for a tlog) or `count` intact frames, the end of a tlog, `should_stop()`
     (SIGINT/SIGTERM in `main`) or Ctrl-C. Waits on the link in 0.1 s slices, never spins.
@@ -450,7 +450,8 @@ def run(url: str, *, duration_s: float | None = None, count: int | None = None,
     The recordings are written while the frames arrive (`ground.recorder`): one file per run of each
     source, rows in order as they settle, completed at the end. The tlog gets every intact frame as
     received, flushed after every read. On a live link (`resend`) the decoder asks the box again for
-    numbered samples that did not arrive (DEBRIS_SAMPLE_REQUEST, signed with `key` when given).
+    numbered samples that did not arrive (DEBRIS_SAMPLE_REQUEST, signed with `key` when given), back on
+    the link or on `uplink` (a connection string) when the box takes commands elsewhere.
 
     A tlog is checked first (`ground.tlog.check_tlog`). Live links are framed by
     `fsw.telemetry.framing.Deframer` (byte-wise resync, so no intact frame is lost to line noise); a
@@ -464,8 +465,12 @@ def run(url: str, *, duration_s: float | None = None, count: int | None = None,
     live = _LiveLink(url, baud, decoder._say)
     conn = live.conn
     is_log = isinstance(conn, mavutil.mavlogfile)
+    up = None
     if resend and not is_log:
-        decoder.requests = GroundLink(live.write, key, unix_clock(),
+        if uplink is not None:
+            up = dialect.open_link(uplink, source_system=dialect.GCS_SYSID, source_component=dialect.GCS_COMPID,
+                                   baud=baud)
+        decoder.requests = GroundLink(live.write if up is None else up.write, key, unix_clock(),
                                       link_id=REQUEST_LINK_ID)
     log_out = None
     frames = 0
@@ -509,6 +514,8 @@ def run(url: str, *, duration_s: float | None = None, count: int | None = None,
         decoder.interrupted = True
     finally:
         live.close()
+        if up is not None:
+            up.close()
         if log_out is not None:
             log_out.close()
     decoder.frames = frames
@@ -611,6 +618,9 @@ def main(argv: list[str] | None = None) -> int:
                                                   "authentic ones; sign the requests for missing samples")
     ap.add_argument("--no-resend", action="store_true",
                     help="do not ask the box again for numbered samples that did not arrive")
+    ap.add_argument("--uplink", metavar="URL",
+                    help="send the requests for missing samples on this link (the box's --uplink) instead of "
+                         "back on URL")
     args = ap.parse_args(argv)
     missing = _missing_path(args.url)
     if missing:
@@ -626,7 +636,8 @@ def main(argv: list[str] | None = None) -> int:
         key = load_key(args.key) if args.key else None
         decoder = run(args.url, duration_s=args.duration, count=args.count, tlog=args.tlog, csv=args.csv,
                       rates_csv=args.rates_csv, method=METHODS[args.method], quiet=args.quiet,
-                      baud=args.baud, key=key, resend=not args.no_resend, should_stop=lambda: bool(stop))
+                      baud=args.baud, key=key, resend=not args.no_resend, uplink=args.uplink,
+                      should_stop=lambda: bool(stop))
     except (OSError, ValueError) as e:
         print(f"ground.decode: {e}", file=sys.stderr)
         return 1
