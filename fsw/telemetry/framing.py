@@ -170,6 +170,25 @@ class Deframer:
         self.frames = 0
         self.junk_bytes = 0
         self.crc_checks = 0
+        self._check_budget: int | None = None
+        self.starved = False
+
+    @property
+    def check_budget(self) -> int | None:
+        """CRCs the deframer may still compute (None: no limit). When a candidate needs one more, the
+        deframer is `starved`: it stops where it is, and the caller can :meth:`discard` the rest."""
+        return self._check_budget
+
+    @check_budget.setter
+    def check_budget(self, n: int | None) -> None:
+        self._check_budget = n
+        self.starved = False
+
+    def discard(self) -> int:
+        """Throw away the bytes not yet scanned (after starving): their number."""
+        n = len(self._buf)
+        self._buf.clear()
+        return n
 
     # --- messages --------------------------------------------------------------------------------
     def feed(self, data: bytes) -> list:
@@ -233,6 +252,11 @@ class Deframer:
         return j
 
     def _crc_ok(self, i: int, length: int, extra: int) -> bool:
+        if self._check_budget is not None:
+            if self._check_budget <= 0:
+                self.starved = True
+                return False
+            self._check_budget -= 1
         b = self._buf
         end = i + length - (SIGNATURE_LEN if b[i] == STX_V2 and b[i + 2] & IFLAG_SIGNED else 0)
         self.crc_checks += 1
@@ -243,7 +267,7 @@ class Deframer:
         b = self._buf
         n = len(b)
         i = 0
-        while i < n:
+        while i < n and not self.starved:
             j = self._candidate(i, n)
             if j < 0:
                 self._junk += b[i:]
@@ -258,11 +282,14 @@ class Deframer:
                     break  # wait for more bytes
                 head = (0, 0)  # at the end, or a good frame starts inside it: this start byte is noise
             length = head[0]
-            if length and self._crc_ok(i, length, head[1]) and not (
-                    b[i] == STX_V2 and b[i + 2] & IFLAG_SIGNED
-                    and self._complete_frame_after(i + length - SIGNATURE_LEN, i + length)):
-                # (a signed frame cut inside its signature block, not covered by the CRC, is refused:
-                # the next frame starts there)
+            ok = length and self._crc_ok(i, length, head[1]) and not (
+                b[i] == STX_V2 and b[i + 2] & IFLAG_SIGNED
+                and self._complete_frame_after(i + length - SIGNATURE_LEN, i + length))
+            # (a signed frame cut inside its signature block, not covered by the CRC, is refused: the
+            # next frame starts there)
+            if self.starved:
+                break  # out of CRCs: undecided, left for discard()
+            if ok:
                 out += self._emit_junk()
                 out.append(bytes(b[i:i + length]))
                 self.frames += 1

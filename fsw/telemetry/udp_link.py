@@ -23,7 +23,6 @@ import errno
 import socket
 import struct
 import sys
-from dataclasses import dataclass
 
 from .dialect import mavlink, open_link
 
@@ -35,17 +34,6 @@ UDP_MAX_PAYLOAD = 65507
 #: the box reads datagrams up to this size; a ground station writes one frame (≤ 280 B) per datagram
 BOX_DATAGRAM_BYTES = 2048
 BOX_RCVBUF_BYTES = 256 * 1024
-
-
-@dataclass(frozen=True)
-class Datagram:
-    data: bytes
-    addr: tuple
-    size: int  # true size: more than len(data) when the datagram was longer than the buffer
-
-    @property
-    def truncated(self) -> bool:
-        return self.size > len(self.data)
 
 
 def is_udp_url(url: str) -> bool:
@@ -109,8 +97,9 @@ class UdpLink:
     def fileno(self) -> int:
         return self.sock.fileno()
 
-    def read_datagrams(self, max_datagrams: int) -> list[Datagram]:
-        """Up to `max_datagrams` datagrams waiting on the socket, oldest first; never blocks."""
+    def read_datagrams(self, max_datagrams: int) -> list[tuple[bytes, tuple, int]]:
+        """Up to `max_datagrams` datagrams waiting on the socket, oldest first, as (data, source
+        address, true size); `data` is cut to the buffer when the size is larger. Never blocks."""
         out = []
         buf, view, size = self._buf, self._view, len(self._buf)
         recv = self.sock.recvfrom_into
@@ -126,7 +115,7 @@ class UdpLink:
             self.bytes += n
             if n > size:
                 self.truncated += 1
-            out.append(Datagram(bytes(view[:min(n, size)]), addr, n))
+            out.append((bytes(view[:n if n < size else size]), addr, n))
         return out
 
     @property

@@ -16,22 +16,25 @@ parser. Per frame:
    force; PARAM_REQUEST_READ / PARAM_REQUEST_LIST → PARAM_VALUE (reading changes nothing);
    anything else is counted and ignored.
 
-Bounded work, a loop tick at a time, whatever arrives (`poll`):
+Bounded work, a loop tick at a time, whatever arrives (`poll`; the budgets are arguments of
+:class:`Uplink`, sized for 50 Hz on a slow core, far above what a ground station sends):
 
-- a datagram link (:class:`fsw.telemetry.udp_link.UdpLink`, or anything with `read_datagrams`):
-  at most `max_datagrams_per_tick` datagrams are taken from the socket, each into a fixed buffer
-  (a longer datagram is dropped whole). They are parsed one datagram at a time (MAVLink over UDP
-  never splits a frame), first those from the answer address, then those that are exactly one frame
-  by their header (every genuine datagram: a sender writes one frame per datagram; a flood of 0xFE,
-  0xFD or random bytes never is), then the rest, until `max_bytes_per_tick` bytes are parsed; the
-  rest is dropped and counted, not left to block later ticks. So a signed command sent during a flood
-  is obeyed in the tick that reads it;
+- a datagram link (:class:`fsw.telemetry.udp_link.UdpLink`, or anything with `read_datagrams`): at
+  most `max_datagrams_per_tick` datagrams are taken from the socket, each into a fixed buffer (a
+  longer one is dropped whole). They are parsed one datagram at a time (MAVLink over UDP never splits
+  a frame): first those from the answer address, then those that are exactly one frame by their
+  header, signed if we have the key (every genuine datagram: a sender writes one frame per datagram;
+  a flood of 0xFE, 0xFD or random bytes never is), then the rest, while the tick's budgets last —
+  `max_parsed_per_tick` datagrams, `max_bytes_per_tick` bytes, `max_crc_checks_per_tick` frame
+  candidates. What is over budget is dropped and counted, not left to block later ticks: a signed
+  command sent during a flood is obeyed in the tick that reads it;
 - a byte stream (serial radio, tcp, an in-memory link with `recv(n)`): at most `max_bytes_per_tick`
-  bytes are read (the rest waits in the OS buffer; a radio cannot deliver more);
-- either way at most `max_frames_per_tick` intact frames are verified and decoded (the rest are
-  dropped and counted); a frame's signature is checked on its raw bytes before it is decoded, so
-  forged or unsigned frames cost a CRC and a hash, not pymavlink's decoder. Parsing costs a few ns a
-  byte for noise (`fsw.telemetry.framing`).
+  bytes are read (the rest waits in the OS buffer; a radio cannot deliver more), and what is left
+  when the CRC budget runs out is dropped and counted;
+- a frame's signature is checked on its raw bytes before it is decoded, so forged or unsigned frames
+  cost a CRC and a hash, not pymavlink's decoder; at most `max_frames_per_tick` frames are decoded
+  (without a key every well-formed frame would be). Noise costs a few ns a byte to parse
+  (`fsw.telemetry.framing`).
 
 Every byte is accounted for in :class:`UplinkCounters` and the DEBRIS_LINK_STATUS extension fields
 (:meth:`Uplink.link_counters`): bytes received, bytes dropped unparsed, garbage bytes, bad-CRC frames,
@@ -73,8 +76,8 @@ class UplinkCounters:
     datagrams: int = 0
     foreign_datagrams: int = 0  # from a source other than the answer address
     oversize_datagrams: int = 0  # longer than the read buffer: dropped whole
-    dropped_datagrams: int = 0  # over the tick's byte budget: dropped unparsed
-    dropped_bytes: int = 0  # bytes of oversize and dropped datagrams and of dropped frames
+    dropped_datagrams: int = 0  # over the tick's budgets: dropped unparsed (or their rest, unparsed)
+    dropped_bytes: int = 0  # bytes not parsed (oversize or over budget) and of frames not decoded
     dropped_frames: int = 0  # intact frames over the tick's frame budget
     os_dropped: int = 0  # datagrams the OS dropped (receive buffer full), as the link reports it
     malformed: int = 0
@@ -110,8 +113,12 @@ class Uplink:
     def __init__(self, conn, router: CommandRouter, *, sysid: int, compid: int, key: bytes | None = None,
                  clock: SigningClock | None = None, reply: Callable[[object], bool] | None = None,
                  params: ParamTable | None = None, max_bytes_per_tick: int = 4096,
-                 max_datagrams_per_tick: int = 256, max_frames_per_tick: int = 32,
+                 max_datagrams_per_tick: int = 128, max_parsed_per_tick: int = 16,
+                 max_crc_checks_per_tick: int = 32, max_frames_per_tick: int = 16,
                  peers: int = DEFAULT_CAPACITY, max_future_s: float = 600.0) -> None:
+        """Budgets per `poll` (one loop tick; defaults sized for 50 Hz on a slow core): datagrams read,
+        datagrams parsed, bytes parsed (stream links: read), frame candidates CRC-checked, frames
+        decoded. A genuine ground station needs one or two of each."""
         self.conn = conn
         self.router = router
         self.params = params if params is not None else ParamTable()
@@ -121,6 +128,8 @@ class Uplink:
         self.verifier = Verifier(key, self.clock, max_future_s=max_future_s) if key is not None else None
         self.max_bytes_per_tick = int(max_bytes_per_tick)
         self.max_datagrams_per_tick = int(max_datagrams_per_tick)
+        self.max_parsed_per_tick = int(max_parsed_per_tick)
+        self.max_crc_checks_per_tick = int(max_crc_checks_per_tick)
         self.max_frames_per_tick = int(max_frames_per_tick)
         self.counters = UplinkCounters()
         self.peers = PeerTable(peers)
@@ -155,6 +164,15 @@ class Uplink:
         recv = getattr(self.conn, "recv", None)
         if recv is None:
             return
+        self._deframer.check_budget = self.max_crc_checks_per_tick
+        try:
+            self._read_stream(recv, now_s)
+            if self._deframer.starved:  # out of CRC checks for this tick: the rest is dropped
+                self.counters.dropped_bytes += self._deframer.discard()
+        finally:
+            self._deframer.check_budget = None
+
+    def _read_stream(self, recv, now_s: float) -> None:
         data = bytearray()
         while len(data) < self.max_bytes_per_tick:
             try:
@@ -177,32 +195,50 @@ class Uplink:
             batch = []
         c.os_dropped = int(getattr(self.conn, "os_dropped", 0) or 0)
         peers = self.peers
+        answer = peers.answer_address
+        genuine_shape = self._genuine_shape
         tiers: tuple[list, list, list] = ([], [], [])
         for d in batch:
+            data, addr, size = d
             c.datagrams += 1
-            c.bytes += d.size
-            peers.seen(d.addr, d.size, now_s)
-            if peers.foreign(d.addr):
+            c.bytes += size
+            peers.seen(addr, size, now_s)
+            if addr != answer:
                 c.foreign_datagrams += 1
-            if d.size > len(d.data):
+            if size > len(data):
                 c.oversize_datagrams += 1
-                c.dropped_bytes += d.size
+                c.dropped_bytes += size
                 continue
-            tiers[0 if not peers.foreign(d.addr) else 1 if whole_frame(d.data, False) else 2].append(d)
-        budget = self.max_bytes_per_tick
-        for tier in tiers:
-            for d in tier:
-                if len(d.data) > budget:
-                    c.dropped_datagrams += 1
-                    c.dropped_bytes += d.size
-                    continue
-                budget -= len(d.data)
-                self._datagram(d.data, d.addr, now_s)
+            tiers[0 if addr == answer else 1 if genuine_shape(data) else 2].append(d)
+        df = self._deframer
+        df.check_budget = self.max_crc_checks_per_tick
+        bytes_left, parses_left = self.max_bytes_per_tick, self.max_parsed_per_tick
+        try:
+            for tier in tiers:
+                for data, addr, size in tier:
+                    if parses_left <= 0 or len(data) > bytes_left or self._deframer.starved:
+                        c.dropped_datagrams += 1
+                        c.dropped_bytes += size
+                        continue
+                    parses_left -= 1
+                    bytes_left -= len(data)
+                    self._datagram(data, addr, now_s)
+        finally:
+            self._deframer.check_budget = None
+
+    def _genuine_shape(self, data: bytes) -> bool:
+        """A datagram that is exactly one frame by its header, signed when we have the key (O(1))."""
+        return whole_frame(data, False) and (self.verifier is None or bool(data[2] & 0x01))
 
     def _datagram(self, data: bytes, addr, now_s: float) -> None:
         """One datagram, parsed on its own (no frame spans two datagrams)."""
+        df = self._deframer
         try:
-            items = self._deframer.feed_frames(data) + self._deframer.flush_frames()
+            items = df.feed_frames(data) + df.flush_frames()
+            if df.starved:  # out of CRC checks for this tick: the rest is dropped
+                left = df.discard()
+                self.counters.dropped_bytes += left
+                self.counters.dropped_datagrams += 1 if left else 0
         except Exception:  # noqa: BLE001 - hostile bytes that break the deframer: start over
             self.counters.parser_resets += 1
             self._deframer = Deframer(mavlink1=False)
@@ -244,12 +280,6 @@ class Uplink:
     def _raw_frame(self, frame: bytes, now_s: float, addr) -> None:
         """An intact frame: within the tick's frame budget, verified on its raw bytes, then decoded."""
         c = self.counters
-        if self._frames_left is not None:
-            if self._frames_left <= 0:
-                c.dropped_frames += 1
-                c.dropped_bytes += len(frame)
-                return
-            self._frames_left -= 1
         c.frames += 1
         authenticated = False
         if self.verifier is not None:
@@ -268,6 +298,12 @@ class Uplink:
             self.last_authenticated_s = now_s
             if addr is not None:
                 self._answer_to(addr, now_s, authenticated=True)
+        if self._frames_left is not None:  # decoding is the expensive part (~15 µs a frame)
+            if self._frames_left <= 0:
+                c.dropped_frames += 1
+                c.dropped_bytes += len(frame)
+                return
+            self._frames_left -= 1
         msg = self._deframer.decode(frame)
         if msg.get_type() == "BAD_DATA":
             c.malformed += 1
