@@ -363,8 +363,9 @@ def _link_attack_report(fig: dict) -> list[str]:
     fl = fig["floods"]
     lat = fig["flood_probe_latency_max_s"]
     return [f"floods: {sum(fl.values())} bursts ({', '.join(f'{k} {n}' for k, n in fl.items())}), "
-            f"{fig['flood_bytes'] / 1e6:.1f} MB at {fig['flood_rate_Bps'] / 1e6:g} MB/s "
-            f"({fig['flood_bytes_delivered'] / 1e6:.1f} MB reached the box, the rest met a link down); loop overruns during "
+            f"{fig['flood_bytes'] / 1e6:.1f} MB at {fig['flood_rate_Bps'] / 1e6:g} MB/s"
+            + (f" ({fig['flood_bytes_delivered'] / 1e6:.1f} MB reached the box, the rest met a link down)"
+               if fig["flood_bytes_delivered"] < fig["flood_bytes"] else "") + "; loop overruns during "
             f"floods {fig['loop_overruns_during_floods']}; genuine command mid-flood obeyed within 1 s "
             f"{fig['flood_probes_obeyed_within_1s']} of {fig['flood_probes']}"
             + (f" (latency at most {lat:.2f} s)" if lat is not None else ""),
