@@ -22,6 +22,7 @@ from fsw.telemetry.udp_link import UdpLink
 from fsw.telemetry.uplink import Uplink
 from ground.command import GroundLink
 from ground.decode import run as decode_run
+from support import free_udp_port
 
 KEY = bytes(range(50, 82))
 T0 = unix_to_timestamp(1_750_000_000.0)
@@ -278,9 +279,7 @@ def test_the_flight_loop_under_a_1MBps_flood_over_udp():
 def test_the_ground_decoder_loses_no_sample_under_a_1MBps_flood():
     """200 magnetometer samples at 100 Hz from the box's port, and from another port 1 MB/s of 0xFE in
     64 KB datagrams, 0xFD in 4 KB and random bytes in 1 KB datagrams: all 200 decoded."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_udp_port()
     addr = ("127.0.0.1", port)
     stop = threading.Event()
     started = threading.Event()

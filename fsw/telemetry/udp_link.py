@@ -75,9 +75,9 @@ class UdpLink:
             else:
                 self.destination = (socket.gethostbyname(host), port)
             sock.setblocking(False)
-        except OSError:
+        except OSError as e:
             sock.close()
-            raise
+            raise OSError(e.errno, f"{url}: {e.strerror or e}") from None
         self.sock = sock
         self.peer = None  # udpin: where writes go (set by the uplink)
         self._buf = bytearray(max(1, int(max_datagram_bytes)))
