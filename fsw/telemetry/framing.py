@@ -70,7 +70,7 @@ def _payload_lengths(cls) -> tuple[int, int]:
     fields, base without them (what MAVLink 1 carries). The extension fields are the last of the wire
     order and the constructor's arguments with defaults (pymavlink's mavgen)."""
     fmt = bytes(cls.native_format).decode("ascii")[1:]
-    sizes = [struct.calcsize("<" + c) * max(1, n) for c, n in zip(fmt, cls.array_lengths)]
+    sizes = [struct.calcsize("<" + c) * max(1, n) for c, n in zip(fmt, cls.array_lengths, strict=True)]
     n_ext = len(cls.__init__.__defaults__ or ())
     full = cls.unpacker.size
     return full - sum(sizes[len(sizes) - n_ext:]) if n_ext else full, full

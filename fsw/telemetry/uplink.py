@@ -78,10 +78,9 @@ class UplinkCounters:
     oversize_datagrams: int = 0  # longer than the read buffer: dropped whole
     dropped_datagrams: int = 0  # over the tick's budgets: dropped unparsed (or their rest, unparsed)
     dropped_bytes: int = 0  # bytes not parsed (oversize or over budget) and of frames not decoded
-    dropped_frames: int = 0  # intact frames over the tick's frame budget
+    dropped_frames: int = 0  # intact frames over the tick's decode budget
     os_dropped: int = 0  # datagrams the OS dropped (receive buffer full), as the link reports it
-    malformed: int = 0
-    unknown: int = 0  # frames of message ids the dialect lacks
+    malformed: int = 0  # intact frames pymavlink could not build
     unsigned: int = 0
     bad_signature: int = 0
     replay: int = 0
