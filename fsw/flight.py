@@ -36,7 +36,7 @@ from .scheduler import Scheduler, Task
 from .telemetry.dialect import mavlink
 from .telemetry.sample_store import Resender, SampleStore
 from .telemetry.telemetry import Telemetry
-from .telemetry.uplink import Uplink
+from .telemetry.uplink import LINK_STATUS_FIELDS, Uplink
 
 
 class FieldSource(Protocol):
@@ -157,8 +157,7 @@ class FlightSoftware:
     def _link_counters(self) -> dict:
         if self.uplink is not None:
             return self.uplink.link_counters()
-        return dict.fromkeys(("cmd_accepted", "rejected_unsigned", "rejected_bad_signature", "rejected_replay",
-                              "rejected_invalid"), 0)
+        return dict.fromkeys(LINK_STATUS_FIELDS, 0)
 
     # --- tasks ---------------------------------------------------------------------------------
     def _uplink(self, now_s: float) -> None:
@@ -243,7 +242,7 @@ class FlightSoftware:
                             load_permille=int(mean_us * 1e-3 / self.scheduler.period_s),
                             errors_comm=getattr(src, "bus_errors", 0) + self.tlm.send_errors,
                             errors_count=(self.gate.rejected, getattr(src, "resets", 0),
-                                          sum(v for k, v in link.items() if k != "cmd_accepted"),
+                                          sum(v for k, v in link.items() if k.startswith("rejected_")),
                                           self.tlm.store.dropped if self.tlm.store is not None else 0))
         self.tlm.link_status(now_s, **link)
         self.tlm.loop_status(now_s, ticks=st.ticks, overruns=st.overruns, task_overruns=st.task_overruns,

@@ -24,11 +24,12 @@ import numpy as np
 from .drivers.mmc5983ma import Mmc5983ma
 from .drivers.mmc5983ma_regs import Bandwidth, ContinuousFrequency
 from .flight import FlightSoftware
-from .telemetry.dialect import FSW_COMPID, FSW_SYSID, open_link
+from .telemetry.dialect import FSW_COMPID, FSW_SYSID
 from .telemetry.sample_store import SampleStore
 from .telemetry.signing import SigningClock, key_fingerprint, load_key
 from .telemetry.store_forward import DEFAULT_CAPACITY, StoreForward
 from .telemetry.telemetry import Telemetry
+from .telemetry.udp_link import open_box_link
 
 DEFAULT_LINK = "udpout:127.0.0.1:14550"
 RADIO_BYTES_PER_S = 57600 / 10  # 8N1
@@ -254,11 +255,15 @@ def run(args, out=sys.stdout) -> Run:
     # the signing clock is the wall clock (this is the program's edge): a SITL run faster than real
     # time still signs with real time, which the ground's replay checks compare with its own clock
     clock = SigningClock(clock_set=True, unix_time=time.time)
-    link = open_link(args.link, source_system=FSW_SYSID, source_component=FSW_COMPID, baud=args.baud)
+    link = open_box_link(args.link, source_system=FSW_SYSID, source_component=FSW_COMPID, baud=args.baud)
     uplink = link
     if getattr(args, "uplink", None):
-        uplink = open_link(args.uplink, source_system=FSW_SYSID, source_component=FSW_COMPID, baud=args.baud,
-                           input=True)
+        try:
+            uplink = open_box_link(args.uplink, source_system=FSW_SYSID, source_component=FSW_COMPID,
+                                   baud=args.baud, input=True)
+        except BaseException:
+            link.close()
+            raise
     frames = getattr(args, "buffer_frames", DEFAULT_CAPACITY)
     tlm = Telemetry(link, store=StoreForward(frames) if frames > 0 else None, key=key, clock=clock)
     ident = None
@@ -431,16 +436,24 @@ def summary(r: Run) -> str:
                      + (f" (at most {score.max_late_s * 1e3:.1f} ms)" if score.late_ticks else ""))
     rate = tlm.bytes_sent / max(t_s, 1e-9)
     lines.append(f"link: {tlm.frames_sent} frames, {tlm.bytes_sent} bytes ({rate:.0f} B/s = "
-                 f"{100 * rate / RADIO_BYTES_PER_S:.1f} % of a 57600-baud radio), send errors {tlm.send_errors}")
+                 f"{100 * rate / RADIO_BYTES_PER_S:.1f} % of a 57600-baud radio), send errors {tlm.send_errors}"
+                 + (f", {tlm.conn.unaddressed_writes} frames not sent (no ground station known yet)"
+                    if getattr(tlm.conn, "unaddressed_writes", 0) else ""))
     sf = tlm.store
     if sf is not None and (sf.outages or sf.dropped):
         lines.append(f"store and forward: {sf.outages} outages, {sf.stored} frames kept, {sf.replayed} replayed, "
                      f"{sf.dropped} dropped (buffer full), {sf.buffered} still waiting")
     if fsw.uplink is not None:
         u = fsw.uplink.link_counters()
-        lines.append(f"uplink: {u['cmd_accepted']} commands accepted; rejected: {u['rejected_unsigned']} unsigned, "
-                     f"{u['rejected_bad_signature']} bad signature, {u['rejected_replay']} replayed, "
-                     f"{u['rejected_invalid']} invalid")
+        line = (f"uplink: {u['cmd_accepted']} commands accepted; rejected: {u['rejected_unsigned']} unsigned, "
+                f"{u['rejected_bad_signature']} bad signature, {u['rejected_replay']} replayed, "
+                f"{u['rejected_invalid']} invalid")
+        if u["uplink_bytes"]:
+            line += (f"; {u['uplink_bytes']} bytes in, {u['uplink_bytes_dropped']} dropped over budget, "
+                     f"{u['uplink_garbage_bytes']} garbage, {u['uplink_bad_crc']} bad CRC, "
+                     f"{u['uplink_foreign_datagrams']} datagrams from unknown sources, "
+                     f"{u['uplink_os_dropped']} dropped by the OS")
+        lines.append(line)
     kit = getattr(fsw, "deorbit", None)
     if kit is not None:
         e, seq = kit.energy(), kit.sequencer

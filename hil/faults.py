@@ -32,6 +32,7 @@ that the recovery from each can be judged on its own (`hil.soak`). Everything ra
 from __future__ import annotations
 
 import errno
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -219,6 +220,70 @@ class FaultyLink:
             for f, ok in self._held:
                 self._push(f, ok)
             self._held = None
+
+
+#: the ground station's address on a datagram link
+GROUND_ADDR = ("192.168.0.2", 14550)
+
+
+class FaultyDatagramLink(FaultyLink):
+    """A :class:`FaultyLink` whose uplink carries datagrams with source addresses, like UDP (SITL, an
+    IP radio): so that floods and spoofed sources can reach the box (`hil.link_attacks`). The box reads
+    it like `fsw.telemetry.udp_link.UdpLink` (`read_datagrams`, `os_dropped`); the downlink is the
+    faulty byte stream of :class:`FaultyLink`. A receive buffer of `rcvbuf_bytes` (the kernel's
+    default) holds what the box has not read yet; what does not fit is dropped and counted, as the
+    kernel does. `truth["uplink_os_dropped"]`, `["uplink_datagrams"]`, `["uplink_bytes"]` count."""
+
+    def __init__(self, rng: np.random.Generator, *, src_system: int, src_component: int,
+                 rcvbuf_bytes: int = 212_992) -> None:
+        super().__init__(rng, src_system=src_system, src_component=src_component)
+        self.rcvbuf_bytes = rcvbuf_bytes
+        self._datagrams: deque = deque()
+        self._queued = 0
+        self.truth.update(uplink_os_dropped=0, uplink_datagrams=0, uplink_bytes=0)
+
+    def ground_write(self, buf: bytes, addr=GROUND_ADDR) -> bool:
+        """A datagram from `addr` (the ground station by default): whether it reached the box's buffer
+        (radio loss and a disconnected link lose it, a full buffer drops it)."""
+        if not self.connected or self.rng.random() < self.loss:
+            self.truth["uplink_frames_lost"] += 1
+            return False
+        return self.inject(buf, addr)
+
+    def inject(self, buf: bytes, addr) -> bool:
+        """A datagram that arrives whatever the radio does (an attacker on the network)."""
+        if not self.connected:
+            return False
+        t = self.truth
+        t["uplink_datagrams"] += 1
+        t["uplink_bytes"] += len(buf)
+        if self._queued + len(buf) > self.rcvbuf_bytes:
+            t["uplink_os_dropped"] += 1
+            return False
+        self._datagrams.append((bytes(buf), addr, len(buf)))
+        self._queued += len(buf)
+        return True
+
+    def read_datagrams(self, max_datagrams: int) -> list:
+        out = []
+        q = self._datagrams
+        while q and len(out) < max_datagrams:
+            d = q.popleft()
+            self._queued -= d[2]
+            out.append(d)
+        return out
+
+    @property
+    def os_dropped(self) -> int:
+        return self.truth["uplink_os_dropped"]
+
+    def recv(self, n: int | None = None) -> bytes:
+        return b""
+
+    def disconnect(self) -> None:
+        super().disconnect()
+        self._datagrams.clear()
+        self._queued = 0
 
 
 class FaultInjector:

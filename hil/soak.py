@@ -13,7 +13,13 @@ MAVLink command protocol) and attacks:
 - unsigned commands, commands signed with a wrong key,
 - replays of a captured genuine command frame,
 - the lock-out attack on pymavlink (a forged frame with the largest timestamp, then a genuine
-  command that must still be obeyed).
+  command that must still be obeyed);
+- floods of the uplink at 1 MB/s in 5 s bursts (0xFE in 64 KB datagrams, 0xFD, random bytes), each
+  with a genuine signed command in its middle that must be obeyed within 1 s, and bursts of datagrams
+  from spoofed source addresses (`hil.link_attacks`): the uplink is modelled as datagrams with source
+  addresses, like UDP (`hil.faults.FaultyDatagramLink`). The figures say the loop overruns during the
+  floods (target 0), the probes' latency, and whether a stranger ever became the address the box
+  answers.
 
 Faults come from `hil.faults.make_schedule` (seeded): one at a time, every kind in turn. A fault is
 *survived* when, within 10 s + half its duration after it ends, the flight software is back to
@@ -49,7 +55,8 @@ from fsw.telemetry.telemetry import Telemetry, usec
 from ground.command import GroundLink
 from ground.decode import Decoder
 
-from .faults import ALL_KINDS, LINK_KINDS, FaultInjector, FaultyLink, make_schedule
+from .faults import ALL_KINDS, LINK_KINDS, GROUND_ADDR, FaultInjector, FaultyDatagramLink, make_schedule
+from .link_attacks import FLOOD_PROBE, Flooder, Spoofer
 
 #: the simulated wall clock at the start (ground time stamps, signing clocks): 2025-06-15
 UNIX0_S = 1_750_000_000.0
@@ -84,7 +91,7 @@ class Commander:
     """The ground's command traffic: one genuine exchange every COMMAND_EVERY_S, an attack every
     ATTACK_EVERY_S."""
 
-    def __init__(self, link: FaultyLink, key: bytes, clock: SigningClock, rng: np.random.Generator) -> None:
+    def __init__(self, link: FaultyDatagramLink, key: bytes, clock: SigningClock, rng: np.random.Generator) -> None:
         self.link = link
         self.ground = GroundLink(link.ground_write, key, clock)
         self.unsigned = GroundLink(link.ground_write, None)
@@ -226,7 +233,7 @@ def run(duration_s: float = 3600.0, *, seed: int = 1, scenario: str = "isoi", ra
     scn, sim, driver, sigma_b = build_sitl(SimpleNamespace(scenario=scenario, seed=seed, rate=rate_hz))
     key = rng_key.bytes(32)
     epoch = unix_to_timestamp(UNIX0_S)
-    link = FaultyLink(rng_link, src_system=FSW_SYSID, src_component=FSW_COMPID)
+    link = FaultyDatagramLink(rng_link, src_system=FSW_SYSID, src_component=FSW_COMPID)
     tlm = Telemetry(link, store=StoreForward(buffer_frames), key=key, clock=SigningClock(epoch=epoch, clock_set=True))
     fsw = FlightSoftware(driver, tlm, rate_hz=rate_hz, sigma_b_T=sigma_b, truth=sim.truth,
                          sample_rate_hz=scn.sample_rate_hz, uplink=link, key=key)
@@ -239,6 +246,7 @@ def run(duration_s: float = 3600.0, *, seed: int = 1, scenario: str = "isoi", ra
     decoder = Decoder(key=key, requests=GroundLink(link.ground_write, key, unix_clock(), link_id=2))
     deframer = Deframer()
     commander = Commander(link, key, SigningClock(epoch=epoch, clock_set=True), rng_cmd)
+    flooder, spoofer = _link_attackers(fsw, link, commander, key, epoch, executions, rng, duration_s)
     tlog_frames = 0
     samples_sent: list[int] = []
     outage_windows: list[tuple[float, float]] = []
@@ -281,6 +289,8 @@ def run(duration_s: float = 3600.0, *, seed: int = 1, scenario: str = "isoi", ra
                 rec.deadline_s = t + 10.0 + 0.5 * f.duration_s
                 watching.append(rec)
         sim.advance_to(t)
+        flooder.tick(t, period, fsw.scheduler.stats.overruns)
+        spoofer.tick(t, fsw.uplink)
         tlm_before = fsw.tlm_samples
         work[k] = fsw.tick(t)
         if fsw.tlm_samples > tlm_before:
@@ -310,7 +320,64 @@ def run(duration_s: float = 3600.0, *, seed: int = 1, scenario: str = "isoi", ra
             tlog_frames += 1
     for rec in watching + list(open_records.values()):
         rec.survived = False
+    flooder.finish(fsw.scheduler.stats.overruns)
     return _figures(locals())
+
+
+def _link_attackers(fsw: FlightSoftware, link: FaultyDatagramLink, commander: Commander, key: bytes, epoch: int,
+                    executions: list, rng: np.random.Generator, duration_s: float) -> tuple[Flooder, Spoofer]:
+    """The floods and the spoofed sources (`hil.link_attacks`), with their own random streams."""
+    rng_flood, rng_spoof = rng.spawn(2)
+    flooder = Flooder(link, key, SigningClock(epoch=epoch, clock_set=True), rng_flood, duration_s=duration_s)
+    fsw.commands.register(FLOOD_PROBE, lambda msg, now_s: flooder.executed(msg.param7, now_s))
+    parser = Deframer()
+
+    def replayable() -> bytes | None:  # the commander's last probe frame, once the box has obeyed it
+        frame = commander.captured
+        if frame is None:
+            return None
+        msg = parser.feed(frame)[0]
+        return frame if msg.get_type() == "COMMAND_LONG" and msg.param7 in executions else None
+
+    spoofer = Spoofer(link, rng_spoof, replayable, (commander.ground.sysid, commander.ground.compid),
+                      PROBE_COMMAND, duration_s=duration_s, epoch=epoch)
+    return flooder, spoofer
+
+
+def _link_attack_figures(v: dict) -> dict:
+    """The floods' and spoofed sources' figures."""
+    fsw, link = v["fsw"], v["link"]
+    u, peers, st = fsw.uplink.counters, fsw.uplink.peers, v["spoofer"].stats
+    return {**v["flooder"].figures(),
+            "uplink_bytes": u.bytes, "uplink_bytes_dropped": u.dropped_bytes,
+            "uplink_garbage_bytes": u.garbage_bytes, "uplink_os_dropped": u.os_dropped,
+            "uplink_foreign_datagrams": u.foreign_datagrams,
+            "spoof_bursts": st.bursts, "spoofed_datagrams": st.datagrams, "spoofed_kinds": dict(st.kinds),
+            "peer_table_capacity": peers.capacity, "peer_table_max": max(st.peer_table_max, len(peers)),
+            "peer_table_evicted": peers.evicted,
+            "answer_address_hijacked": st.answer_address_hijacked,
+            "answer_address_is_ground": peers.answer_address == GROUND_ADDR,
+            "uplink_datagrams_link_truth": link.truth["uplink_datagrams"]}
+
+
+def _link_attack_report(fig: dict) -> list[str]:
+    fl = fig["floods"]
+    lat = fig["flood_probe_latency_max_s"]
+    return [f"floods: {sum(fl.values())} bursts ({', '.join(f'{k} {n}' for k, n in fl.items())}), "
+            f"{fig['flood_bytes'] / 1e6:.1f} MB at {fig['flood_rate_Bps'] / 1e6:g} MB/s"
+            + (f" ({fig['flood_bytes_delivered'] / 1e6:.1f} MB reached the box, the rest met a link down)"
+               if fig["flood_bytes_delivered"] < fig["flood_bytes"] else "") + "; loop overruns during "
+            f"floods {fig['loop_overruns_during_floods']}; genuine command mid-flood obeyed within 1 s "
+            f"{fig['flood_probes_obeyed_within_1s']} of {fig['flood_probes']}"
+            + (f" (latency at most {lat:.2f} s)" if lat is not None else ""),
+            f"uplink: {fig['uplink_bytes']} bytes in, {fig['uplink_bytes_dropped']} dropped over budget, "
+            f"{fig['uplink_garbage_bytes']} garbage, {fig['uplink_os_dropped']} datagrams dropped by the "
+            f"receive buffer, {fig['uplink_foreign_datagrams']} datagrams from unknown sources",
+            f"spoofed sources: {fig['spoof_bursts']} bursts, {fig['spoofed_datagrams']} datagrams ("
+            + ", ".join(f"{k} {n}" for k, n in sorted(fig["spoofed_kinds"].items()))
+            + f"); source table at most {fig['peer_table_max']} of {fig['peer_table_capacity']}, "
+              f"{fig['peer_table_evicted']} evicted; a stranger became the answer address "
+              f"{fig['answer_address_hijacked']} times"]
 
 
 def _recovered(rec: FaultRecord, fsw: FlightSoftware, dec: Decoder) -> bool:
@@ -389,6 +456,7 @@ def _figures(v: dict) -> dict:
         "loop_work_p99_us": round(float(np.percentile(w_us, 99)), 1) if len(w_us) else 0.0,
         "loop_work_max_us": round(float(w_us.max()), 1) if len(w_us) else 0.0,
         "loop_period_us": round(1e6 / v["rate_hz"], 1),
+        **_link_attack_figures(v),
     }
 
 
@@ -429,6 +497,7 @@ def report(fig: dict) -> str:
     lines.append(f"loop: overruns {fig['loop_overruns']}, task overruns {fig['task_overruns']}, work p99 "
                  f"{fig['loop_work_p99_us']:.0f} us, max {fig['loop_work_max_us']:.0f} us "
                  f"(period {fig['loop_period_us']:.0f} us)")
+    lines += _link_attack_report(fig)
     return "\n".join(lines)
 
 
@@ -454,7 +523,9 @@ def main(argv: list[str] | None = None) -> int:
         os.replace(tmp, args.json)  # never a half-written file
         print(f"wrote {args.json}")
     ok = fig["attacks_obeyed"] == 0 and fig["samples_lost"] == 0 and \
-        sum(fig["faults_survived"].values()) == sum(fig["faults_injected"].values())
+        sum(fig["faults_survived"].values()) == sum(fig["faults_injected"].values()) and \
+        fig["loop_overruns_during_floods"] == 0 and fig["answer_address_hijacked"] == 0 and \
+        fig["flood_probes_obeyed_within_1s"] == fig["flood_probes"]
     return 0 if ok else 1
 
 

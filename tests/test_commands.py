@@ -186,8 +186,9 @@ def test_parameters_over_the_uplink():
     box.ground.send(mavlink.MAVLink_param_request_list_message(FSW_SYSID, FSW_COMPID), box.k / 10)
     box.run(0.5)
     values = [r.msg for r in box.received if r.msg.get_type() == "PARAM_VALUE"]
-    assert values[-3].param_value == 1234.0
-    assert {v.param_id for v in values[-2:]} == {"TLM_SAMPLE_HZ", "SF_REPLAY_BPS"}
+    assert values[-4].param_id == "SF_REPLAY_BPS" and values[-4].param_value == 1234.0   # the refused set's answer
+    listed = {v.param_id: v.param_value for v in values[-3:]}
+    assert listed.keys() == {"TLM_SAMPLE_HZ", "RESEND_BPS", "SF_REPLAY_BPS"} and listed["SF_REPLAY_BPS"] == 1234.0
     assert box.fsw.uplink.counters.params_refused == 1
 
 

@@ -40,6 +40,19 @@ def test_nothing_is_lost_in_outages_and_the_loss_count_matches_the_link(figures)
     assert figures["tlog_frames"] == figures["frames_delivered_intact_link_truth"] + bad_sig
 
 
+def test_floods_and_spoofed_sources_neither_stall_the_loop_nor_take_over_the_answers(figures):
+    assert set(figures["floods"]) == {"0xFE", "0xFD", "random"} and min(figures["floods"].values()) > 0
+    assert figures["flood_bytes"] >= 0.99e6 * 5 * sum(figures["floods"].values())
+    assert figures["loop_overruns_during_floods"] == 0
+    assert figures["flood_probes"] >= sum(figures["floods"].values()) - 1  # none while the link is down
+    assert figures["flood_probes_obeyed_within_1s"] == figures["flood_probes"] > 0
+    assert figures["uplink_bytes"] >= figures["flood_bytes_delivered"] > 0.5 * figures["flood_bytes"]
+    assert figures["uplink_bytes_dropped"] > 0
+    assert figures["spoof_bursts"] > 0 and figures["spoofed_datagrams"] > 0
+    assert figures["peer_table_max"] <= figures["peer_table_capacity"]
+    assert figures["answer_address_hijacked"] == 0 and figures["answer_address_is_ground"]
+
+
 def test_the_loop_kept_running(figures):
     assert figures["sim_seconds"] == 480.0
     assert figures["loop_work_p99_us"] < figures["loop_period_us"]
@@ -50,7 +63,8 @@ def test_cli_prints_and_writes_the_figures(tmp_path, capsys):
     assert soak.main(["--duration", "150", "--json", str(out), "--quiet", "--seed", "2"]) == 0
     fig = json.loads(out.read_text())
     for key in ("sim_seconds", "faults_injected", "faults_survived", "commands_rejected", "frames_sent",
-                "frames_received", "samples_lost", "loop_overruns"):
+                "frames_received", "samples_lost", "loop_overruns", "floods", "flood_bytes",
+                "loop_overruns_during_floods", "spoofed_datagrams"):
         assert key in fig
     assert "faults" in capsys.readouterr().out
     with pytest.raises(SystemExit):

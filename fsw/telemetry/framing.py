@@ -1,18 +1,35 @@
-"""MAVLink frames out of a byte stream, with byte-wise resynchronisation.
+"""MAVLink frames out of a byte stream, with byte-wise resynchronisation, at bounded cost per byte.
 
 pymavlink's robust parser, after a start byte (0xFD / 0xFE) whose frame fails its CRC, throws the
 whole declared length away. A start byte inside line noise declares a random length (up to 280
 bytes) and so swallows the good frames that follow it. :class:`Deframer` instead drops only that
 one byte and looks again, so every intact frame in the stream is found, whatever noise precedes it.
-Each candidate is checked before it is accepted:
 
-- MAVLink 2 (0xFD): incompatibility flags other than "signed" → not a frame; known message id → the
-  CRC with the message's CRC_EXTRA must match; then pymavlink's `decode` builds the message
-  (signatures are not checked here: see `fsw.telemetry.signing`);
-- MAVLink 1 (0xFE): the same without flags;
-- an unknown message id has no CRC_EXTRA, so its CRC cannot be checked: the candidate is refused.
-  A single flipped bit in the id of a real frame would otherwise let a damaged frame through; every
+MAVLink 2 only by default: the project's links speak nothing else (`fsw.telemetry.dialect`), and a
+command must be signed, which MAVLink 1 cannot be; 0xFE is then an ordinary byte. `mavlink1=True`
+accepts MAVLink 1 frames as well.
+
+Cost. Hostile input must not be expensive: a regular expression finds the next place where a frame
+can begin (C speed, no Python loop over bytes), and a candidate must pass cheap header checks before
+any CRC is computed:
+
+- MAVLink 2 (0xFD): payload length ≥ 1 (senders truncate trailing zero bytes but never the first),
+  incompatibility flags none but "signed", a message id of the dialect, a payload length that message
+  can have (at most its full length with extensions);
+- MAVLink 1 (0xFE, with ``mavlink1=True``): a message id of the dialect and exactly its length
+  (MAVLink 1 never truncates: the base fields, or with extensions as pymavlink packs them);
+- an unknown message id has no CRC_EXTRA, so its CRC cannot be checked: the candidate is refused. A
+  single flipped bit in the id of a real frame would otherwise let a damaged frame through; every
   message the box sends is in the dialect.
+
+Then the CRC with the message's CRC_EXTRA (`fastcrc`, the C CRC pymavlink itself depends on: 0.3 µs
+a frame against 2.4 µs through pymavlink's `x25crc` object), then pymavlink's `decode` builds the
+message (signatures are not checked here: see `fsw.telemetry.signing`). A flood of 0xFE, 0xFD or
+random bytes costs no CRC at all (`crc_checks` counts them) and a few ns a byte (1 MB: 0xFE 4 ms,
+0xFD 30 ms, random 4 ms, against 7.6 s, 0.6 s and 0.2 s byte by byte); a crafted flood of
+valid-looking headers costs one CRC per candidate (one per 5 bytes at most in a periodic pattern).
+:meth:`Deframer.feed_frames` stops before decoding, so that a caller can check a frame's signature on
+the raw bytes and decode only what it will use (`fsw.telemetry.uplink`).
 
 Bytes that are not part of an accepted frame are reported in runs, as pymavlink's BAD_DATA: reason
 "invalid MAVLink CRC" when the run is exactly one frame long as declared by its own header (a frame
@@ -20,110 +37,265 @@ damaged on the way), else "Bad prefix" (noise). `ground.link_stats` counts both.
 
 A candidate cut off by the end of the data waits for more bytes, unless a complete good frame
 follows inside the data already there (then the candidate was noise): line noise before a command
-never holds the command back. The signature block of a signed frame is not covered by its CRC: a
-frame cut inside it takes its "signature" from whatever follows, so a signed candidate inside whose
-last 13 bytes a complete good frame starts is refused. Nothing raises, whatever the bytes.
+never holds the command back. At most one frame length (280 bytes) waits. The signature block of a
+signed frame is not covered by its CRC: a frame cut inside it takes its "signature" from whatever
+follows, so a signed candidate inside whose last 13 bytes a complete good frame starts is refused.
+Nothing raises, whatever the bytes.
 """
 from __future__ import annotations
 
+import re
+import struct
+
 from .dialect import mavlink
+
+try:  # pymavlink's dependency for its own CRC: a C implementation of CRC-16/MCRF4XX
+    from fastcrc.crc16 import mcrf4xx as _mcrf4xx
+except ImportError:  # pragma: no cover - pymavlink falls back to pure Python too
+    _mcrf4xx = None
 
 STX_V2, STX_V1 = 0xFD, 0xFE
 HEADER_V2, HEADER_V1 = 10, 6
 SIGNATURE_LEN = 13
 MAX_FRAME = HEADER_V2 + 255 + 2 + SIGNATURE_LEN
+IFLAG_SIGNED = 0x01
+
+_BAD_CRC = "invalid MAVLink CRC"
+_NOISE = "Bad prefix"
+_UNDECODABLE = "undecodable MAVLink frame"
 
 
-def _x25(data: bytes, extra: int) -> int:
-    crc = mavlink.x25crc(data)
-    crc.accumulate(bytes([extra]))
+def _payload_lengths(cls) -> tuple[int, int]:
+    """(base, full) payload length of a generated message class: full with the MAVLink 2 extension
+    fields, base without them (what MAVLink 1 carries). The extension fields are the last of the wire
+    order and the constructor's arguments with defaults (pymavlink's mavgen)."""
+    fmt = bytes(cls.native_format).decode("ascii")[1:]
+    sizes = [struct.calcsize("<" + c) * max(1, n) for c, n in zip(fmt, cls.array_lengths, strict=True)]
+    n_ext = len(cls.__init__.__defaults__ or ())
+    full = cls.unpacker.size
+    return full - sum(sizes[len(sizes) - n_ext:]) if n_ext else full, full
+
+
+#: message id → (CRC_EXTRA, base payload length, full payload length)
+MESSAGES: dict[int, tuple[int, int, int]] = {
+    mid: (cls.crc_extra, *_payload_lengths(cls)) for mid, cls in mavlink.mavlink_map.items()}
+
+
+def crc_x25(data, extra: int) -> int:
+    """MAVLink's CRC (CRC-16/MCRF4XX) of `data` followed by the CRC_EXTRA byte."""
+    if _mcrf4xx is not None:
+        return _mcrf4xx(bytes((extra,)), _mcrf4xx(data, 0xFFFF))
+    crc = mavlink.x25crc(bytes(data))
+    crc.accumulate(bytes((extra,)))
     return crc.crc
 
 
-class Deframer:
-    """Feed bytes, get messages (and BAD_DATA for rejected bytes) in stream order."""
+def frame_header(b, i: int, n: int, mavlink1: bool = True):
+    """The header at b[i] (a start byte) under the cheap checks: (frame length, CRC_EXTRA), or None
+    while the header is incomplete in b[:n], or (0, 0) when it cannot begin a frame."""
+    left = n - i
+    if b[i] == STX_V2:
+        if left >= 2 and b[i + 1] == 0:
+            return 0, 0
+        if left < 3:
+            return None
+        if b[i + 2] & ~IFLAG_SIGNED:
+            return 0, 0
+        if left < HEADER_V2:
+            return None
+        info = MESSAGES.get(b[i + 7] | (b[i + 8] << 8) | (b[i + 9] << 16))
+        if info is None or b[i + 1] > info[2]:
+            return 0, 0
+        return HEADER_V2 + b[i + 1] + 2 + (SIGNATURE_LEN if b[i + 2] & IFLAG_SIGNED else 0), info[0]
+    if b[i] != STX_V1 or not mavlink1:
+        return 0, 0
+    if left < HEADER_V1:
+        return None
+    info = MESSAGES.get(b[i + 5])
+    if info is None or (b[i + 1] != info[1] and b[i + 1] != info[2]):
+        return 0, 0
+    return HEADER_V1 + b[i + 1] + 2, info[0]
 
-    def __init__(self) -> None:
+
+def _byte_class(values) -> bytes:
+    return b"[" + b"".join(b"\\x%02x" % v for v in sorted(values)) + b"]"
+
+
+def candidate_pattern(mavlink1: bool = True) -> re.Pattern:
+    """A regular expression that matches a complete header that can begin a frame, consistent with
+    :func:`frame_header` (for MAVLink 2 the message id only byte-wise, the payload length not against
+    the message). It skips floods of 0xFD, 0xFE or random bytes at C speed; :func:`frame_header` then
+    checks each match exactly. (Headers cut off by the end of the data are looked at by
+    :class:`Deframer` itself.)"""
+    ids = list(MESSAGES)
+    low, mid, high = ({(m >> s) & 0xFF for m in ids} for s in (0, 8, 16))
+    v2 = rb"\xfd[\x01-\xff][\x00\x01][\s\S]{4}" + _byte_class(low) + _byte_class(mid) + _byte_class(high)
+    if not mavlink1:
+        return re.compile(v2)
+    by_length: dict[int, set[int]] = {}
+    for m in ids:
+        if m < 256:
+            for n in MESSAGES[m][1:]:
+                by_length.setdefault(n, set()).add(m)
+    v1 = rb"\xfe(?:" + b"|".join(b"\\x%02x[\\s\\S]{3}" % n + _byte_class(by_length[n])
+                                 for n in sorted(by_length)) + b")"
+    return re.compile(v2 + b"|" + v1)
+
+
+def whole_frame(data: bytes, mavlink1: bool = True) -> bool:
+    """Whether `data` (one UDP datagram, say) is exactly one frame by its header (no CRC computed):
+    the shape of every datagram a MAVLink sender writes. O(1)."""
+    if not data:
+        return False
+    head = frame_header(data, 0, len(data), mavlink1)
+    return head is not None and head[0] == len(data)
+
+
+_PATTERNS = {True: candidate_pattern(True), False: candidate_pattern(False)}
+
+
+class Deframer:
+    """Feed bytes, get messages (and BAD_DATA for rejected bytes) in stream order.
+
+    `mavlink1=False`: only MAVLink 2 frames (0xFE is then an ordinary byte). Counters: `frames`
+    accepted, `junk_bytes` reported as BAD_DATA, `crc_checks` CRCs computed (the cost of hostile
+    input: none for bytes that fail the header checks)."""
+
+    def __init__(self, *, mavlink1: bool = False) -> None:
         self._buf = bytearray()
         self._junk = bytearray()
         self._parser = mavlink.MAVLink(None)
+        self.mavlink1 = mavlink1
+        self._search = _PATTERNS[mavlink1].search
         self.frames = 0
         self.junk_bytes = 0
+        self.crc_checks = 0
+        self._check_budget: int | None = None
+        self.starved = False
 
+    @property
+    def check_budget(self) -> int | None:
+        """CRCs the deframer may still compute (None: no limit). When a candidate needs one more, the
+        deframer is `starved`: it stops where it is, and the caller can :meth:`discard` the rest."""
+        return self._check_budget
+
+    @check_budget.setter
+    def check_budget(self, n: int | None) -> None:
+        self._check_budget = n
+        self.starved = False
+
+    def discard(self) -> int:
+        """Throw away the bytes not yet scanned (after starving): their number."""
+        n = len(self._buf)
+        self._buf.clear()
+        return n
+
+    # --- messages --------------------------------------------------------------------------------
     def feed(self, data: bytes) -> list:
-        self._buf += data
-        return self._scan(final=False)
+        return [self.decode(x) if isinstance(x, bytes) else x for x in self.feed_frames(data)]
 
     def flush(self) -> list:
         """End of the stream: whatever is left is either a frame or junk."""
+        return [self.decode(x) if isinstance(x, bytes) else x for x in self.flush_frames()]
+
+    def decode(self, frame: bytes):
+        """The pymavlink message of a frame from :meth:`feed_frames` (BAD_DATA if pymavlink cannot
+        build it, which the header checks make impossible for the dialect's messages)."""
+        try:
+            return self._parser.decode(bytearray(frame))
+        except Exception:  # noqa: BLE001 - a frame pymavlink cannot build is junk
+            return mavlink.MAVLink_bad_data(bytearray(frame), _UNDECODABLE)
+
+    # --- raw frames ------------------------------------------------------------------------------
+    def feed_frames(self, data: bytes) -> list:
+        """Like :meth:`feed`, but intact frames come as their raw bytes (CRC checked, not decoded)."""
+        self._buf += data
+        return self._scan(final=False)
+
+    def flush_frames(self) -> list:
         out = self._scan(final=True)
         out += self._emit_junk()
         return out
 
-    def _frame_length(self, i: int) -> int | None:
-        """Declared length of a frame starting at i; 0: not a frame; None: header incomplete."""
-        b = self._buf
-        stx = b[i]
-        if stx == STX_V2:
-            if len(b) - i < 3:
-                return None
-            if b[i + 2] & ~0x01:
-                return 0
-            return HEADER_V2 + b[i + 1] + 2 + (SIGNATURE_LEN if b[i + 2] & 0x01 else 0)
-        if len(b) - i < 2:
-            return None
-        return HEADER_V1 + b[i + 1] + 2
+    def _header(self, i: int, n: int):
+        return frame_header(self._buf, i, n, self.mavlink1)
 
-    def _check(self, frame: bytes):
-        """A message for an acceptable frame, else None."""
-        v2 = frame[0] == STX_V2
-        if v2:
-            if len(frame) < HEADER_V2 + 2:
-                return None
-            msgid = frame[7] | (frame[8] << 8) | (frame[9] << 16)
-            sig = SIGNATURE_LEN if frame[2] & 0x01 else 0
-        else:
-            msgid, sig = frame[5], 0
-        cls = mavlink.mavlink_map.get(msgid)
-        if cls is None:
-            return None
-        end = len(frame) - sig
-        crc = frame[end - 2] | (frame[end - 1] << 8)
-        if _x25(frame[1:end - 2], cls.crc_extra) != crc:
-            return None
-        try:
-            return self._parser.decode(bytearray(frame))
-        except Exception:  # noqa: BLE001 - a frame pymavlink cannot build is junk
-            return None
+    def _candidate(self, i: int, n: int, stop: int | None = None) -> int:
+        """The first position in [i, stop) (default: to n) where a frame can begin in b[:n]: a
+        complete header that passes the regular expression, or a start byte within the last
+        HEADER_V2 - 1 bytes whose partial header does not rule a frame out; -1 if there is none."""
+        b = self._buf
+        stop = n if stop is None else min(stop, n)
+        tail = max(n - HEADER_V2 + 1, 0)  # from here on a MAVLink 2 header cannot be complete
+        limit = min(stop, tail)
+        if i < limit:
+            m = self._search(b, i, limit + HEADER_V2 - 1)
+            if m is not None and m.start() < limit:
+                return m.start()
+            i = limit
+        while i < stop:
+            j = self._find_stx(b, i, stop)
+            if j < 0:
+                return -1
+            head = self._header(j, n)
+            if head is None or head[0]:
+                return j
+            i = j + 1
+        return -1
+
+    def _find_stx(self, b, i: int, stop: int) -> int:
+        j = b.find(STX_V2, i, stop)
+        if self.mavlink1:
+            k = b.find(STX_V1, i, stop)
+            if k >= 0 and (j < 0 or k < j):
+                return k
+        return j
+
+    def _crc_ok(self, i: int, length: int, extra: int) -> bool:
+        if self._check_budget is not None:
+            if self._check_budget <= 0:
+                self.starved = True
+                return False
+            self._check_budget -= 1
+        b = self._buf
+        end = i + length - (SIGNATURE_LEN if b[i] == STX_V2 and b[i + 2] & IFLAG_SIGNED else 0)
+        self.crc_checks += 1
+        return crc_x25(b[i + 1:end - 2], extra) == b[end - 2] | (b[end - 1] << 8)
 
     def _scan(self, final: bool) -> list:
         out: list = []
         b = self._buf
-        i = 0
         n = len(b)
-        while i < n:
-            c = b[i]
-            if c != STX_V2 and c != STX_V1:
-                self._junk.append(c)
-                i += 1
-                continue
-            length = self._frame_length(i)
-            if length is None or (length and i + length > n):
+        i = 0
+        while i < n and not self.starved:
+            j = self._candidate(i, n)
+            if j < 0:
+                self._junk += b[i:]
+                i = n
+                break
+            if j > i:
+                self._junk += b[i:j]
+                i = j
+            head = self._header(i, n)
+            if head is None or (head[0] and i + head[0] > n):
                 if not final and not self._complete_frame_after(i + 1):
                     break  # wait for more bytes
-                length = 0  # at the end, or a good frame starts inside it: this start byte is noise
-            if length:
-                msg = self._check(bytes(b[i:i + length]))
-                if msg is not None and c == STX_V2 and b[i + 2] & 0x01 \
-                        and self._complete_frame_after(i + length - SIGNATURE_LEN, i + length):
-                    msg = None  # cut inside its signature block (not covered by the CRC): the next frame starts there
-                if msg is not None:
-                    out += self._emit_junk()
-                    out.append(msg)
-                    self.frames += 1
-                    i += length
-                    continue
-            self._junk.append(c)
+                head = (0, 0)  # at the end, or a good frame starts inside it: this start byte is noise
+            length = head[0]
+            ok = length and self._crc_ok(i, length, head[1]) and not (
+                b[i] == STX_V2 and b[i + 2] & IFLAG_SIGNED
+                and self._complete_frame_after(i + length - SIGNATURE_LEN, i + length))
+            # (a signed frame cut inside its signature block, not covered by the CRC, is refused: the
+            # next frame starts there)
+            if self.starved:
+                break  # out of CRCs: undecided, left for discard()
+            if ok:
+                out += self._emit_junk()
+                out.append(bytes(b[i:i + length]))
+                self.frames += 1
+                i += length
+                continue
+            self._junk.append(b[i])
             i += 1
         del b[:i]
         if len(self._junk) > 2 * MAX_FRAME:  # a long run of noise: report it now
@@ -136,12 +308,16 @@ class Deframer:
         line noise is not held up until more bytes arrive."""
         b = self._buf
         n = len(b)
-        for j in range(start, n if stop is None else min(stop, n)):
-            if b[j] != STX_V2 and b[j] != STX_V1:
-                continue
-            length = self._frame_length(j)
-            if length and j + length <= n and self._check(bytes(b[j:j + length])) is not None:
+        stop = n if stop is None else min(stop, n)
+        j = start
+        while j < stop:
+            j = self._candidate(j, n, stop)
+            if j < 0:
+                return False
+            head = self._header(j, n)
+            if head is not None and head[0] and j + head[0] <= n and self._crc_ok(j, *head):
                 return True
+            j += 1
         return False
 
     def _emit_junk(self) -> list:
@@ -150,11 +326,16 @@ class Deframer:
         junk = bytes(self._junk)
         self._junk.clear()
         self.junk_bytes += len(junk)
-        reason = "Bad prefix"
-        if junk[0] in (STX_V2, STX_V1) and len(junk) >= 3:
-            self._buf, saved = bytearray(junk), self._buf
-            declared = self._frame_length(0)
-            self._buf = saved
-            if declared == len(junk):
-                reason = "invalid MAVLink CRC"
-        return [mavlink.MAVLink_bad_data(junk, reason)]
+        return [mavlink.MAVLink_bad_data(junk, _BAD_CRC if self._declared_length(junk) == len(junk) else _NOISE)]
+
+    def _declared_length(self, junk: bytes) -> int:
+        """The length a run's first byte declares as a frame header, lenient (a damaged frame may have
+        a damaged message id): 0 if it is no start byte."""
+        if len(junk) < 3:
+            return 0
+        if junk[0] == STX_V2:
+            return 0 if junk[2] & ~IFLAG_SIGNED else \
+                HEADER_V2 + junk[1] + 2 + (SIGNATURE_LEN if junk[2] & IFLAG_SIGNED else 0)
+        if junk[0] == STX_V1 and self.mavlink1:
+            return HEADER_V1 + junk[1] + 2
+        return 0

@@ -7063,22 +7063,22 @@ class MAVLink_debris_link_status_message(MAVLink_message):
 
     id = MAVLINK_MSG_ID_DEBRIS_LINK_STATUS
     msgname = "DEBRIS_LINK_STATUS"
-    fieldnames = ["time_usec", "cmd_accepted", "rejected_unsigned", "rejected_bad_signature", "rejected_replay", "rejected_invalid", "tlm_buffered", "tlm_replayed", "tlm_dropped", "link_up", "frames_sent"]
-    ordered_fieldnames = ["time_usec", "cmd_accepted", "rejected_unsigned", "rejected_bad_signature", "rejected_replay", "rejected_invalid", "tlm_buffered", "tlm_replayed", "tlm_dropped", "link_up", "frames_sent"]
-    fieldtypes = ["uint64_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint8_t", "uint32_t"]
+    fieldnames = ["time_usec", "cmd_accepted", "rejected_unsigned", "rejected_bad_signature", "rejected_replay", "rejected_invalid", "tlm_buffered", "tlm_replayed", "tlm_dropped", "link_up", "frames_sent", "uplink_bytes", "uplink_bytes_dropped", "uplink_garbage_bytes", "uplink_bad_crc", "uplink_foreign_datagrams", "uplink_os_dropped"]
+    ordered_fieldnames = ["time_usec", "cmd_accepted", "rejected_unsigned", "rejected_bad_signature", "rejected_replay", "rejected_invalid", "tlm_buffered", "tlm_replayed", "tlm_dropped", "link_up", "frames_sent", "uplink_bytes", "uplink_bytes_dropped", "uplink_garbage_bytes", "uplink_bad_crc", "uplink_foreign_datagrams", "uplink_os_dropped"]
+    fieldtypes = ["uint64_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint8_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t"]
     fielddisplays_by_name: Dict[str, str] = {}
     fieldenums_by_name: Dict[str, str] = {}
-    fieldunits_by_name: Dict[str, str] = {"time_usec": "us"}
-    native_format = bytearray(b"<QIIIIIIIIBI")
-    orders = [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10]
-    lengths = [1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1]
-    array_lengths = [0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0]
+    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "uplink_bytes": "bytes", "uplink_bytes_dropped": "bytes", "uplink_garbage_bytes": "bytes"}
+    native_format = bytearray(b"<QIIIIIIIIBIIIIIII")
+    orders = [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16]
+    lengths = [1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1]
+    array_lengths = [0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0]
     crc_extra = 230
-    unpacker = struct.Struct("<QIIIIIIIIBI")
+    unpacker = struct.Struct("<QIIIIIIIIBIIIIIII")
     instance_field = None
     instance_offset = -1
 
-    def __init__(self, time_usec: int, cmd_accepted: int, rejected_unsigned: int, rejected_bad_signature: int, rejected_replay: int, rejected_invalid: int, tlm_buffered: int, tlm_replayed: int, tlm_dropped: int, link_up: int, frames_sent: int = 0):
+    def __init__(self, time_usec: int, cmd_accepted: int, rejected_unsigned: int, rejected_bad_signature: int, rejected_replay: int, rejected_invalid: int, tlm_buffered: int, tlm_replayed: int, tlm_dropped: int, link_up: int, frames_sent: int = 0, uplink_bytes: int = 0, uplink_bytes_dropped: int = 0, uplink_garbage_bytes: int = 0, uplink_bad_crc: int = 0, uplink_foreign_datagrams: int = 0, uplink_os_dropped: int = 0):
         MAVLink_message.__init__(self, MAVLink_debris_link_status_message.id, MAVLink_debris_link_status_message.msgname)
         self._fieldnames = MAVLink_debris_link_status_message.fieldnames
         self._instance_field = MAVLink_debris_link_status_message.instance_field
@@ -7094,9 +7094,15 @@ class MAVLink_debris_link_status_message(MAVLink_message):
         self.tlm_dropped = tlm_dropped
         self.link_up = link_up
         self.frames_sent = frames_sent
+        self.uplink_bytes = uplink_bytes
+        self.uplink_bytes_dropped = uplink_bytes_dropped
+        self.uplink_garbage_bytes = uplink_garbage_bytes
+        self.uplink_bad_crc = uplink_bad_crc
+        self.uplink_foreign_datagrams = uplink_foreign_datagrams
+        self.uplink_os_dropped = uplink_os_dropped
 
     def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
-        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.cmd_accepted, self.rejected_unsigned, self.rejected_bad_signature, self.rejected_replay, self.rejected_invalid, self.tlm_buffered, self.tlm_replayed, self.tlm_dropped, self.link_up, self.frames_sent), force_mavlink1=force_mavlink1)
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.cmd_accepted, self.rejected_unsigned, self.rejected_bad_signature, self.rejected_replay, self.rejected_invalid, self.tlm_buffered, self.tlm_replayed, self.tlm_dropped, self.link_up, self.frames_sent, self.uplink_bytes, self.uplink_bytes_dropped, self.uplink_garbage_bytes, self.uplink_bad_crc, self.uplink_foreign_datagrams, self.uplink_os_dropped), force_mavlink1=force_mavlink1)
 
 
 # Define name on the class for backwards compatibility (it is now msgname).
@@ -18151,7 +18157,7 @@ class MAVLink(object):
         """
         self.send(self.debris_deorbit_status_encode(time_usec, position_steps, steps_total, energy, capsule_openings, magnet_turns, interlock_violations, capsule_state, magnet_state, polarity, fault, controller_state), force_mavlink1=force_mavlink1)
 
-    def debris_link_status_encode(self, time_usec: int, cmd_accepted: int, rejected_unsigned: int, rejected_bad_signature: int, rejected_replay: int, rejected_invalid: int, tlm_buffered: int, tlm_replayed: int, tlm_dropped: int, link_up: int, frames_sent: int = 0) -> MAVLink_debris_link_status_message:
+    def debris_link_status_encode(self, time_usec: int, cmd_accepted: int, rejected_unsigned: int, rejected_bad_signature: int, rejected_replay: int, rejected_invalid: int, tlm_buffered: int, tlm_replayed: int, tlm_dropped: int, link_up: int, frames_sent: int = 0, uplink_bytes: int = 0, uplink_bytes_dropped: int = 0, uplink_garbage_bytes: int = 0, uplink_bad_crc: int = 0, uplink_foreign_datagrams: int = 0, uplink_os_dropped: int = 0) -> MAVLink_debris_link_status_message:
         """
         Uplink security and downlink store-and-forward counters.
 
@@ -18166,11 +18172,17 @@ class MAVLink(object):
         tlm_dropped               : Telemetry frames lost to a full buffer. (type:uint32_t)
         link_up                   : 1 when the downlink is up. (type:uint8_t)
         frames_sent               : Frames written on this link since start, this one included (lets the ground count losses of 256 frames or more, which the 8-bit sequence number cannot show). (type:uint32_t)
+        uplink_bytes              : Bytes received on the uplink since start (datagrams at their true size, dropped ones included); wraps at 2^32. [bytes] (type:uint32_t)
+        uplink_bytes_dropped        : Uplink bytes dropped unparsed: datagrams over the per-tick parsing budget or longer than the read buffer, frames over the per-tick frame budget; wraps at 2^32. [bytes] (type:uint32_t)
+        uplink_garbage_bytes        : Uplink bytes parsed that were not part of any frame (noise, floods); wraps at 2^32. [bytes] (type:uint32_t)
+        uplink_bad_crc            : Uplink frames refused for a bad CRC. (type:uint32_t)
+        uplink_foreign_datagrams        : Uplink datagrams from a source other than the ground station's authenticated address (unknown or spoofed sources). (type:uint32_t)
+        uplink_os_dropped         : Uplink datagrams dropped by the operating system (receive buffer full). (type:uint32_t)
 
         """
-        return MAVLink_debris_link_status_message(time_usec, cmd_accepted, rejected_unsigned, rejected_bad_signature, rejected_replay, rejected_invalid, tlm_buffered, tlm_replayed, tlm_dropped, link_up, frames_sent)
+        return MAVLink_debris_link_status_message(time_usec, cmd_accepted, rejected_unsigned, rejected_bad_signature, rejected_replay, rejected_invalid, tlm_buffered, tlm_replayed, tlm_dropped, link_up, frames_sent, uplink_bytes, uplink_bytes_dropped, uplink_garbage_bytes, uplink_bad_crc, uplink_foreign_datagrams, uplink_os_dropped)
 
-    def debris_link_status_send(self, time_usec: int, cmd_accepted: int, rejected_unsigned: int, rejected_bad_signature: int, rejected_replay: int, rejected_invalid: int, tlm_buffered: int, tlm_replayed: int, tlm_dropped: int, link_up: int, frames_sent: int = 0, force_mavlink1: bool = False) -> None:
+    def debris_link_status_send(self, time_usec: int, cmd_accepted: int, rejected_unsigned: int, rejected_bad_signature: int, rejected_replay: int, rejected_invalid: int, tlm_buffered: int, tlm_replayed: int, tlm_dropped: int, link_up: int, frames_sent: int = 0, uplink_bytes: int = 0, uplink_bytes_dropped: int = 0, uplink_garbage_bytes: int = 0, uplink_bad_crc: int = 0, uplink_foreign_datagrams: int = 0, uplink_os_dropped: int = 0, force_mavlink1: bool = False) -> None:
         """
         Uplink security and downlink store-and-forward counters.
 
@@ -18185,9 +18197,15 @@ class MAVLink(object):
         tlm_dropped               : Telemetry frames lost to a full buffer. (type:uint32_t)
         link_up                   : 1 when the downlink is up. (type:uint8_t)
         frames_sent               : Frames written on this link since start, this one included (lets the ground count losses of 256 frames or more, which the 8-bit sequence number cannot show). (type:uint32_t)
+        uplink_bytes              : Bytes received on the uplink since start (datagrams at their true size, dropped ones included); wraps at 2^32. [bytes] (type:uint32_t)
+        uplink_bytes_dropped        : Uplink bytes dropped unparsed: datagrams over the per-tick parsing budget or longer than the read buffer, frames over the per-tick frame budget; wraps at 2^32. [bytes] (type:uint32_t)
+        uplink_garbage_bytes        : Uplink bytes parsed that were not part of any frame (noise, floods); wraps at 2^32. [bytes] (type:uint32_t)
+        uplink_bad_crc            : Uplink frames refused for a bad CRC. (type:uint32_t)
+        uplink_foreign_datagrams        : Uplink datagrams from a source other than the ground station's authenticated address (unknown or spoofed sources). (type:uint32_t)
+        uplink_os_dropped         : Uplink datagrams dropped by the operating system (receive buffer full). (type:uint32_t)
 
         """
-        self.send(self.debris_link_status_encode(time_usec, cmd_accepted, rejected_unsigned, rejected_bad_signature, rejected_replay, rejected_invalid, tlm_buffered, tlm_replayed, tlm_dropped, link_up, frames_sent), force_mavlink1=force_mavlink1)
+        self.send(self.debris_link_status_encode(time_usec, cmd_accepted, rejected_unsigned, rejected_bad_signature, rejected_replay, rejected_invalid, tlm_buffered, tlm_replayed, tlm_dropped, link_up, frames_sent, uplink_bytes, uplink_bytes_dropped, uplink_garbage_bytes, uplink_bad_crc, uplink_foreign_datagrams, uplink_os_dropped), force_mavlink1=force_mavlink1)
 
     def debris_mag_sample_encode(self, time_usec: int, seq: int, run_id: int, mag: Sequence[float], flags: int) -> MAVLink_debris_mag_sample_message:
         """

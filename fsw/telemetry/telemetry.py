@@ -131,15 +131,19 @@ class Telemetry:
             65535, -1, -1, min(drop_rate_comm_centipercent, 10000), min(errors_comm, 65535), e1, e2, e3, e4))
 
     def link_status(self, t_s: float, *, cmd_accepted: int, rejected_unsigned: int,
-                    rejected_bad_signature: int, rejected_replay: int, rejected_invalid: int) -> None:
-        """DEBRIS_LINK_STATUS: uplink security counters and this link's store-and-forward state."""
+                    rejected_bad_signature: int, rejected_replay: int, rejected_invalid: int,
+                    uplink_bytes: int = 0, uplink_bytes_dropped: int = 0, uplink_garbage_bytes: int = 0,
+                    uplink_bad_crc: int = 0, uplink_foreign_datagrams: int = 0, uplink_os_dropped: int = 0) -> None:
+        """DEBRIS_LINK_STATUS: uplink security and flood counters, this link's store-and-forward state."""
         sf = self.store
         u32 = 0xFFFFFFFF
         self._send(mavlink.MAVLink_debris_link_status_message(
             usec(t_s), *(min(int(x), u32) for x in (cmd_accepted, rejected_unsigned, rejected_bad_signature,
                                                     rejected_replay, rejected_invalid)),
             *(min(int(x), u32) for x in ((sf.buffered, sf.replayed, sf.dropped) if sf else (0, 0, 0))),
-            1 if sf is None or sf.link_up else 0, (self.frames_sent + 1) & u32))
+            1 if sf is None or sf.link_up else 0, (self.frames_sent + 1) & u32,
+            *(int(x) & u32 for x in (uplink_bytes, uplink_bytes_dropped, uplink_garbage_bytes, uplink_bad_crc,
+                                     uplink_foreign_datagrams, uplink_os_dropped))))
 
     def mag_sample(self, t_s: float, b_T: np.ndarray, seq: int, run_id: int) -> None:
         """DEBRIS_MAG_SAMPLE: the numbered sample (field in gauss), live."""

@@ -16,7 +16,35 @@ parser. Per frame:
    force; PARAM_REQUEST_READ / PARAM_REQUEST_LIST → PARAM_VALUE (reading changes nothing);
    anything else is counted and ignored.
 
-Bounded work: at most `max_bytes_per_tick` bytes are read per tick (the rest waits in the OS buffer).
+Bounded work, a loop tick at a time, whatever arrives (`poll`; the budgets are arguments of
+:class:`Uplink`, sized for 50 Hz on a slow core, far above what a ground station sends):
+
+- a datagram link (:class:`fsw.telemetry.udp_link.UdpLink`, or anything with `read_datagrams`): at
+  most `max_datagrams_per_tick` datagrams are taken from the socket, each into a fixed buffer (a
+  longer one is dropped whole). They are parsed one datagram at a time (MAVLink over UDP never splits
+  a frame): first those from the answer address, then those that are exactly one frame by their
+  header, signed if we have the key (every genuine datagram: a sender writes one frame per datagram;
+  a flood of 0xFE, 0xFD or random bytes never is), then the rest, while the tick's budgets last —
+  `max_parsed_per_tick` datagrams, `max_bytes_per_tick` bytes, `max_crc_checks_per_tick` frame
+  candidates. What is over budget is dropped and counted, not left to block later ticks: a signed
+  command sent during a flood is obeyed in the tick that reads it;
+- a byte stream (serial radio, tcp, an in-memory link with `recv(n)`): at most `max_bytes_per_tick`
+  bytes are read (the rest waits in the OS buffer; a radio cannot deliver more), and what is left
+  when the CRC budget runs out is dropped and counted;
+- a frame's signature is checked on its raw bytes before it is decoded, so forged or unsigned frames
+  cost a CRC and a hash, not pymavlink's decoder; at most `max_frames_per_tick` frames are decoded
+  (without a key every well-formed frame would be). Noise costs a few ns a byte to parse
+  (`fsw.telemetry.framing`).
+
+Every byte is accounted for in :class:`UplinkCounters` and the DEBRIS_LINK_STATUS extension fields
+(:meth:`Uplink.link_counters`): bytes received, bytes dropped unparsed, garbage bytes, bad-CRC frames,
+datagrams from sources other than the answer address, datagrams the OS dropped.
+
+Answers (COMMAND_ACK, PARAM_VALUE) go to one address only (`fsw.telemetry.peers`): the sender of the
+last frame that authenticated; without a key, the sender of the last well-formed frame addressed to
+us. Sources are kept in a bounded table (`peers`). When the uplink is the telemetry link itself,
+answers go with the telemetry to its configured destination (`reply`).
+
 Nothing raises out of :meth:`Uplink.poll` or :meth:`Uplink.feed`, whatever the bytes: a deframer that
 throws would be replaced and the event counted (`parser_resets`).
 """
@@ -27,21 +55,32 @@ from typing import Callable
 
 from ..commands import CommandRouter, ParamTable
 from .dialect import mavlink
-from .framing import Deframer
+from .framing import Deframer, whole_frame
+from .peers import DEFAULT_CAPACITY, PeerTable
 from .signing import SigningClock, Verdict, Verifier, setup_outgoing, sign_ready
 
 #: what the flight software's own uplink link id is when it signs its answers on a separate link
 UPLINK_LINK_ID = 1
+#: DEBRIS_LINK_STATUS fields filled from the uplink (:meth:`Uplink.link_counters`)
+LINK_STATUS_FIELDS = ("cmd_accepted", "rejected_unsigned", "rejected_bad_signature", "rejected_replay",
+                      "rejected_invalid", "uplink_bytes", "uplink_bytes_dropped", "uplink_garbage_bytes",
+                      "uplink_bad_crc", "uplink_foreign_datagrams", "uplink_os_dropped")
 
 
 @dataclass
 class UplinkCounters:
-    bytes: int = 0
+    bytes: int = 0  # received (datagrams: their true size, dropped ones included)
     frames: int = 0  # intact frames (CRC good)
-    garbage_bytes: int = 0
-    bad_crc: int = 0
-    malformed: int = 0
-    unknown: int = 0  # frames of message ids the dialect lacks
+    garbage_bytes: int = 0  # parsed, not part of a frame (noise)
+    bad_crc: int = 0  # runs of one declared frame length whose CRC failed
+    datagrams: int = 0
+    foreign_datagrams: int = 0  # from a source other than the answer address
+    oversize_datagrams: int = 0  # longer than the read buffer: dropped whole
+    dropped_datagrams: int = 0  # over the tick's budgets: dropped unparsed (or their rest, unparsed)
+    dropped_bytes: int = 0  # bytes not parsed (oversize or over budget) and of frames not decoded
+    dropped_frames: int = 0  # intact frames over the tick's decode budget
+    os_dropped: int = 0  # datagrams the OS dropped (receive buffer full), as the link reports it
+    malformed: int = 0  # intact frames pymavlink could not build
     unsigned: int = 0
     bad_signature: int = 0
     replay: int = 0
@@ -51,8 +90,9 @@ class UplinkCounters:
     commands: int = 0  # COMMAND_LONG handled (any result)
     params_set: int = 0
     params_refused: int = 0  # PARAM_SET unauthenticated, unknown or out of range
-    read_errors: int = 0
+    read_errors: int = 0  # reads that failed, answers that could not be sent
     parser_resets: int = 0
+    answers_withheld: int = 0  # answers not sent: the request's sender is not the answer address
 
     @property
     def rejected_replay(self) -> int:
@@ -72,10 +112,15 @@ class Uplink:
     def __init__(self, conn, router: CommandRouter, *, sysid: int, compid: int, key: bytes | None = None,
                  clock: SigningClock | None = None, reply: Callable[[object], bool] | None = None,
                  params: ParamTable | None = None, max_bytes_per_tick: int = 4096,
-                 max_future_s: float = 600.0,
+                 max_datagrams_per_tick: int = 128, max_parsed_per_tick: int = 16,
+                 max_crc_checks_per_tick: int = 32, max_frames_per_tick: int = 16,
+                 peers: int = DEFAULT_CAPACITY, max_future_s: float = 600.0,
                  handlers: dict[str, Callable[[object, float, bool], None]] | None = None) -> None:
-        """`handlers`: message type → handler(msg, now_s, authenticated) for the messages addressed to
-        us beyond commands and parameters (e.g. DEBRIS_SAMPLE_REQUEST)."""
+        """Budgets per `poll` (one loop tick; defaults sized for 50 Hz on a slow core): datagrams read,
+        datagrams parsed, bytes parsed (stream links: read), frame candidates CRC-checked, frames
+        decoded. A genuine ground station needs one or two of each. `handlers`: message type →
+        handler(msg, now_s, authenticated) for the messages addressed to us beyond commands and parameters
+        (e.g. DEBRIS_SAMPLE_REQUEST)."""
         self.conn = conn
         self.router = router
         self.params = params if params is not None else ParamTable()
@@ -85,9 +130,15 @@ class Uplink:
         self.clock = clock if clock is not None else SigningClock()
         self.verifier = Verifier(key, self.clock, max_future_s=max_future_s) if key is not None else None
         self.max_bytes_per_tick = int(max_bytes_per_tick)
+        self.max_datagrams_per_tick = int(max_datagrams_per_tick)
+        self.max_parsed_per_tick = int(max_parsed_per_tick)
+        self.max_crc_checks_per_tick = int(max_crc_checks_per_tick)
+        self.max_frames_per_tick = int(max_frames_per_tick)
         self.counters = UplinkCounters()
+        self.peers = PeerTable(peers)
         self.last_authenticated_s: float | None = None
-        self._deframer = Deframer()
+        self._deframer = Deframer(mavlink1=False)
+        self._frames_left: int | None = None  # frame budget of the tick being polled (None: no limit)
         self._reply = reply
         self._packer = None
         if reply is None:
@@ -96,13 +147,35 @@ class Uplink:
                 setup_outgoing(self._packer, key, self.clock, UPLINK_LINK_ID)
         self._key = key
         self._now_s = 0.0
+        self._addr = None  # source address of the frame being handled (datagram links)
 
     # --- input ----------------------------------------------------------------------------------
     def poll(self, now_s: float) -> None:
         """Read what the link has (non-blocking, bounded) and act on it."""
+        self._now_s = now_s
+        self._frames_left = self.max_frames_per_tick
+        try:
+            read_datagrams = getattr(self.conn, "read_datagrams", None)
+            if read_datagrams is not None:
+                self._poll_datagrams(read_datagrams, now_s)
+            else:
+                self._poll_stream(now_s)
+        finally:
+            self._frames_left = None
+
+    def _poll_stream(self, now_s: float) -> None:
         recv = getattr(self.conn, "recv", None)
         if recv is None:
             return
+        self._deframer.check_budget = self.max_crc_checks_per_tick
+        try:
+            self._read_stream(recv, now_s)
+            if self._deframer.starved:  # out of CRC checks for this tick: the rest is dropped
+                self.counters.dropped_bytes += self._deframer.discard()
+        finally:
+            self._deframer.check_budget = None
+
+    def _read_stream(self, recv, now_s: float) -> None:
         data = bytearray()
         while len(data) < self.max_bytes_per_tick:
             try:
@@ -116,41 +189,104 @@ class Uplink:
         if data:
             self.feed(bytes(data), now_s)
 
+    def _poll_datagrams(self, read_datagrams, now_s: float) -> None:
+        c = self.counters
+        try:
+            batch = read_datagrams(self.max_datagrams_per_tick)
+        except Exception:  # noqa: BLE001 - a closed socket
+            c.read_errors += 1
+            batch = []
+        c.os_dropped = int(getattr(self.conn, "os_dropped", 0) or 0)
+        peers = self.peers
+        answer = peers.answer_address
+        genuine_shape = self._genuine_shape
+        tiers: tuple[list, list, list] = ([], [], [])
+        for d in batch:
+            data, addr, size = d
+            c.datagrams += 1
+            c.bytes += size
+            peers.seen(addr, size, now_s)
+            if addr != answer:
+                c.foreign_datagrams += 1
+            if size > len(data):
+                c.oversize_datagrams += 1
+                c.dropped_bytes += size
+                continue
+            tiers[0 if addr == answer else 1 if genuine_shape(data) else 2].append(d)
+        df = self._deframer
+        df.check_budget = self.max_crc_checks_per_tick
+        bytes_left, parses_left = self.max_bytes_per_tick, self.max_parsed_per_tick
+        try:
+            for tier in tiers:
+                for data, addr, size in tier:
+                    if parses_left <= 0 or len(data) > bytes_left or self._deframer.starved:
+                        c.dropped_datagrams += 1
+                        c.dropped_bytes += size
+                        continue
+                    parses_left -= 1
+                    bytes_left -= len(data)
+                    self._datagram(data, addr, now_s)
+        finally:
+            self._deframer.check_budget = None
+
+    def _genuine_shape(self, data: bytes) -> bool:
+        """A datagram that is exactly one frame by its header, signed when we have the key (O(1))."""
+        return whole_frame(data, False) and (self.verifier is None or bool(data[2] & 0x01))
+
+    def _datagram(self, data: bytes, addr, now_s: float) -> None:
+        """One datagram, parsed on its own (no frame spans two datagrams)."""
+        df = self._deframer
+        try:
+            items = df.feed_frames(data) + df.flush_frames()
+            if df.starved:  # out of CRC checks for this tick: the rest is dropped
+                left = df.discard()
+                self.counters.dropped_bytes += left
+                self.counters.dropped_datagrams += 1 if left else 0
+        except Exception:  # noqa: BLE001 - hostile bytes that break the deframer: start over
+            self.counters.parser_resets += 1
+            self._deframer = Deframer(mavlink1=False)
+            return
+        self._items(items, now_s, addr)
+
     def feed(self, data: bytes, now_s: float) -> None:
-        """Parse `data` and handle every frame in it. Never raises."""
+        """Parse `data` (the next bytes of a stream) and handle every frame in it. Never raises."""
         self._now_s = now_s
         self.counters.bytes += len(data)
         try:
-            msgs = self._deframer.feed(data)
+            items = self._deframer.feed_frames(data)
         except Exception:  # noqa: BLE001 - hostile bytes that break the deframer: start over
             self.counters.parser_resets += 1
-            self._deframer = Deframer()
+            self._deframer = Deframer(mavlink1=False)
             return
-        for msg in msgs:
+        self._items(items, now_s, None)
+
+    def _items(self, items: list, now_s: float, addr) -> None:
+        for item in items:
             try:
-                self._frame(msg, now_s)
+                if isinstance(item, bytes):
+                    self._raw_frame(item, now_s, addr)
+                else:
+                    self._bad_data(item)
             except Exception:  # noqa: BLE001 - e.g. a reply that cannot be packed
                 self.counters.parser_resets += 1
 
-    def _frame(self, msg, now_s: float) -> None:
+    def _bad_data(self, msg) -> None:
         c = self.counters
-        kind = msg.get_type()
-        if kind == "BAD_DATA":
-            reason = str(getattr(msg, "reason", ""))
-            if reason.startswith("Bad prefix"):
-                c.garbage_bytes += len(getattr(msg, "data", b"") or b"")
-            elif "CRC" in reason:
-                c.bad_crc += 1
-            else:
-                c.malformed += 1
-            return
-        if msg.get_msgId() < 0 or kind.startswith("UNKNOWN"):
-            c.unknown += 1
-            return
+        reason = str(getattr(msg, "reason", ""))
+        if reason.startswith("Bad prefix"):
+            c.garbage_bytes += len(getattr(msg, "data", b"") or b"")
+        elif "CRC" in reason:
+            c.bad_crc += 1
+        else:
+            c.malformed += 1
+
+    def _raw_frame(self, frame: bytes, now_s: float, addr) -> None:
+        """An intact frame: within the tick's frame budget, verified on its raw bytes, then decoded."""
+        c = self.counters
         c.frames += 1
         authenticated = False
         if self.verifier is not None:
-            verdict = self.verifier.check(bytes(msg.get_msgbuf()), now_s)
+            verdict = self.verifier.check(frame, now_s)
             if verdict is not Verdict.OK:
                 if verdict is Verdict.UNSIGNED:
                     c.unsigned += 1
@@ -163,12 +299,37 @@ class Uplink:
                 return
             authenticated = True
             self.last_authenticated_s = now_s
+            if addr is not None:
+                self._answer_to(addr, now_s, authenticated=True)
+        if self._frames_left is not None:  # decoding is the expensive part (~15 µs a frame)
+            if self._frames_left <= 0:
+                c.dropped_frames += 1
+                c.dropped_bytes += len(frame)
+                return
+            self._frames_left -= 1
+        msg = self._deframer.decode(frame)
+        if msg.get_type() == "BAD_DATA":
+            c.malformed += 1
+            return
+        self._frame(msg, now_s, authenticated, addr)
+
+    def _answer_to(self, addr, now_s: float, *, authenticated: bool) -> None:
+        self.peers.answer(addr, now_s, authenticated=authenticated)
+        if hasattr(self.conn, "peer"):
+            self.conn.peer = addr  # a udpin link sends its telemetry there too
+
+    def _frame(self, msg, now_s: float, authenticated: bool, addr=None) -> None:
+        c = self.counters
+        kind = msg.get_type()
         handler = self.handlers.get(kind)
         if handler is not None or kind in ("COMMAND_LONG", "COMMAND_INT", "PARAM_SET", "PARAM_REQUEST_READ",
                                            "PARAM_REQUEST_LIST"):
             if not self._for_us(msg):
                 c.not_for_us += 1
                 return
+            if not authenticated and self.verifier is None and addr is not None:
+                self._answer_to(addr, now_s, authenticated=False)  # no key: the last well-formed sender
+        self._addr = addr
         if handler is not None:
             handler(msg, now_s, authenticated)
         elif kind == "COMMAND_LONG":
@@ -212,6 +373,8 @@ class Uplink:
             name.encode("ascii"), self.params.get(name), ptype, len(names), names.index(name)))
 
     def _answer(self, request, msg) -> None:
+        """To the answer address: the request's sender, which just authenticated (or, without a key,
+        sent a well-formed frame to us); on a stream link or with `reply`, along the link."""
         if self._reply is not None:
             self._reply(msg)
             return
@@ -220,17 +383,31 @@ class Uplink:
             sign_ready(p, self.clock, self._now_s)
         buf = msg.pack(p)
         p.seq = (p.seq + 1) % 256
+        addr = self._addr
+        send_to = getattr(self.conn, "send_to", None)
         try:
-            self.conn.write(buf)
+            if addr is not None and send_to is not None:
+                if addr == self.peers.answer_address:
+                    send_to(buf, addr)
+                else:
+                    self.counters.answers_withheld += 1
+            else:
+                self.conn.write(buf)
         except (OSError, ValueError):
             self.counters.read_errors += 1
 
     # --- telemetry ------------------------------------------------------------------------------
     def link_counters(self) -> dict:
-        """The DEBRIS_LINK_STATUS uplink fields."""
+        """The DEBRIS_LINK_STATUS uplink fields (`LINK_STATUS_FIELDS`)."""
         c, r = self.counters, self.router.counters
         return {"cmd_accepted": r.accepted,
                 "rejected_unsigned": c.unsigned + r.unauthenticated,
                 "rejected_bad_signature": c.bad_signature,
                 "rejected_replay": c.rejected_replay,
-                "rejected_invalid": r.unsupported + r.denied + r.failed + c.params_refused}
+                "rejected_invalid": r.unsupported + r.denied + r.failed + c.params_refused,
+                "uplink_bytes": c.bytes,
+                "uplink_bytes_dropped": c.dropped_bytes,
+                "uplink_garbage_bytes": c.garbage_bytes,
+                "uplink_bad_crc": c.bad_crc,
+                "uplink_foreign_datagrams": c.foreign_datagrams,
+                "uplink_os_dropped": c.os_dropped}
