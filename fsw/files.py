@@ -90,7 +90,7 @@ def check_paths(inputs: Mapping[str, PathLike | None] | Iterable[tuple[str, Path
 
     `inputs` and `outputs` map a label (the option, e.g. ``"--csv"``, or ``"input"``) to a path;
     None entries are left out. Inputs that do not exist are left to the tool that reads them."""
-    ins = [(label, p, _identity(p)) for label, p in _pairs(inputs)]
+    ins = [(label, p, _identity(p)) for label, p in _pairs(inputs) if os.path.exists(p)]
     outs = _pairs(outputs)
     seen: list[tuple[str, str, tuple]] = []
     for label, p in outs:
