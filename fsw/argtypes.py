@@ -19,11 +19,14 @@ _NETWORK_PREFIXES = ("udp:", "udpin:", "udpout:", "udpbcast:", "tcp:", "tcpin:",
 
 
 def _bound_text(lo: float | None, hi: float | None, lo_open: bool, hi_open: bool) -> str:
+    def shown(x: float) -> str:
+        return str(x) if isinstance(x, int) else f"{x:g}"
+
     parts = []
     if lo is not None:
-        parts.append(f"{'>' if lo_open else '>='} {lo:g}")
+        parts.append(f"{'>' if lo_open else '>='} {shown(lo)}")
     if hi is not None:
-        parts.append(f"{'<' if hi_open else '<='} {hi:g}")
+        parts.append(f"{'<' if hi_open else '<='} {shown(hi)}")
     return " and ".join(parts)
 
 
