@@ -59,7 +59,6 @@ import numpy as np
 
 from fsw.telemetry import dialect
 from fsw.telemetry.dialect import mavlink
-from pymavlink import mavutil  # after dialect: it selects MAVLink 2
 
 from fsw.telemetry.signing import (TICKS_PER_S, UNIX_TO_MAVLINK_EPOCH_S, SigningClock, Verdict, Verifier,
                                    load_key)
