@@ -64,7 +64,7 @@ def check_output(label: str, path: str) -> None:
     shown = _named(label, path)
     try:
         st = os.stat(path)
-    except FileNotFoundError:
+    except (FileNotFoundError, NotADirectoryError):
         st = None
     except OSError as e:
         raise PathError(f"{shown}: {e.strerror or e}") from None
