@@ -133,7 +133,7 @@ def test_the_damage_is_reported_in_the_summary(tmp_path, capsys):
     ("not a tlog", b"t_s,bx_uT,by_uT,bz_uT\n0,1,2,3\n", "not a tlog: no record found"),
     ("only junk", junk(500), "not a tlog: no record found"),
     ("empty", b"", "empty file"),
-])
+], ids=["not a tlog", "only junk", "empty"])
 def test_a_file_with_nothing_intact_is_refused_and_nothing_written(tmp_path, capsys, name, data, reason):
     rc, err, outs = decode_cli(tmp_path, data, capsys)
     assert rc == 1 and outs == []

@@ -336,4 +336,4 @@ def test_soak_scenario_typo_is_a_one_line_error(capsys):
 @pytest.mark.parametrize("option, value", [("--duration", "nan"), ("--duration", "60"), ("--rate", "0"),
                                            ("--seed", "-3")])
 def test_soak_refuses_numbers_it_cannot_use(capsys, option, value):
-    one_line_error(capsys, soak.main, [option, value, "--quiet"], 2, option)
+    one_line_error(capsys, soak.main, ["--duration", "150", option, value, "--quiet"], 2, option)
