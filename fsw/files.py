@@ -13,7 +13,7 @@ with a one-line :class:`PathError` naming the paths:
 :func:`atomic_file` / :func:`write_atomic` write through a temporary file in the same directory that
 replaces the target only when complete (`os.replace`): a crash or an error leaves the old file, or no
 file, never half of one. An output that is a symbolic link is replaced by the new file, never written
-through. New files get the permissions the process's umask gives (or `mode`).
+through. A replaced file keeps its permissions; new files get those the umask gives (or `permissions`).
 """
 from __future__ import annotations
 
@@ -112,13 +112,20 @@ def atomic_file(path: PathLike, mode: str = "w", *, permissions: int | None = No
                 encoding: str | None = "utf-8", newline: str | None = "\n") -> Iterator:
     """A file object (`mode` "w" or "wb") whose content replaces `path` when the block ends without an
     exception (flushed, fsync'ed, `os.replace`); on an exception the temporary file is removed and
-    `path` is left as it was. `permissions`: of the new file (default: 0666 less the umask)."""
+    `path` is left as it was. `permissions`: of the new file (default: those of the regular file it
+    replaces, else 0666 less the umask)."""
     if mode not in ("w", "wb"):
         raise ValueError(f"mode must be 'w' or 'wb', not {mode!r}")
     path = Path(path)
+    if permissions is None:
+        try:
+            st = os.lstat(path)
+            permissions = stat.S_IMODE(st.st_mode) if stat.S_ISREG(st.st_mode) else _DEFAULT_MODE
+        except OSError:
+            permissions = _DEFAULT_MODE
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        os.fchmod(fd, _DEFAULT_MODE if permissions is None else permissions)
+        os.fchmod(fd, permissions)
         text = {} if mode == "wb" else {"encoding": encoding, "newline": newline}
         with os.fdopen(fd, mode, **text) as f:
             yield f

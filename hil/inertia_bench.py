@@ -546,7 +546,11 @@ def main(argv: list[str] | None = None) -> int:
             lengths = [finite_float(0, min_exclusive=True)(x) for x in args.crb.split(",")]
         except argparse.ArgumentTypeError as e:
             ap.error(f"--crb: {e}")
-        tab = crb_table(names, lengths)
+        try:
+            tab = crb_table(names, lengths)
+        except ValueError as e:
+            print(f"hil.inertia_bench: {e}", file=sys.stderr)
+            return 2
         print(crb_lines(tab))
         if args.json:
             write_atomic(args.json, json.dumps({"crb": tab}, indent=1))

@@ -114,3 +114,11 @@ def test_argument_types_accept():
     assert int_range(0, 10)(" 7 ") == 7
     for url in ("udpin:0.0.0.0:14550", "udpout:127.0.0.1:14551", "/dev/ttyUSB0", "run.tlog", "tcp:[::1]:5760"):
         assert link_url(url) == url
+
+
+def test_an_atomic_write_keeps_the_permissions_of_the_file_it_replaces(tmp_path):
+    out = tmp_path / "private.csv"
+    out.write_text("old")
+    out.chmod(0o600)
+    write_atomic(out, "new")
+    assert out.read_text() == "new" and stat.S_IMODE(out.stat().st_mode) == 0o600
