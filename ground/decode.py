@@ -563,7 +563,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ground.decode: {e}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        print("ground.decode: interrupted before decoding began; nothing written", file=sys.stderr)
+        print("ground.decode: interrupted", file=sys.stderr)
         return 130
     if decoder.interrupted:
         print("interrupted")
