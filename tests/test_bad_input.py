@@ -107,6 +107,18 @@ def test_a_damaged_tlog_keeps_every_intact_record_and_reports_the_rest(tmp_path,
     assert check_tlog(tmp_path / "copy.tlog").records == kept      # the copy holds the intact frames only
 
 
+def test_any_one_flipped_bit_of_a_length_byte_loses_that_record_only(tmp_path):
+    d = good_tlog()
+    path = tmp_path / "flipped.tlog"
+    for k in range(30):
+        for bit in range(8):
+            b = bytearray(d)
+            b[k * RECORD + 8 + 1] ^= 1 << bit
+            path.write_bytes(bytes(b))
+            report = check_tlog(path)
+            assert report.records == 29 and report.damaged_records + bool(report.cut_bytes) == 1, (k, bit)
+
+
 def test_the_report_says_where_and_that_records_follow(tmp_path, capsys):
     """The issue's case: junk early in a long file was reported as "no record follows" although
     hundreds did, and the whole file was refused."""
