@@ -195,7 +195,8 @@ class _Scanner:
                                f"{'part of a time stamp' if n - offset < 8 else 'a time stamp without its frame'})")
                 return
             t = self.ts(offset)
-            if not (self.trusted_start(offset, None) if last is None else self.near(t, last)):
+            # the first record must at least be a time stamp of 2000-2100 and a start byte
+            if not self.near(t, last) or (last is None and data[offset + 8] not in STX):
                 nxt = self.resync(offset + 1, last)
                 self.junk(offset, n if nxt is None else nxt, t if last is None else None)
                 if nxt is None:
