@@ -197,7 +197,7 @@ def inertia_main(argv) -> int:
     ap.add_argument("--inertia", required=True, metavar="OUT.json", help="inertia estimate to write (JSON)")
     gi.add_arguments(ap)
     args = ap.parse_args(argv)
-    gi.check_cli_paths(ap, args.input, args.inertia, args)
+    gi.check_cli_paths(ap, args.input, args.inertia, args, output_label="--inertia")
     return gi.run_cli(args.input, args.inertia, args)
 
 

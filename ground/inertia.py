@@ -238,11 +238,12 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
-def check_cli_paths(ap: argparse.ArgumentParser, input_path: str, output_path: str, args) -> None:
+def check_cli_paths(ap: argparse.ArgumentParser, input_path: str, output_path: str, args,
+                    output_label: str = "output") -> None:
     """Before any work: the output JSON and plot are not an input nor each other, can be written, and
     the plot's suffix is an image format (usage error, exit 2, otherwise)."""
     check_paths_or_exit(ap, inputs={"input": input_path, "--scenario": args.scenario},
-                        outputs={"output": output_path, "--plot": args.plot})
+                        outputs={output_label: output_path, "--plot": args.plot})
     if args.plot:
         try:
             check_plot_path(args.plot)
