@@ -6,35 +6,54 @@ hardware. `--speed 1` paces the loop to real time; `--speed 0` runs as fast as p
 
 On target (`--mag-serial PORT`) the driver talks to the chip through a serial register bridge (the
 emulator can stand behind a pty: `python -m hil.pty_link`), on the monotonic clock.
+
+Start-up: every option is checked by argparse (finite numbers in range, link ports, output paths:
+`fsw.argtypes`, `fsw.files`) and a loop slower than the magnetometer's samples is refused before
+anything is built. Ctrl-C at any moment before the loop runs ends the program with one line,
+"interrupted" (exit status 130); during the loop it stops the loop and prints the summary.
 """
 from __future__ import annotations
 
-import argparse
-import gc
-import math
-import os
 import signal
 import sys
-import threading
-import time
-from dataclasses import dataclass, field
 
-import numpy as np
+if __name__ == "__main__":  # Ctrl-C while the modules below load (a second or more): one line, no traceback
+    def _interrupted(signum, frame):
+        print("interrupted", file=sys.stderr, flush=True)
+        raise SystemExit(130)
 
-from .drivers.mmc5983ma import Mmc5983ma
-from .drivers.mmc5983ma_regs import Bandwidth, ContinuousFrequency
-from .flight import FlightSoftware
-from .telemetry.dialect import FSW_COMPID, FSW_SYSID
-from .telemetry.sample_store import SampleStore
-from .telemetry.signing import SigningClock, key_fingerprint, load_key
-from .telemetry.store_forward import DEFAULT_CAPACITY, StoreForward
-from .telemetry.telemetry import Telemetry
-from .telemetry.udp_link import open_box_link
+    signal.signal(signal.SIGINT, _interrupted)
+
+import argparse  # noqa: E402
+import gc  # noqa: E402
+import math  # noqa: E402
+import os  # noqa: E402
+import threading  # noqa: E402
+import time  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from .argtypes import check_paths_or_exit, finite_float, int_range, link_url  # noqa: E402
+from .drivers.mmc5983ma import Mmc5983ma  # noqa: E402
+from .drivers.mmc5983ma_regs import Bandwidth, ContinuousFrequency  # noqa: E402
+from .flight import FlightSoftware  # noqa: E402
+from .telemetry.dialect import FSW_COMPID, FSW_SYSID  # noqa: E402
+from .telemetry.sample_store import SampleStore  # noqa: E402
+from .telemetry.signing import SigningClock, key_fingerprint, load_key  # noqa: E402
+from .telemetry.store_forward import DEFAULT_CAPACITY, StoreForward  # noqa: E402
+from .telemetry.telemetry import Telemetry  # noqa: E402
+from .telemetry.udp_link import open_box_link  # noqa: E402
 
 DEFAULT_LINK = "udpout:127.0.0.1:14550"
 RADIO_BYTES_PER_S = 57600 / 10  # 8N1
 BANDWIDTH = {100: Bandwidth.BW_100HZ, 200: Bandwidth.BW_200HZ, 400: Bandwidth.BW_400HZ,
              800: Bandwidth.BW_800HZ}
+#: largest store-and-forward ring (--buffer-frames): about 0.8 kB of memory a frame, 0.8 GB at most
+MAX_BUFFER_FRAMES = 1_000_000
+#: the loop's ceiling (--rate) and the MMC5983MA's (--sample-rate)
+MAX_RATE_HZ = 1000.0
 
 
 def _deg(v) -> np.ndarray:
@@ -160,53 +179,63 @@ def parse_args(argv=None):
     ap.add_argument("--scenario", default="isoi", metavar="NAME|FILE",
                     help="SITL scenario: a shipped name (isoi, aist2d, amds, amds_deorbit, ...) or a TOML file "
                          "(default: isoi)")
-    ap.add_argument("--duration", type=float, default=None, metavar="S",
+    ap.add_argument("--duration", type=finite_float(0, min_exclusive=True), default=None, metavar="S",
                     help="stop after S seconds of loop time (default: run until Ctrl-C)")
-    ap.add_argument("--speed", type=float, default=1.0, metavar="X",
+    ap.add_argument("--speed", type=finite_float(0), default=1.0, metavar="X",
                     help="SITL pacing: 1 = real time (default), 10 = ten times faster, 0 = as fast as possible")
-    ap.add_argument("--rate", type=float, default=50.0, metavar="HZ", help="loop rate (default 50 Hz)")
-    ap.add_argument("--link", default=DEFAULT_LINK, metavar="URL",
+    ap.add_argument("--rate", type=finite_float(0, MAX_RATE_HZ, min_exclusive=True), default=50.0, metavar="HZ",
+                    help="loop rate, up to 1000 Hz and at least the magnetometer's sample rate (default 50 Hz)")
+    ap.add_argument("--link", type=link_url, default=DEFAULT_LINK, metavar="URL",
                     help=f"telemetry link, any pymavlink connection string (default {DEFAULT_LINK})")
-    ap.add_argument("--baud", type=int, default=57600, help="baud rate when --link is a serial port")
+    ap.add_argument("--baud", type=int_range(1), default=57600, help="baud rate when --link is a serial port")
     ap.add_argument("--key", metavar="FILE",
                     help="mission key file (python -m ground.keys new FILE): commands must be signed with it, "
                          "telemetry is signed with it; without a key every state-changing command is refused")
-    ap.add_argument("--uplink", metavar="URL", default=None,
+    ap.add_argument("--uplink", type=link_url, metavar="URL", default=None,
                     help="where commands arrive, a pymavlink connection string (default: the --link itself; "
                          "e.g. udpin:0.0.0.0:14551 to command over UDP while ground.decode listens on --link)")
-    ap.add_argument("--buffer-frames", type=int, default=DEFAULT_CAPACITY, metavar="N",
+    ap.add_argument("--buffer-frames", type=int_range(0, MAX_BUFFER_FRAMES), default=DEFAULT_CAPACITY, metavar="N",
                     help=f"store-and-forward ring: telemetry frames kept while the link is down "
-                         f"(default {DEFAULT_CAPACITY}; 0 = none)")
+                         f"(default {DEFAULT_CAPACITY}; 0 = none; at most {MAX_BUFFER_FRAMES:,}, ~0.8 kB each)")
     ap.add_argument("--sample-store", metavar="FILE", default=None,
                     help="keep the numbered samples the ground may ask for again in this file, so that they and "
                          "their numbering survive a restart (default: in memory)")
-    ap.add_argument("--seed", type=int, default=0, help="random seed of the simulator (default 0)")
-    ap.add_argument("--sample-rate", type=float, default=None, metavar="HZ",
+    ap.add_argument("--seed", type=int_range(0), default=0, help="random seed of the simulator (default 0)")
+    ap.add_argument("--sample-rate", type=finite_float(0, MAX_RATE_HZ, min_exclusive=True), default=None,
+                    metavar="HZ",
                     help="magnetometer sample rate, up to 1000 Hz (default: on target 1 Hz, in SITL the scenario's; "
                          "SITL then picks the chip's bandwidth and continuous mode to suit)")
-    ap.add_argument("--sigma-uT", type=float, default=1.5,
+    ap.add_argument("--sigma-uT", type=finite_float(0, min_exclusive=True), default=1.5,
                     help="on target: 1-sigma field error per axis used by the estimators (default 1.5 uT)")
-    ap.add_argument("--max-sample-tlm-hz", type=float, default=20.0,
-                    help="at most this many magnetometer samples per second go out on the link (default 20)")
+    ap.add_argument("--max-sample-tlm-hz", type=finite_float(0.01, MAX_RATE_HZ), default=20.0,
+                    help="at most this many magnetometer samples per second go out on the link "
+                         "(0.01 to 1000, default 20)")
     ap.add_argument("--quiet", action="store_true", help="no status line each second, only the summary")
-    ap.add_argument("--ident-inertia-guess", type=float, default=100.0, metavar="KGM2",
+    ap.add_argument("--ident-inertia-guess", type=finite_float(0, min_exclusive=True), default=100.0,
+                    metavar="KGM2",
                     help="SITL identification experiment: starting tensor = this × identity (default 100 kg.m^2)")
     args = ap.parse_args(argv)
-    if not 0 < args.rate <= 1000:
-        ap.error("--rate must be in (0, 1000] Hz")
-    if args.speed < 0:
-        ap.error("--speed must be >= 0")
-    if args.duration is not None and args.duration <= 0:
-        ap.error("--duration must be > 0")
-    if args.sigma_uT <= 0:
-        ap.error("--sigma-uT must be > 0")
-    if args.buffer_frames < 0:
-        ap.error("--buffer-frames must be >= 0")
-    if args.ident_inertia_guess <= 0:
-        ap.error("--ident-inertia-guess must be > 0")
     if args.rates_out and not args.replay:
         ap.error("--rates-out needs --replay")
+    scenario_file = args.scenario if args.sitl and Path(args.scenario).is_file() else None
+    check_paths_or_exit(ap, inputs={"--replay": args.replay, "--key": args.key, "--scenario": scenario_file},
+                        outputs={"--rates-out": args.rates_out})
     return args
+
+
+def check_loop_rate(rate_hz: float, sample_rate_hz: float) -> str | None:
+    """Refuse (ValueError) a loop slower than the magnetometer's samples: it takes one sample a tick at
+    most, so it would drop samples all the time. At an equal rate: a warning line (a tick that starts
+    late, the driver's start-up and each SET/RESET calibration then cost samples); None otherwise."""
+    if rate_hz < sample_rate_hz * (1 - 1e-9):
+        raise ValueError(f"--rate {rate_hz:g} Hz is below the magnetometer's sample rate {sample_rate_hz:g} Hz: "
+                         "the loop must run at least as fast as samples arrive, or it drops them "
+                         f"(give --rate {min(MAX_RATE_HZ, 2 * sample_rate_hz):g} or more)")
+    if rate_hz < sample_rate_hz * (1 + 1e-9):
+        return (f"warning: --rate {rate_hz:g} Hz equals the sample rate: samples are lost at start-up, at each "
+                "SET/RESET calibration (every 1000 samples) and whenever a tick starts late; a faster loop "
+                "loses fewer")
+    return None
 
 
 @dataclass
@@ -232,6 +261,7 @@ def run(args, out=sys.stdout) -> Run:
         header = (f"SITL scenario {scn.name}: {scn.description}\n"
                   f"loop {args.rate:g} Hz, sensor {sample_rate:g} Hz, speed "
                   f"{'max' if args.speed == 0 else f'{args.speed:g}x'}, seed {args.seed}, link {args.link}")
+        warning = check_loop_rate(args.rate, sample_rate)
     elif getattr(args, "replay", None):
         from .replay import RecordingReplay
         sim = None
@@ -243,10 +273,12 @@ def run(args, out=sys.stdout) -> Run:
         sigma_b = args.sigma_uT * 1e-6
         header = (f"replay {args.replay}: {len(source.t)} samples at {sample_rate:.3g} Hz, loop {args.rate:g} Hz "
                   f"(virtual clock), link {args.link}")
+        warning = None  # one sample a tick at most: a loop slower than the recording falls behind, skips none
     else:
         from .drivers.serial_bus import SerialBus
         sim = None
         sample_rate = args.sample_rate or 1.0
+        warning = check_loop_rate(args.rate, sample_rate)
         source = Mmc5983ma(SerialBus(args.mag_serial), sample_period_s=1.0 / sample_rate)
         sigma_b = args.sigma_uT * 1e-6
         header = f"target: MMC5983MA on {args.mag_serial}, loop {args.rate:g} Hz, link {args.link}"
@@ -286,6 +318,8 @@ def run(args, out=sys.stdout) -> Run:
                "\nno mission key: commands that change state are refused")
     if uplink is not link:
         header += f"; commands on {args.uplink}"
+    if warning:
+        header += "\n" + warning
     print(header, file=out, flush=True)
 
     stop = False
@@ -378,16 +412,20 @@ def write_replay_rates(path, replay, rates: dict, source: str) -> None:
 
 
 def main(argv=None) -> int:
-    args = parse_args(argv)
     try:
-        r = run(args)
-    except ValueError as e:  # a bad scenario file, an impossible sensor setting
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    except OSError as e:  # a serial port or link that cannot be opened
-        print(f"error: {e}", file=sys.stderr)
-        return 1
-    print(summary(r), flush=True)
+        args = parse_args(argv)
+        try:
+            r = run(args)
+        except ValueError as e:  # a bad scenario file, an impossible sensor setting, a loop too slow
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        except OSError as e:  # a serial port or link that cannot be opened
+            print(f"error: {e}", file=sys.stderr)
+            return 1
+        print(summary(r), flush=True)
+    except KeyboardInterrupt:  # Ctrl-C before the loop's own handler is in place (or after it is gone)
+        print("interrupted", file=sys.stderr, flush=True)
+        return 130
     return 0
 
 

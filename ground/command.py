@@ -29,6 +29,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
+from fsw.argtypes import finite_float, int_range, link_url
 from fsw.telemetry import dialect
 from fsw.telemetry.dialect import FSW_COMPID, FSW_SYSID, GCS_COMPID, GCS_SYSID, mavlink
 from fsw.telemetry.framing import Deframer
@@ -39,14 +40,23 @@ MAV_CMDS: dict[str, int] = {e.name: v for v, e in mavlink.enums["MAV_CMD"].items
 RESULT_NAMES = {v: e.name.removeprefix("MAV_RESULT_") for v, e in mavlink.enums["MAV_RESULT"].items()}
 
 
+#: the largest magnitude a MAVLink float (IEEE single precision) holds
+FLOAT32_MAX = 3.4028234663852886e38
+#: MAVLink parameter ids: at most 16 ASCII characters
+PARAM_ID_LEN = 16
+
+
 class UsageError(ValueError):
     pass
 
 
 def resolve_command(name: str) -> int:
-    """MAV_CMD value of a name (with or without the MAV_CMD_ / MAV_CMD_DEBRIS_ prefix) or a number."""
+    """MAV_CMD value of a name (with or without the MAV_CMD_ / MAV_CMD_DEBRIS_ prefix) or a number
+    (0..65535: COMMAND_LONG's command field is 16 bits)."""
     s = name.strip()
     if s.isdigit():
+        if int(s) > 0xFFFF:
+            raise UsageError(f"command number {s} is out of range (0..65535)")
         return int(s)
     n = s.upper().replace("-", "_")
     for cand in (n, "MAV_CMD_" + n, "MAV_CMD_DEBRIS_" + n):
@@ -77,13 +87,38 @@ def parse_params(command: int, items: Sequence[str]) -> list[float]:
             index, value = pos, item
         if not 1 <= index <= 7:
             raise UsageError("at most 7 parameters")
-        try:
-            params[index - 1] = float(value)
-        except ValueError:
-            raise UsageError(f"parameter {index}: not a number: {value!r}") from None
-        if math.isinf(params[index - 1]):
-            raise UsageError(f"parameter {index}: infinite")
+        params[index - 1] = mavlink_float(value, f"parameter {index}")
     return params
+
+
+def mavlink_float(value: str, what: str) -> float:
+    """A value for a MAVLink float field: a number (``nan`` allowed: MAVLink's "default") that a
+    float32 holds; UsageError otherwise."""
+    try:
+        x = float(value)
+    except ValueError:
+        raise UsageError(f"{what}: not a number: {value!r}") from None
+    if math.isinf(x):
+        raise UsageError(f"{what}: infinite")
+    if abs(x) > FLOAT32_MAX:
+        raise UsageError(f"{what}: {value} does not fit a MAVLink float (|x| <= {FLOAT32_MAX:.6g})")
+    return x
+
+
+def param_id(name: str) -> str:
+    """An onboard parameter's name as MAVLink carries it: 1..16 ASCII characters; UsageError otherwise."""
+    if not name or not name.isascii() or len(name) > PARAM_ID_LEN:
+        raise UsageError(f"parameter name {name!r}: must be 1 to {PARAM_ID_LEN} ASCII characters")
+    return name
+
+
+def target_ids(text: str) -> tuple[int, int]:
+    """argparse type of --target: SYS/COMP, each 0..255."""
+    parts = text.split("/")
+    if len(parts) != 2 or not all(p.strip().isdigit() and int(p) <= 255 for p in parts):
+        raise argparse.ArgumentTypeError(f"must be SYS/COMP with each 0..255, e.g. {FSW_SYSID}/{FSW_COMPID}; "
+                                         f"got {text!r}")
+    return int(parts[0]), int(parts[1])
 
 
 def list_commands() -> str:
@@ -237,19 +272,21 @@ class Session:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m ground.command", description=__doc__.splitlines()[0],
                                  epilog="Commands: python -m ground.command --list")
-    ap.add_argument("url", nargs="?", help="udpin:0.0.0.0:14550, udpout:HOST:PORT, tcp:HOST:PORT or a serial device")
+    ap.add_argument("url", nargs="?", type=link_url,
+                    help="udpin:0.0.0.0:14550, udpout:HOST:PORT, tcp:HOST:PORT or a serial device")
     ap.add_argument("command", nargs="?", help="MAV_CMD name or number")
     ap.add_argument("params", nargs="*", help="param1..param7 in order, or label=value")
     ap.add_argument("--key", metavar="FILE", help="mission key file: sign the command, verify the answer")
     ap.add_argument("--set-param", nargs=2, metavar=("NAME", "VALUE"), help="set an onboard parameter")
     ap.add_argument("--get-param", metavar="NAME", help="read an onboard parameter")
-    ap.add_argument("--target", default=f"{FSW_SYSID}/{FSW_COMPID}", metavar="SYS/COMP",
-                    help=f"target system/component (default {FSW_SYSID}/{FSW_COMPID})")
-    ap.add_argument("--timeout", type=float, default=1.0, metavar="S", help="wait per attempt (default 1 s)")
-    ap.add_argument("--retries", type=int, default=3, help="repeats without an answer (default 3)")
-    ap.add_argument("--wait", type=float, default=5.0, metavar="S",
+    ap.add_argument("--target", type=target_ids, default=(FSW_SYSID, FSW_COMPID), metavar="SYS/COMP",
+                    help=f"target system/component, each 0..255 (default {FSW_SYSID}/{FSW_COMPID})")
+    ap.add_argument("--timeout", type=finite_float(0, 3600, min_exclusive=True), default=1.0, metavar="S",
+                    help="wait per attempt (default 1 s)")
+    ap.add_argument("--retries", type=int_range(0, 100), default=3, help="repeats without an answer (default 3)")
+    ap.add_argument("--wait", type=finite_float(0, 3600), default=5.0, metavar="S",
                     help="on a listening link, wait this long for the box to be heard (default 5 s)")
-    ap.add_argument("--baud", type=int, default=57600, help="serial baud rate (default 57600)")
+    ap.add_argument("--baud", type=int_range(1), default=57600, help="serial baud rate (default 57600)")
     ap.add_argument("--list", action="store_true", help="list the project's commands and exit")
     args = ap.parse_intermixed_args(argv)
     if args.list:
@@ -257,15 +294,13 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.url is None or (args.command is None and not args.set_param and not args.get_param):
         ap.error("URL and COMMAND (or --set-param / --get-param) are required")
-    try:
-        target = tuple(int(x) for x in args.target.split("/"))
-        if len(target) != 2:
-            raise ValueError
-    except ValueError:
-        ap.error("--target must be SYS/COMP, e.g. 1/191")
+    target = args.target
     try:
         if args.set_param:
-            set_value = float(args.set_param[1])
+            param_id(args.set_param[0])
+            set_value = mavlink_float(args.set_param[1], f"--set-param {args.set_param[0]}")
+        elif args.get_param:
+            param_id(args.get_param)
         elif args.command is not None:
             command = resolve_command(args.command)
             params = parse_params(command, args.params)
@@ -278,7 +313,7 @@ def main(argv: list[str] | None = None) -> int:
               "without one refuses every state-changing command)", file=sys.stderr)
     try:
         s = Session(args.url, key, baud=args.baud)
-    except OSError as e:
+    except (OSError, OverflowError, ValueError) as e:  # pymavlink: ValueError for a URL it cannot parse
         print(f"ground.command: {e}", file=sys.stderr)
         return 1
     try:

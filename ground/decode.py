@@ -5,7 +5,13 @@
                                 [--no-resend]
 
 URL is any pymavlink connection string: ``udpin:0.0.0.0:14550``, ``tcp:host:port``, a serial device
-(with ``--baud``) or a ``.tlog`` file (read to its end, on its recorded timeline).
+(with ``--baud``) or a ``.tlog`` file (read to its end, on its recorded timeline; a damaged one is read
+as far as it is intact: `ground.tlog`, what was skipped is reported in the summary).
+
+Before anything is opened, the output paths are checked (`fsw.files.check_paths`): an output that is
+the input or another output (also through a link), or that cannot be written, is refused (exit 2).
+`--method` offers the estimators the flight software sends (`fsw.flight.METHODS`); the ground-only
+methods are `ground.estimate`'s.
 
 Parsing is pymavlink's robust parser bound to the project dialect: bytes that do not frame, frames
 with a bad CRC and frames of unknown message ids are rejected and counted (`ground.link_stats`), never
@@ -41,6 +47,7 @@ and not used (the link accounting and the tlog still see every intact frame).
 from __future__ import annotations
 
 import argparse
+import itertools
 import math
 import select
 import signal
@@ -55,19 +62,21 @@ import numpy as np
 
 from fsw.telemetry import dialect
 from fsw.telemetry.dialect import mavlink
-from pymavlink import mavutil  # after dialect: it selects MAVLink 2
 
 from fsw.telemetry.signing import Verdict, Verifier, load_key, unix_clock
 
 from fsw.telemetry.framing import Deframer
 from fsw.telemetry.udp_link import UDP_MAX_PAYLOAD, UdpLink
 
+from fsw.argtypes import check_paths_or_exit, finite_float, int_range, link_url
+from fsw.files import check_paths
+
 from .command import GroundLink
 from .link_stats import MAG_FIELDS, LinkStats
 from .recorder import Recorder
 from .recording import RateEstimates, Recording, write_rate_estimates, write_recording
 from .streams import Segment, Stream
-from .tlog import check_tlog
+from .tlog import read_tlog
 
 #: DEBRIS_RATE_METHOD values by their short lower-case name (boer, derivative, ...).
 METHODS: dict[str, int] = {
@@ -455,25 +464,30 @@ def run(url: str, *, duration_s: float | None = None, count: int | None = None,
     numbered samples that did not arrive (DEBRIS_SAMPLE_REQUEST, signed with `key` when given), back on
     the link or on `uplink` (a connection string) when the box takes commands elsewhere.
 
-    A tlog is checked first (`ground.tlog.check_tlog`). Live links are framed by
-    `fsw.telemetry.framing.Deframer` (byte-wise resync, so no intact frame is lost to line noise); a
-    serial port that goes away is reopened every second until it is back."""
-    if tlog is not None and Path(tlog).resolve() == Path(url).resolve():
-        raise ValueError("--tlog would overwrite the input")
-    if Path(url).is_file():
-        check_tlog(url)
+    Output paths are checked first (`fsw.files.check_paths`: PathError). A tlog is read by
+    `ground.tlog.read_tlog`: every intact record is decoded, damage is skipped and counted in
+    ``decoder.tlog_report``; a file with nothing intact raises TlogError and nothing is written. Live
+    links are framed by `fsw.telemetry.framing.Deframer` (byte-wise resync, so no intact frame is lost
+    to line noise); a serial port that goes away is reopened every second until it is back."""
+    check_paths(inputs={"input": url if Path(url).exists() else None},
+                outputs={"--tlog": tlog, "--csv": csv, "--rates-csv": rates_csv})
     recorder = Recorder(csv, rates_csv, protect=[p for p in (url, tlog) if p is not None and Path(p).exists()])
     decoder = Decoder(method=method, on_line=None if quiet else on_line, origin=url, key=key, recorder=recorder)
-    live = _LiveLink(url, baud, decoder._say)
-    conn = live.conn
-    is_log = isinstance(conn, mavutil.mavlogfile)
-    up = None
-    if resend and not is_log:
-        if uplink is not None:
-            up = dialect.open_link(uplink, source_system=dialect.GCS_SYSID, source_component=dialect.GCS_COMPID,
-                                   baud=baud)
-        decoder.requests = GroundLink(live.write if up is None else up.write, key, unix_clock(),
-                                      link_id=REQUEST_LINK_ID)
+    is_log = Path(url).is_file()
+    live = records = up = None
+    if is_log:
+        reader = read_tlog(url)
+        records = iter(reader)
+        records = itertools.chain([next(records)], records)  # TlogError now if nothing is intact
+        decoder.tlog_report = reader.report
+    else:
+        live = _LiveLink(url, baud, decoder._say)
+        if resend:
+            if uplink is not None:
+                up = dialect.open_link(uplink, source_system=dialect.GCS_SYSID,
+                                       source_component=dialect.GCS_COMPID, baud=baud)
+            decoder.requests = GroundLink(live.write if up is None else up.write, key, unix_clock(),
+                                          link_id=REQUEST_LINK_ID)
     log_out = None
     frames = 0
     start_s = None
@@ -482,10 +496,10 @@ def run(url: str, *, duration_s: float | None = None, count: int | None = None,
         log_out = open(tlog, "wb") if tlog is not None else None
         while not done and not should_stop():
             if is_log:
-                msg = conn.recv_match(blocking=False)
-                if msg is None:
+                record = next(records, None)
+                if record is None:
                     break
-                batch, now_s = [msg], msg._timestamp
+                batch, now_s = record.messages, record.t_us * 1e-6
             else:
                 batch, now_s = live.read(), clock()
             if start_s is None:
@@ -515,7 +529,8 @@ def run(url: str, *, duration_s: float | None = None, count: int | None = None,
     except KeyboardInterrupt:
         decoder.interrupted = True
     finally:
-        live.close()
+        if live is not None:
+            live.close()
         if up is not None:
             up.close()
         if log_out is not None:
@@ -634,28 +649,40 @@ def _missing_path(url: str) -> str | None:
 _SCHEMES = frozenset({"udp", "udpin", "udpout", "udpbcast", "tcp", "tcpin", "mcast", "wsserver", "ws"})
 
 
+def sent_methods() -> dict[str, int]:
+    """The DEBRIS_RATE_METHOD values the flight software sends, by name (`fsw.flight.METHODS`)."""
+    from fsw.flight import METHODS as SENT  # the estimators run on board; imported here: it loads them
+
+    return {name: value for name, value in METHODS.items() if value in SENT.values()}
+
+
 def main(argv: list[str] | None = None) -> int:
+    sent = sent_methods()
     ap = argparse.ArgumentParser(prog="python -m ground.decode", description=__doc__.splitlines()[0])
-    ap.add_argument("url", help="pymavlink connection string: udpin:0.0.0.0:14550, tcp:HOST:PORT, "
-                                "a serial device, or a .tlog file")
-    ap.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
+    ap.add_argument("url", type=link_url, help="pymavlink connection string: udpin:0.0.0.0:14550, tcp:HOST:PORT, "
+                                               "a serial device, or a .tlog file")
+    ap.add_argument("--baud", type=int_range(1), default=115200, help="serial baud rate (default 115200)")
     ap.add_argument("--tlog", help="record every intact frame to this tlog")
     ap.add_argument("--csv", help="write the magnetometer samples as a recording-format CSV (one file per run "
                                   "of each source: see ground.recorder)")
     ap.add_argument("--rates-csv", help="write the onboard rate estimates of --method as CSV")
-    ap.add_argument("--method", choices=sorted(METHODS, key=METHODS.get), default="boer",
-                    help="onboard estimator to show and export (default boer)")
-    ap.add_argument("--duration", type=float, help="stop after this many seconds")
-    ap.add_argument("--count", type=int, help="stop after this many intact frames")
+    ap.add_argument("--method", choices=sorted(sent, key=sent.get), default="boer",
+                    help="onboard estimator to show and export (default boer); the ground's own methods: "
+                         "python -m ground.estimate")
+    ap.add_argument("--duration", type=finite_float(0, min_exclusive=True), metavar="S",
+                    help="stop after this many seconds (> 0)")
+    ap.add_argument("--count", type=int_range(1), metavar="N", help="stop after this many intact frames (>= 1)")
     ap.add_argument("--quiet", action="store_true", help="no live lines, only the summary")
     ap.add_argument("--key", metavar="FILE", help="mission key file: verify the frames' signatures, use only "
                                                   "authentic ones; sign the requests for missing samples")
     ap.add_argument("--no-resend", action="store_true",
                     help="do not ask the box again for numbered samples that did not arrive")
-    ap.add_argument("--uplink", metavar="URL",
+    ap.add_argument("--uplink", metavar="URL", type=link_url,
                     help="send the requests for missing samples on this link (the box's --uplink) instead of "
                          "back on URL")
     args = ap.parse_args(argv)
+    check_paths_or_exit(ap, inputs={"input": args.url if Path(args.url).exists() else None, "--key": args.key},
+                        outputs={"--tlog": args.tlog, "--csv": args.csv, "--rates-csv": args.rates_csv})
     missing = _missing_path(args.url)
     if missing:
         print(f"ground.decode: {missing}", file=sys.stderr)
@@ -669,7 +696,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         key = load_key(args.key) if args.key else None
         decoder = run(args.url, duration_s=args.duration, count=args.count, tlog=args.tlog, csv=args.csv,
-                      rates_csv=args.rates_csv, method=METHODS[args.method], quiet=args.quiet,
+                      rates_csv=args.rates_csv, method=sent[args.method], quiet=args.quiet,
                       baud=args.baud, key=key, resend=not args.no_resend, uplink=args.uplink,
                       should_stop=lambda: bool(stop))
     except (OSError, ValueError) as e:
@@ -681,6 +708,9 @@ def main(argv: list[str] | None = None) -> int:
     if decoder.interrupted:
         print("interrupted" if not stop or stop[0] == signal.SIGINT else "terminated")
     print(decoder.summary_text())
+    report = getattr(decoder, "tlog_report", None)
+    if report is not None and report.damaged:
+        print(f"damaged tlog: {report.text()}")
     if not decoder.frames:
         print(f"ground.decode: nothing received from {args.url}", file=sys.stderr)
         return 1

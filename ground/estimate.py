@@ -28,6 +28,7 @@ from datetime import datetime
 
 import numpy as np
 
+from fsw.argtypes import check_paths_or_exit, finite_float
 from fsw.estimation import field_motion as fm
 from fsw.estimation import kalman as kl
 from fsw.estimation import kotelnikov as ko
@@ -38,6 +39,9 @@ from ground.recording import RateEstimates, Recording, RecordingError, read_reco
 METHODS = ("boer", "boer-printed", "derivative", "kotelnikov", "kotelnikov-paper", "kalman", "kalman-orbit",
            "kalman-euler", "kalman-mm", "smoother", "euler", "auto")
 PERPENDICULAR = ("boer", "boer-printed")
+#: samples a method needs for its first estimate: two for a difference, three for a second one (and for
+#: the full vector of the filters and smoothers, which ΔB of one step does not fix)
+MIN_SAMPLES = {m: 2 if m in PERPENDICULAR or m.startswith("kalman") else 3 for m in METHODS}
 
 
 def noise_estimate_T(b_T: np.ndarray) -> float:
@@ -136,11 +140,51 @@ def field_from_args(args):
         return fm.OrbitField(fm.CircularOrbitModel(scn.altitude_m, scn.inclination_deg, scn.raan_deg,
                                                    scn.arg_lat0_deg), fm.DipoleModel(scn.epoch_year))
     if args.tle:
-        utc = datetime.fromisoformat(args.utc0)
+        utc = args.utc0 if isinstance(args.utc0, datetime) else datetime.fromisoformat(args.utc0)
         orbit = fm.TleOrbitModel(args.tle[0], args.tle[1], (utc.year, utc.month, utc.day, utc.hour, utc.minute,
                                                             utc.second + utc.microsecond * 1e-6))
         return fm.OrbitField(orbit, fm.DipoleModel(utc.year + (utc.timetuple().tm_yday - 1) / 365.25))
     return None
+
+
+def inertia_tensor(text: str) -> np.ndarray:
+    """argparse type of --known-inertia: 'Ixx,Iyy,Izz' or 9 values (row by row), kg·m², finite, a
+    symmetric positive-definite tensor whose principal moments satisfy the triangle inequality."""
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not numbers: {text!r} (give Ixx,Iyy,Izz or 9 values)") from None
+    if len(vals) not in (3, 9):
+        raise argparse.ArgumentTypeError(f"takes 3 or 9 values, got {len(vals)}")
+    if not all(map(math.isfinite, vals)):
+        raise argparse.ArgumentTypeError(f"values must be finite, got {text!r}")
+    tensor = np.diag(vals) if len(vals) == 3 else np.reshape(vals, (3, 3))
+    if not np.allclose(tensor, tensor.T, rtol=1e-9, atol=0.0):
+        raise argparse.ArgumentTypeError("the 9 values must form a symmetric tensor")
+    moments = np.linalg.eigvalsh(tensor)
+    if moments[0] <= 0:
+        raise argparse.ArgumentTypeError(f"must be positive definite (principal moments "
+                                         f"{', '.join(f'{m:g}' for m in moments)} kg·m²)")
+    if moments[0] + moments[1] < moments[2] * (1 - 1e-9):
+        raise argparse.ArgumentTypeError(f"principal moments {', '.join(f'{m:g}' for m in moments)} kg·m² "
+                                         "violate the triangle inequality (no body has them)")
+    return tensor
+
+
+def iso_time(text: str) -> datetime:
+    """argparse type of --utc0: an ISO 8601 date and time."""
+    try:
+        return datetime.fromisoformat(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an ISO 8601 time: {text!r} (e.g. 2025-06-15T12:00:00)") from None
+
+
+def check_samples(rec: Recording, method: str) -> None:
+    """Refuse (ValueError) a recording with fewer samples than `method` needs for an estimate."""
+    need = MIN_SAMPLES[method]
+    if len(rec) < need:
+        where = f"{rec.path}: " if rec.path is not None else ""
+        raise ValueError(f"{where}{len(rec)} samples: {method} needs at least {need}")
 
 
 def inertia_main(argv) -> int:
@@ -153,6 +197,7 @@ def inertia_main(argv) -> int:
     ap.add_argument("--inertia", required=True, metavar="OUT.json", help="inertia estimate to write (JSON)")
     gi.add_arguments(ap)
     args = ap.parse_args(argv)
+    gi.check_cli_paths(ap, args.input, args.inertia, args, output_label="--inertia")
     return gi.run_cli(args.input, args.inertia, args)
 
 
@@ -167,35 +212,40 @@ def main(argv=None) -> int:
     ap.add_argument("--rates", required=True, metavar="OUT.csv", help="rate estimates to write")
     ap.add_argument("--method", choices=METHODS, default="smoother", help="estimator (default smoother)")
     ap.add_argument("--plot", metavar="FILE.png", help="estimate, 1-σ band and reference per axis")
-    ap.add_argument("--sigma-uT", type=float, default=None,
-                    help="1-σ field noise per axis (default: estimated from third differences)")
-    ap.add_argument("--decimate-hz", type=float, default=None, metavar="HZ",
+    ap.add_argument("--sigma-uT", type=finite_float(0, min_exclusive=True), default=None,
+                    help="1-σ field noise per axis, > 0 (default: estimated from third differences)")
+    ap.add_argument("--decimate-hz", type=finite_float(0, min_exclusive=True), default=None, metavar="HZ",
                     help="keep one sample per 1/HZ s first (mimic a slower sensor)")
     ap.add_argument("--scenario", metavar="NAME|FILE", help="the field along this SITL scenario's orbit")
     ap.add_argument("--tle", nargs=2, metavar=("LINE1", "LINE2"), help="the field along a TLE's orbit")
-    ap.add_argument("--utc0", help="with --tle: UTC of the recording's t = 0, ISO 8601")
-    ap.add_argument("--known-inertia", metavar="I",
-                    help="known tensor for euler/kalman-euler: 'Ixx,Iyy,Izz' or 9 values")
+    ap.add_argument("--utc0", type=iso_time, help="with --tle: UTC of the recording's t = 0, ISO 8601")
+    ap.add_argument("--known-inertia", metavar="I", type=inertia_tensor,
+                    help="known tensor for euler/kalman-euler: 'Ixx,Iyy,Izz' or 9 values, kg·m²")
     args = ap.parse_args(argv)
     if args.tle and not args.utc0:
         ap.error("--tle needs --utc0")
     if args.scenario and args.tle:
         ap.error("give --scenario or --tle, not both")
+    check_paths_or_exit(ap, inputs={"input": args.input, "--scenario": args.scenario},
+                        outputs={"--rates": args.rates, "--plot": args.plot})
+    if args.plot:
+        from ground.plot import check_plot_path
+        try:
+            check_plot_path(args.plot)
+        except ValueError as e:
+            ap.error(f"--plot {e}")
     try:
+        field = field_from_args(args)
         rec = read_recording(args.input)
+        check_samples(rec, args.method)
         if args.decimate_hz:
             rec = decimate(rec, args.decimate_hz)
-        field = field_from_args(args)
-        inertia = None
-        if args.known_inertia:
-            vals = [float(v) for v in args.known_inertia.split(",")]
-            if len(vals) not in (3, 9):
-                ap.error("--known-inertia takes 3 or 9 values")
-            inertia = np.diag(vals) if len(vals) == 3 else np.reshape(vals, (3, 3))
-        sigma = args.sigma_uT * 1e-6 if args.sigma_uT else noise_estimate_T(rec.b_T)
+            check_samples(rec, args.method)
+        inertia = args.known_inertia
+        sigma = args.sigma_uT * 1e-6 if args.sigma_uT is not None else noise_estimate_T(rec.b_T)
         w, s, notes = estimate(args.method, rec.t_s, rec.b_T, sigma, field=field, inertia_kgm2=inertia)
         meta = {"source": f"python -m ground.estimate {args.input}", "method": args.method,
-                "sigma_uT": f"{sigma * 1e6:.4g}" + ("" if args.sigma_uT else " (estimated)"),
+                "sigma_uT": f"{sigma * 1e6:.4g}" + ("" if args.sigma_uT is not None else " (estimated)"),
                 "field": "along the orbit" if field is not None else "fixed in inertial space"}
         meta.update({k: str(v) for k, v in notes.items()})
         write_rate_estimates(args.rates, RateEstimates(rec.t_s, w, s, metadata=meta))
@@ -213,8 +263,12 @@ def main(argv=None) -> int:
     print(f"wrote {args.rates}")
     if args.plot:
         from ground.plot import plot_rates
-        plot_rates(args.plot, rec.t_s, w, s, rec.w_ref_radps,
-                   title=f"{args.input}: {args.method}", perpendicular_only=args.method in PERPENDICULAR)
+        try:
+            plot_rates(args.plot, rec.t_s, w, s, rec.w_ref_radps, title=f"{args.input}: {args.method}",
+                       perpendicular_only=args.method in PERPENDICULAR)
+        except (OSError, ValueError) as e:
+            print(f"ground.estimate: --plot {args.plot}: {e}", file=sys.stderr)
+            return 1
         print(f"wrote {args.plot}")
     return 0
 

@@ -25,18 +25,19 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
+from fsw.argtypes import check_paths_or_exit, finite_float, int_range
 from fsw.estimation import euler_fit as ef
 from fsw.estimation import inertia as inr
+from fsw.files import write_atomic
 
+from .plot import check_plot_path, save_figure
 from .recording import Recording, RecordingError, read_recording
 
 #: metadata keys of the orbit (recording ``# key: value`` lines)
@@ -104,6 +105,7 @@ def run(rec: Recording, b_inertial: Callable, *, sigma_b_T: float = 1.5e-6, mode
         raise ValueError("the recording has no known moment (m*_Nm all zero): torque-free data fix the "
                          "tensor only up to scale")
     g = 100.0 if guess_kgm2 is None else float(guess_kgm2)
+    check_moments(rec, g)
     p_guess = np.array([g, g, g, 0.0, 0.0, 0.0])
     t, b = rec.t_s, rec.b_T
     b_samples = np.asarray(b_inertial(t), float)
@@ -121,20 +123,35 @@ def run(rec: Recording, b_inertial: Callable, *, sigma_b_T: float = 1.5e-6, mode
     return InertiaReport(est, fit, running)
 
 
+#: how far below the guess the tensor may be, for the plausibility of the known moment
+GUESS_RANGE = 10.0
+
+
+def check_moments(rec: Recording, guess_kgm2: float) -> None:
+    """Refuse (ValueError) a known moment no sampled body near the guess could show: one that would turn
+    a body of a tenth of the guessed tensor by more than half a turn in one sample step, beyond which
+    the samples cannot say how it turned (a moment in the wrong units, or a corrupted file). NaN rows
+    (unknown moment) are not judged here."""
+    if len(rec) < 2:
+        return
+    dt = float(np.median(np.diff(rec.t_s)))
+    limit = math.pi * (guess_kgm2 / GUESS_RANGE) / dt ** 2
+    size = np.linalg.norm(rec.m_Nm, axis=1)
+    bad = np.flatnonzero(size > limit)  # NaN compares False
+    if bad.size:
+        k = int(bad[0])
+        where = f"{rec.path}: " if rec.path is not None else ""
+        raise ValueError(f"{where}known moment m*_Nm of {size[k]:.3g} N·m at t = {rec.t_s[k]:g} s ({bad.size} "
+                         f"samples above {limit:.3g} N·m) would turn a body of {guess_kgm2 / GUESS_RANGE:g} kg·m² "
+                         f"(a tenth of --guess) by more than half a turn in one {dt:g} s sample step: "
+                         "not a moment in N·m?")
+
+
 def write_json(path: str | Path, est: inr.InertiaEstimate, **extra) -> None:
     """Write the inertia JSON (atomically: nothing is written on error)."""
     doc = est.to_json()
     doc.update(extra)
-    text = json.dumps(doc, indent=2, default=float) + "\n"
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", dir=path.parent or ".")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
+    write_atomic(path, json.dumps(doc, indent=2, default=float) + "\n")
 
 
 def plot(path: str | Path, report: InertiaReport) -> None:
@@ -167,8 +184,10 @@ def plot(path: str | Path, report: InertiaReport) -> None:
     fig.suptitle("Inertia tensor about the centre of mass, sensor axes: running estimate "
                  f"({report.estimate.method})", fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    try:
+        save_figure(fig, path, dpi=110)
+    finally:
+        plt.close(fig)
 
 
 def summary(report: InertiaReport) -> str:
@@ -197,6 +216,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("output", help="inertia JSON to write")
     add_arguments(ap)
     args = ap.parse_args(argv)
+    check_cli_paths(ap, args.input, args.output, args)
     return run_cli(args.input, args.output, args)
 
 
@@ -204,23 +224,34 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     """The options of the inertia fit (shared with ``python -m ground.estimate --inertia``)."""
     ap.add_argument("--scenario", metavar="NAME|FILE",
                     help="take the orbit (field model) and the truth from a SITL scenario")
-    ap.add_argument("--sigma-uT", type=float, default=1.5, help="1-σ field noise per axis (default 1.5 µT)")
+    ap.add_argument("--sigma-uT", type=finite_float(0, min_exclusive=True), default=1.5,
+                    help="1-σ field noise per axis, > 0 (default 1.5 µT)")
     ap.add_argument("--diag", action="store_true",
                     help="diagonal tensor only (sedelnikov2023's special case: sensor axes = principal axes)")
-    ap.add_argument("--guess", type=float, default=100.0, metavar="KGM2",
+    ap.add_argument("--guess", type=finite_float(0, min_exclusive=True), default=100.0, metavar="KGM2",
                     help="starting tensor = this × identity, within a factor of a few (default 100)")
     ap.add_argument("--hold", choices=("centered", "forward"), default="centered",
                     help="how the sampled moment holds between samples (default centered)")
     ap.add_argument("--plot", metavar="FILE", help="draw the running estimate with its 95 %% band (PNG)")
-    ap.add_argument("--running", type=int, default=12, metavar="N",
+    ap.add_argument("--running", type=int_range(1), default=12, metavar="N",
                     help="points of the running estimate drawn by --plot (default 12)")
     ap.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
+def check_cli_paths(ap: argparse.ArgumentParser, input_path: str, output_path: str, args,
+                    output_label: str = "output") -> None:
+    """Before any work: the output JSON and plot are not an input nor each other, can be written, and
+    the plot's suffix is an image format (usage error, exit 2, otherwise)."""
+    check_paths_or_exit(ap, inputs={"input": input_path, "--scenario": args.scenario},
+                        outputs={output_label: output_path, "--plot": args.plot})
+    if args.plot:
+        try:
+            check_plot_path(args.plot)
+        except ValueError as e:
+            ap.error(f"--plot {e}")
+
+
 def run_cli(input_path: str, output_path: str, args) -> int:
-    if args.sigma_uT <= 0 or args.guess <= 0 or args.running < 1:
-        print("ground.inertia: --sigma-uT and --guess must be > 0, --running >= 1", file=sys.stderr)
-        return 2
     try:
         rec = read_recording(input_path)
         b_inertial, truth, where = field_model(args.scenario, rec.metadata)
@@ -232,12 +263,16 @@ def run_cli(input_path: str, output_path: str, args) -> int:
         return 1
     report.truth_p = truth
     report.source = where
-    write_json(output_path, report.estimate, input=str(input_path), field_model=where)
-    print(summary(report))
-    print(f"wrote inertia: {output_path}")
-    if args.plot:
-        plot(args.plot, report)
-        print(f"wrote plot: {args.plot}")
+    try:
+        write_json(output_path, report.estimate, input=str(input_path), field_model=where)
+        print(summary(report))
+        print(f"wrote inertia: {output_path}")
+        if args.plot:
+            plot(args.plot, report)
+            print(f"wrote plot: {args.plot}")
+    except (OSError, ValueError) as e:
+        print(f"ground.inertia: {e}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -3,7 +3,9 @@
     python -m ground.keys new FILE [--force]     create a key (32 random bytes), file mode 0600
     python -m ground.keys fingerprint FILE       show the key's fingerprint (not the key)
 
-The key itself is never printed. The same file goes to the flight computer (`python -m fsw.main
+The key itself is never printed. A new key is created exclusively; `--force` replaces only a regular
+file (atomically), never a symbolic link, FIFO or device (`fsw.telemetry.signing.write_key`); reading
+never waits on a FIFO (`load_key`). The same file goes to the flight computer (`python -m fsw.main
 --key FILE`) and to the ground tools (`--key FILE`); README.md, "Security and faults", explains
 provisioning.
 """
@@ -13,6 +15,7 @@ import argparse
 import secrets
 import sys
 
+from fsw.argtypes import check_paths_or_exit
 from fsw.telemetry.signing import KEY_BYTES, KeyFileError, key_fingerprint, load_key, write_key
 
 
@@ -32,6 +35,8 @@ def main(argv: list[str] | None = None) -> int:
     f = sub.add_parser("fingerprint", help="print the fingerprint of a key file")
     f.add_argument("file")
     args = ap.parse_args(argv)
+    if args.action == "new":
+        check_paths_or_exit(ap, outputs={"": args.file})
     try:
         if args.action == "new":
             fp = new_key(args.file, overwrite=args.force)

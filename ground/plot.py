@@ -2,7 +2,30 @@
 Figures 9/12 show the same comparison against the gyro)."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+
+from fsw.files import atomic_file
+
+
+def check_plot_path(path) -> str:
+    """The image format of a plot path, from its suffix; ValueError when matplotlib cannot write it.
+    Tools call it at start, so that a fit is not lost to a typo in the plot's name."""
+    from matplotlib.figure import Figure
+
+    suffix = Path(path).suffix.lstrip(".").lower()
+    known = Figure().canvas.get_supported_filetypes()
+    if suffix not in known:
+        raise ValueError(f"{path}: cannot write a plot as {suffix or 'a file without a suffix'!r}; "
+                         f"give one of .{', .'.join(sorted(known))}")
+    return suffix
+
+
+def save_figure(fig, path, **kwargs) -> None:
+    """`fig.savefig` to `path` atomically (`fsw.files.atomic_file`), in the format of its suffix."""
+    with atomic_file(path, "wb") as f:
+        fig.savefig(f, format=check_plot_path(path), **kwargs)
 
 
 def plot_rates(path, t_s: np.ndarray, w_radps: np.ndarray, sigma_radps: np.ndarray | None = None,
@@ -30,5 +53,7 @@ def plot_rates(path, t_s: np.ndarray, w_radps: np.ndarray, sigma_radps: np.ndarr
     if title:
         axes[0].set_title(title, fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    try:
+        save_figure(fig, path, dpi=110)
+    finally:
+        plt.close(fig)

@@ -22,8 +22,9 @@ Reading rules (spec, "Rules"):
   rejected rather than read as something the author did not mean.
 
 Writing: time with the shortest text that reads back exactly, other values with 15 significant
-digits (unit conversions leave noise in the 16th–17th). Atomic (temporary file in the same folder,
-then `os.replace`): on any error nothing is written and an existing file is left as it was.
+digits (unit conversions leave noise in the 16th–17th). Atomic (`fsw.files.write_atomic`: a temporary
+file in the same folder, then `os.replace`): on any error nothing is written and an existing file is
+left as it was.
 """
 from __future__ import annotations
 
@@ -31,12 +32,13 @@ import csv
 import math
 import os
 import re
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Sequence
 
 import numpy as np
+
+from fsw.files import write_atomic
 
 PathLike = str | os.PathLike
 
@@ -512,26 +514,6 @@ class RateAppender(_Appender):
                                 np.rad2deg(np.asarray(sigma_radps, dtype=float))]))
 
 
-def _write_atomic(path: PathLike, lines: Iterable[str]) -> None:
-    """Write `lines` to `path` through a temporary file in the same folder and os.replace."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
-            for line in lines:
-                f.write(line)
-                f.write("\n")
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-
-
 def write_recording(path: PathLike, rec: Recording) -> None:
     """Write `rec` as recording format v1: metadata comments, header, one row per sample (µT, N·m,
     °/s). The moment columns are written when any moment is non-zero, the reference columns when
@@ -543,7 +525,7 @@ def write_recording(path: PathLike, rec: Recording) -> None:
         blocks.append((m, rec.m_Nm))
     if rec.w_ref_radps is not None:
         blocks.append((w, np.rad2deg(rec.w_ref_radps)))
-    _write_atomic(path, _table_lines(path, rec.metadata, blocks))
+    write_atomic(path, _table_lines(path, rec.metadata, blocks))
 
 
 def write_rate_estimates(path: PathLike, est: RateEstimates) -> None:
@@ -551,4 +533,4 @@ def write_rate_estimates(path: PathLike, est: RateEstimates) -> None:
     raises RecordingError, writing nothing, on infinite values, negative σ or non-increasing time."""
     t, w, s = _RATE_GROUPS
     blocks = [(t, est.t_s[:, None]), (w, np.rad2deg(est.w_radps)), (s, np.rad2deg(est.sigma_radps))]
-    _write_atomic(path, _table_lines(path, est.metadata, blocks))
+    write_atomic(path, _table_lines(path, est.metadata, blocks))

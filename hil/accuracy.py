@@ -60,7 +60,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fsw.argtypes import check_paths_or_exit, finite_float, int_range
 from fsw.estimation import field_motion as fm
+from fsw.files import write_atomic
 from fsw.estimation import kalman as kl
 from fsw.estimation import kotelnikov as ko
 from fsw.estimation import rate_formulas as rf
@@ -553,26 +555,27 @@ def real_markdown(rows: list[dict]) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m hil.accuracy", description=__doc__.splitlines()[0])
     ap.add_argument("--json", metavar="FILE", help="write every number (per row and method) as JSON")
-    ap.add_argument("--runs", type=int, default=3, help="Monte-Carlo runs per row (default 3)")
-    ap.add_argument("--seed", type=int, default=2024, help="base seed (default 2024)")
-    ap.add_argument("--record-samples", type=int, default=120, help="scored samples per run (default 120)")
-    ap.add_argument("--warmup-s", type=float, default=300.0, help="onboard filters' warm-up (default 300 s)")
-    ap.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
+    ap.add_argument("--runs", type=int_range(1), default=3, help="Monte-Carlo runs per row (default 3)")
+    ap.add_argument("--seed", type=int_range(0), default=2024, help="base seed (default 2024)")
+    ap.add_argument("--record-samples", type=int_range(3), default=120, help="scored samples per run (default 120)")
+    ap.add_argument("--warmup-s", type=finite_float(0), default=300.0, help="onboard filters' warm-up (default 300 s)")
+    ap.add_argument("--jobs", type=int_range(1, 256), default=1, help="worker processes (default 1)")
     ap.add_argument("--rows", default="", help="only rows whose key contains this text (e.g. 'undirected')")
     ap.add_argument("--methods", default="",
                     help="comma-separated subset of " + ",".join(METHODS) + " (boer always; default all)")
     ap.add_argument("--quick", action="store_true", help="two rows, one short run each (smoke test)")
     ap.add_argument("--real", metavar="DIR", help="instead: the table on the real recordings (*.csv) in DIR")
-    ap.add_argument("--max-s", type=float, default=None, help="with --real: only the first S seconds of each")
+    ap.add_argument("--max-s", type=finite_float(0, min_exclusive=True), default=None,
+                    help="with --real: only the first S seconds of each")
     args = ap.parse_args(argv)
+    check_paths_or_exit(ap, outputs={"--json": args.json})
     if args.real:
         from pathlib import Path
         rows = real_recordings(sorted(Path(args.real).glob("*.csv")), max_s=args.max_s)
         print()
         print(real_markdown(rows))
         if args.json:
-            with open(args.json, "w") as f:
-                json.dump(rows, f, indent=1, default=float)
+            write_atomic(args.json, json.dumps(rows, indent=1, default=float))
             print(f"wrote {args.json}")
         return 0
     rows = [r for r in all_rows() if args.rows in r.key]
@@ -598,8 +601,7 @@ def main(argv=None) -> int:
         held = sum(ok for _, ok, _ in items)
         print(f"{name}: {held}/{len(items)} rows")
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(bench, f, indent=1, default=float)
+        write_atomic(args.json, json.dumps(bench, indent=1, default=float))
         print(f"wrote {args.json}")
     return 0
 

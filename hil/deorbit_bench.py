@@ -23,15 +23,19 @@ import math
 import sys
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 
+from fsw.argtypes import check_paths_or_exit, finite_float
 from fsw.deorbit.controller import ControllerConfig, euler_zyx
 from fsw.deorbit.energy import PAPER_CAPSULES_J, PAPER_MAGNETS_J, PAPER_OPENINGS, PAPER_TOTAL_J, PAPER_TURNS
 from fsw.deorbit.kit import DeorbitKit
 from fsw.scheduler import Scheduler, Task
+from fsw.files import write_atomic
 from fsw.telemetry.dialect import mavlink
+from ground.plot import check_plot_path, save_figure
 
 from . import scenario as scenarios
 from .deorbit_sim import DeorbitSimulator, build_kit, controller_config
@@ -291,16 +295,20 @@ def plot(r: BenchResult, path: str) -> None:
                  f"{d['magnet_turns']['total']} turns, {d['energy_J']['total']:.0f} J "
                  f"(paper: 45, 60, 1755 J); attitude from simulation truth", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    try:
+        save_figure(fig, path, dpi=110)
+    finally:
+        plt.close(fig)
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m hil.deorbit_bench", description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default=DEFAULT_SCENARIO, metavar="NAME|FILE")
-    ap.add_argument("--duration", type=float, default=None, metavar="S", help="default: the scenario's (10,800 s)")
-    ap.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="loop rate (default 10 Hz)")
-    ap.add_argument("--arg-lat0", type=float, default=None, metavar="DEG",
+    ap.add_argument("--duration", type=finite_float(0, min_exclusive=True), default=None, metavar="S",
+                    help="default: the scenario's (10,800 s)")
+    ap.add_argument("--rate", type=finite_float(1, 100), default=10.0, metavar="HZ",
+                    help="loop rate, 1 to 100 Hz (default 10 Hz)")
+    ap.add_argument("--arg-lat0", type=finite_float(), default=None, metavar="DEG",
                     help="argument of latitude at t = 0 (default: the scenario's, 0°): start elsewhere on the orbit")
     ap.add_argument("--law", choices=("mpc", "paper"), default="mpc",
                     help="what produces M_theor: the receding-horizon choice (default) or the PD law")
@@ -309,8 +317,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", metavar="FILE", help="write the numbers as JSON")
     ap.add_argument("--plot", metavar="FILE.png", help="write the figure")
     args = ap.parse_args(argv)
-    if not 1.0 <= args.rate <= 100.0:
-        ap.error("--rate must be in [1, 100] Hz")
+    scenario_file = args.scenario if Path(args.scenario).is_file() else None
+    check_paths_or_exit(ap, inputs={"--scenario": scenario_file}, outputs={"--json": args.json, "--plot": args.plot})
+    if args.plot:
+        try:
+            check_plot_path(args.plot)
+        except ValueError as e:
+            ap.error(f"--plot {e}")
     try:
         faults = [Fault.parse(f) for f in args.fault]
         r = run_bench(args.scenario, duration_s=args.duration, rate_hz=args.rate, law=args.law, faults=faults,
@@ -320,8 +333,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     print(report(r))
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(r.as_dict(), fh, indent=2, default=float)
+        write_atomic(args.json, json.dumps(r.as_dict(), indent=2, default=float))
         print(f"wrote {args.json}")
     if args.plot:
         plot(r, args.plot)

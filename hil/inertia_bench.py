@@ -46,8 +46,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fsw.argtypes import check_paths_or_exit, finite_float, int_range
 from fsw.estimation import euler_fit as ef
 from fsw.estimation import inertia as inr
+from fsw.files import write_atomic
 from fsw.main import BANDWIDTH
 
 from . import scenario as scenarios
@@ -516,8 +518,8 @@ def crb_lines(table_: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m hil.inertia_bench", description=__doc__.splitlines()[0])
     ap.add_argument("--json", metavar="FILE", help="write all the numbers as JSON")
-    ap.add_argument("--runs", type=int, default=20, help="Monte-Carlo runs per scenario (default 20)")
-    ap.add_argument("--seed", type=int, default=1, help="seed of the noise draws (default 1)")
+    ap.add_argument("--runs", type=int_range(2), default=20, help="Monte-Carlo runs per scenario (default 20)")
+    ap.add_argument("--seed", type=int_range(0), default=1, help="seed of the noise draws (default 1)")
     ap.add_argument("--duration", default="auto", metavar="S|auto",
                     help="record length in seconds, or auto (default): per scenario the shortest of "
                          f"{', '.join(f'{d:g}' for d in RECORD_LADDER_S)} s whose Cramér–Rao bound on the shape "
@@ -532,29 +534,34 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--crb", metavar="S,S,...",
                     help="only print the Cramér–Rao bound of the shape ratios for these record lengths [s]")
     args = ap.parse_args(argv)
+    check_paths_or_exit(ap, outputs={"--json": args.json})
     names = [s.strip() for s in args.scenarios.split(",") if s.strip()]
+    try:
+        for name in names:
+            scenarios.load(name)
+    except scenarios.ScenarioError as e:
+        ap.error(f"--scenarios: {e}")
     if args.crb:
         try:
-            tab = crb_table(names, [float(x) for x in args.crb.split(",")])
-        except (ValueError, scenarios.ScenarioError) as e:
+            lengths = [finite_float(0, min_exclusive=True)(x) for x in args.crb.split(",")]
+        except argparse.ArgumentTypeError as e:
+            ap.error(f"--crb: {e}")
+        try:
+            tab = crb_table(names, lengths)
+        except ValueError as e:
             print(f"hil.inertia_bench: {e}", file=sys.stderr)
             return 2
         print(crb_lines(tab))
         if args.json:
-            with open(args.json, "w") as f:
-                json.dump({"crb": tab}, f, indent=1)
+            write_atomic(args.json, json.dumps({"crb": tab}, indent=1))
         return 0
     if args.quick:
         args.runs, args.duration = 3, "900"
     if args.duration != "auto":
         try:
-            fixed = float(args.duration)
-        except ValueError:
-            ap.error("--duration must be a number of seconds or auto")
-        if not fixed >= 120:
-            ap.error("--duration must be >= 120 s")
-    if args.runs < 2:
-        ap.error("--runs must be >= 2")
+            fixed = finite_float(120)(args.duration)
+        except argparse.ArgumentTypeError as e:
+            ap.error(f"--duration (seconds or auto): {e}")
     results = []
     try:
         for name in names:
@@ -584,8 +591,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     print(targets(results))
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump({"results": results}, f, indent=1, default=float)
+        write_atomic(args.json, json.dumps({"results": results}, indent=1, default=float))
         print(f"wrote {args.json}")
     return 0
 

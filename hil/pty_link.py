@@ -191,15 +191,20 @@ def main(argv: list[str] | None = None) -> int:
     import sys
     import time
 
+    from fsw.argtypes import finite_float, int_range
+
     from .scenario import ScenarioError, load
     from .sim import Simulator
 
     ap = argparse.ArgumentParser(prog="python -m hil.pty_link", description=main.__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="isoi", metavar="NAME|FILE", help="scenario (default isoi)")
-    ap.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    ap.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
-    ap.add_argument("--corrupt-rate", type=float, default=0.0, help="probability a response is corrupted")
-    ap.add_argument("--drop-rate", type=float, default=0.0, help="probability a response is dropped")
+    ap.add_argument("--seed", type=int_range(0), default=0, help="random seed (default 0)")
+    ap.add_argument("--duration", type=finite_float(0, min_exclusive=True), default=None, metavar="S",
+                    help="stop after S seconds")
+    ap.add_argument("--corrupt-rate", type=finite_float(0, 1), default=0.0,
+                    help="probability a response is corrupted (0 to 1)")
+    ap.add_argument("--drop-rate", type=finite_float(0, 1), default=0.0,
+                    help="probability a response is dropped (0 to 1)")
     ap.add_argument("--quiet", action="store_true", help="print only the pty path")
     args = ap.parse_args(argv)
     try:

@@ -2,7 +2,9 @@
 
 A scenario is named (`isoi`, `aist2d`, `amds`: the files in `hil/scenarios/`) or given as a path.
 Units are in the key names; values are converted to SI when loaded. Unknown keys are an error, so a
-typo never silently falls back to a default.
+typo never silently falls back to a default; so is a value of the wrong kind: a number written as a
+string (``"10"``), a boolean where a number belongs, a scalar where a table or an array of tables is
+expected. Every error is a :class:`ScenarioError` naming the file and the key.
 
 ```toml
 name = "isoi"
@@ -128,12 +130,40 @@ def resolve(name_or_path: str) -> Path:
     return p
 
 
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _numbers(v, shape: tuple) -> np.ndarray | None:
+    """`v` as a float array of `shape` if it is nested lists of finite numbers (not strings, not
+    booleans) of that shape; None otherwise."""
+    def flat(x):
+        if isinstance(x, list):
+            for y in x:
+                yield from flat(y)
+        else:
+            yield x
+
+    if shape and not isinstance(v, list):
+        return None
+    items = list(flat(v)) if shape else [v]
+    if not all(map(_is_number, items)):
+        return None
+    try:
+        a = np.array(v, dtype=float)
+    except (TypeError, ValueError):  # ragged
+        return None
+    return a if a.shape == shape and np.all(np.isfinite(a)) else None
+
+
 def load(name_or_path: str = DEFAULT_SCENARIO) -> Scenario:
     path = resolve(name_or_path)
     try:
         doc = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as e:
         raise ScenarioError(f"{path}: not valid TOML: {e}") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise ScenarioError(f"{path}: cannot read: {getattr(e, 'strerror', None) or e}") from None
 
     def fail(key: str, why: str):
         raise ScenarioError(f"{path}: {key}: {why}")
@@ -141,11 +171,16 @@ def load(name_or_path: str = DEFAULT_SCENARIO) -> Scenario:
     for key in doc:
         if key not in _TOP:
             fail(key, f"unknown key (expected one of {sorted(_TOP)})")
+    for key in ("name", "description", "source"):
+        if key in doc and not isinstance(doc[key], str):
+            fail(key, f"expected a string, got {type(doc[key]).__name__}")
     sec: dict[str, dict] = {}
     for name, keys in _SCHEMA.items():
         table = doc.get(name)
-        if not isinstance(table, dict):
+        if table is None:
             fail(f"[{name}]", "missing table")
+        if not isinstance(table, dict):
+            fail(f"[{name}]", f"must be a table, got {type(table).__name__}")
         for k in table:
             if k not in keys:
                 fail(f"{name}.{k}", f"unknown key (expected {sorted(keys)})")
@@ -162,12 +197,9 @@ def load(name_or_path: str = DEFAULT_SCENARIO) -> Scenario:
         sec[name] = table
 
     def vec(name: str, k: str, shape: tuple) -> np.ndarray:
-        try:
-            a = np.array(sec[name][k], dtype=float)
-        except (TypeError, ValueError):
-            fail(f"{name}.{k}", "must be numbers")
-        if a.shape != shape or not np.all(np.isfinite(a)):
-            fail(f"{name}.{k}", f"expected finite numbers of shape {shape}, got shape {a.shape}")
+        a = _numbers(sec[name][k], shape)
+        if a is None:
+            fail(f"{name}.{k}", f"expected finite numbers (not strings) of shape {shape}, got {sec[name][k]!r}")
         return a
 
     J = vec("body", "inertia_kgm2", (3, 3))
@@ -195,13 +227,19 @@ def load(name_or_path: str = DEFAULT_SCENARIO) -> Scenario:
         fail("field.model", f"must be one of {_FIELD_MODELS}")
 
     pulses = []
-    for i, p in enumerate(doc.get("torque", [])):
+    torques = doc.get("torque", [])
+    if not isinstance(torques, list):
+        fail("torque", f"must be an array of tables ([[torque]] sections), got {type(torques).__name__}")
+    for i, p in enumerate(torques):
         where = f"torque[{i}]"
         if not isinstance(p, dict) or set(p) != {"start_s", "duration_s", "moment_Nm"}:
             fail(where, "needs exactly start_s, duration_s, moment_Nm")
-        m = np.array(p["moment_Nm"], dtype=float)
-        if m.shape != (3,) or not np.all(np.isfinite(m)):
-            fail(f"{where}.moment_Nm", "expected 3 finite numbers")
+        m = _numbers(p["moment_Nm"], (3,))
+        if m is None:
+            fail(f"{where}.moment_Nm", f"expected 3 finite numbers (not strings), got {p['moment_Nm']!r}")
+        for k in ("start_s", "duration_s"):
+            if _numbers(p[k], ()) is None:
+                fail(f"{where}.{k}", f"expected a finite number (not a string), got {p[k]!r}")
         if not (p["duration_s"] > 0 and p["start_s"] >= 0):
             fail(where, "start_s must be >= 0 and duration_s > 0")
         pulses.append(TorquePulse(float(p["start_s"]), float(p["duration_s"]), m))
@@ -216,12 +254,10 @@ def load(name_or_path: str = DEFAULT_SCENARIO) -> Scenario:
             if k not in DeorbitSpec.__dataclass_fields__:
                 fail(f"deorbit.{k}", f"unknown key (expected {sorted(DeorbitSpec.__dataclass_fields__)})")
             vector = isinstance(getattr(DeorbitSpec, k), tuple)
-            try:
-                a = np.array(v, dtype=float)
-            except (TypeError, ValueError):
-                fail(f"deorbit.{k}", "must be numbers")
-            if a.shape != ((3,) if vector else ()) or not np.all(np.isfinite(a)):
-                fail(f"deorbit.{k}", "expected 3 finite numbers" if vector else "expected a finite number")
+            a = _numbers(v, (3,) if vector else ())
+            if a is None:
+                fail(f"deorbit.{k}", ("expected 3 finite numbers" if vector else "expected a finite number")
+                     + f" (not strings), got {v!r}")
             kw[k] = tuple(float(x) for x in a) if vector else float(a)
         deorbit = DeorbitSpec(**kw)
         for k in ("sail_area_m2", "drag_coefficient", "density_kgm3", "density_scale_height_km",

@@ -37,15 +37,17 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
 import time
 from collections import Counter
 from dataclasses import dataclass, field
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 
+from fsw.argtypes import check_paths_or_exit, finite_float, int_range
+from fsw.files import write_atomic
 from fsw.flight import FlightSoftware
 from fsw.telemetry.dialect import FSW_COMPID, FSW_SYSID, mavlink
 from fsw.telemetry.framing import Deframer
@@ -55,6 +57,7 @@ from fsw.telemetry.telemetry import Telemetry, usec
 from ground.command import GroundLink
 from ground.decode import Decoder
 
+from . import scenario as scenarios
 from .faults import ALL_KINDS, LINK_KINDS, GROUND_ADDR, FaultInjector, FaultyDatagramLink, make_schedule
 from .link_attacks import FLOOD_PROBE, Flooder, Spoofer
 
@@ -503,24 +506,27 @@ def report(fig: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m hil.soak", description=__doc__.splitlines()[0])
-    ap.add_argument("--duration", type=float, default=3600.0, metavar="S",
-                    help="simulated seconds (default 3600; at least 300 for a meaningful schedule)")
+    ap.add_argument("--duration", type=finite_float(120), default=3600.0, metavar="S",
+                    help="simulated seconds, >= 120: faults start at 30 s and the last minute is quiet "
+                         "(default 3600; at least 300 for a meaningful schedule)")
     ap.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
-    ap.add_argument("--seed", type=int, default=1, help="seed of faults, link, simulator (default 1)")
+    ap.add_argument("--seed", type=int_range(0), default=1, help="seed of faults, link, simulator (default 1)")
     ap.add_argument("--scenario", default="isoi", help="SITL scenario (default isoi)")
-    ap.add_argument("--rate", type=float, default=50.0, metavar="HZ", help="loop rate (default 50)")
+    ap.add_argument("--rate", type=finite_float(0, 1000, min_exclusive=True), default=50.0, metavar="HZ",
+                    help="loop rate (default 50)")
     ap.add_argument("--quiet", action="store_true", help="no progress lines")
     args = ap.parse_args(argv)
-    if args.duration < 120:
-        ap.error("--duration must be >= 120 s (faults start at 30 s and the last minute is quiet)")
+    scenario_file = args.scenario if Path(args.scenario).is_file() else None
+    check_paths_or_exit(ap, inputs={"--scenario": scenario_file}, outputs={"--json": args.json})
+    try:
+        scenarios.load(args.scenario)
+    except scenarios.ScenarioError as e:
+        ap.error(f"--scenario: {e}")
     fig = run(args.duration, seed=args.seed, scenario=args.scenario, rate_hz=args.rate,
               progress=None if args.quiet else (lambda s: print(s, file=sys.stderr, flush=True)))
     print(report(fig))
     if args.json:
-        tmp = f"{args.json}.tmp"
-        with open(tmp, "w", encoding="utf-8") as f:
-            json.dump(fig, f, indent=1)
-        os.replace(tmp, args.json)  # never a half-written file
+        write_atomic(args.json, json.dumps(fig, indent=1))  # never a half-written file
         print(f"wrote {args.json}")
     ok = fig["attacks_obeyed"] == 0 and fig["samples_lost"] == 0 and \
         sum(fig["faults_survived"].values()) == sum(fig["faults_injected"].values()) and \

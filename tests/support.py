@@ -21,3 +21,11 @@ class NullLink:
 
     def write(self, b):
         self.bytes += len(b)
+
+
+def exit_status(main, argv) -> int:
+    """A tool's exit status from its `main(argv)`, whether it returns it or argparse exits with it."""
+    try:
+        return main(argv)
+    except SystemExit as e:
+        return e.code if isinstance(e.code, int) else 1

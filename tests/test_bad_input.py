@@ -45,25 +45,113 @@ def test_a_good_tlog_decodes(tmp_path, capsys):
     rc, err, outs = decode_cli(tmp_path, good_tlog(), capsys)
     assert rc == 0 and err == "" and len(outs) == 3
     assert len(read_recording(tmp_path / "out.csv")) == 30
-    assert check_tlog(tmp_path / "copy.tlog") == 30
+    report = check_tlog(tmp_path / "copy.tlog")
+    assert report.records == 30 and not report.damaged
 
 
-@pytest.mark.parametrize("name, mutate, where, reason", [
-    ("truncated frame", lambda d: d[:-5], "record 30 (byte", "truncated frame"),
-    ("truncated time stamp", lambda d: d + b"\x00\x01\x02", "record 31 (byte", "truncated: 3 bytes left"),
-    ("time stamp without frame", lambda d: d + struct.pack(">Q", int((WALL0 + 9) * 1e6)), "record 31",
-     "without a frame"),
-    ("time goes back", lambda d: d[RECORD:2 * RECORD] + d[:RECORD] + d[2 * RECORD:], "record 2 (byte",
-     "time goes back"),
-    ("not a tlog", lambda d: b"t_s,bx_uT,by_uT,bz_uT\n0,1,2,3\n", "record 1 (byte 0)", "not a tlog"),
-    ("trailing noise", lambda d: d + struct.pack(">Q", int((WALL0 + 9) * 1e6)) + b"\x11" * 40, "record 31",
-     "no record follows"),
-    ("empty", lambda d: b"", "in.tlog", "empty file"),
+def junk(n, seed=1) -> bytes:
+    """`n` bytes of seeded noise without a start byte (so that no frame can begin inside them)."""
+    rng = np.random.default_rng(seed)
+    return bytes(int(x) for x in rng.integers(0, 0xFD, n))
+
+
+def flip_length(d: bytes, k: int, new_len: int) -> bytes:
+    """Record k (0-based) with its frame's length byte set to `new_len`."""
+    b = bytearray(d)
+    b[k * RECORD + 8 + 1] = new_len
+    return bytes(b)
+
+
+def swap(d: bytes, k: int) -> bytes:
+    """Records k and k + 1 exchanged: the time stamp goes back once."""
+    return d[:k * RECORD] + d[(k + 1) * RECORD:(k + 2) * RECORD] + d[k * RECORD:(k + 1) * RECORD] + d[(k + 2) * RECORD:]
+
+
+STAMP = struct.pack(">Q", int((WALL0 + 9) * 1e6))
+
+
+def all_at_once(d: bytes) -> bytes:
+    """57 junk bytes first, records 3 and 4 swapped, 20 junk bytes before record 12, record 20's length
+    damaged, the last record cut by 7 bytes."""
+    d = flip_length(swap(d, 3), 20, 9)
+    return junk(57) + d[:12 * RECORD] + junk(20, 2) + d[12 * RECORD:-7]
+
+
+# (name, damage, records kept = samples in the CSV, report counts: junk, damaged, cut bytes, time back)
+@pytest.mark.parametrize("name, mutate, kept, counts", [
+    ("cut last frame", lambda d: d[:-5], 29, dict(cut_bytes=RECORD - 5)),
+    ("cut time stamp", lambda d: d + b"\x00\x01\x02", 30, dict(cut_bytes=3)),
+    ("time stamp without frame", lambda d: d + STAMP, 30, dict(cut_bytes=8)),
+    ("57 junk bytes inside", lambda d: d[:5 * RECORD] + junk(57) + d[5 * RECORD:], 30, dict(junk_bytes=57)),
+    ("57 junk bytes first", lambda d: junk(57) + d, 30, dict(junk_bytes=57)),
+    ("length byte too large", lambda d: flip_length(d, 10, 200), 29, dict(damaged_records=1)),
+    ("length byte too small", lambda d: flip_length(d, 10, 3), 29, dict(damaged_records=1)),
+    ("length byte past the end", lambda d: flip_length(d, 28, 255), 29, dict(damaged_records=1)),
+    ("two time stamps out of order", lambda d: swap(d, 0), 30, dict(time_back=1)),
+    ("all at once", lambda d: all_at_once(d), 28, dict(junk_bytes=77, damaged_records=1, cut_bytes=RECORD - 7,
+                                                     time_back=1)),
 ])
-def test_a_damaged_tlog_is_refused_with_its_place_and_no_output(tmp_path, capsys, name, mutate, where, reason):
-    rc, err, outs = decode_cli(tmp_path, mutate(good_tlog()), capsys)
+def test_a_damaged_tlog_keeps_every_intact_record_and_reports_the_rest(tmp_path, capsys, name, mutate, kept, counts):
+    data = mutate(good_tlog())
+    src = tmp_path / "in.tlog"
+    src.write_bytes(data)
+    report = check_tlog(src)
+    assert report.records == kept and report.damaged
+    for what in ("junk_bytes", "damaged_records", "cut_bytes", "time_back"):
+        assert getattr(report, what) == counts.get(what, 0), what
+    if "damaged_records" in counts:
+        assert report.damaged_bytes > 0
+    rc, err, outs = decode_cli(tmp_path, data, capsys)
+    assert rc == 0 and len(outs) == 3 and src.read_bytes() == data
+    assert len(read_recording(tmp_path / "out.csv")) == kept
+    assert check_tlog(tmp_path / "copy.tlog").records == kept      # the copy holds the intact frames only
+
+
+def test_any_one_flipped_bit_of_a_length_byte_loses_that_record_only(tmp_path):
+    d = good_tlog()
+    path = tmp_path / "flipped.tlog"
+    for k in range(30):
+        for bit in range(8):
+            b = bytearray(d)
+            b[k * RECORD + 8 + 1] ^= 1 << bit
+            path.write_bytes(bytes(b))
+            report = check_tlog(path)
+            assert report.records == 29 and report.damaged_records + bool(report.cut_bytes) == 1, (k, bit)
+
+
+def test_the_report_says_where_and_that_records_follow(tmp_path, capsys):
+    """The issue's case: junk early in a long file was reported as "no record follows" although
+    hundreds did, and the whole file was refused."""
+    d = good_tlog(320)
+    data = d[:2 * RECORD] + junk(57) + d[2 * RECORD:]
+    rc, err, outs = decode_cli(tmp_path, data, capsys)
+    assert rc == 0 and len(read_recording(tmp_path / "out.csv")) == 320
+    report = check_tlog(tmp_path / "in.tlog")
+    assert report.records == 320
+    assert report.events == [f"byte {2 * RECORD}: 57 bytes in no record"]
+    assert "320 records kept; 57 bytes in no record (1 run) skipped" in report.text()
+
+
+def test_the_damage_is_reported_in_the_summary(tmp_path, capsys):
+    src = tmp_path / "in.tlog"
+    src.write_bytes(good_tlog() + STAMP)
+    assert decode.main([str(src), "--quiet", "--csv", str(tmp_path / "o.csv")]) == 0
+    out = capsys.readouterr().out
+    line = next(x for x in out.splitlines() if x.startswith("damaged tlog:"))
+    assert "30 records kept" in line and "cut short" in line and f"byte {30 * RECORD}" in line
+
+
+@pytest.mark.parametrize("name, data, reason", [
+    ("not a tlog", b"t_s,bx_uT,by_uT,bz_uT\n0,1,2,3\n", "not a tlog: no record found"),
+    ("only junk", junk(500), "not a tlog: no record found"),
+    ("empty", b"", "empty file"),
+], ids=["not a tlog", "only junk", "empty"])
+def test_a_file_with_nothing_intact_is_refused_and_nothing_written(tmp_path, capsys, name, data, reason):
+    rc, err, outs = decode_cli(tmp_path, data, capsys)
     assert rc == 1 and outs == []
-    assert "in.tlog" in err and where in err and reason in err
+    assert "in.tlog" in err and reason in err and len(err.strip().splitlines()) == 1
+    with pytest.raises(TlogError, match=reason):
+        check_tlog(tmp_path / "in.tlog")
 
 
 def test_line_noise_recorded_inside_a_tlog_is_data_not_damage(tmp_path):
@@ -71,9 +159,17 @@ def test_line_noise_recorded_inside_a_tlog_is_data_not_damage(tmp_path):
     noisy = d[:RECORD] + struct.pack(">Q", int((WALL0 + 0.05) * 1e6)) + bytes(range(1, 30)) + d[RECORD:]
     path = tmp_path / "noisy.tlog"
     path.write_bytes(noisy)
-    assert check_tlog(path) == 31
+    report = check_tlog(path)
+    assert report.records == 31 and report.noise_records == 1 and not report.damaged
     dec = decode.run(str(path), quiet=True)
     assert len(dec.recording()) == 30 and dec.stats.garbage_bytes > 0
+
+
+def test_trailing_noise_after_a_time_stamp_is_a_noise_record(tmp_path):
+    path = tmp_path / "t.tlog"
+    path.write_bytes(good_tlog() + STAMP + b"\x11" * 40)
+    report = check_tlog(path)
+    assert report.records == 31 and report.noise_records == 1 and not report.damaged
 
 
 @settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])

@@ -9,6 +9,7 @@ from fsw.estimation import euler_fit as ef
 from ground import inertia as gi
 from ground.recording import Recording, write_recording
 from hil.inertia_bench import truth_record
+from support import exit_status
 
 TRUTH = np.array([175.0, 200.0, 285.0, 0.0, 0.0, 0.0])
 
@@ -79,7 +80,7 @@ def test_errors_are_reported_not_raised(recording_csv, tmp_path, capsys):
     rec = Recording(t_s=np.arange(50.0), b_T=np.tile([2e-5, 1e-5, 3e-5], (50, 1)))
     with pytest.raises(ValueError, match="up to scale"):
         gi.run(rec, lambda t: np.tile([2e-5, 1e-5, 3e-5], (len(t), 1)))
-    assert gi.main([str(recording_csv), str(tmp_path / "y.json"), "--sigma-uT", "0"]) == 2
+    assert exit_status(gi.main, [str(recording_csv), str(tmp_path / "y.json"), "--sigma-uT", "0"]) == 2
 
 
 def test_sampled_moment_hold():

@@ -53,3 +53,41 @@ def test_bad_scenarios_rejected_with_the_key_named(tmp_path, edit, message):
 def test_unknown_name_lists_the_shipped_ones():
     with pytest.raises(scenario.ScenarioError, match="isoi"):
         scenario.load("no-such-scenario")
+
+
+ORBIT = "[orbit]\naltitude_km = 485.0\ninclination_deg = 97.5\nraan_deg = 40.0\narg_lat0_deg = 0.0\n"
+TORQUE = '\n[[torque]]\nstart_s = 10.0\nduration_s = 5.0\nmoment_Nm = [0.2, 0.0, 0.0]\n'
+
+
+@pytest.mark.parametrize("text, key, words", [
+    pytest.param(BASE + TORQUE.replace("start_s = 10.0", 'start_s = "10"'), "torque[0].start_s", "not a string",
+                 id="time as a string"),
+    pytest.param(BASE + TORQUE.replace("duration_s = 5.0", "duration_s = true"), "torque[0].duration_s",
+                 "finite number", id="time as a boolean"),
+    pytest.param(BASE + TORQUE.replace("[0.2, 0.0, 0.0]", '["0.2", 0.0, 0.0]'), "torque[0].moment_Nm",
+                 "3 finite numbers", id="moment as strings"),
+    pytest.param("torque = 5\n" + BASE, "torque", "array of tables", id="torque a scalar"),
+    pytest.param(BASE + "\n[torque]\nstart_s = 1.0\nduration_s = 1.0\nmoment_Nm = [1.0, 0.0, 0.0]\n", "torque",
+                 "array of tables", id="torque a single table"),
+    pytest.param(BASE.replace("omega_dps = [6.0, -5.0, 6.5]", 'omega_dps = ["6.0", -5.0, 6.5]'), "initial.omega_dps",
+                 "not strings", id="vector with a string"),
+    pytest.param(BASE.replace("omega_dps = [6.0, -5.0, 6.5]", "omega_dps = [true, -5.0, 6.5]"), "initial.omega_dps",
+                 "not strings", id="vector with a boolean"),
+    pytest.param(BASE.replace("omega_dps = [6.0, -5.0, 6.5]", "omega_dps = 6.0"), "initial.omega_dps",
+                 "expected list", id="vector a scalar"),
+    pytest.param(BASE + '\n[deorbit]\nsail_area_m2 = "5"\n', "deorbit.sail_area_m2", "not strings",
+                 id="deorbit number as a string"),
+    pytest.param(BASE + '\n[deorbit]\ninitial_ypr_deg = [60, "45", 0]\n', "deorbit.initial_ypr_deg", "not strings",
+                 id="deorbit vector with a string"),
+    pytest.param("deorbit = 3\n" + BASE, "[deorbit]", "must be a table", id="deorbit a scalar"),
+    pytest.param("orbit = 485.0\n" + BASE.replace(ORBIT, ""), "[orbit]", "must be a table", id="orbit a scalar"),
+    pytest.param('name = 5\n' + BASE.replace('name = "isoi"', ""), "name", "expected a string", id="name a number"),
+])
+def test_wrong_kinds_of_values_are_refused_with_the_key_named(tmp_path, text, key, words):
+    """A number written as a string was read as a number (or raised a TypeError); a scalar where a
+    table belongs raised a TypeError."""
+    p = tmp_path / "bad.toml"
+    p.write_text(text)
+    with pytest.raises(scenario.ScenarioError) as e:
+        scenario.load(str(p))
+    assert f"{p}: {key}: " in str(e.value) and words in str(e.value)

@@ -21,11 +21,13 @@ station with a wrong clock would otherwise move the box's clock forward and make
 look replayed), when that clock is known to be set.
 
 Keys: 32 bytes, stored as 64 hexadecimal characters and a newline in a file of mode 0600, created by
-``python -m ground.keys new FILE``. :func:`load_key` refuses a file that others can read.
+``python -m ground.keys new FILE``. :func:`load_key` refuses a file that others can read, that is not a
+regular file, or whose key is all one byte (all zero: a placeholder anyone could sign with).
 """
 from __future__ import annotations
 
 import enum
+import errno
 import hashlib
 import hmac
 import os
@@ -35,6 +37,8 @@ from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
+
+from ..files import write_atomic
 
 KEY_BYTES = 32
 SIGNATURE_BLOCK = 13
@@ -59,33 +63,69 @@ def key_fingerprint(key: bytes) -> str:
     return hashlib.sha256(b"debris-box key fingerprint" + key).hexdigest()[:8]
 
 
+#: a key file is 64 hex digits and a newline; anything much longer is not one
+KEY_FILE_MAX_BYTES = 4096
+
+
+def check_key(key: bytes, where: str = "key") -> None:
+    """Refuse (KeyFileError) a key of the wrong size or with all bytes equal (all zero: an empty or
+    placeholder key, which anyone could sign with)."""
+    if len(key) != KEY_BYTES:
+        raise KeyFileError(f"{where}: key has {len(key)} bytes, expected {KEY_BYTES}")
+    if len(set(key)) == 1:
+        raise KeyFileError(f"{where}: all {KEY_BYTES} bytes of the key are 0x{key[0]:02x}: not a secret; "
+                           "create a key with python -m ground.keys new FILE")
+
+
 def load_key(path: str | os.PathLike) -> bytes:
-    """Read a key file written by `ground.keys`: 64 hex digits; the file must not be accessible to
-    group or others (like ssh's private keys)."""
+    """Read a key file written by `ground.keys`: 64 hex digits; the file must be a regular file (a FIFO
+    or device is refused, never waited on) not accessible to group or others (like ssh's private keys),
+    and the key not all one byte."""
     p = Path(path)
     try:
-        st = p.stat()
-        text = p.read_text(encoding="ascii")
-    except (OSError, UnicodeDecodeError) as e:
-        raise KeyFileError(f"{p}: cannot read key file: {getattr(e, 'strerror', None) or e}") from None
-    if stat.S_IMODE(st.st_mode) & 0o077:
-        raise KeyFileError(f"{p}: key file is accessible by others (mode {stat.S_IMODE(st.st_mode):04o}); "
-                        f"chmod 600 {p}")
+        fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    except OSError as e:
+        raise KeyFileError(f"{p}: cannot read key file: {e.strerror or e}") from None
     try:
-        key = bytes.fromhex(text.strip())
-    except ValueError:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise KeyFileError(f"{p}: not a regular file (a directory, FIFO or device): not a key file")
+        if stat.S_IMODE(st.st_mode) & 0o077:
+            raise KeyFileError(f"{p}: key file is accessible by others (mode {stat.S_IMODE(st.st_mode):04o}); "
+                               f"chmod 600 {p}")
+        raw = os.read(fd, KEY_FILE_MAX_BYTES + 1)
+    except OSError as e:
+        raise KeyFileError(f"{p}: cannot read key file: {e.strerror or e}") from None
+    finally:
+        os.close(fd)
+    try:
+        key = bytes.fromhex(raw.decode("ascii").strip())
+    except (UnicodeDecodeError, ValueError):
         raise KeyFileError(f"{p}: not a key file (expected {2 * KEY_BYTES} hex digits)") from None
-    if len(key) != KEY_BYTES:
-        raise KeyFileError(f"{p}: key has {len(key)} bytes, expected {KEY_BYTES}")
+    check_key(key, str(p))
     return key
 
 
 def write_key(path: str | os.PathLike, key: bytes, *, overwrite: bool = False) -> None:
-    """Create a key file of mode 0600 (never world-readable, not even for a moment)."""
-    if len(key) != KEY_BYTES:
-        raise KeyFileError(f"key must have {KEY_BYTES} bytes")
-    flags = os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if overwrite else os.O_EXCL)
-    fd = os.open(path, flags, 0o600)
+    """Create a key file of mode 0600 (never world-readable, not even for a moment). An existing file
+    is replaced only with `overwrite`, and only if it is a regular file: a symbolic link, FIFO or
+    device there is refused (never written through, never waited on). Raises FileExistsError when
+    the file exists and `overwrite` is not given."""
+    check_key(key, str(path))
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        st = None
+    if st is not None:
+        if stat.S_ISLNK(st.st_mode):
+            raise KeyFileError(f"{path}: is a symbolic link: a key is not written through it (give the file itself)")
+        if not stat.S_ISREG(st.st_mode):
+            raise KeyFileError(f"{path}: is not a regular file (a directory, FIFO or device)")
+        if not overwrite:
+            raise FileExistsError(errno.EEXIST, "file exists", str(path))
+        write_atomic(path, key.hex() + "\n", permissions=0o600)
+        return
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o600)
     try:
         os.fchmod(fd, 0o600)
         os.write(fd, key.hex().encode("ascii") + b"\n")
