@@ -28,6 +28,7 @@ from datetime import datetime
 
 import numpy as np
 
+from fsw.estimation import field_check as fc
 from fsw.estimation import field_motion as fm
 from fsw.estimation import kalman as kl
 from fsw.estimation import kotelnikov as ko
@@ -129,6 +130,13 @@ def score(rec: Recording, w: np.ndarray, perpendicular_only: bool) -> dict:
     return out
 
 
+def warn_field(rec: Recording, source: str, field=None) -> None:
+    """Refuse a field that cannot be µT (FieldMagnitudeError, a ValueError naming the file); print the
+    warnings of `fsw.estimation.field_check` (|B| outside the Earth's, or far from the orbit's model)."""
+    for w in fc.check_recording(rec.b_T, str(source), rec.t_s, rec.metadata, field=field):
+        print(f"ground.estimate: warning: {w}", file=sys.stderr)
+
+
 def field_from_args(args):
     if args.scenario:
         from hil import scenario as scenarios
@@ -186,6 +194,7 @@ def main(argv=None) -> int:
         if args.decimate_hz:
             rec = decimate(rec, args.decimate_hz)
         field = field_from_args(args)
+        warn_field(rec, args.input, field)
         inertia = None
         if args.known_inertia:
             vals = [float(v) for v in args.known_inertia.split(",")]

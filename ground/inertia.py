@@ -35,6 +35,7 @@ from typing import Callable
 import numpy as np
 
 from fsw.estimation import euler_fit as ef
+from fsw.estimation import field_check as fc
 from fsw.estimation import inertia as inr
 from fsw.estimation import sampled_moment as sm
 
@@ -253,6 +254,8 @@ def run_cli(input_path: str, output_path: str, args) -> int:
     try:
         rec = read_recording(input_path)
         b_inertial, truth, where = field_model(args.scenario, rec.metadata)
+        for w in fc.check_recording(rec.b_T, str(input_path), rec.t_s, field=b_inertial):
+            print(f"ground.inertia: warning: {w}", file=sys.stderr)
         report = run(rec, b_inertial, sigma_b_T=args.sigma_uT * 1e-6, mode="diag" if args.diag else "full",
                      guess_kgm2=args.guess, hold=args.hold, running_points=args.running if args.plot else 0,
                      log=None if args.quiet else (lambda m: print("  " + m, flush=True)))
