@@ -37,7 +37,7 @@ from typing import Callable
 import numpy as np
 
 from . import rate_kf
-from .rate_formulas import SIGMA_UNOBSERVED_RADPS, unobserved_sigma
+from .rate_formulas import FIELD_MIN_SIGMAS, SIGMA_UNOBSERVED_RADPS, unobserved_sigma
 
 UT_PER_T = 1e6
 #: Flags, same bit values as DEBRIS_ESTIMATE_FLAGS in the telemetry dialect.
@@ -644,6 +644,12 @@ class AttitudeRateKalman:
         missing ones take the defaults. Updates with the sample."""
         tun = self.tuning
         z = np.asarray(b_T, float) * UT_PER_T
+        if self.field is not None and np.linalg.norm(z) <= FIELD_MIN_SIGMAS * math.sqrt(self.R[0, 0]):
+            # no field, no direction to align the attitude with: wait for a sample that has one
+            self.omega_radps[:] = 0.0
+            self.sigma_radps[:] = SIGMA_UNOBSERVED_RADPS
+            self.flags = NO_ESTIMATE | DEGENERATE
+            return
         self.w = np.zeros(3) if omega_radps is None else np.array(omega_radps, float)
         self.p = np.zeros(self.n_p) if p is None else np.array(p, float)
         n = self.n
