@@ -253,6 +253,7 @@ def run_cli(input_path: str, output_path: str, args) -> int:
         return 2
     try:
         rec = read_recording(input_path)
+        fc.check(rec.b_T, str(input_path))             # units first: they matter more than a missing orbit
         b_inertial, truth, where = field_model(args.scenario, rec.metadata)
         for w in fc.check_recording(rec.b_T, str(input_path), rec.t_s, field=b_inertial):
             print(f"ground.inertia: warning: {w}", file=sys.stderr)

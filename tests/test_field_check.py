@@ -107,11 +107,12 @@ def test_milligauss_is_estimated_with_a_warning(tmp_path, capsys):
 def test_inertia_and_replay_refuse_it_too(tmp_path, capsys):
     from fsw.replay import RecordingReplay
     path = tmp_path / "nT.csv"
-    write_recording(path, tumble(scale=1e3, metadata=ORBIT))
-    assert gi.main([str(path), str(tmp_path / "i.json"), "--quiet"]) == 1
-    err = capsys.readouterr().err
-    assert err.startswith(f"ground.inertia: {path}: median |B|") and "nT" in err
-    assert not (tmp_path / "i.json").exists()
+    for metadata in (ORBIT, {}):                      # the units are named before a missing orbit
+        write_recording(path, tumble(scale=1e3, metadata=metadata))
+        assert gi.main([str(path), str(tmp_path / "i.json"), "--quiet"]) == 1
+        err = capsys.readouterr().err
+        assert err.startswith(f"ground.inertia: {path}: median |B|") and "nT" in err
+        assert not (tmp_path / "i.json").exists()
     with pytest.raises(fc.FieldMagnitudeError, match="look like nT"):
         RecordingReplay.from_csv(path)
     seen = []
