@@ -83,7 +83,7 @@ def test_the_attitude_filters_wait_for_a_field(kind):
     in a running filter that sample's σ is inf."""
     from fsw.estimation import field_motion as fm
     fld = fm.OrbitField(fm.CircularOrbitModel(500e3, 97.0))
-    kw = dict(field_eci_T=fld, models=kind == "models", hypotheses=kind == "hypotheses")
+    kw = {"field_eci_T": fld, "models": kind == "models", "hypotheses": kind == "hypotheses"}
     if kind == "hypotheses":
         kw["estimate_inertia"] = True
     with np.errstate(all="raise"):

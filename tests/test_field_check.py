@@ -56,6 +56,8 @@ def test_the_lab_recordings_pass_without_a_warning(name):
     assert 43.0 < fc.median_uT(rec.b_T) < 45.0
 
 
+TLE1 = "1 25544U 98067A   26325.50000000  .00016717  00000-0  10270-3 0  9005"
+TLE2 = "2 25544  51.6400 208.9163 0006317  69.9862  25.2906 15.50000000    05"
 ORBIT = {"orbit_altitude_km": "485", "orbit_inclination_deg": "97.5", "orbit_raan_deg": "30",
          "orbit_arg_lat0_deg": "10", "field_epoch_year": "2026"}
 
@@ -66,6 +68,12 @@ def test_the_orbit_model_from_metadata_is_the_ground_tools_field():
     t = np.linspace(0.0, 6000.0, 7)
     np.testing.assert_allclose(f(t), g(t), rtol=1e-9, atol=1e-15)
     assert fm.field_from_metadata({"source": "lab"}) is None
+    # a TLE: the same model as ground.estimate --tle L1 L2 --utc0 ISO
+    from types import SimpleNamespace
+    tle = SimpleNamespace(scenario=None, tle=(TLE1, TLE2), utc0="2026-11-21T12:00:00")
+    f = fm.field_from_metadata({"tle_line1": TLE1, "tle_line2": TLE2, "utc0": tle.utc0})
+    np.testing.assert_allclose(f(t), ge.field_from_args(tle)(t), rtol=1e-12)
+    assert 18.0 < fc.median_uT(f(t)) < 65.0
     with pytest.raises(ValueError, match="utc0"):
         fm.field_from_metadata({"tle_line1": "1 x", "tle_line2": "2 x"})
 

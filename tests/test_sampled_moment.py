@@ -55,7 +55,7 @@ def test_short_gaps_are_held_or_fitted_about_their_switch_the_others_free():
 
 
 def test_the_ends_are_left_out():
-    t, m = pulse_record()
+    _, m = pulse_record()
     m[:3] = NAN
     m[-2:] = NAN
     assert sm.known_span(m) == (3, 58)

@@ -151,7 +151,7 @@ def field_from_metadata(md: dict) -> OrbitField | None:
     utc = None
     if md.get("utc0"):
         try:
-            utc = datetime.fromisoformat(md["utc0"].replace("Z", "+00:00"))
+            utc = datetime.fromisoformat(md["utc0"])
         except ValueError:
             raise ValueError(f"utc0 {md['utc0']!r} is not ISO 8601") from None
     try:
