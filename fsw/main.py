@@ -396,8 +396,11 @@ def run(args, out=sys.stdout) -> Run:
 
 def write_replay_rates(path, replay, rates: dict, source: str) -> None:
     """The replay's Kalman estimates in the rate-estimate format: one row per recording sample (NaN
-    where the sample gate refused the sample or the filter had no estimate yet)."""
+    where the sample gate refused the sample or the filter had no estimate yet; σ = inf where it had no
+    information: the link's finite "unobserved" σ, or no field)."""
     from ground.recording import RateEstimates, write_rate_estimates
+
+    from .estimation.rate_formulas import unobserved_sigma
 
     n = len(replay.t)
     w = np.full((n, 3), np.nan)
@@ -406,7 +409,7 @@ def write_replay_rates(path, replay, rates: dict, source: str) -> None:
         est = rates.get(float(tk))
         if est is not None:
             w[i], s[i] = est
-    write_rate_estimates(path, RateEstimates(replay.t, w, s, metadata={
+    write_rate_estimates(path, RateEstimates(replay.t, w, unobserved_sigma(s, replay.b, 0.0), metadata={
         "source": f"python -m fsw.main --replay {source}",
         "method": "kalman (onboard RateKalman, DEBRIS_RATE_METHOD_KALMAN)"}))
 

@@ -8,7 +8,15 @@ and a slower one falls behind (counted in `max_lag_s`), never skipping a sample.
 """
 from __future__ import annotations
 
+import sys
+
 import numpy as np
+
+from .estimation import field_check
+
+
+def _stderr(text: str) -> None:
+    print(text, file=sys.stderr)
 
 
 class RecordingReplay:
@@ -28,10 +36,14 @@ class RecordingReplay:
         self.max_lag_s = 0.0
 
     @classmethod
-    def from_csv(cls, path) -> "RecordingReplay":
-        """From a recording-format-v1 file (ground.recording; the reference columns are not read)."""
+    def from_csv(cls, path, warn=None) -> "RecordingReplay":
+        """From a recording-format-v1 file (ground.recording; the reference columns are not read). A
+        field that cannot be µT is refused (`field_check.FieldMagnitudeError`, a ValueError naming the
+        file); the check's warnings go to ``warn`` (default: stderr)."""
         from ground.recording import read_recording
         rec = read_recording(path)
+        for w in field_check.check_recording(rec.b_T, str(path), rec.t_s, rec.metadata):
+            (warn or _stderr)(f"warning: {w}")
         return cls(rec.t_s, rec.b_T)
 
     @property

@@ -29,6 +29,7 @@ from datetime import datetime
 import numpy as np
 
 from fsw.argtypes import check_paths_or_exit, finite_float
+from fsw.estimation import field_check as fc
 from fsw.estimation import field_motion as fm
 from fsw.estimation import kalman as kl
 from fsw.estimation import kotelnikov as ko
@@ -131,6 +132,13 @@ def score(rec: Recording, w: np.ndarray, perpendicular_only: bool) -> dict:
         out["full_rms_dps"] = math.degrees(float(np.sqrt(np.mean(np.sum(e ** 2, 1)))))
         out["full_max_dps"] = math.degrees(float(np.max(np.linalg.norm(e, axis=1))))
     return out
+
+
+def warn_field(rec: Recording, source: str, field=None) -> None:
+    """Refuse a field that cannot be µT (FieldMagnitudeError, a ValueError naming the file); print the
+    warnings of `fsw.estimation.field_check` (|B| outside the Earth's, or far from the orbit's model)."""
+    for w in fc.check_recording(rec.b_T, str(source), rec.t_s, rec.metadata, field=field):
+        print(f"ground.estimate: warning: {w}", file=sys.stderr)
 
 
 def field_from_args(args):
@@ -241,6 +249,7 @@ def main(argv=None) -> int:
         if args.decimate_hz:
             rec = decimate(rec, args.decimate_hz)
             check_samples(rec, args.method)
+        warn_field(rec, args.input, field)
         inertia = args.known_inertia
         sigma = args.sigma_uT * 1e-6 if args.sigma_uT is not None else noise_estimate_T(rec.b_T)
         w, s, notes = estimate(args.method, rec.t_s, rec.b_T, sigma, field=field, inertia_kgm2=inertia)

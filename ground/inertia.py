@@ -34,8 +34,10 @@ import numpy as np
 
 from fsw.argtypes import check_paths_or_exit, finite_float, int_range
 from fsw.estimation import euler_fit as ef
+from fsw.estimation import field_check as fc
 from fsw.estimation import inertia as inr
 from fsw.files import write_atomic
+from fsw.estimation import sampled_moment as sm
 
 from .plot import check_plot_path, save_figure
 from .recording import Recording, RecordingError, read_recording
@@ -88,6 +90,19 @@ def known_action(rec: Recording, hold: str = "centered") -> ef.KnownAction:
     return ef.KnownAction.from_samples(rec.t_s, rec.m_Nm, hold=hold)
 
 
+def known_moment_span(rec: Recording) -> tuple[Recording, int]:
+    """The recording from its first to its last sample with a known moment, and how many samples that
+    leaves out: before the first and after the last known moment nothing could fix an unknown one
+    (`fsw.estimation.sampled_moment`); unknown moments between them are fitted."""
+    i0, i1 = sm.known_span(rec.m_Nm)
+    if (i0, i1) == (0, len(rec)):
+        return rec, 0
+    cut = slice(i0, i1)
+    return (Recording(rec.t_s[cut], rec.b_T[cut], rec.m_Nm[cut],
+                      None if rec.w_ref_radps is None else rec.w_ref_radps[cut], rec.metadata, rec.path),
+            len(rec) - (i1 - i0))
+
+
 def run(rec: Recording, b_inertial: Callable, *, sigma_b_T: float = 1.5e-6, mode: str = "full",
         guess_kgm2: float | None = None, hold: str = "centered", running_points: int = 12,
         opts: ef.FitOptions | None = None, log: Callable[[str], None] | None = None) -> InertiaReport:
@@ -96,11 +111,15 @@ def run(rec: Recording, b_inertial: Callable, *, sigma_b_T: float = 1.5e-6, mode
     ``guess_kgm2``: starting tensor guess × identity (default: 100 kg·m²); it is also the mean of a weak
     prior (1-σ three times the guess), so it need only be right within a factor of a few.
     """
+    unknown = int(sm.unknown_rows(rec.m_Nm).sum())
+    rec, excluded = known_moment_span(rec)
     if len(rec) < 20:
-        raise ValueError(f"{len(rec)} samples: too few to identify a tensor (need 20 or more)")
+        raise ValueError(f"{len(rec)} samples with a known moment span: too few to identify a tensor "
+                         "(need 20 or more)")
     opts = opts or ef.FitOptions(mode=mode)
     opts.mode = mode
     action = known_action(rec, hold)
+    plan = sm.plan(rec.t_s, rec.m_Nm, hold)
     if not np.any(action.moment_Nm):
         raise ValueError("the recording has no known moment (m*_Nm all zero): torque-free data fix the "
                          "tensor only up to scale")
@@ -112,7 +131,11 @@ def run(rec: Recording, b_inertial: Callable, *, sigma_b_T: float = 1.5e-6, mode
     fit = ef.identify(t, b[None], b_inertial, action, sigma_b_T, p_guess, opts, b_samples=b_samples, log=log)[0]
     est = fit.estimate(f"output-error fit of Euler + kinematics to the samples ({mode})")
     est.extra.update({"omega0_dps": np.degrees(fit.omega0_radps).tolist(), "offset_uT": (fit.bias_T * 1e6).tolist(),
-                      "t0_s": float(t[0]), "sigma_uT": sigma_b_T * 1e6})
+                      "t0_s": float(t[0]), "sigma_uT": sigma_b_T * 1e6,
+                      "moment_unknown": {"samples": unknown, "held": plan.held,
+                                         "shortest_hold_s": plan.shortest_hold_s,
+                                         "fitted_one_switch": plan.switch, "fitted_free": plan.free,
+                                         "fitted_intervals": len(plan.intervals), "left_out_at_ends": excluded}})
     running = []
     if running_points > 0:
         n = len(t)
@@ -203,6 +226,13 @@ def summary(report: InertiaReport) -> str:
         if report.truth_p is not None:
             row += f" {report.truth_p[k]:11.3f}"
         lines.append(row + "  kg·m²")
+    u = e.extra.get("moment_unknown")
+    if u and u["samples"]:
+        lines.append(f"applied moment unknown (NaN) at {u['samples']} samples: {u['held']} held between equal "
+                     f"known moments (gaps shorter than the shortest hold, {u['shortest_hold_s']:.3g} s), "
+                     f"{u['fitted_one_switch'] + u['fitted_free']} fitted as {u['fitted_intervals']} unknown "
+                     f"constant moments ({u['fitted_one_switch']} across a switch), {u['left_out_at_ends']} "
+                     "left out at the ends")
     I = c["principal_kgm2"]
     lines.append(f"principal moments {I[0]:.2f} {I[1]:.2f} {I[2]:.2f} kg·m²; positive definite: "
                  f"{'yes' if c['positive_definite'] else 'NO'}; triangle inequalities: "
@@ -254,7 +284,10 @@ def check_cli_paths(ap: argparse.ArgumentParser, input_path: str, output_path: s
 def run_cli(input_path: str, output_path: str, args) -> int:
     try:
         rec = read_recording(input_path)
+        fc.check(rec.b_T, str(input_path))             # units first: they matter more than a missing orbit
         b_inertial, truth, where = field_model(args.scenario, rec.metadata)
+        for w in fc.check_recording(rec.b_T, str(input_path), rec.t_s, field=b_inertial):
+            print(f"ground.inertia: warning: {w}", file=sys.stderr)
         report = run(rec, b_inertial, sigma_b_T=args.sigma_uT * 1e-6, mode="diag" if args.diag else "full",
                      guess_kgm2=args.guess, hold=args.hold, running_points=args.running if args.plot else 0,
                      log=None if args.quiet else (lambda m: print("  " + m, flush=True)))

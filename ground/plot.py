@@ -30,7 +30,8 @@ def save_figure(fig, path, **kwargs) -> None:
 
 def plot_rates(path, t_s: np.ndarray, w_radps: np.ndarray, sigma_radps: np.ndarray | None = None,
                w_ref_radps: np.ndarray | None = None, *, title: str = "", perpendicular_only: bool = False) -> None:
-    """Write a PNG with one panel per body axis (°/s)."""
+    """Write a PNG with one panel per body axis (°/s); samples whose σ is inf (no information) are
+    marked, without a band."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -45,7 +46,11 @@ def plot_rates(path, t_s: np.ndarray, w_radps: np.ndarray, sigma_radps: np.ndarr
         ax.plot(t, w[:, i], color="C0", lw=0.9, label=label)
         if sigma_radps is not None:
             s = np.degrees(np.asarray(sigma_radps, float)[:, i])
-            ax.fill_between(t, w[:, i] - s, w[:, i] + s, color="C0", alpha=0.25, lw=0, label="±1σ")
+            s_band = np.where(np.isfinite(s), s, np.nan)         # σ = inf (no information): no band
+            ax.fill_between(t, w[:, i] - s_band, w[:, i] + s_band, color="C0", alpha=0.25, lw=0, label="±1σ")
+            none = np.isinf(s) & np.isfinite(w[:, i])
+            if none.any():
+                ax.plot(t[none], w[none, i], "x", color="C3", ms=4, label="σ = ∞ (no information)")
         ax.set_ylabel(f"ω{name} °/s")
         ax.grid(alpha=0.3)
     axes[0].legend(loc="upper right", fontsize=8)

@@ -7,7 +7,8 @@ holds µT and °/s (unit in the column name), the arrays in memory hold tesla, r
 Recording columns: ``t_s`` (strictly increasing), ``bx_uT, by_uT, bz_uT`` (required);
 ``mx_Nm, my_Nm, mz_Nm`` (known applied moment, optional, zeros when the columns are absent) and
 ``wx_dps, wy_dps, wz_dps`` (reference rate for scoring, optional). Rate-estimate columns: ``t_s,
-wx_dps, wy_dps, wz_dps, sx_dps, sy_dps, sz_dps`` (NaN where no estimate exists).
+wx_dps, wy_dps, wz_dps, sx_dps, sy_dps, sz_dps`` (NaN where no estimate exists; a σ of ``inf`` where the
+estimator had no information: a degenerate sample, e.g. a zero field).
 
 Reading rules (spec, "Rules"):
 - a line starting with ``#`` is a comment; ``# key: value`` comments become metadata (a key given on
@@ -39,6 +40,7 @@ from typing import Sequence
 import numpy as np
 
 from fsw.files import write_atomic
+from fsw.estimation import field_check
 
 PathLike = str | os.PathLike
 
@@ -56,6 +58,7 @@ _NUMBER = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?
 _COLUMN = re.compile(rf"(?:{_NUMBER.pattern}\n)*{_NUMBER.pattern}")
 _COLUMN_NAN_OK = re.compile(rf"(?:(?:{_NUMBER.pattern}|nan|NaN|)\n)*(?:{_NUMBER.pattern}|nan|NaN|)")
 _NAN_WORDS = frozenset({"nan", "+nan", "-nan"})
+_INF_WORDS = frozenset({"inf", "+inf", "infinity", "+infinity"})
 _META = re.compile(r"#\s*([A-Za-z_][A-Za-z0-9_.\-]*)\s*:\s?(.*)")
 
 
@@ -149,13 +152,15 @@ def _triads(a, n: int, name: str) -> np.ndarray:
 @dataclass(frozen=True)
 class _Group:
     """Columns read together. `required`: the columns must be in the header. `nan_ok`: a cell may
-    be empty or NaN. `increasing`: strictly increasing (time)."""
+    be empty or NaN. `increasing`: strictly increasing (time). `inf_ok`: a cell may be +inf (a 1-σ
+    with no information: a degenerate sample)."""
 
     columns: tuple[str, ...]
     required: bool
     nan_ok: bool
     increasing: bool = False
     nonnegative: bool = False
+    inf_ok: bool = False
 
 
 _RECORDING_GROUPS = (
@@ -167,13 +172,15 @@ _RECORDING_GROUPS = (
 _RATE_GROUPS = (
     _Group((T_COLUMN,), required=True, nan_ok=False, increasing=True),
     _Group(W_COLUMNS, required=True, nan_ok=True),
-    _Group(SIGMA_COLUMNS, required=True, nan_ok=True, nonnegative=True),
+    _Group(SIGMA_COLUMNS, required=True, nan_ok=True, nonnegative=True, inf_ok=True),
 )
 
 
-def _parse_cell(cell: str, nan_ok: bool) -> float | str:
+def _parse_cell(cell: str, nan_ok: bool, inf_ok: bool = False) -> float | str:
     """The cell's value, or a reason string when it is not acceptable."""
     s = cell.strip()
+    if inf_ok and s.lower() in _INF_WORDS:
+        return math.inf
     shown = repr(s if len(s) <= 40 else s[:37] + "...")
     if _NUMBER.fullmatch(s):
         x = float(s)
@@ -249,7 +256,7 @@ def _parse_rows(path: PathLike, rows: list[tuple[int, str]], header: list[str], 
                 continue
             row = []
             for name, i in zip(g.columns, idx):
-                v = _parse_cell(cells[i], g.nan_ok)
+                v = _parse_cell(cells[i], g.nan_ok, g.inf_ok)
                 if isinstance(v, str):
                     raise RecordingError(path, lineno, name, v)
                 if g.nonnegative and v < 0:
@@ -281,10 +288,11 @@ def _parse_rows_fast(rows: list[tuple[int, str]], ncols: int, picks: list[tuple[
         for i in idx:
             cells = [c[i] for c in split]
             pattern = _COLUMN_NAN_OK if g.nan_ok else _COLUMN
-            if cells and not pattern.fullmatch("\n".join(cells)):
+            plain = [c for c in cells if c.lower() not in _INF_WORDS] if g.inf_ok else cells
+            if plain and not pattern.fullmatch("\n".join(plain)):
                 return None
             x = np.array([c if c else "nan" for c in cells] if g.nan_ok else cells, dtype=float)
-            if np.isinf(x).any() or (g.nonnegative and (x < 0).any()):
+            if (np.isinf(x).any() and not g.inf_ok) or (g.nonnegative and (x < 0).any()):
                 return None
             cols.append(x)
         a = np.column_stack(cols) if cols and len(rows) else np.zeros((len(rows), len(idx)))
@@ -321,8 +329,8 @@ def read_recording(path: PathLike, *, check_units: bool = False) -> Recording:
     """Read a recording-format-v1 CSV (µT, N·m, °/s in the file) into SI arrays.
 
     Raises RecordingError (file, line, column) on anything the format forbids. `check_units`: also
-    refuse field columns that are evidently not in µT (`FIELD_MEDIAN_UT`); tools that read real
-    magnetometer data set it, synthetic data (a zero field) may not pass it.
+    refuse field columns that are evidently not in µT (`fsw.estimation.field_check.PLAUSIBLE_UT`, the
+    check the estimating tools make); synthetic data (a zero field) may not pass it.
     """
     cols, metadata = _read_table(path, _RECORDING_GROUPS)
     t = cols[T_COLUMN][:, 0]
@@ -336,26 +344,18 @@ def read_recording(path: PathLike, *, check_units: bool = False) -> Recording:
                      metadata=metadata, path=Path(path))
 
 
-#: Plausible median |B| of a magnetometer recording, µT: the geomagnetic field is 22–67 µT at the
-#: surface and less in orbit; the MMC5983MA's full scale is 800 µT. Outside: wrong units.
-FIELD_MEDIAN_UT = (1.0, 5000.0)
-
-
 def _check_field_units(path: PathLike, b_uT: np.ndarray) -> None:
-    """Refuse a file whose field columns are evidently not in µT (tesla or gauss: far too small; nT:
-    far too large), naming the first data line whose |B| is off."""
+    """Refuse a file whose field columns are evidently not in µT (`field_check.refusal`: tesla or
+    gauss, far too small; nT, far too large), naming the first data line whose |B| is off."""
     if not len(b_uT):
         return
-    mag = np.linalg.norm(b_uT, axis=1)
-    med = float(np.median(mag))
-    lo, hi = FIELD_MEDIAN_UT
-    if lo <= med <= hi:
+    why = field_check.refusal(field_check.median_uT(b_uT * T_PER_UT))
+    if why is None:
         return
-    guess = "tesla or gauss" if med < lo else "nT"
-    i = int(np.argmax((mag < lo) if med < lo else (mag > hi)))
-    raise RecordingError(path, _data_line(path, i), B_COLUMNS[0],
-                         f"median |B| is {med:.6g} µT, outside {lo:g}–{hi:g} µT: the field columns look like "
-                         f"{guess}, not µT")
+    mag = np.linalg.norm(b_uT, axis=1)
+    lo, hi = field_check.PLAUSIBLE_UT
+    i = int(np.argmax((mag < lo) if np.median(mag) < lo else (mag > hi)))
+    raise RecordingError(path, _data_line(path, i), B_COLUMNS[0], why)
 
 
 def _data_line(path: PathLike, index: int) -> int | None:
@@ -371,7 +371,8 @@ def _data_line(path: PathLike, index: int) -> int | None:
 
 
 def read_rate_estimates(path: PathLike) -> RateEstimates:
-    """Read a rate-estimate CSV (°/s in the file) into rad/s; NaN where no estimate exists."""
+    """Read a rate-estimate CSV (°/s in the file) into rad/s; NaN where no estimate exists, σ = inf
+    (``inf`` in a σ column) where an estimator had no information."""
     cols, metadata = _read_table(path, _RATE_GROUPS)
     return RateEstimates(t_s=cols[T_COLUMN][:, 0], w_radps=np.deg2rad(cols[W_COLUMNS[0]]),
                          sigma_radps=np.deg2rad(cols[SIGMA_COLUMNS[0]]),
@@ -427,9 +428,10 @@ def _row_lines(path: PathLike, groups: Sequence[_Group], table: np.ndarray, firs
     time of the row before, already written)."""
     names = [c for g in groups for c in g.columns]
     nan_ok = np.array([g.nan_ok for g in groups for _ in g.columns])
+    inf_ok = np.array([g.inf_ok for g in groups for _ in g.columns])
     nonneg = np.array([g.nonnegative for g in groups for _ in g.columns])
     with np.errstate(invalid="ignore"):
-        bad = (np.isinf(table) | (np.isnan(table) & ~nan_ok) | ((table < 0) & nonneg))
+        bad = ((np.isinf(table) & ~inf_ok) | (np.isnan(table) & ~nan_ok) | ((table < 0) & nonneg))
     if bad.any():
         r, c = np.argwhere(bad)[0]
         raise RecordingError(path, first_row_line + int(r), names[c], f"cannot write {table[r, c]!r}")
@@ -529,8 +531,9 @@ def write_recording(path: PathLike, rec: Recording) -> None:
 
 
 def write_rate_estimates(path: PathLike, est: RateEstimates) -> None:
-    """Write rate estimates (°/s) with their 1-σ; NaN allowed where no estimate exists. Atomic;
-    raises RecordingError, writing nothing, on infinite values, negative σ or non-increasing time."""
+    """Write rate estimates (°/s) with their 1-σ; NaN allowed where no estimate exists, σ = inf
+    (written ``inf``) where an estimator has no information (a degenerate sample). Atomic; raises
+    RecordingError, writing nothing, on an infinite rate, negative σ or non-increasing time."""
     t, w, s = _RATE_GROUPS
     blocks = [(t, est.t_s[:, None]), (w, np.rad2deg(est.w_radps)), (s, np.rad2deg(est.sigma_radps))]
     write_atomic(path, _table_lines(path, est.metadata, blocks))

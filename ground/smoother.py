@@ -30,7 +30,7 @@ from typing import Callable
 import numpy as np
 
 from fsw.estimation import kalman as kl
-from fsw.estimation.rate_formulas import SIGMA_UNOBSERVED_RADPS
+from fsw.estimation.rate_formulas import unobserved_sigma
 
 FieldFn = Callable[[float], np.ndarray]
 SHAPE_SIGMA_FLOOR = 0.01  # 1-σ floor of ln(J₂/J₁), ln(J₃/J₁) carried into the Euler RTS smoother
@@ -203,7 +203,7 @@ def rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_
     c = variance_scale(kf.log)
     sig = np.sqrt(c * np.clip(np.einsum("kii->ki", P_s[:, 3:6, 3:6]), 0.0, None))
     chi2 = _chi2(t, b, sigma_b_T * noise[2], q_s, x_s, field_eci_T)
-    return Smoothed(t, x_s[:, :3].copy(), np.minimum(sig, SIGMA_UNOBSERVED_RADPS), q_s, "smoother",
+    return Smoothed(t, x_s[:, :3].copy(), unobserved_sigma(sig, b, sigma_b_T), q_s, "smoother",
                     chi2 / max(3 * len(t) - 6, 1), info={"kappa": noise[0], "rate_accel_radps2": noise[1],
                                                           "sigma_factor": noise[2], "rate_tau_s": noise[3],
                                                           "angle_about_b_rad": angle,
@@ -353,7 +353,7 @@ def euler_fit(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T
     between = sum(wt * (w_m - traj.w) ** 2 for wt, (_, w_m, _) in zip(weights, modes))
     sig = np.sqrt(sum(wt * v for wt, (_, _, v) in zip(weights, modes)) + between)
     shape = kf.inertia_shape if kf.n_p else None
-    return Smoothed(t, traj.w, np.minimum(sig, SIGMA_UNOBSERVED_RADPS), traj.q, "euler", chi2 / dof, shape,
+    return Smoothed(t, traj.w, unobserved_sigma(sig, b, sigma_b_T), traj.q, "euler", chi2 / dof, shape,
                     info={"s2": s2, "windows": windows, "cov_x0": cov, "beta_uT": kf.beta.copy(),
                           "p": kf.p.copy(), "minima_chi2": [c for _, c in cands],
                           "modes_dchi2": [d for d, _, _ in modes], "modes_weight": weights.tolist(),
@@ -602,7 +602,7 @@ def euler_rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, fiel
     chi2 = _chi2(t, b, sigma_b_T, q_s, x_s, field_eci_T)
     if shape is not None:
         shape = np.concatenate([[1.0], np.exp(x_s[0, 3:5])])
-    return Smoothed(t, x_s[:, :3].copy(), np.minimum(sig, SIGMA_UNOBSERVED_RADPS), q_s, "euler_rts",
+    return Smoothed(t, x_s[:, :3].copy(), unobserved_sigma(sig, b, sigma_b_T), q_s, "euler_rts",
                     chi2 / max(3 * len(t) - kf.n, 1), init.inertia_shape if shape is None else shape,
                     info={"rate_accel_radps2": accel, "nll": kf.nll, "resets": kf.resets, "variance_scale": c})
 

@@ -51,6 +51,7 @@ from typing import Callable
 import numpy as np
 
 from . import inertia as inr
+from . import sampled_moment as sm
 
 FieldFn = Callable[[np.ndarray], np.ndarray]
 """B_I(t): inertial (ECI) field [T] at an array of times (m,) → (m, 3)."""
@@ -64,11 +65,15 @@ MODES = {"full": 6, "diag": 3, "shape": 5, "shape_diag": 2, "scale": 1}
 @dataclass(frozen=True)
 class KnownAction:
     """Known applied action, piecewise constant: on [t_k, t_{k+1}) the moment ``moment_Nm[k]`` (body,
-    about the centre of mass) and the magnets' dipole ``dipole_Am2[k]`` (body); zero before t_0."""
+    about the centre of mass) and the magnets' dipole ``dipole_Am2[k]`` (body); zero before t_0. On each
+    of ``unknown_intervals`` (t0, t1) a constant moment of unknown size (prior 1-σ (3,) in
+    ``unknown_sigma_Nm``, inf or none: free) adds to ``moment_Nm``, fitted by :func:`identify`."""
 
     t_s: np.ndarray
     moment_Nm: np.ndarray
     dipole_Am2: np.ndarray
+    unknown_intervals: tuple = ()
+    unknown_sigma_Nm: tuple = ()
 
     @staticmethod
     def none() -> "KnownAction":
@@ -98,21 +103,19 @@ class KnownAction:
 
         ``hold="centered"``: each sample's moment holds from half a step before it to half a step after
         (switch instants unbiased on average); ``"forward"``: from the sample to the next one.
-        NaN moments (unknown) count as zero.
+        A row with a NaN (a lost truth frame) is an unknown moment, never zero: held, or fitted on
+        ``unknown_intervals`` (`sampled_moment.plan`).
         """
         t = np.asarray(t_s, float)
-        m = np.nan_to_num(np.asarray(moment_Nm, float))
+        pl = sm.plan(t, moment_Nm, hold)
+        m = pl.moment_Nm
         change = np.flatnonzero(np.any(np.diff(m, axis=0) != 0, axis=1)) + 1
         idx = np.concatenate([[0], change]).astype(int)
+        starts = t[idx].copy()
         if hold == "centered":
-            starts = t[idx].copy()
             starts[1:] = 0.5 * (t[idx[1:] - 1] + t[idx[1:]])
-        elif hold == "forward":
-            starts = t[idx].copy()
-        else:
-            raise ValueError(f"hold must be 'centered' or 'forward', got {hold!r}")
         starts[0] = -math.inf
-        return KnownAction(starts, m[idx], np.zeros((len(idx), 3)))
+        return KnownAction(starts, m[idx], np.zeros((len(idx), 3)), pl.intervals, pl.sigma_Nm)
 
     def _at(self, values: np.ndarray, t: np.ndarray) -> np.ndarray:
         t = np.atleast_1d(np.asarray(t, float))
@@ -479,13 +482,15 @@ class InertiaParam:
     /I_ref), ``shape_diag`` (Iyy, Izz)/I_ref (2), ``scale`` κ with p = κ·p_shape (1). Then one constant
     moment vector (3 parameters, N·m / (I_ref · MOMENT_SCALE_RADPS2)) per interval of
     ``unknown_intervals`` ((t0, t1) pairs, not overlapping): a torque known to act there but not known
-    in size — e.g. a tug pulse, for a shape that must not rely on the torque's calibration.
+    in size — e.g. a tug pulse, for a shape that must not rely on the torque's calibration; its prior
+    1-σ (3,) [N·m] in ``moment_sigma_Nm`` (free when not given or inf).
     """
 
     mode: str
     I_ref: float
     p_shape: np.ndarray | None = None     # (R, 6) for "scale"
     unknown_intervals: tuple = ()
+    moment_sigma_Nm: tuple = ()
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -521,7 +526,7 @@ class InertiaParam:
         """The same parametrisation for the runs ``runs`` (their fixed shapes, mode "scale")."""
         if self.p_shape is None:
             return self
-        return InertiaParam(self.mode, self.I_ref, self.p_shape[runs], self.unknown_intervals)
+        return InertiaParam(self.mode, self.I_ref, self.p_shape[runs], self.unknown_intervals, self.moment_sigma_Nm)
 
     def affine(self, run: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """T (6, n), c (6,) with p = T θ_I + c (zero columns for the moments)."""
@@ -1132,8 +1137,10 @@ class FitResult:
     theta: np.ndarray
     cov_theta: np.ndarray
     unknown_intervals: tuple = ()              # (t0, t1) of the moments fitted as unknowns
+    moment_sigma_Nm: tuple = ()                # their prior 1-σ (3,) each (inf: free)
     moments_Nm: np.ndarray | None = None       # (K, 3) their fitted values (in the tensor's scale)
     cov_moments: np.ndarray | None = None      # (3K, 3K)
+    moment_unknown_samples: int = 0            # samples whose moment was unknown (NaN): fitted
 
     @property
     def s2(self) -> float:
@@ -1268,7 +1275,8 @@ def identify_steps(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, act
     if b_samples is None:
         b_samples = np.asarray(b_inertial(t), float).reshape(-1, 3)
     I_ref = float(np.mean(np.asarray(p_guess, float)[:3]))
-    par = InertiaParam(opts.mode, I_ref, p_shape, tuple(unknown_moments))
+    par = InertiaParam(opts.mode, I_ref, p_shape, *sm.merged(unknown_moments, action.unknown_intervals,
+                                                             action.unknown_sigma_Nm))
     if any(b <= t[0] or a >= t[-1] for a, b in par.unknown_intervals):
         raise ValueError("an unknown-moment interval lies outside the record: nothing could fix its moment")
     bounds = segment_bounds(n, segment_length(t, b_meas[0], opts))
@@ -1347,7 +1355,8 @@ def identify_steps(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, act
     alive = np.arange(V)
     windows = _ss_windows(n, opts.ss_first_window, opts.ss_growth)
     for wi, nw in enumerate(windows):
-        pv = InertiaParam(opts.mode, I_ref, None if p_shape_v is None else p_shape_v[alive], par.unknown_intervals)
+        pv = InertiaParam(opts.mode, I_ref, None if p_shape_v is None else p_shape_v[alive], par.unknown_intervals,
+                          par.moment_sigma_Nm)
         ss = SingleShooting(t, bv[alive], b_samples, action, b_inertial, pv, q0[alive], sigma_b_T, n=nw,
                             fit_bias=opts.fit_bias, omega_scale=opts.omega_scale, h_max_s=opts.h_max_s)
         prior = _prior(ss.n_params, n_I, th_I0[0], opts, sigma_b_T, pv)
@@ -1364,6 +1373,8 @@ def identify_steps(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, act
             phys = np.delete(theta[alive], np.arange(n_I + 3, n_I + 6), axis=1)
             alive = alive[_distinct_best(vrun[alive], phys, sruns.cost)]
     allres = results(ss, sruns, prior)
+    for res in allres:
+        res.moment_unknown_samples = sm.samples_in(t, action.unknown_intervals)
     out = []
     for r in range(R):
         cand = [allres[j] for j in np.flatnonzero(vrun[alive] == r)]
@@ -1440,8 +1451,10 @@ def _prior(P: int, n_I: int, th_I0: np.ndarray, opts: FitOptions, sigma_b_T: flo
     sig = np.full(P, np.inf)
     mean[:n_I] = th_I0
     rel = opts.inertia_prior_rel
-    nt = par.n_tensor                      # the unknown moments have no prior
+    nt = par.n_tensor
     sig[:nt] = rel if par.mode != "scale" else rel * max(abs(th_I0[0]), 1.0)
+    for k, s in enumerate(par.moment_sigma_Nm):                  # the unknown moments: free unless given
+        sig[nt + 3 * k:nt + 3 * k + 3] = np.asarray(s, float) / par.moment_scale_Nm
     if opts.fit_bias:
         sig[-3:] = opts.bias_sigma_T / sigma_b_T
     return Prior(mean, sig)
@@ -1464,7 +1477,7 @@ def results(ss: SingleShooting, runs: LMRuns, prior: Prior | None) -> list[FitRe
         mom, cov_m = par.moments_of(runs.theta[r, :n_I], cov[:n_I, :n_I]) if par.n_moments else (None, None)
         out.append(FitResult(p, T @ cov[:n_I, :n_I] @ T.T, w0[0], q0[0], bias[0], float(runs.data_cost[r]),
                              runs.dof, ss.n, int(runs.iterations[r]), bool(runs.converged[r]), par.mode,
-                             runs.theta[r].copy(), cov, par.unknown_intervals, mom, cov_m))
+                             runs.theta[r].copy(), cov, par.unknown_intervals, par.moment_sigma_Nm, mom, cov_m))
     return out
 
 
@@ -1479,7 +1492,8 @@ def single_shooting_for(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn
         b_samples = np.asarray(b_inertial(t), float).reshape(-1, 3)
     p_ref = result.p if p_shape is None else np.asarray(p_shape, float)
     par = InertiaParam(result.mode, float(np.mean(p_ref[:3])) if result.mode != "shape" else float(result.p[0]),
-                       None if p_shape is None else np.atleast_2d(p_shape), result.unknown_intervals)
+                       None if p_shape is None else np.atleast_2d(p_shape), result.unknown_intervals,
+                       result.moment_sigma_Nm)
     ss = SingleShooting(t, np.asarray(b_meas, float)[None], b_samples, action, b_inertial, par,
                         result.q0[None], sigma_b_T, n=n, fit_bias=opts.fit_bias, omega_scale=opts.omega_scale,
                         h_max_s=opts.h_max_s)
@@ -1507,7 +1521,8 @@ def cramer_rao(t_s: np.ndarray, b_inertial: FieldFn, action: KnownAction, sigma_
         b_samples = np.asarray(b_inertial(t), float).reshape(-1, 3)
     p = np.asarray(p, float)
     I_ref = float(p[0]) if opts.mode in ("shape", "shape_diag") else float(np.mean(p[:3]))
-    par = InertiaParam(opts.mode, I_ref, p[None] if opts.mode == "scale" else None, tuple(unknown_moments))
+    par = InertiaParam(opts.mode, I_ref, p[None] if opts.mode == "scale" else None,
+                       *sm.merged(unknown_moments, action.unknown_intervals, action.unknown_sigma_Nm))
     ss = SingleShooting(t, np.zeros((1, len(t), 3)), b_samples, action, b_inertial, par,
                         np.asarray(q0, float)[None], sigma_b_T, fit_bias=opts.fit_bias,
                         omega_scale=opts.omega_scale, h_max_s=opts.h_max_s)

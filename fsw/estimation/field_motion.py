@@ -138,3 +138,36 @@ class OrbitField:
         a = a / np.linalg.norm(a, axis=-1, keepdims=True)
         b = b / np.linalg.norm(b, axis=-1, keepdims=True)
         return np.linalg.norm(np.cross(a, b), axis=-1) / dt_s
+
+
+def field_from_metadata(md: dict) -> OrbitField | None:
+    """The field along the orbit of a recording's metadata (recording-format.md): a TLE
+    (``tle_line1``, ``tle_line2`` with ``utc0``) or a circular orbit (``orbit_altitude_km``,
+    ``orbit_inclination_deg``, ``orbit_raan_deg``, ``orbit_arg_lat0_deg``); the dipole at
+    ``field_epoch_year`` (else the year of ``utc0``, else 2025). None when no orbit is given;
+    ValueError when one is given but cannot be used."""
+    from datetime import datetime
+
+    utc = None
+    if md.get("utc0"):
+        try:
+            utc = datetime.fromisoformat(md["utc0"])
+        except ValueError:
+            raise ValueError(f"utc0 {md['utc0']!r} is not ISO 8601") from None
+    try:
+        epoch = (float(md["field_epoch_year"]) if "field_epoch_year" in md
+                 else utc.year + (utc.timetuple().tm_yday - 1) / 365.25 if utc else 2025.0)
+        if md.get("tle_line1") and md.get("tle_line2"):
+            if utc is None:
+                raise ValueError("a TLE needs utc0 (the UTC of t = 0)")
+            orbit = TleOrbitModel(md["tle_line1"], md["tle_line2"], (utc.year, utc.month, utc.day, utc.hour,
+                                                                     utc.minute, utc.second + utc.microsecond * 1e-6))
+        elif all(k in md for k in ("orbit_altitude_km", "orbit_inclination_deg", "orbit_raan_deg",
+                                   "orbit_arg_lat0_deg")):
+            orbit = CircularOrbitModel(float(md["orbit_altitude_km"]) * 1e3, float(md["orbit_inclination_deg"]),
+                                       float(md["orbit_raan_deg"]), float(md["orbit_arg_lat0_deg"]))
+        else:
+            return None
+        return OrbitField(orbit, DipoleModel(epoch))
+    except (TypeError, KeyError) as e:
+        raise ValueError(str(e)) from None

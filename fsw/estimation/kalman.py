@@ -37,7 +37,7 @@ from typing import Callable
 import numpy as np
 
 from . import rate_kf
-from .rate_formulas import SIGMA_UNOBSERVED_RADPS
+from .rate_formulas import FIELD_MIN_SIGMAS, SIGMA_UNOBSERVED_RADPS, unobserved_sigma
 
 UT_PER_T = 1e6
 #: Flags, same bit values as DEBRIS_ESTIMATE_FLAGS in the telemetry dialect.
@@ -370,12 +370,15 @@ def adapt_noise(kf, samples: float, max_factor: float) -> float:
 def kalman_rate(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, tuning: RateKalmanTuning | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Run :class:`RateKalman` over a recording: ω (N, 3) rad/s, 1-σ (N, 3) and flags (N,); rows
-    without an estimate (NO_ESTIMATE) are NaN."""
+    without an estimate (NO_ESTIMATE) are NaN; no information (a sample without a field, σ at the
+    link's "unobserved" value) is σ = inf, flagged DEGENERATE (`rate_formulas.unobserved_sigma`)."""
     kf = RateKalman(sigma_b_T, tuning)
-    return _run_stream(kf, t_s, b_T)
+    return _run_stream(kf, t_s, b_T, sigma_b_T)
 
 
-def _run_stream(kf, t_s, b_T):
+def _run_stream(kf, t_s, b_T, sigma_b_T: float | None = None):
+    if sigma_b_T is None:
+        sigma_b_T = kf.sigma_b_T if hasattr(kf, "sigma_b_T") else kf.main.sigma_b_T
     t = np.asarray(t_s, float)
     b = np.asarray(b_T, float)
     n = len(t)
@@ -388,6 +391,8 @@ def _run_stream(kf, t_s, b_T):
             if not kf.flags & NO_ESTIMATE:
                 w[k] = kf.omega_radps
                 s[k] = kf.sigma_radps
+    s = unobserved_sigma(s, b, sigma_b_T)
+    flags[np.isinf(s).any(axis=1)] |= DEGENERATE
     return w, s, flags
 
 
@@ -639,6 +644,12 @@ class AttitudeRateKalman:
         missing ones take the defaults. Updates with the sample."""
         tun = self.tuning
         z = np.asarray(b_T, float) * UT_PER_T
+        if self.field is not None and np.linalg.norm(z) <= FIELD_MIN_SIGMAS * math.sqrt(self.R[0, 0]):
+            # no field, no direction to align the attitude with: wait for a sample that has one
+            self.omega_radps[:] = 0.0
+            self.sigma_radps[:] = SIGMA_UNOBSERVED_RADPS
+            self.flags = NO_ESTIMATE | DEGENERATE
+            return
         self.w = np.zeros(3) if omega_radps is None else np.array(omega_radps, float)
         self.p = np.zeros(self.n_p) if p is None else np.array(p, float)
         n = self.n
@@ -1139,7 +1150,7 @@ def attitude_kalman_rate(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, 
     with `models` the bank of rate models :class:`RateModelBank` (its keyword arguments)."""
     if hypotheses:
         kwargs.pop("estimate_inertia", None)
-        return _run_stream(EulerAcquisitionKalman(sigma_b_T, **kwargs), t_s, b_T)
+        return _run_stream(EulerAcquisitionKalman(sigma_b_T, **kwargs), t_s, b_T, sigma_b_T)
     if models:
-        return _run_stream(RateModelBank(sigma_b_T, **kwargs), t_s, b_T)
-    return _run_stream(AttitudeRateKalman(sigma_b_T, **kwargs), t_s, b_T)
+        return _run_stream(RateModelBank(sigma_b_T, **kwargs), t_s, b_T, sigma_b_T)
+    return _run_stream(AttitudeRateKalman(sigma_b_T, **kwargs), t_s, b_T, sigma_b_T)

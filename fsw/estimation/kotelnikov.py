@@ -33,8 +33,6 @@ import math
 import numpy as np
 from scipy.signal import fftconvolve
 
-from .rate_formulas import SIGMA_UNOBSERVED_RADPS
-
 
 def sinc_derivative_kernels(n: int) -> tuple[np.ndarray, np.ndarray]:
     """Kernels d1[m], d2[m] for m = −(n−1)…(n−1) (index m + n − 1): sinc'(m) and sinc''(m)."""
@@ -96,8 +94,9 @@ def kotelnikov_rate(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float | None = 
     """Full rate from the series: ω (N, 3) rad/s and its 1-σ (N, 3) (NaN without `sigma_b_T`).
 
     `form="analytic"`: ω = (B̈ × Ḃ)/|Ḃ|² at every sample; `form="paper"`: sedelnikov2023 eq. 1,
-    ω_k = (Ḃ_k × Ḃ_{k−1})/(Δt|Ḃ_k|²), row 0 NaN. Samples with |Ḃ| below the noise are flagged by a
-    σ of :data:`SIGMA_UNOBSERVED_RADPS`.
+    ω_k = (Ḃ_k × Ḃ_{k−1})/(Δt|Ḃ_k|²), row 0 NaN. A sample with |Ḃ| at or below its noise (a zero
+    field, a field that does not turn) is degenerate: σ = inf, and ω = 0 where the formula divides by
+    zero (NaN when no `sigma_b_T` is given).
     """
     if form not in ("analytic", "paper"):
         raise ValueError(f"form must be 'analytic' or 'paper', got {form!r}")
@@ -123,12 +122,16 @@ def kotelnikov_rate(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float | None = 
                 s = np.sqrt((s2 / dn) ** 2 + (2.0 * wn * s1 / dn) ** 2)
             else:
                 s = math.sqrt(2.0) * s1 / (dt * dn) * np.ones(len(t))
-            s = np.where(np.isfinite(s) & (dn > s1), s, SIGMA_UNOBSERVED_RADPS)
-        sig = np.repeat(np.minimum(s, SIGMA_UNOBSERVED_RADPS)[:, None], 3, axis=1)
+            degenerate = ~(np.isfinite(s) & (dn > s1))
+            s = np.where(degenerate, np.inf, s)
+        sig = np.repeat(s[:, None], 3, axis=1)
         m = min(edge_samples, len(t) // 2)
         if m:
-            sig[:m] = np.minimum(sig[:m] * edge_sigma_factor, SIGMA_UNOBSERVED_RADPS)
-            sig[len(t) - m:] = np.minimum(sig[len(t) - m:] * edge_sigma_factor, SIGMA_UNOBSERVED_RADPS)
+            sig[:m] *= edge_sigma_factor
+            sig[len(t) - m:] *= edge_sigma_factor
+        if form == "paper":
+            degenerate[0] = False                    # no estimate there: NaN
+        w[degenerate & np.isnan(w).any(axis=1)] = 0.0
         sig[np.isnan(w).any(axis=1)] = np.nan
     return w, sig
 

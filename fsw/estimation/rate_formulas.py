@@ -18,6 +18,15 @@ value yet (the first sample, or the first two) are NaN in the array forms.
 Uncertainty: `*_covariance` propagate white, independent per-axis measurement noise σ_B to first
 order (Jacobians below), which is a 1-σ statement; `*_error_bound_eq5/eq10` are the papers'
 worst-case bounds for a measurement error ±δ_B.
+
+Degenerate samples: a formula that divides by |B_k|² (Boer) or |ΔB_k|² (derivative) has nothing to
+say when that vector is lost in the noise — a zero or near-zero field, a field that does not change
+(ω ∥ B, or ω = 0) — and its first-order σ, which shrinks with the noise it divides, is meaningless
+there (at |B| = 0 exactly it is 0). Below :data:`FIELD_MIN_SIGMAS` σ_B (Boer) or a change below
+:data:`DEGENERATE_SNR` times its noise (derivative) the kernels give the row an infinite σ (ω is 0
+where the formula divides by zero): the array forms return it, and the streaming forms publish the
+DEGENERATE flag with σ = :data:`SIGMA_UNOBSERVED_RADPS`, the finite "no information" that the link
+carries (the ground decoder refuses non-finite values as damaged frames).
 """
 from __future__ import annotations
 
@@ -26,10 +35,13 @@ import math
 import numpy as np
 from numba import njit
 
-#: Reported 1-σ (rad/s) when a formula has no information (degenerate geometry): wide, finite.
+#: Reported 1-σ (rad/s) on the link when an estimator has no information (degenerate geometry): wide,
+#: finite; the array forms (ground) give +inf instead.
 SIGMA_UNOBSERVED_RADPS = 10.0
-#: A step whose field change is below this many noise σ is flagged as degenerate.
+#: A step whose field change is below this many noise σ (√2 σ_B) is degenerate (derivative formula).
 DEGENERATE_SNR = 1.0
+#: A field below this many σ_B has no direction to speak of (Boer formula).
+FIELD_MIN_SIGMAS = 3.0
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -99,6 +111,14 @@ def _chord(c0: float, c1: float, c2: float, p0: float, p1: float, p2: float, dt:
 
 
 @njit(cache=True)
+def _unobserved(cov: np.ndarray, k: int) -> None:
+    """cov[k] = diag(inf): no information on any axis."""
+    for i in range(3):
+        for j in range(3):
+            cov[k, i, j] = math.inf if i == j else 0.0
+
+
+@njit(cache=True)
 def boer_rows(t: np.ndarray, b: np.ndarray, s2: float, k0: int, w: np.ndarray, cov: np.ndarray,
               J: np.ndarray) -> None:
     """Boer rate and its first-order covariance for rows k ≥ max(k0, 1), in place.
@@ -106,11 +126,16 @@ def boer_rows(t: np.ndarray, b: np.ndarray, s2: float, k0: int, w: np.ndarray, c
     ω⊥_k = (ΔB_k × B_k) / (Δt_k |B_k|²) = (B_k × B_{k−1}) / (Δt_k |B_k|²) (0 where |B_k| = 0, which the
     callers flag). Jacobians: ∂ω⊥/∂B_{k−1} = [B_k]ₓ / (Δt|B_k|²) and
     ∂ω⊥/∂B_k = −[B_{k−1}]ₓ / (Δt|B_k|²) − 2 ω⊥ B_kᵀ / |B_k|²; cov = s2 Σ J Jᵀ for white per-axis
-    noise of variance s2. J is a (3, 3, 3) work array.
+    noise of variance s2. J is a (3, 3, 3) work array. A row with |B_k| ≤ FIELD_MIN_SIGMAS √s2 (with
+    s2 = 0: |B_k| = 0) is degenerate: cov = diag(inf).
     """
+    lim2 = FIELD_MIN_SIGMAS * FIELD_MIN_SIGMAS * s2
     for k in range(max(k0, 1), t.shape[0]):
         _chord(b[k, 0], b[k, 1], b[k, 2], b[k - 1, 0], b[k - 1, 1], b[k - 1, 2], t[k] - t[k - 1], w, k, J)
-        _add_jjt(J, 2, s2, cov, k)
+        if b[k, 0] * b[k, 0] + b[k, 1] * b[k, 1] + b[k, 2] * b[k, 2] <= lim2:
+            _unobserved(cov, k)
+        else:
+            _add_jjt(J, 2, s2, cov, k)
 
 
 @njit(cache=True)
@@ -122,13 +147,18 @@ def derivative_rows(t: np.ndarray, b: np.ndarray, s2: float, k0: int, w: np.ndar
     Ḃ_k = 0, which the callers flag). With d_k = Ḃ_k, d_1 = Ḃ_{k−1}: A₁ = ∂ω/∂d_1 = [d_k]ₓ/(Δt|d_k|²),
     A_k = ∂ω/∂d_k = −[d_1]ₓ/(Δt|d_k|²) − 2ω d_kᵀ/|d_k|², then the chain rule through the differences:
     ∂ω/∂B_{k−2} = −A₁/Δt_{k−1}, ∂ω/∂B_{k−1} = A₁/Δt_{k−1} − A_k/Δt_k, ∂ω/∂B_k = A_k/Δt_k.
+    A row with |ΔB_k| ≤ DEGENERATE_SNR √(2 s2) (with s2 = 0: ΔB_k = 0) is degenerate: cov = diag(inf).
     """
+    lim2 = 2.0 * DEGENERATE_SNR * DEGENERATE_SNR * s2
     for k in range(max(k0, 2), t.shape[0]):
         dt, dtp = t[k] - t[k - 1], t[k - 1] - t[k - 2]
         d0, d1, d2 = (b[k, 0] - b[k - 1, 0]) / dt, (b[k, 1] - b[k - 1, 1]) / dt, (b[k, 2] - b[k - 1, 2]) / dt
         e0, e1, e2 = ((b[k - 1, 0] - b[k - 2, 0]) / dtp, (b[k - 1, 1] - b[k - 2, 1]) / dtp,
                       (b[k - 1, 2] - b[k - 2, 2]) / dtp)
         _chord(d0, d1, d2, e0, e1, e2, dt, w, k, J)  # J[0] = A₁, J[1] = A_k
+        if (d0 * d0 + d1 * d1 + d2 * d2) * dt * dt <= lim2:
+            _unobserved(cov, k)
+            continue
         for i in range(3):
             for j in range(3):
                 a1, ak = J[0, i, j], J[1, i, j]
@@ -184,12 +214,14 @@ def derivative_rate(t_s: np.ndarray, b_T: np.ndarray) -> np.ndarray:
 
 
 def boer_covariance(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float) -> np.ndarray:
-    """First-order covariance (N, 3, 3) of :func:`boer_rate` for white per-axis noise σ_B; row 0 NaN."""
+    """First-order covariance (N, 3, 3) of :func:`boer_rate` for white per-axis noise σ_B; row 0 NaN;
+    diag(inf) on a degenerate row (|B_k| ≤ 3σ_B)."""
     return _rows(boer_rows, 1, t_s, b_T, sigma_b_T)[1]
 
 
 def derivative_covariance(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float) -> np.ndarray:
-    """First-order covariance (N, 3, 3) of :func:`derivative_rate`; rows 0 and 1 NaN."""
+    """First-order covariance (N, 3, 3) of :func:`derivative_rate`; rows 0 and 1 NaN; diag(inf) on a
+    degenerate row (|ΔB_k| ≤ √2 σ_B)."""
     return _rows(derivative_rows, 2, t_s, b_T, sigma_b_T)[1]
 
 
@@ -226,6 +258,19 @@ def derivative_error_bound_eq10(t_s: np.ndarray, b_T: np.ndarray, delta_b_T: flo
         with np.errstate(divide="ignore", invalid="ignore"):
             out[2:] = delta_star[:, None] * num / den[:, None]
     return out
+
+
+def unobserved_sigma(sigma_radps: np.ndarray, b_T: np.ndarray, sigma_b_T: float) -> np.ndarray:
+    """1-σ (N, 3) of a full-vector estimator's array form with "no information" as +inf: every axis of
+    a row whose field is at or below FIELD_MIN_SIGMAS σ_B (the sample has no direction), and an axis
+    whose σ is 0 (a covariance that found nothing to say) or at least SIGMA_UNOBSERVED_RADPS (the
+    link's finite stand-in). NaN (no estimate) stays NaN."""
+    s = np.array(sigma_radps, dtype=float)
+    with np.errstate(invalid="ignore"):
+        s[(s <= 0.0) | (s >= SIGMA_UNOBSERVED_RADPS)] = math.inf
+    weak = np.linalg.norm(np.asarray(b_T, float), axis=1) <= FIELD_MIN_SIGMAS * sigma_b_T
+    s[weak & ~np.isnan(s).any(axis=1)] = math.inf
+    return s
 
 
 # --- streaming forms for the flight loop --------------------------------------------------------
@@ -282,8 +327,9 @@ class _StreamBase:
         self.t_s = t_s
         return self._n == h
 
-    def _publish(self, degenerate: bool, base_flags: int) -> None:
-        """Publish the newest row of the kernel's output."""
+    def _publish(self, base_flags: int) -> None:
+        """Publish the newest row of the kernel's output; a non-finite σ (degenerate row) or ω is
+        published as DEGENERATE with σ = SIGMA_UNOBSERVED_RADPS."""
         flags = base_flags
         k = len(self._t) - 1
         w0, w1, w2 = self._w[k].tolist()
@@ -291,7 +337,7 @@ class _StreamBase:
         s0, s1, s2 = math.sqrt(max(float(c[0, 0]), 0.0)), math.sqrt(max(float(c[1, 1]), 0.0)), \
             math.sqrt(max(float(c[2, 2]), 0.0))
         finite_w = math.isfinite(w0 + w1 + w2)
-        if degenerate or not (finite_w and math.isfinite(s0 + s1 + s2)):
+        if not (finite_w and math.isfinite(s0 + s1 + s2)):
             flags |= self.DEGENERATE
             if not finite_w:
                 w0 = w1 = w2 = 0.0
@@ -315,9 +361,8 @@ class BoerStream(_StreamBase):
             return False
         boer_rows(self._t, self._b, self.sigma_b_T ** 2, 1, self._w, self._cov, self._J)
         # a field change within the noise still gives an honest (wide) estimate; only |B| → 0 degenerates
-        bx, by, bz = self._b[1].tolist()
-        degenerate = bx * bx + by * by + bz * bz < (3.0 * self.sigma_b_T) ** 2
-        self._publish(degenerate, base_flags=self.PERPENDICULAR_ONLY)
+        # (the kernel's infinite σ)
+        self._publish(self.PERPENDICULAR_ONLY)
         return True
 
 
@@ -331,9 +376,7 @@ class DerivativeStream(_StreamBase):
         if not self._push(t_s, b_T):
             return False
         derivative_rows(self._t, self._b, self.sigma_b_T ** 2, 2, self._w, self._cov, self._J)
-        # the formula divides by |ΔB_k|²: below the noise it has no information (ω ∥ B, or ω → 0)
-        b = self._b
-        dx, dy, dz = float(b[2, 0] - b[1, 0]), float(b[2, 1] - b[1, 1]), float(b[2, 2] - b[1, 2])
-        snr = math.sqrt(dx * dx + dy * dy + dz * dz) / (math.sqrt(2.0) * self.sigma_b_T)
-        self._publish(snr < DEGENERATE_SNR, base_flags=0)
+        # the formula divides by |ΔB_k|²: below the noise it has no information (ω ∥ B, or ω → 0): the
+        # kernel's infinite σ
+        self._publish(0)
         return True
