@@ -26,7 +26,7 @@ Link faults act on :class:`FaultyLink`, the radio between the flight software an
 | disconnect  | the serial port goes away (writes fail, the frame in flight is cut), then returns |
 
 Faults come one at a time, every kind in turn in a shuffled order, separated by quiet spells, so
-that the recovery from each can be judged on its own (`hil.soak`). Everything random comes from the
+that the recovery from each can be judged on its own (`bench.soak`). Everything random comes from the
 `numpy.random.Generator` given.
 """
 from __future__ import annotations
@@ -228,7 +228,7 @@ GROUND_ADDR = ("192.168.0.2", 14550)
 
 class FaultyDatagramLink(FaultyLink):
     """A :class:`FaultyLink` whose uplink carries datagrams with source addresses, like UDP (SITL, an
-    IP radio): so that floods and spoofed sources can reach the box (`hil.link_attacks`). The box reads
+    IP radio): so that floods and spoofed sources can reach the box (`bench.link_attacks`). The box reads
     it like `fsw.telemetry.udp_link.UdpLink` (`read_datagrams`, `os_dropped`); the downlink is the
     faulty byte stream of :class:`FaultyLink`. A receive buffer of `rcvbuf_bytes` (the kernel's
     default) holds what the box has not read yet; what does not fit is dropped and counted, as the

@@ -1,4 +1,4 @@
-"""The accuracy benchmark (hil.accuracy): the simulated passes against independent truth, and a short
+"""The accuracy benchmark (bench.accuracy): the simulated passes against independent truth, and a short
 form of the table (one run of two rows) as the CI check of the whole chain."""
 import math
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from fsw.estimation import rate_formulas as rf
-from hil import accuracy as acc
+from bench import accuracy as acc
 from hil import dynamics
 
 

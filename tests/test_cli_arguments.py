@@ -1,6 +1,6 @@
 """Every bad argument is a one-line error naming the option, key or file — never a traceback, never
 a silent acceptance — and leaves every file as it was: ground.decode, ground.estimate, ground.inertia,
-ground.command, ground.keys, fsw.main, hil.soak. (Scenario files: tests/test_scenario.py; output
+ground.command, ground.keys, fsw.main, bench.soak. (Scenario files: tests/test_scenario.py; output
 paths: tests/test_output_paths.py; damaged .tlog files: tests/test_bad_input.py.)"""
 import io
 import os
@@ -18,7 +18,7 @@ from fsw import main as fsw_main
 from fsw.telemetry.signing import KeyFileError, load_key, write_key
 from ground import command, decode, estimate, inertia, keys
 from ground.recording import Recording, write_recording
-from hil import soak
+from bench import soak
 from support import exit_status
 from test_bad_input import good_tlog
 
@@ -332,7 +332,7 @@ def test_ctrl_c_during_set_up_in_process_is_one_line(monkeypatch, capsys):
     assert capsys.readouterr().err.strip() == "interrupted"
 
 
-# --- hil.soak --------------------------------------------------------------------------------------
+# --- bench.soak --------------------------------------------------------------------------------------
 
 def test_soak_scenario_typo_is_a_one_line_error(capsys):
     one_line_error(capsys, soak.main, ["--duration", "150", "--quiet", "--scenario", "isio"], 2, "--scenario",

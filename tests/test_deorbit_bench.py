@@ -1,6 +1,6 @@
 """The de-orbit closed loop (simulator + kit emulator + flight sequencer/controller on the scheduler's
 clock), short runs: convergence, energy ledger against the emulator's truth, faults that end in SAFE
-without a violation, the command-line tool. The full 10,800 s run is `python -m hil.deorbit_bench`."""
+without a violation, the command-line tool. The full 10,800 s run is `python -m bench.deorbit`."""
 import json
 
 import numpy as np
@@ -8,8 +8,8 @@ import pytest
 
 from fsw.deorbit.sequencer import KitMode
 from fsw.drivers.stepper import FAULT_SHUTTER_STUCK, FAULT_STALL, MOTOR_POWER_W
-from hil import deorbit_bench
-from hil.deorbit_bench import Fault, run_bench
+from bench import deorbit
+from bench.deorbit import Fault, run_bench
 
 KEYS = ("yaw_err_max_rad", "pitch_err_max_rad", "capsule_openings", "magnet_turns", "energy_J",
         "interlock_violations")
@@ -94,18 +94,18 @@ def test_fault_specification_parsing():
 
 def test_command_line_writes_json_and_plot(tmp_path, capsys):
     js, png = tmp_path / "bench.json", tmp_path / "bench.png"
-    assert deorbit_bench.main(["--duration", "300", "--json", str(js), "--plot", str(png)]) == 0
+    assert deorbit.main(["--duration", "300", "--json", str(js), "--plot", str(png)]) == 0
     out = capsys.readouterr().out
     assert "lapkhanov2019" in out and "simulation truth" in out and "1755" in out
     d = json.loads(js.read_text())
     assert all(k in d for k in KEYS) and d["duration_s"] == 300.0
     assert png.stat().st_size > 10_000
-    assert deorbit_bench.main(["--fault", "melt:pitch:1"]) == 2
+    assert deorbit.main(["--fault", "melt:pitch:1"]) == 2
 
 
 def test_a_later_start_on_the_orbit_sees_another_field(tmp_path, capsys):
     js = tmp_path / "b.json"
-    assert deorbit_bench.main(["--duration", "60", "--arg-lat0", "90", "--json", str(js)]) == 0
+    assert deorbit.main(["--duration", "60", "--arg-lat0", "90", "--json", str(js)]) == 0
     assert "argument of latitude 90°" in capsys.readouterr().out
     assert json.loads(js.read_text())["arg_lat0_deg"] == 90.0
     a = run_bench(duration_s=10.0)

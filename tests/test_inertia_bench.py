@@ -1,11 +1,11 @@
-"""The identification benchmark (hil.inertia_bench): a short seeded Monte-Carlo through the command line,
-its JSON and table; the full run (README table) is `python -m hil.inertia_bench`."""
+"""The identification benchmark (bench.inertia): a short seeded Monte-Carlo through the command line,
+its JSON and table; the full run (README table) is `python -m bench.inertia`."""
 import json
 
 import numpy as np
 import pytest
 
-from hil import inertia_bench as ib
+from bench import inertia as ib
 
 
 def test_truth_record_is_the_simulators_and_noise_is_seeded():

@@ -8,7 +8,7 @@ import pytest
 from fsw.estimation import euler_fit as ef
 from ground import inertia as gi
 from ground.recording import Recording, write_recording
-from hil.inertia_bench import truth_record
+from bench.inertia import truth_record
 from support import exit_status
 
 TRUTH = np.array([175.0, 200.0, 285.0, 0.0, 0.0, 0.0])
@@ -20,7 +20,7 @@ def recording_csv(tmp_path_factory):
     tr = truth_record("aist2d", 420.0)
     rng = np.random.default_rng(5)
     scn = tr.scenario
-    meta = {"source": "hil.inertia_bench.truth_record(aist2d) + 1.5 uT noise",
+    meta = {"source": "bench.inertia.truth_record(aist2d) + 1.5 uT noise",
             "orbit_altitude_km": f"{scn.altitude_m / 1e3:g}", "orbit_inclination_deg": f"{scn.inclination_deg:g}",
             "orbit_raan_deg": f"{scn.raan_deg:g}", "orbit_arg_lat0_deg": f"{scn.arg_lat0_deg:g}",
             "field_epoch_year": f"{scn.epoch_year:g}"}

@@ -332,7 +332,7 @@ def test_rate_model_bank_holds_a_libration_and_keeps_the_random_walk_for_a_tumbl
     the random walk publishes, the same estimates as the attitude filter alone. Never a non-finite
     estimate."""
     from ground import smoother as sm
-    from hil import accuracy as acc
+    from bench import accuracy as acc
     sb = math.hypot(1.5e-6, acc.CHIP_NOISE_T)
     run = acc.simulate("orbital", "asymmetric", 1.0, 1.5e-6, np.random.default_rng([2024, 2, 0, 1, 15, 0]))
     fld = sm.tabulated(run.field, run.t_s)

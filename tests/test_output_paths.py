@@ -9,7 +9,7 @@ import pytest
 from fsw import main as fsw_main
 from ground import decode, estimate, inertia
 from ground.recording import Recording, write_recording
-from hil import deorbit_bench, soak
+from bench import deorbit, soak
 from support import exit_status, free_udp_port
 from test_bad_input import good_tlog
 
@@ -131,6 +131,6 @@ def test_soak_checks_its_json_path_at_start(tmp_path, capsys):
 
 def test_deorbit_bench_refuses_one_file_for_json_and_plot(tmp_path, capsys):
     out = tmp_path / "bench.png"
-    refused(capsys, deorbit_bench.main, ["--duration", "10", "--json", str(out), "--plot", str(out)],
+    refused(capsys, deorbit.main, ["--duration", "10", "--json", str(out), "--plot", str(out)],
             message="are the same file")
     assert not out.exists()

@@ -9,7 +9,7 @@ import pytest
 from fsw.estimation import field_motion as fm
 from fsw.estimation import kalman as kl
 from ground import smoother as sm
-from hil import accuracy as acc
+from bench import accuracy as acc
 from hil import dynamics
 
 FIELD = fm.OrbitField(fm.CircularOrbitModel(485e3, 97.5, 40.0, 10.0), fm.DipoleModel(2025.5))

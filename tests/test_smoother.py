@@ -169,9 +169,9 @@ def test_auto_rejects_a_batch_fit_in_a_wrong_minimum():
 
 
 def benchmark_record(mode, body, run_index):
-    """The scored record of a run of hil.accuracy's row (mode, body, 1 s, 0.5 µT), seeded as the benchmark
+    """The scored record of a run of bench.accuracy's row (mode, body, 1 s, 0.5 µT), seeded as the benchmark
     seeds it: t, B, true ω, σ_B, the field along the orbit."""
-    from hil import accuracy as acc
+    from bench import accuracy as acc
     seed = [2024, list(acc.MODES).index(mode), list(acc.BODIES).index(body), 1, 5, run_index]
     run = acc.simulate(mode, body, 1.0, 0.5e-6, np.random.default_rng(seed))
     rec = run.record

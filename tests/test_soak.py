@@ -1,10 +1,10 @@
 """The soak run in its CI form: a few simulated minutes with every fault kind and every attack
-(`python -m hil.soak` runs the full hour on demand)."""
+(`python -m bench.soak` runs the full hour on demand)."""
 import json
 
 import pytest
 
-from hil import soak
+from bench import soak
 from hil.faults import ALL_KINDS
 
 

@@ -1,4 +1,4 @@
-"""Attacks on the uplink's datagrams for the soak (`hil.soak`): floods and spoofed sources.
+"""Attacks on the uplink's datagrams for the soak (`bench.soak`): floods and spoofed sources.
 
 - :class:`Flooder`: bursts of `burst_s` at `rate_Bps` (1 MB/s: 20 KB a 50 Hz tick), every `every_s`,
   the kinds in turn: 0xFE in 64 KB datagrams (every 0xFE is a MAVLink 1 start byte with a known id),
@@ -28,7 +28,7 @@ from fsw.telemetry.signing import SigningClock, sign_frame
 
 from ground.command import GroundLink
 
-from .faults import GROUND_ADDR
+from hil.faults import GROUND_ADDR
 
 FLOOD_KINDS = ("0xFE", "0xFD", "random")
 #: the flood probe: a command the soak registers, its param7 the probe's number

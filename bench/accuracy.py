@@ -1,10 +1,10 @@
 """Accuracy benchmark of the rate estimators: seeded Monte-Carlo SITL runs, a table shaped like
 sedelnikov2024 Table 3.
 
-    python -m hil.accuracy                       # the full table, 3 runs per row (~17 min on 1 core)
-    python -m hil.accuracy --runs 20 --jobs 2 --json acc.json   # the README's (~55 min on 2 cores)
-    python -m hil.accuracy --quick               # two rows, one run each: a smoke test
-    python -m hil.accuracy --rows orbital --methods smoother   # a subset of rows; boer + the ground smoothers
+    python -m bench.accuracy                       # the full table, 3 runs per row (~17 min on 1 core)
+    python -m bench.accuracy --runs 20 --jobs 2 --json acc.json   # the README's (~55 min on 2 cores)
+    python -m bench.accuracy --quick               # two rows, one run each: a smoke test
+    python -m bench.accuracy --rows orbital --methods smoother   # a subset of rows; boer + the ground smoothers
 
 Rows: mode × sampling step (1 s, 3 s) × noise (0.5 µT, the paper's 1.5 µT) × body.
 
@@ -553,7 +553,7 @@ def real_markdown(rows: list[dict]) -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m hil.accuracy", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.accuracy", description=__doc__.splitlines()[0])
     ap.add_argument("--json", metavar="FILE", help="write every number (per row and method) as JSON")
     ap.add_argument("--runs", type=int_range(1), default=3, help="Monte-Carlo runs per row (default 3)")
     ap.add_argument("--seed", type=int_range(0), default=2024, help="base seed (default 2024)")

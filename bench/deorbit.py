@@ -1,4 +1,4 @@
-"""Closed-loop benchmark of the de-orbit kit: `python -m hil.deorbit_bench [--json FILE] [--plot FILE.png]`.
+"""Closed-loop benchmark of the de-orbit kit: `python -m bench.deorbit [--json FILE] [--plot FILE.png]`.
 
 The scenario of lapkhanov2019 section 6 (`hil/scenarios/amds_deorbit.toml`): the AMDS spacecraft at
 600 km from yaw 60°, pitch 45° (orbital frame) for 10,800 s. Composed like the SITL of `fsw.main`, in one
@@ -37,8 +37,8 @@ from fsw.files import write_atomic
 from fsw.telemetry.dialect import mavlink
 from ground.plot import check_plot_path, save_figure
 
-from . import scenario as scenarios
-from .deorbit_sim import DeorbitSimulator, build_kit, controller_config
+from hil import scenario as scenarios
+from hil.deorbit_sim import DeorbitSimulator, build_kit, controller_config
 
 DEFAULT_SCENARIO = "amds_deorbit"
 PAPER = {
@@ -302,7 +302,7 @@ def plot(r: BenchResult, path: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m hil.deorbit_bench", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.deorbit", description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default=DEFAULT_SCENARIO, metavar="NAME|FILE")
     ap.add_argument("--duration", type=finite_float(0, min_exclusive=True), default=None, metavar="S",
                     help="default: the scenario's (10,800 s)")

@@ -1,9 +1,9 @@
 """Seeded Monte-Carlo benchmark of the inertia identification on the SITL scenarios.
 
-    python -m hil.inertia_bench [--json FILE] [--runs N] [--seed S] [--duration S|auto]
+    python -m bench.inertia [--json FILE] [--runs N] [--seed S] [--duration S|auto]
                                 [--scenarios aist2d,asymmetric,cellular_debris] [--quick]
                                 [--fits full,shape] [--shape-data all|free] [--no-linear]
-    python -m hil.inertia_bench --crb 1500,3000,6000 [--scenarios ...] [--json FILE]
+    python -m bench.inertia --crb 1500,3000,6000 [--scenarios ...] [--json FILE]
 
 For each scenario the simulator integrates the truth once over the record (``--duration``; by default
 the shortest of 1500, 3000, 4500, 6000 s whose Cramér–Rao bound on the shape ratios is at most
@@ -52,9 +52,9 @@ from fsw.estimation import inertia as inr
 from fsw.files import write_atomic
 from fsw.main import BANDWIDTH
 
-from . import scenario as scenarios
-from .ident_sitl import field_model
-from .sim import Simulator
+from hil import scenario as scenarios
+from hil.ident_sitl import field_model
+from hil.sim import Simulator
 
 SCENARIOS = ("aist2d", "asymmetric", "cellular_debris")
 LINEAR_SIGMA_OMEGA_RADPS = math.radians(0.05)
@@ -516,7 +516,7 @@ def crb_lines(table_: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m hil.inertia_bench", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.inertia", description=__doc__.splitlines()[0])
     ap.add_argument("--json", metavar="FILE", help="write all the numbers as JSON")
     ap.add_argument("--runs", type=int_range(2), default=20, help="Monte-Carlo runs per scenario (default 20)")
     ap.add_argument("--seed", type=int_range(0), default=1, help="seed of the noise draws (default 1)")
@@ -549,7 +549,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             tab = crb_table(names, lengths)
         except ValueError as e:
-            print(f"hil.inertia_bench: {e}", file=sys.stderr)
+            print(f"bench.inertia: {e}", file=sys.stderr)
             return 2
         print(crb_lines(tab))
         if args.json:
@@ -587,7 +587,7 @@ def main(argv: list[str] | None = None) -> int:
             print(table(r), flush=True)
             results.append(r)
     except scenarios.ScenarioError as e:
-        print(f"hil.inertia_bench: {e}", file=sys.stderr)
+        print(f"bench.inertia: {e}", file=sys.stderr)
         return 2
     print(targets(results))
     if args.json:

@@ -1,7 +1,7 @@
 """Soak run: the flight software in SITL for a long stretch of simulated time, under injected faults and
 attacks, faster than real time; prints (and writes as JSON) what was injected and what survived.
 
-    python -m hil.soak [--duration S] [--json FILE] [--seed N] [--scenario NAME]
+    python -m bench.soak [--duration S] [--json FILE] [--seed N] [--scenario NAME]
 
 In one process, in lockstep: the simulator and its register-level MMC5983MA, the flight software
 (driver → sample gate → estimators → signed telemetry through the store-and-forward buffer; uplink with
@@ -16,7 +16,7 @@ MAVLink command protocol) and attacks:
   command that must still be obeyed);
 - floods of the uplink at 1 MB/s in 5 s bursts (0xFE in 64 KB datagrams, 0xFD, random bytes), each
   with a genuine signed command in its middle that must be obeyed within 1 s, and bursts of datagrams
-  from spoofed source addresses (`hil.link_attacks`): the uplink is modelled as datagrams with source
+  from spoofed source addresses (`bench.link_attacks`): the uplink is modelled as datagrams with source
   addresses, like UDP (`hil.faults.FaultyDatagramLink`). The figures say the loop overruns during the
   floods (target 0), the probes' latency, and whether a stranger ever became the address the box
   answers.
@@ -57,8 +57,8 @@ from fsw.telemetry.telemetry import Telemetry, usec
 from ground.command import GroundLink
 from ground.decode import Decoder
 
-from . import scenario as scenarios
-from .faults import ALL_KINDS, LINK_KINDS, GROUND_ADDR, FaultInjector, FaultyDatagramLink, make_schedule
+from hil import scenario as scenarios
+from hil.faults import ALL_KINDS, LINK_KINDS, GROUND_ADDR, FaultInjector, FaultyDatagramLink, make_schedule
 from .link_attacks import FLOOD_PROBE, Flooder, Spoofer
 
 #: the simulated wall clock at the start (ground time stamps, signing clocks): 2025-06-15
@@ -329,7 +329,7 @@ def run(duration_s: float = 3600.0, *, seed: int = 1, scenario: str = "isoi", ra
 
 def _link_attackers(fsw: FlightSoftware, link: FaultyDatagramLink, commander: Commander, key: bytes, epoch: int,
                     executions: list, rng: np.random.Generator, duration_s: float) -> tuple[Flooder, Spoofer]:
-    """The floods and the spoofed sources (`hil.link_attacks`), with their own random streams."""
+    """The floods and the spoofed sources (`bench.link_attacks`), with their own random streams."""
     rng_flood, rng_spoof = rng.spawn(2)
     flooder = Flooder(link, key, SigningClock(epoch=epoch, clock_set=True), rng_flood, duration_s=duration_s)
     fsw.commands.register(FLOOD_PROBE, lambda msg, now_s: flooder.executed(msg.param7, now_s))
@@ -505,7 +505,7 @@ def report(fig: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m hil.soak", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.soak", description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=finite_float(120), default=3600.0, metavar="S",
                     help="simulated seconds, >= 120: faults start at 30 s and the last minute is quiet "
                          "(default 3600; at least 300 for a meaningful schedule)")

@@ -1,0 +1,1 @@
+"""Benchmarks and campaigns: the flight software, the simulator and the ground tools measured together."""
