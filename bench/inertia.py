@@ -50,7 +50,7 @@ from fsw.argtypes import check_paths_or_exit, finite_float, int_range
 from fsw.estimation import euler_fit as ef
 from fsw.estimation import inertia as inr
 from fsw.files import write_atomic
-from fsw.main import BANDWIDTH
+from hil.sitl import BANDWIDTH
 
 from hil import scenario as scenarios
 from hil.ident_sitl import field_model

@@ -42,7 +42,6 @@ import time
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 
@@ -52,12 +51,13 @@ from fsw.flight import FlightSoftware
 from fsw.telemetry.dialect import FSW_COMPID, FSW_SYSID, mavlink
 from fsw.telemetry.framing import Deframer
 from fsw.telemetry.signing import TIMESTAMP_MAX, SigningClock, Verdict, sign_frame, unix_clock, unix_to_timestamp
-from fsw.telemetry.store_forward import StoreForward
-from fsw.telemetry.telemetry import Telemetry, usec
+from fsw.telemetry.telemetry import usec
 from ground.command import GroundLink
 from ground.decode import Decoder
 
+from fsw.config import RunConfig
 from hil import scenario as scenarios
+from hil import sitl
 from hil.faults import ALL_KINDS, LINK_KINDS, GROUND_ADDR, FaultInjector, FaultyDatagramLink, make_schedule
 from .link_attacks import FLOOD_PROBE, Flooder, Spoofer
 
@@ -228,18 +228,16 @@ def run(duration_s: float = 3600.0, *, seed: int = 1, scenario: str = "isoi", ra
         progress=None) -> dict:
     """Run the soak; returns the figures (see the module docstring). `quiet_s`: spacing of the faults
     (shorter in the CI form, to fit every kind in a few simulated minutes)."""
-    from fsw.main import build_sitl
-
     wall0 = time.perf_counter()
     rng = np.random.default_rng(seed)
     rng_sched, rng_link, rng_fault, rng_cmd, rng_key = rng.spawn(5)
-    scn, sim, driver, sigma_b = build_sitl(SimpleNamespace(scenario=scenario, seed=seed, rate=rate_hz))
     key = rng_key.bytes(32)
     epoch = unix_to_timestamp(UNIX0_S)
     link = FaultyDatagramLink(rng_link, src_system=FSW_SYSID, src_component=FSW_COMPID)
-    tlm = Telemetry(link, store=StoreForward(buffer_frames), key=key, clock=SigningClock(epoch=epoch, clock_set=True))
-    fsw = FlightSoftware(driver, tlm, rate_hz=rate_hz, sigma_b_T=sigma_b, truth=sim.truth,
-                         sample_rate_hz=scn.sample_rate_hz, uplink=link, key=key)
+    box = sitl.build(sitl.SitlConfig(RunConfig(rate_hz=rate_hz, buffer_frames=buffer_frames), scenario=scenario,
+                                      seed=seed),
+                     link=link, key=key, clock=SigningClock(epoch=epoch, clock_set=True), run_id=0, apps=False)
+    scn, sim, fsw, tlm = box.scenario, box.sim, box.fsw, box.flight.tlm
     executions: list[float] = []
     fsw.commands.register(PROBE_COMMAND, lambda msg, now_s: executions.append(msg.param7))
 

@@ -1,20 +1,22 @@
-"""The flight software: the task table that ties driver → estimation → telemetry together.
+"""The flight software: the task table that ties driver → estimation → applications → telemetry together.
 
-Tasks (base rate = the loop rate):
+Tasks (base rate = the loop rate), in the order they run within a tick:
 
-| task      | rate       | budget        | does                                                      |
-|-----------|------------|---------------|-----------------------------------------------------------|
-| uplink    | loop rate  | 10 % of period| reads the ground's frames, verifies, runs commands (ACK)  |
-| sensor    | loop rate  | 20 % of period| advances the magnetometer driver; latches a new sample,   |
-|           |            |               | refused if implausible (`estimation.sample_gate`)         |
-| estimator | loop rate  | 30 % of period| runs the rate estimators on a new sample                  |
-| telemetry | loop rate  | 30 % of period| sends the sample, the estimates (and SITL truth)          |
-| ident     | loop rate  | 30 % of period| (when configured) inertia identification experiment: a   |
-|           |            |               | slice of its fit, DEBRIS_INERTIA_ESTIMATE (`fsw.ident`)   |
-| deorbit   | ≤ 10 Hz    | 50 % of period| (when configured) de-orbit kit: drivers, sequencer,       |
-|           |            |               | controller (`fsw.deorbit.kit`); transitions as STATUSTEXT |
-| status    | 1 Hz       | 50 % of period| HEARTBEAT, SYS_STATUS, loop timing, driver health,        |
-|           |            |               | DEBRIS_LINK_STATUS (DEBRIS_DEORBIT_STATUS with the kit)   |
+| task      | rate         | budget         | does                                                       |
+|-----------|--------------|----------------|------------------------------------------------------------|
+| uplink    | loop rate    | 10 % of period | the link's service (signing time, retry, stored frames);   |
+|           |              |                | reads the ground's frames, verifies, runs commands (ACK)   |
+| sensor    | loop rate    | 20 % of period | advances the magnetometer driver; latches a new sample,    |
+|           |              |                | refused if implausible (`estimation.sample_gate`)          |
+| estimator | loop rate    | 30 % of period | runs the rate estimators on a new sample                   |
+| *app*     | the app's    | the app's      | each onboard application (`fsw.app.App`): its tick with    |
+|           |              |                | the sample of this tick, then its telemetry — the inertia  |
+|           |              |                | identification experiment (`fsw.ident`, every tick), the   |
+|           |              |                | de-orbit kit (`fsw.deorbit.kit`, 10 Hz)                    |
+| telemetry | loop rate    | 30 % of period | sends the numbered sample, the estimates (and SITL truth); |
+|           |              |                | samples the ground asked for again, within their budget    |
+| status    | 1 Hz         | 50 % of period | HEARTBEAT, SYS_STATUS, loop timing, driver health,         |
+|           |              |                | DEBRIS_LINK_STATUS, DEBRIS_SAMPLE_STORE                    |
 
 Commands: handlers register with `self.commands` (`fsw.commands.CommandRouter`), parameters with
 `self.params`; the uplink (`telemetry.uplink`) runs them when they arrive signed with the mission key.
@@ -24,10 +26,12 @@ clock on target. Nothing in here reads the wall clock.
 """
 from __future__ import annotations
 
-from typing import Callable, Protocol
+from dataclasses import dataclass, field
+from typing import Callable, Iterable, Protocol, runtime_checkable
 
 import numpy as np
 
+from .app import App
 from .commands import CommandRouter, ParamTable, int_param
 from .estimation.kalman import RateKalman
 from .estimation.rate_formulas import BoerStream, DerivativeStream
@@ -48,6 +52,42 @@ class FieldSource(Protocol):
     def update(self, now_s: float) -> bool: ...
 
 
+@runtime_checkable
+class SensorDriver(Protocol):
+    """A field source that is a device driver with health of its own (the MMC5983MA driver): its state
+    and error counters go into SYS_STATUS and DEBRIS_MAG_STATUS."""
+
+    state: int
+    samples: int
+    bus_errors: int
+    timeouts: int
+    bad_id: int
+    resets: int
+    offset_T: np.ndarray
+
+
+class Estimator(Protocol):
+    """A rate estimator run on every sample (`fsw.estimation`)."""
+
+    omega_radps: np.ndarray
+    sigma_radps: np.ndarray
+    flags: int
+    #: how many estimates after a data gap still span it (a filter: 0, it propagates across the gap)
+    gap_history: int
+
+    def update(self, t_s: float, b_T: np.ndarray) -> bool: ...
+
+    def reset(self) -> None: ...
+
+
+@dataclass
+class LatchedSample:
+    """The magnetometer sample accepted this tick (what the applications get)."""
+
+    t_s: float = 0.0
+    b_T: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+
 #: (method id, estimator) pairs run on every sample, in telemetry order
 METHODS = {"boer": mavlink.DEBRIS_RATE_METHOD_BOER, "derivative": mavlink.DEBRIS_RATE_METHOD_DERIVATIVE,
            "kalman": mavlink.DEBRIS_RATE_METHOD_KALMAN}
@@ -66,26 +106,27 @@ class FlightSoftware:
     def __init__(self, source: FieldSource, telemetry: Telemetry, *, rate_hz: float, sigma_b_T: float,
                  truth: Callable[[float], object] | None = None, max_sample_tlm_hz: float = 20.0,
                  sample_rate_hz: float | None = None, uplink=None, key: bytes | None = None,
-                 ident=None, deorbit=None, rate_filter=None, sample_store: SampleStore | None = None) -> None:
+                 apps: Iterable[App] = (), rate_filter=None, sample_store: SampleStore | None = None) -> None:
         """`uplink`: the connection commands arrive on (usually the telemetry link itself, `telemetry.conn`;
         None: no uplink); `key`: the mission key (None: every state-changing command is refused);
-        `ident`: the inertia identification experiment (`fsw.ident.IdentExperiment`), or None;
-        `deorbit`: the de-orbit kit (`fsw.deorbit.kit.DeorbitKit`), or None;
+        `apps`: the onboard applications (`fsw.app.App`: the identification experiment, the de-orbit
+        kit), run in this order after the estimators;
         `rate_filter`: the Kalman filter sent as DEBRIS_RATE_METHOD_KALMAN (default
         `estimation.kalman.RateKalman`; e.g. an `AttitudeRateKalman` with the field along the orbit);
         `sample_store`: where the numbered samples are kept for the ground's requests (default: in
         memory, run id 0)."""
         self.source = source
+        self.driver = source if isinstance(source, SensorDriver) else None
         self.tlm = telemetry
         self.truth = truth
         load_compiled_kernels()
-        self.estimators = {"boer": BoerStream(sigma_b_T), "derivative": DerivativeStream(sigma_b_T),
-                           "kalman": rate_filter if rate_filter is not None else RateKalman(sigma_b_T)}
+        self.estimators: dict[str, Estimator] = {
+            "boer": BoerStream(sigma_b_T), "derivative": DerivativeStream(sigma_b_T),
+            "kalman": rate_filter if rate_filter is not None else RateKalman(sigma_b_T)}
         self.new_sample = False
         self.new_estimate = {name: False for name in self.estimators}
         self.samples = 0
-        self.sample_t_s = 0.0
-        self.sample_b_T = np.zeros(3)
+        self.latched = LatchedSample()
         # at most max_sample_tlm_hz samples (with their estimates) go out on the link
         self._tlm_every = max(1, int(np.ceil((sample_rate_hz or rate_hz) / max_sample_tlm_hz)))
         self.gate = SampleGate(sigma_b_T, 1.0 / (sample_rate_hz or rate_hz))
@@ -97,13 +138,12 @@ class FlightSoftware:
         self.params = ParamTable()
         self._register_params(sample_rate_hz or rate_hz)
         self.commands.register(mavlink.MAV_CMD_REQUEST_MESSAGE, self._request_message, changes_state=False)
-        self.ident = ident
-        if ident is not None:
-            ident.register(self.commands)
-        self.deorbit = deorbit
-        if deorbit is not None:
-            deorbit.register_commands(self.commands)
-            deorbit.sequencer.on_event = self._deorbit_event
+        self.apps: dict[str, App] = {}
+        for app in apps:
+            if app.name in self.apps:
+                raise ValueError(f"two applications named {app.name!r}")
+            app.register(self.commands)
+            self.apps[app.name] = app
         self.uplink = None if uplink is None else Uplink(
             uplink, self.commands, sysid=telemetry.mav.srcSystem, compid=telemetry.mav.srcComponent, key=key,
             clock=telemetry.clock, reply=telemetry.send_now if uplink is telemetry.conn else None,
@@ -113,15 +153,25 @@ class FlightSoftware:
             Task("uplink", self._uplink, rate_hz, 0.1 * period),
             Task("sensor", self._sensor, rate_hz, 0.2 * period),
             Task("estimator", self._estimate, rate_hz, 0.3 * period),
+            *(Task(app.name, self._app_task(app), min(app.rate_hz, rate_hz), app.budget * period)
+              for app in self.apps.values()),
             Task("telemetry", self._telemetry, rate_hz, 0.3 * period),
             Task("status", self._status, min(1.0, rate_hz), 0.5 * period),
         ])
-        if ident is not None:
-            self.scheduler.tasks.insert(3, Task("ident", self._ident, rate_hz, 0.3 * period, divider=1))
-        if deorbit is not None:
-            kit_hz = min(rate_hz, 10.0)
-            self.scheduler.tasks.insert(-1, Task("deorbit", deorbit.tick, kit_hz, 0.5 * period,
-                                                 divider=max(1, round(rate_hz / kit_hz))))
+
+    @property
+    def sample_t_s(self) -> float:
+        return self.latched.t_s
+
+    @property
+    def sample_b_T(self) -> np.ndarray:
+        return self.latched.b_T
+
+    def _app_task(self, app: App) -> Callable[[float], None]:
+        def run(now_s: float) -> None:
+            app.tick(now_s, self.latched if self.new_sample else None)
+            app.telemetry(now_s, self.tlm)
+        return run
 
     def tick(self, now_s: float) -> float:
         return self.scheduler.tick(now_s)
@@ -161,6 +211,8 @@ class FlightSoftware:
 
     # --- tasks ---------------------------------------------------------------------------------
     def _uplink(self, now_s: float) -> None:
+        # first in the tick: the signing time, the link's retry and stored frames, before anything is sent
+        self.tlm.service(now_s)
         if self.uplink is not None:
             self.uplink.poll(now_s)
 
@@ -168,8 +220,8 @@ class FlightSoftware:
         self.new_sample = self.source.update(now_s)
         if self.new_sample:
             self.samples += 1
-            self.sample_t_s = self.source.sample_time_s
-            self.sample_b_T[:] = self.source.b_body_T
+            self.latched.t_s = self.source.sample_time_s
+            self.latched.b_T[:] = self.source.b_body_T
             # an implausible sample (saturated, stuck, spike) is neither estimated on nor sent
             self.new_sample = self.gate.check(self.sample_t_s, self.sample_b_T)
             if self.new_sample and self.gate.gap_samples > self.gate.reset_after_gap:
@@ -195,24 +247,13 @@ class FlightSoftware:
         if gap:
             self._gap = gap
             # a filter propagates its covariance across the gap itself (gap_history = 0)
-            self._gap_left = {name: getattr(est, "gap_history", len(getattr(est, "_t", (0, 0, 0))) - 1)
-                              for name, est in self.estimators.items()}
+            self._gap_left = {name: est.gap_history for name, est in self.estimators.items()}
         for name, est in self.estimators.items():
             if self._gap_left.get(name, 0) > 0 and self.new_estimate[name]:
                 self._gap_left[name] -= 1
                 mark_gap(est, self._gap)
 
-    def _ident(self, now_s: float) -> None:
-        """The identification experiment: its samples, phases, a slice of its fit, its estimate message."""
-        ident = self.ident
-        if self.new_sample:
-            ident.on_sample(self.sample_t_s, self.sample_b_T)
-        ident.step(now_s)
-        if ident.telemetry_due(now_s):
-            self.tlm.inertia_estimate(now_s, **ident.message_fields())
-
     def _telemetry(self, now_s: float) -> None:
-        self.tlm.service(now_s)
         self._live_sample()
         self.resender.service(now_s, self.tlm.resend_sample)
 
@@ -233,32 +274,22 @@ class FlightSoftware:
     def _status(self, now_s: float) -> None:
         st = self.scheduler.stats
         mean_us, p50_us, p99_us, max_us = st.summary_us()
-        src = self.source
-        healthy = getattr(src, "state", None) is None or int(src.state) == mavlink.DEBRIS_MAG_STATE_MEASURE
-        healthy = healthy and not self.gate.rejecting
+        drv = self.driver
+        healthy = (drv is None or int(drv.state) == mavlink.DEBRIS_MAG_STATE_MEASURE) and not self.gate.rejecting
         link = self._link_counters()
         self.tlm.heartbeat()
         self.tlm.sys_status(mag_healthy=healthy,
                             load_permille=int(mean_us * 1e-3 / self.scheduler.period_s),
-                            errors_comm=getattr(src, "bus_errors", 0) + self.tlm.send_errors,
-                            errors_count=(self.gate.rejected, getattr(src, "resets", 0),
+                            errors_comm=(drv.bus_errors if drv else 0) + self.tlm.send_errors,
+                            errors_count=(self.gate.rejected, drv.resets if drv else 0,
                                           sum(v for k, v in link.items() if k.startswith("rejected_")),
                                           self.tlm.store.dropped if self.tlm.store is not None else 0))
         self.tlm.link_status(now_s, **link)
         self.tlm.loop_status(now_s, ticks=st.ticks, overruns=st.overruns, task_overruns=st.task_overruns,
                              period_s=self.scheduler.period_s, mean_us=mean_us, p50_us=p50_us, p99_us=p99_us,
                              max_us=max_us)
-        if hasattr(src, "offset_T"):
-            self.tlm.mag_status(now_s, src)
-        if self.deorbit is not None:
-            self.tlm.deorbit_status(now_s, self.deorbit.status(now_s))
+        if drv is not None:
+            self.tlm.mag_status(now_s, drv)
         self.tlm.sample_store_status(now_s, self.sample_store, self.resender)
         self.sample_store.sync()
         st.reset_window()
-
-    def _deorbit_event(self, event) -> None:
-        """A de-orbit kit transition, refusal or fault → STATUSTEXT (faults and violations as errors)."""
-        severity = (mavlink.MAV_SEVERITY_ERROR if event.what in ("fault", "violation") else
-                    mavlink.MAV_SEVERITY_WARNING if event.what in ("refused", "recovery") or
-                    (event.what == "mode" and event.new == "SAFE") else mavlink.MAV_SEVERITY_INFO)
-        self.tlm.statustext(event.text(), severity)

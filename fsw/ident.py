@@ -94,7 +94,12 @@ class IdentResult:
 
 
 class IdentExperiment:
-    """The experiment's state machine, its samples, and the fit jobs that run on them."""
+    """The experiment's state machine, its samples, and the fit jobs that run on them; an onboard
+    application (`fsw.app.App`): every tick, with the sample of that tick."""
+
+    name = "ident"
+    rate_hz = math.inf  # every tick: it keeps every sample
+    budget = 0.3
 
     def __init__(self, *, sigma_b_T: float, b_inertial: FieldFn | None, tug: Tug | None = None,
                  magnets: Magnets | None = None, config: IdentConfig | None = None) -> None:
@@ -170,6 +175,17 @@ class IdentExperiment:
         return mavlink.MAV_RESULT_ACCEPTED
 
     # --- loop ------------------------------------------------------------------------------------
+    def tick(self, now_s: float, sample) -> None:
+        """The application's task: the sample of this tick, then the phases and a slice of the fit."""
+        if sample is not None:
+            self.on_sample(sample.t_s, sample.b_T)
+        self.step(now_s)
+
+    def telemetry(self, now_s: float, tlm) -> None:
+        """DEBRIS_INERTIA_ESTIMATE when one is due (`telemetry_due`)."""
+        if self.telemetry_due(now_s):
+            tlm.inertia_estimate(now_s, **self.message_fields())
+
     def on_sample(self, t_s: float, b_T: np.ndarray) -> None:
         """A magnetometer sample (the flight loop's latched, gated sample)."""
         if (self.state in RUNNING and t_s <= self.t_end_s and len(self.t) < self.cfg.max_samples

@@ -30,11 +30,11 @@ import numpy as np
 
 from fsw.argtypes import check_paths_or_exit, finite_float
 from fsw.estimation import field_check as fc
-from fsw.estimation import field_motion as fm
 from fsw.estimation import kalman as kl
 from fsw.estimation import kotelnikov as ko
 from fsw.estimation import rate_formulas as rf
 from ground import smoother as sm
+from ground.field import scenario_field, tle_field
 from ground.recording import RateEstimates, Recording, RecordingError, read_recording, write_rate_estimates
 
 METHODS = ("boer", "boer-printed", "derivative", "kotelnikov", "kotelnikov-paper", "kalman", "kalman-orbit",
@@ -143,15 +143,10 @@ def warn_field(rec: Recording, source: str, field=None) -> None:
 
 def field_from_args(args):
     if args.scenario:
-        from hil import scenario as scenarios
-        scn = scenarios.load(args.scenario)
-        return fm.OrbitField(fm.CircularOrbitModel(scn.altitude_m, scn.inclination_deg, scn.raan_deg,
-                                                   scn.arg_lat0_deg), fm.DipoleModel(scn.epoch_year))
+        return scenario_field(args.scenario)[0]
     if args.tle:
         utc = args.utc0 if isinstance(args.utc0, datetime) else datetime.fromisoformat(args.utc0)
-        orbit = fm.TleOrbitModel(args.tle[0], args.tle[1], (utc.year, utc.month, utc.day, utc.hour, utc.minute,
-                                                            utc.second + utc.microsecond * 1e-6))
-        return fm.OrbitField(orbit, fm.DipoleModel(utc.year + (utc.timetuple().tm_yday - 1) / 365.25))
+        return tle_field(args.tle[0], args.tle[1], utc)
     return None
 
 

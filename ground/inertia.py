@@ -9,7 +9,7 @@ centre of mass, sensor axes; from the simulation truth in SITL, from the tug's l
 Euler's equations and the attitude kinematics are integrated with the candidate tensor and fitted to
 the samples themselves (`fsw.estimation.euler_fit`: multiple shooting, then single shooting): no rate
 is differentiated, so no errors-in-variables bias. The inertial field along the orbit comes from the
-field model of `hil` for the orbit of ``--scenario`` or of the recording's metadata
+flight copy of the field model (`ground.field`) for the orbit of ``--scenario`` or of the recording's metadata
 (``# orbit_altitude_km:``, ``# orbit_inclination_deg:``, ``# orbit_raan_deg:``,
 ``# orbit_arg_lat0_deg:``, ``# field_epoch_year:``; ``t_s`` = 0 at the orbit's epoch, the Earth rotation
 angle 0 there).
@@ -35,10 +35,12 @@ import numpy as np
 from fsw.argtypes import check_paths_or_exit, finite_float, int_range
 from fsw.estimation import euler_fit as ef
 from fsw.estimation import field_check as fc
+from fsw.estimation import field_motion as fm
 from fsw.estimation import inertia as inr
-from fsw.files import write_atomic
 from fsw.estimation import sampled_moment as sm
+from fsw.files import write_atomic
 
+from .field import scenario_field
 from .plot import check_plot_path, save_figure
 from .recording import Recording, RecordingError, read_recording
 
@@ -61,16 +63,9 @@ class InertiaReport:
 def field_model(scenario: str | None = None, metadata: dict | None = None) -> tuple[Callable, np.ndarray | None, str]:
     """B_I(t) along the orbit of a scenario (name or TOML) or of the recording metadata; also the truth
     tensor (scenario only) and a description."""
-    from hil.field import DipoleField, FieldAlongOrbit
-    from hil.orbit import CircularOrbit
-
     if scenario:
-        from hil import scenario as scenarios
-
-        scn = scenarios.load(scenario)
-        orbit = CircularOrbit(scn.altitude_m, scn.inclination_deg, scn.raan_deg, scn.arg_lat0_deg)
-        return (FieldAlongOrbit(orbit, DipoleField(scn.epoch_year)).b_eci_T, inr.params(scn.inertia_kgm2),
-                f"scenario {scn.name}")
+        field, scn = scenario_field(scenario)
+        return field.b_eci_T, inr.params(scn.inertia_kgm2), f"scenario {scn.name}"
     md = metadata or {}
     missing = [k for k in ORBIT_KEYS if k not in md]
     if missing:
@@ -80,9 +75,9 @@ def field_model(scenario: str | None = None, metadata: dict | None = None) -> tu
         v = {k: float(md[k]) for k in ORBIT_KEYS}
     except ValueError as e:
         raise ValueError(f"orbit metadata is not a number: {e}") from None
-    orbit = CircularOrbit(v["orbit_altitude_km"] * 1e3, v["orbit_inclination_deg"], v["orbit_raan_deg"],
-                          v["orbit_arg_lat0_deg"])
-    return FieldAlongOrbit(orbit, DipoleField(v["field_epoch_year"])).b_eci_T, None, "recording metadata"
+    orbit = fm.CircularOrbitModel(v["orbit_altitude_km"] * 1e3, v["orbit_inclination_deg"], v["orbit_raan_deg"],
+                                  v["orbit_arg_lat0_deg"])
+    return fm.OrbitField(orbit, fm.DipoleModel(v["field_epoch_year"])).b_eci_T, None, "recording metadata"
 
 
 def known_action(rec: Recording, hold: str = "centered") -> ef.KnownAction:

@@ -12,6 +12,25 @@ def free_udp_port() -> int:
         return s.getsockname()[1]
 
 
+def wait_udp_bound(port: int, timeout_s: float = 60.0) -> None:
+    """Wait until another process has bound UDP `port` on the loopback (a decoder started in the
+    background is listening): binding it ourselves then fails."""
+    import errno
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError as e:
+                if e.errno == errno.EADDRINUSE:
+                    return
+                raise
+        time.sleep(0.05)
+    raise TimeoutError(f"nothing bound UDP port {port} within {timeout_s:g} s")
+
+
 class NullLink:
     """A telemetry connection that packs with the flight software's ids, counts bytes and drops them."""
 

@@ -7,7 +7,6 @@ import pytest
 
 from fsw.estimation import rate_formulas as rf
 from bench import accuracy as acc
-from hil import dynamics
 
 
 @pytest.mark.parametrize("mode", list(acc.MODES))

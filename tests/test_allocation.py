@@ -7,7 +7,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from fsw.flight import FlightSoftware
-from fsw.replay import RecordingReplay
+from ground.replay import RecordingReplay
 from fsw.telemetry.telemetry import Telemetry
 from support import NullLink
 

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hil import sitl
 from fsw import flight
 from fsw import main as fsw_main
 from fsw.telemetry.signing import KeyFileError, load_key, write_key
@@ -255,7 +256,7 @@ def test_an_all_zero_key_is_refused_when_loaded_and_when_created(tmp_path, capsy
 ])
 def test_fsw_main_refuses_numbers_it_cannot_use(capsys, option, value):
     with pytest.raises(SystemExit) as e:
-        fsw_main.parse_args(["--sitl", option, value])
+        sitl.parse_args([option, value])
     assert e.value.code == 2
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert option in last
@@ -271,15 +272,15 @@ def test_a_loop_slower_than_the_samples_is_refused(capsys):
 
 
 def test_a_loop_at_the_sample_rate_is_warned_about():
-    args = fsw_main.parse_args(["--sitl", "--rate", "1", "--duration", "3", "--speed", "0", "--quiet",
+    args = sitl.parse_args(["--rate", "1", "--duration", "3", "--speed", "0", "--quiet",
                                 "--link", "udpout:127.0.0.1:9"])
     out = io.StringIO()
-    fsw_main.run(args, out=out)
+    sitl.run(args, out=out)
     assert "warning: --rate 1 Hz equals the sample rate" in out.getvalue()
-    args = fsw_main.parse_args(["--sitl", "--rate", "5", "--duration", "1", "--speed", "0", "--quiet",
+    args = sitl.parse_args(["--rate", "5", "--duration", "1", "--speed", "0", "--quiet",
                                 "--link", "udpout:127.0.0.1:9"])
     out = io.StringIO()
-    fsw_main.run(args, out=out)
+    sitl.run(args, out=out)
     assert "warning" not in out.getvalue()
 
 
@@ -324,10 +325,10 @@ def test_ctrl_c_at_any_moment_of_start_up_is_one_line(phase):
 
 
 def test_ctrl_c_during_set_up_in_process_is_one_line(monkeypatch, capsys):
-    def interrupted(args):
+    def interrupted(cfg, **kw):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(fsw_main, "build_sitl", interrupted)
+    monkeypatch.setattr(sitl, "build", interrupted)
     assert fsw_main.main(["--sitl", "--quiet", "--link", "udpout:127.0.0.1:9"]) == 130
     assert capsys.readouterr().err.strip() == "interrupted"
 

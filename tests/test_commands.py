@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from fsw import main as fsw_main
+from hil import sitl
 from fsw.commands import BadParam, CommandRouter, ParamTable, float_param, int_param
 from fsw.flight import FlightSoftware
 from fsw.telemetry.dialect import FSW_COMPID, FSW_SYSID, mavlink
@@ -229,9 +229,9 @@ def key_file(tmp_path):
 
 
 def start_box(argv):
-    args = fsw_main.parse_args(["--sitl", "--speed", "3", "--quiet", *argv])
+    args = sitl.parse_args(["--speed", "3", "--quiet", *argv])
     out = {}
-    th = threading.Thread(target=lambda: out.setdefault("run", fsw_main.run(args, out=io.StringIO())))
+    th = threading.Thread(target=lambda: out.setdefault("run", sitl.run(args, out=io.StringIO())))
     th.start()
     return th, out
 

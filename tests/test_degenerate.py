@@ -127,7 +127,7 @@ def test_sigma_inf_goes_through_the_rate_estimate_csv_and_the_plot(tmp_path):
 def test_the_replays_csv_writes_the_links_unobserved_sigma_as_inf(tmp_path):
     from types import SimpleNamespace
 
-    from fsw.main import write_replay_rates
+    from ground.replay import write_replay_rates
     replay = SimpleNamespace(t=np.array([0.0, 1.0, 2.0]), b=np.tile(B, (3, 1)))
     rates = {1.0: (np.zeros(3), np.full(3, rf.SIGMA_UNOBSERVED_RADPS)), 2.0: (np.ones(3) * 0.1, np.full(3, 0.01))}
     write_replay_rates(tmp_path / "r.csv", replay, rates, "rec.csv")

@@ -137,7 +137,7 @@ def test_leaving_safe_mode_with_a_capsule_stuck_open_fails(box):
 
 def test_handlers_register_with_the_router(box):
     router = CommandRouter()
-    box.kit.register_commands(router)
+    box.kit.register(router)
     msg = cmd(CAPSULE, 1, 1)
     assert router.handle(msg, box.t, authenticated=True) == ACCEPTED
     assert router.handle(cmd(CAPSULE, 1, 1), box.t, authenticated=False) == DENIED  # unsigned: refused

@@ -5,7 +5,7 @@ import io
 import numpy as np
 import pytest
 
-from fsw import main as fsw_main
+from hil import sitl
 from fsw.drivers.mmc5983ma_regs import Bandwidth, ContinuousFrequency
 from fsw.estimation import rate_formulas, rate_kf
 
@@ -19,7 +19,7 @@ from fsw.estimation import rate_formulas, rate_kf
     (500.0, Bandwidth.BW_800HZ, ContinuousFrequency.OFF),
 ])
 def test_sitl_sensor_mode_for_a_sample_rate(rate_hz, bw, cm):
-    got = fsw_main.sitl_sensor(1.0, Bandwidth.BW_100HZ, rate_hz)
+    got = sitl.sitl_sensor(1.0, Bandwidth.BW_100HZ, rate_hz)
     assert got == ((rate_hz or 1.0), bw, cm)
     assert bw.measurement_time_s <= 0.5 / got[0] or rate_hz is None
 
@@ -27,14 +27,14 @@ def test_sitl_sensor_mode_for_a_sample_rate(rate_hz, bw, cm):
 @pytest.mark.parametrize("rate_hz", [-1.0, 2000.0])
 def test_sitl_sample_rate_out_of_range_is_refused(rate_hz):
     with pytest.raises(ValueError, match="sample-rate"):
-        fsw_main.sitl_sensor(1.0, Bandwidth.BW_100HZ, rate_hz)
+        sitl.sitl_sensor(1.0, Bandwidth.BW_100HZ, rate_hz)
 
 
 @pytest.fixture(scope="module")
 def run_1khz():
-    args = fsw_main.parse_args(["--sitl", "--rate", "1000", "--sample-rate", "1000", "--duration", "2",
+    args = sitl.parse_args(["--rate", "1000", "--sample-rate", "1000", "--duration", "2",
                                 "--speed", "0", "--quiet", "--link", "udpout:127.0.0.1:9"])
-    return fsw_main.run(args, out=io.StringIO())
+    return sitl.run(args, out=io.StringIO())
 
 
 def test_1khz_sitl_samples_every_tick_and_the_filter_follows(run_1khz):
@@ -47,12 +47,12 @@ def test_1khz_sitl_samples_every_tick_and_the_filter_follows(run_1khz):
     assert np.all(np.isfinite(kf.omega_radps)) and np.all(kf.sigma_radps < np.radians(10.0))
     # the perpendicular part, with 1000 samples a second, within a few °/s of the truth after 2 s
     tr = run_1khz.fsw.truth(fsw.sample_t_s)
-    err = fsw_main._perp(kf.omega_radps - tr.omega_radps, tr.b_body_T)
+    err = sitl.perpendicular(kf.omega_radps - tr.omega_radps, tr.b_body_T)
     assert np.degrees(np.linalg.norm(err)) < 2.0
 
 
 def test_summary_has_the_cycle_time_histogram(run_1khz):
-    text = fsw_main.summary(run_1khz)
+    text = sitl.summary(run_1khz)
     line = next(x for x in text.splitlines() if x.startswith("step time histogram:"))
     counts = [int(part.rsplit(" ", 1)[1]) for part in line.split(": ", 1)[1].split(", ")]
     assert sum(counts) == run_1khz.fsw.scheduler.stats.ticks == 2001
@@ -61,11 +61,11 @@ def test_summary_has_the_cycle_time_histogram(run_1khz):
 
 
 def test_real_time_run_reports_its_schedule():
-    args = fsw_main.parse_args(["--sitl", "--rate", "100", "--duration", "0.3", "--speed", "1", "--quiet",
+    args = sitl.parse_args(["--rate", "100", "--duration", "0.3", "--speed", "1", "--quiet",
                                 "--link", "udpout:127.0.0.1:9"])
-    r = fsw_main.run(args, out=io.StringIO())
+    r = sitl.run(args, out=io.StringIO())
     assert r.real_time
-    assert "ticks started more than one period late" in fsw_main.summary(r)
+    assert "ticks started more than one period late" in sitl.summary(r)
 
 
 def test_compiled_kernels_are_loaded_before_the_first_tick(run_1khz):

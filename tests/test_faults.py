@@ -2,7 +2,6 @@
 magnetometer fault against the real driver in lockstep SITL, and every link fault against the ground's
 framing and loss accounting (checked against what the faulty link really did)."""
 import math
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -12,7 +11,8 @@ from fsw.estimation import rate_formulas as rf
 from fsw.estimation.rate_formulas import SIGMA_UNOBSERVED_RADPS
 from fsw.estimation.sample_gate import FULL_SCALE_T, SampleGate, gap_sigma_factor
 from fsw.flight import FlightSoftware
-from fsw.main import build_sitl
+from fsw.config import RunConfig
+from hil import sitl
 from fsw.telemetry.dialect import FSW_COMPID, FSW_SYSID, mavlink
 from fsw.telemetry.framing import Deframer
 from fsw.telemetry.telemetry import Telemetry
@@ -141,8 +141,8 @@ def sys_status_health(fsw):
 
 @pytest.mark.parametrize("kind", MAG_KINDS)
 def test_each_magnetometer_fault_is_flagged_and_survived(kind):
-    scn, sim, driver, sigma = build_sitl(SimpleNamespace(scenario="isoi", seed=2, rate=50.0))
-    fsw = FlightSoftware(driver, Telemetry(Null()), rate_hz=50, sigma_b_T=sigma, sample_rate_hz=1.0)
+    box = sitl.build(sitl.SitlConfig(RunConfig(rate_hz=50.0, buffer_frames=0), seed=2), link=Null(), apps=False)
+    sim, driver, fsw = box.sim, box.driver, box.fsw
     severity = {"bus_errors": 1.0, "spike": 100e-6, "saturation": 1.1e-3}.get(kind, 0.0)
     duration = 0.0 if kind in ("spike", "chip_reset") else 5.0
     fault = Fault(kind, 10.3, duration, severity)

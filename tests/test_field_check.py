@@ -113,7 +113,7 @@ def test_milligauss_is_estimated_with_a_warning(tmp_path, capsys):
 
 
 def test_inertia_and_replay_refuse_it_too(tmp_path, capsys):
-    from fsw.replay import RecordingReplay
+    from ground.replay import RecordingReplay
     path = tmp_path / "nT.csv"
     for metadata in (ORBIT, {}):                      # the units are named before a missing orbit
         write_recording(path, tumble(scale=1e3, metadata=metadata))

@@ -8,16 +8,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from fsw import main as fsw_main
-from fsw.estimation import inertia as inr
-from fsw.flight import FlightSoftware
+from hil import sitl
 from fsw.ident import DONE
 from fsw.telemetry import dialect
 from fsw.telemetry.dialect import mavlink
-from fsw.telemetry.telemetry import Telemetry
 from ground import inertia as ground_inertia
 from ground.decode import Decoder
-from hil.ident_sitl import build_ident
 from support import free_udp_port
 
 pytestmark = pytest.mark.sitl
@@ -28,8 +24,7 @@ M = (0.2, 0.15, -0.1)
 @pytest.fixture(scope="module")
 def experiment():
     # Aist-2D with no torque of its own: the experiment's tug is the only one
-    args = fsw_main.parse_args(["--sitl", "--scenario", "aist2d_ident", "--rate", "10", "--speed", "0", "--quiet"])
-    scn, sim, source, sigma_b = fsw_main.build_sitl(args)
+    args = sitl.parse_args(["--scenario", "aist2d_ident", "--rate", "10", "--speed", "0", "--quiet"])
     port = free_udp_port()
     rx = dialect.open_link(f"udpin:127.0.0.1:{port}", source_system=dialect.GCS_SYSID,
                            source_component=dialect.GCS_COMPID, input=True)
@@ -47,9 +42,9 @@ def experiment():
                 continue
             decoder.handle(msg, 0.0)
 
-    ident = build_ident(scn, sim, sigma_b, 100.0, work_per_tick=200000)
-    fsw = FlightSoftware(source, Telemetry(tx), rate_hz=args.rate, sigma_b_T=sigma_b, truth=sim.truth,
-                         sample_rate_hz=scn.sample_rate_hz, ident=ident)
+    box = sitl.build(args, link=tx, ident_options={"work_per_tick": 200000})
+    scn, sim, fsw = box.scenario, box.sim, box.fsw
+    ident = fsw.apps["ident"]
     th = threading.Thread(target=receive)
     th.start()
     start = SimpleNamespace(command=mavlink.MAV_CMD_DEBRIS_IDENT_START, confirmation=0, target_system=1,
@@ -59,7 +54,7 @@ def experiment():
     try:
         k = 0
         while ident.state != DONE and k < 20000:
-            t = k / args.rate
+            t = k / args.run.rate_hz
             sim.advance_to(t)
             if k == 5:   # a signed command verified by the uplink reaches the router as authenticated
                 results.append(fsw.commands.handle(start, t, authenticated=True))
@@ -71,7 +66,7 @@ def experiment():
         rx.close()
         tx.close()
     return SimpleNamespace(fsw=fsw, ident=ident, sim=sim, scn=scn, decoder=decoder, results=results,
-                           t_end=k / args.rate)
+                           t_end=k / args.run.rate_hz)
 
 
 def test_the_command_started_the_experiment_and_the_tug_acted(experiment):
@@ -123,9 +118,9 @@ def test_ground_refines_from_the_decoded_recording(experiment, tmp_path):
 
 
 def test_sitl_main_wires_the_experiment():
-    args = fsw_main.parse_args(["--sitl", "--scenario", "aist2d", "--duration", "1", "--speed", "0", "--quiet",
+    args = sitl.parse_args(["--scenario", "aist2d", "--duration", "1", "--speed", "0", "--quiet",
                                 "--link", f"udpout:127.0.0.1:{free_udp_port()}"])
-    run = fsw_main.run(args, out=io.StringIO())
-    assert run.fsw.ident is not None
+    run = sitl.run(args, out=io.StringIO())
+    assert run.fsw.apps.get("ident") is not None
     assert {mavlink.MAV_CMD_DEBRIS_IDENT_START, mavlink.MAV_CMD_DEBRIS_IDENT_STOP} <= set(run.fsw.commands.registered())
     assert "ident" in [t.name for t in run.fsw.scheduler.tasks]

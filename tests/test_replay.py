@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from fsw import main as fsw_main
 from fsw.flight import FlightSoftware
-from fsw.replay import RecordingReplay
+from ground.replay import RecordingReplay
 from fsw.telemetry.dialect import FSW_COMPID, FSW_SYSID, mavlink
 from fsw.telemetry.telemetry import Telemetry
 from ground.recording import Recording, read_rate_estimates, write_recording

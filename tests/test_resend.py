@@ -1,7 +1,6 @@
 """Nothing lost to a lossy link: the box numbers its samples and keeps them, the ground sees the gaps,
 asks for them (a signed DEBRIS_SAMPLE_REQUEST) and ends with a complete recording, in order."""
 import numpy as np
-import pytest
 
 from fsw.flight import FlightSoftware
 from fsw.telemetry.dialect import FSW_COMPID, FSW_SYSID, mavlink

@@ -63,7 +63,7 @@ def test_bad_rates_rejected():
 def test_run_histogram_percentiles_match_numpy_to_a_microsecond():
     import numpy as np
 
-    from fsw.main import WorkHistogram
+    from fsw.runner import WorkHistogram
 
     work_s = np.random.default_rng(4).lognormal(np.log(30e-6), 0.8, 20_000)
     h = WorkHistogram()

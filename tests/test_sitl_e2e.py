@@ -8,13 +8,13 @@ import threading
 import numpy as np
 import pytest
 
-from fsw import main as fsw_main
+from hil import sitl
 from fsw.estimation import rate_formulas as rf
 from fsw.telemetry import dialect
 from fsw.telemetry.dialect import mavlink
 from ground.decode import Decoder
 from ground.recording import read_recording, read_rate_estimates
-from support import free_udp_port
+from support import free_udp_port, wait_udp_bound
 
 pytestmark = pytest.mark.sitl
 
@@ -48,10 +48,10 @@ def sitl_20s():
 
     th = threading.Thread(target=receive)
     th.start()
-    args = fsw_main.parse_args(["--sitl", "--duration", "20", "--speed", "0", "--seed", "3",
+    args = sitl.parse_args(["--duration", "20", "--speed", "0", "--seed", "3",
                                 "--link", f"udpout:127.0.0.1:{port}", "--quiet"])
     try:
-        run = fsw_main.run(args, out=io.StringIO())
+        run = sitl.run(args, out=io.StringIO())
     finally:
         done.set()
         th.join(timeout=30)
@@ -137,7 +137,7 @@ def test_command_line_sitl_to_ground_csv(tmp_path):
     port = free_udp_port()
     csv, rates, tlog = tmp_path / "run.csv", tmp_path / "rates.csv", tmp_path / "run.tlog"
     ground = subprocess.Popen([sys.executable, "-m", "ground.decode", f"udpin:127.0.0.1:{port}",
-                               "--duration", "6", "--csv", str(csv), "--rates-csv", str(rates),
+                               "--duration", "15", "--csv", str(csv), "--rates-csv", str(rates),
                                "--tlog", str(tlog), "--quiet"], stdout=subprocess.PIPE, text=True)
     try:
         import time

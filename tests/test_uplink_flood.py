@@ -5,7 +5,6 @@ import socket
 import threading
 import time
 from collections import deque
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -222,14 +221,14 @@ def test_the_flight_loop_under_a_1MBps_flood_over_udp():
     uplink's UDP socket (0xFE in 64 KB datagrams, 0xFD and random in 4 KB, random in 200 B, 3 s each);
     in the middle of each flood a genuine signed command. No overrun, each command obeyed within 1 s
     of loop time, the flood counted in DEBRIS_LINK_STATUS."""
-    from fsw.main import build_sitl
+    from fsw.config import RunConfig
+    from hil import sitl
 
-    scn, sim, driver, sigma_b = build_sitl(SimpleNamespace(scenario="isoi", seed=0, rate=50.0))
     uplink = UdpLink("udpin:127.0.0.1:0", source_system=FSW_SYSID, source_component=FSW_COMPID)
     addr = uplink.sock.getsockname()
-    tlm = Telemetry(CaptureLink(), key=KEY, clock=SigningClock(epoch=T0, clock_set=True))
-    fsw = FlightSoftware(driver, tlm, rate_hz=50.0, sigma_b_T=sigma_b, truth=sim.truth,
-                         sample_rate_hz=scn.sample_rate_hz, uplink=uplink, key=KEY)
+    box = sitl.build(sitl.SitlConfig(RunConfig(rate_hz=50.0, buffer_frames=0)), link=CaptureLink(), uplink=uplink,
+                     key=KEY, clock=SigningClock(epoch=T0, clock_set=True), apps=False)
+    sim, fsw, tlm = box.sim, box.fsw, box.flight.tlm
     executed = []
     fsw.commands.register(R.MAV_CMD_USER_1, lambda m, t: executed.append((m.param1, t)))
     flooder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

@@ -28,6 +28,7 @@ unhomed magnet → FAILED; accepted → ACCEPTED (the motion runs on; its end sh
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, replace
 from typing import Callable, Protocol
 
@@ -110,13 +111,25 @@ def _choice(v: float, allowed: tuple[int, ...]) -> int | None:
 
 
 class DeorbitKit:
-    """The kit on `io` (the GPIO lines or the emulator); controller decisions from `attitude`."""
+    """The kit on `io` (the GPIO lines or the emulator); controller decisions from `attitude`. An onboard
+    application (`fsw.app.App`): its task at 10 Hz, DEBRIS_DEORBIT_STATUS at 1 Hz, its transitions,
+    refusals and faults as STATUSTEXT (the last `MAX_EVENTS` waiting; older ones counted as dropped)."""
+
+    name = "deorbit"
+    rate_hz = 10.0
+    budget = 0.5
+    MAX_EVENTS = 32
+    STATUS_PERIOD_S = 1.0
 
     def __init__(self, io: DigitalLines, attitude: AttitudeSource | None = None, *,
                  controller: ControllerConfig = ControllerConfig(), limits: StepperLimits = StepperLimits(),
                  timing: CapsuleTiming = CapsuleTiming(), sequencer: SequencerConfig = SequencerConfig(),
                  on_event: Callable[[Event], None] | None = None, keep_pulses: bool = False) -> None:
-        self.sequencer = Sequencer(io, limits=limits, timing=timing, config=sequencer, on_event=on_event)
+        self._on_event = on_event
+        self.events: deque[Event] = deque(maxlen=self.MAX_EVENTS)  # waiting for telemetry
+        self.events_dropped = 0
+        self._next_status_s = -math.inf
+        self.sequencer = Sequencer(io, limits=limits, timing=timing, config=sequencer, on_event=self._event)
         self.controller = DiscreteController(controller)
         self.attitude = attitude
         self.next_decision_s = math.inf
@@ -135,8 +148,15 @@ class DeorbitKit:
     def mode(self) -> KitMode:
         return self.sequencer.mode
 
+    def _event(self, event: Event) -> None:
+        if len(self.events) == self.events.maxlen:
+            self.events_dropped += 1
+        self.events.append(event)
+        if self._on_event is not None:
+            self._on_event(event)
+
     # --- the loop -------------------------------------------------------------------------------
-    def tick(self, now_s: float) -> None:
+    def tick(self, now_s: float, sample=None) -> None:
         """A due controller decision first (so that a pulse ending now can be extended rather than
         closed and reopened), then the sequencer: drivers, plans, interlock monitor."""
         seq = self.sequencer
@@ -176,6 +196,19 @@ class DeorbitKit:
                                            cmd.m_ctrl_Nm, out))
 
     # --- status ---------------------------------------------------------------------------------
+    def telemetry(self, now_s: float, tlm) -> None:
+        """The events since the last call as STATUSTEXT (faults and violations as errors), and
+        DEBRIS_DEORBIT_STATUS once a second."""
+        while self.events:
+            event = self.events.popleft()
+            severity = (mavlink.MAV_SEVERITY_ERROR if event.what in ("fault", "violation") else
+                        mavlink.MAV_SEVERITY_WARNING if event.what in ("refused", "recovery") or
+                        (event.what == "mode" and event.new == "SAFE") else mavlink.MAV_SEVERITY_INFO)
+            tlm.statustext(event.text(), severity)
+        if now_s >= self._next_status_s:
+            self._next_status_s = max(self._next_status_s + self.STATUS_PERIOD_S, now_s)
+            tlm.deorbit_status(now_s, self.status(now_s))
+
     def status(self, now_s: float) -> DeorbitStatus:
         chs = self.sequencer.channels
 
@@ -198,7 +231,7 @@ class DeorbitKit:
         return self.sequencer.energy()
 
     # --- ground commands ------------------------------------------------------------------------
-    def register_commands(self, router) -> None:
+    def register(self, router) -> None:
         """Register the handlers with a command router (`router.register(cmd, handler, changes_state=...)`)."""
         for cmd, handler in self.handlers.items():
             router.register(cmd, handler, changes_state=True)

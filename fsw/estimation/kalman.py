@@ -975,6 +975,7 @@ class _Bank:
     """Several :class:`AttitudeRateKalman` run side by side; the one in `main` publishes."""
 
     main: AttitudeRateKalman
+    gap_history = 0  # filters: they propagate across a gap
 
     @property
     def omega_radps(self) -> np.ndarray:

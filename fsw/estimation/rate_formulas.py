@@ -303,6 +303,9 @@ class _StreamBase:
         self.sigma_radps = np.full(3, SIGMA_UNOBSERVED_RADPS)
         self.flags = self.NO_ESTIMATE
         self.t_s = 0.0
+        #: estimates that span a data gap after it (`fsw.estimation.sample_gate.mark_gap`): a formula on
+        #: `history` samples has history − 1 of them
+        self.gap_history = history - 1
         self._t = np.full(history, np.nan)
         self._b = np.zeros((history, 3))
         self._w = np.zeros((history, 3))

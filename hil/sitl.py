@@ -1,0 +1,291 @@
+"""SITL: the flight software against the simulator, in lockstep, in one process —
+`python -m hil.sitl` (or `python -m fsw.main --sitl`, which hands over to it).
+
+Before each loop tick the simulator is advanced to the loop time, and the MMC5983MA driver talks to the
+register-level emulator through the same bus interface it uses on hardware. `--speed 1` paces the
+loop to real time; `--speed 0` runs as fast as possible. The flight software is composed exactly as on
+target (`fsw.system.build_flight`); what SITL adds is the world around it: the scenario's simulator,
+the identification experiment's tug (the simulator's torque schedule) and field model (the
+scenario's orbit), the de-orbit kit's emulated lines and truth attitude, and the simulator's truth for
+scoring (DEBRIS_SIM_STATE on the link; the rate errors in the status line and the summary).
+
+:func:`build` is the composition used by this command, the benchmarks and the soak.
+"""
+from __future__ import annotations
+
+if __name__ == "__main__":
+    from fsw.startup import interrupt_quietly
+
+    interrupt_quietly()
+
+import argparse  # noqa: E402
+import math  # noqa: E402
+import sys  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import TextIO  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from fsw.argtypes import check_paths_or_exit, finite_float, int_range  # noqa: E402
+from fsw.config import RunConfig, add_run_options, check_loop_rate, run_config  # noqa: E402
+from fsw.drivers.mmc5983ma import Mmc5983ma  # noqa: E402
+from fsw.drivers.mmc5983ma_regs import Bandwidth, ContinuousFrequency  # noqa: E402
+from fsw.flight import FlightSoftware  # noqa: E402
+from fsw.runner import LoopResult, run_loop  # noqa: E402
+from fsw.runner import status_line as flight_status  # noqa: E402
+from fsw.runner import summary as flight_summary  # noqa: E402
+from fsw.system import Flight, build_flight  # noqa: E402
+
+from . import scenario as scenarios  # noqa: E402
+from .sim import Simulator  # noqa: E402
+
+#: the chip's bandwidth settings by their nominal bandwidth (scenario key `bandwidth_hz`)
+BANDWIDTH = {100: Bandwidth.BW_100HZ, 200: Bandwidth.BW_200HZ, 400: Bandwidth.BW_400HZ, 800: Bandwidth.BW_800HZ}
+
+
+@dataclass(frozen=True)
+class SitlConfig:
+    """A SITL run: the flight software's configuration and the simulated world's."""
+
+    run: RunConfig = field(default_factory=lambda: RunConfig(speed=0.0))
+    scenario: str = "isoi"
+    seed: int = 0
+    #: the identification experiment's starting tensor, × identity, kg·m²
+    ident_inertia_guess_kgm2: float = 100.0
+
+
+@dataclass
+class Sitl:
+    """A composed SITL system."""
+
+    cfg: SitlConfig
+    scenario: scenarios.Scenario
+    sim: Simulator
+    driver: Mmc5983ma
+    flight: Flight
+    sigma_b_T: float
+    #: the loop rate against the sample rate, when they are equal
+    warning: str | None = None
+
+    @property
+    def fsw(self) -> FlightSoftware:
+        return self.flight.fsw
+
+    def header(self) -> str:
+        r = self.cfg.run
+        scn = self.scenario
+        lines = [f"SITL scenario {scn.name}: {scn.description}",
+                 f"loop {r.rate_hz:g} Hz, sensor {1.0 / self.driver.sample_period_s:g} Hz, speed "
+                 f"{'max' if r.speed == 0 else f'{r.speed:g}x'}, seed {self.cfg.seed}, link {r.link}"]
+        kit = self.fsw.apps.get("deorbit")
+        if kit is not None:
+            lines.append(f"de-orbit kit: emulated; controller attitude from {kit.attitude.description}")
+        lines += self.flight.notes
+        if self.warning:
+            lines.append(self.warning)
+        return "\n".join(lines)
+
+
+def sitl_sensor(scenario_rate_hz: float, scenario_bw: Bandwidth, rate_hz: float | None
+                ) -> tuple[float, Bandwidth, ContinuousFrequency]:
+    """(sample rate, bandwidth, continuous mode) of the SITL magnetometer: the scenario's, or for a
+    `--sample-rate` the narrowest bandwidth (least noise), no narrower than the scenario's, whose
+    measurement takes at most half a sample period; continuous mode when the chip has that rate
+    (1000 Hz needs BW = 800 Hz, DS p13-16), else single measurements on the driver's grid."""
+    if not rate_hz:
+        return scenario_rate_hz, scenario_bw, ContinuousFrequency.OFF
+    if not 0 < rate_hz <= 1000.0:
+        raise ValueError(f"--sample-rate must be in (0, 1000] Hz (the MMC5983MA's ceiling), got {rate_hz:g}")
+    fits = [bw for bw in Bandwidth if bw >= scenario_bw and bw.measurement_time_s <= 0.5 / rate_hz]
+    bw = fits[0] if fits else Bandwidth.BW_800HZ
+    cm = next((f for f in ContinuousFrequency if f.rate_hz == rate_hz and f.fits(bw)), ContinuousFrequency.OFF)
+    return float(rate_hz), bw, cm
+
+
+def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, clock=None,
+          run_id: int | None = None, apps: bool = True, ident_options: dict | None = None) -> Sitl:
+    """The simulator of `cfg.scenario` and the flight software on its emulated magnetometer.
+
+    `link`, `uplink`, `key`, `clock`, `run_id`: as `fsw.system.build_flight` (the soak hands in its radio
+    model and key). `apps`: the identification experiment (a tug and a field model: SITL has both) and,
+    in a scenario with a [deorbit] table, the de-orbit kit on the emulated lines; `ident_options`: more of
+    the experiment's `fsw.ident.IdentConfig`."""
+    r = cfg.run
+    scn = scenarios.load(cfg.scenario)
+    step = min(0.02, 1.0 / r.rate_hz)
+    if scn.deorbit is not None:  # the de-orbit kit's scenario: environment torques and the kit emulator
+        from .deorbit_sim import DeorbitSimulator
+        sim = DeorbitSimulator(scn, seed=cfg.seed, max_step_s=step)
+    else:
+        sim = Simulator(scn, seed=cfg.seed, max_step_s=step)
+    rate_hz, bw, cm = sitl_sensor(scn.sample_rate_hz, BANDWIDTH[scn.bandwidth_hz], r.sample_rate_hz)
+    warning = check_loop_rate(r.rate_hz, rate_hz)
+    driver = Mmc5983ma(sim.sensor, bandwidth=bw, sample_period_s=1.0 / rate_hz, continuous=cm)
+    sigma_b = math.hypot(scn.noise_T, bw.noise_rms_T)
+    onboard = []
+    if apps:
+        from .ident_sitl import build_ident
+        onboard.append(build_ident(scn, sim, sigma_b, cfg.ident_inertia_guess_kgm2, **(ident_options or {})))
+        if scn.deorbit is not None:
+            from .deorbit_sim import build_kit
+            onboard.append(build_kit(sim))
+    flight = build_flight(r, driver, sigma_b_T=sigma_b, sample_rate_hz=rate_hz, truth=sim.truth, apps=onboard,
+                          link=link, uplink=uplink, key=key, clock=clock, run_id=run_id)
+    return Sitl(cfg, scn, sim, driver, flight, sigma_b, warning)
+
+
+# --- scoring against truth ------------------------------------------------------------------------
+
+def perpendicular(w: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The part of `w` perpendicular to `b`."""
+    bh = b / np.linalg.norm(b)
+    return w - np.dot(w, bh) * bh
+
+
+@dataclass
+class Score:
+    """Errors of the onboard estimates against the simulator's truth, at the sample times."""
+
+    boer_err: list = field(default_factory=list)
+    deriv_err: list = field(default_factory=list)
+    kalman_err: list = field(default_factory=list)
+    #: the truth at the latest sample's time
+    truth: object = None
+
+    def add(self, fsw: FlightSoftware, tr) -> None:
+        self.truth = tr
+        if fsw.new_estimate["boer"]:
+            w = fsw.estimators["boer"].omega_radps
+            self.boer_err.append(np.linalg.norm(w - perpendicular(tr.omega_radps, tr.b_body_T)))
+        if fsw.new_estimate["derivative"]:
+            w = fsw.estimators["derivative"].omega_radps
+            self.deriv_err.append(np.linalg.norm(w - tr.omega_radps))
+        kf = fsw.estimators["kalman"]
+        if fsw.new_estimate["kalman"] and not kf.flags & kf.NO_ESTIMATE:
+            self.kalman_err.append(np.linalg.norm(kf.omega_radps - tr.omega_radps))
+
+    @staticmethod
+    def rms_max(errs) -> tuple[float, float, int]:
+        if not errs:
+            return math.nan, math.nan, 0
+        a = np.asarray(errs)
+        return float(np.sqrt(np.mean(a**2))), float(a.max()), len(a)
+
+    def lines(self) -> list[str]:
+        if not (self.boer_err or self.deriv_err):
+            return []
+        out = ["rate error vs truth (deg/s)         RMS      max     n"]
+        for name, errs in (("Boer (perpendicular part)", self.boer_err),
+                           ("derivative (full vector)", self.deriv_err),
+                           ("Kalman filter (full vector)", self.kalman_err)):
+            rms, mx, n = self.rms_max(errs)
+            out.append(f"  {name:<30s} {np.degrees(rms):7.3f}  {np.degrees(mx):7.3f}  {n:4d}")
+        return out
+
+
+def status_line(t_s: float, fsw: FlightSoftware, tr) -> str:
+    """The flight software's status line; with `tr` (truth at the sample time) the true rate, the
+    Kalman filter's error and the Boer formula's."""
+    line = flight_status(t_s, fsw)
+    kf = fsw.estimators["kalman"]
+    if tr is None or kf.flags & kf.NO_ESTIMATE:
+        return line
+    w, wt = np.degrees(kf.omega_radps), np.degrees(tr.omega_radps)
+    boer = fsw.estimators["boer"].omega_radps
+    return line + (f"  w_true=[{wt[0]:7.2f} {wt[1]:7.2f} {wt[2]:7.2f}] dps"
+                   f"  err={np.linalg.norm(w - wt):6.2f} dps"
+                   f"  boer_perp_err={np.degrees(np.linalg.norm(boer - perpendicular(tr.omega_radps, tr.b_body_T))):5.2f} dps")
+
+
+@dataclass
+class SitlRun:
+    """What a SITL run leaves behind."""
+
+    sitl: Sitl
+    loop: LoopResult
+    score: Score
+
+    @property
+    def fsw(self) -> FlightSoftware:
+        return self.sitl.fsw
+
+    @property
+    def tlm(self):
+        return self.sitl.flight.tlm
+
+    @property
+    def real_time(self) -> bool:
+        return self.loop.real_time
+
+
+def run(cfg: SitlConfig, out: TextIO = sys.stdout, **build_options) -> SitlRun:
+    """Build (:func:`build`) and run the lockstep loop; the header first, the status line each second."""
+    s = build(cfg, **build_options)
+    print(s.header(), file=out, flush=True)
+    fsw, truth, score = s.fsw, s.sim.truth, Score()
+
+    def after(t: float) -> None:
+        if fsw.new_sample:
+            score.add(fsw, truth(fsw.sample_t_s))
+
+    try:
+        res = run_loop(fsw, duration_s=cfg.run.duration_s, speed=cfg.run.speed, lockstep=True,
+                       before_tick=s.sim.advance_to, after_tick=after,
+                       status=None if cfg.run.quiet else (lambda t: status_line(t, fsw, score.truth)), out=out)
+    finally:
+        s.flight.close()
+    return SitlRun(s, res, score)
+
+
+def summary(r: SitlRun) -> str:
+    return flight_summary(r.fsw, r.loop, r.score.lines())
+
+
+def add_sitl_options(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--scenario", default="isoi", metavar="NAME|FILE",
+                    help="SITL scenario: a shipped name (isoi, aist2d, amds, amds_deorbit, ...) or a TOML file "
+                         "(default: isoi)")
+    ap.add_argument("--speed", type=finite_float(0), default=1.0, metavar="X",
+                    help="pacing: 1 = real time (default), 10 = ten times faster, 0 = as fast as possible")
+    ap.add_argument("--seed", type=int_range(0), default=0, help="random seed of the simulator (default 0)")
+    ap.add_argument("--ident-inertia-guess", type=finite_float(0, min_exclusive=True), default=100.0,
+                    metavar="KGM2",
+                    help="identification experiment: starting tensor = this × identity (default 100 kg.m^2)")
+
+
+def parse_args(argv=None) -> SitlConfig:
+    ap = argparse.ArgumentParser(prog="python -m hil.sitl", description=__doc__.splitlines()[0])
+    add_run_options(ap)
+    add_sitl_options(ap)
+    args = ap.parse_args(argv)
+    scenario_file = args.scenario if Path(args.scenario).is_file() else None
+    check_paths_or_exit(ap, inputs={"--key": args.key, "--scenario": scenario_file}, outputs={})
+    try:
+        scenarios.load(args.scenario)
+    except ValueError as e:
+        ap.error(str(e))
+    return SitlConfig(run=run_config(args), scenario=args.scenario, seed=args.seed,
+                      ident_inertia_guess_kgm2=args.ident_inertia_guess)
+
+
+def main(argv=None) -> int:
+    try:
+        cfg = parse_args(argv)
+        try:
+            r = run(cfg)
+        except ValueError as e:  # a bad scenario file, an impossible sensor setting, a loop too slow
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        except OSError as e:  # a link that cannot be opened
+            print(f"error: {e}", file=sys.stderr)
+            return 1
+        print(summary(r), flush=True)
+    except KeyboardInterrupt:  # Ctrl-C before the loop's own handler is in place (or after it is gone)
+        print("interrupted", file=sys.stderr, flush=True)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
