@@ -3,7 +3,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: sitl test bench dialect clean
+.PHONY: sitl test test-slow lint bench dialect clean
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -12,10 +12,19 @@ $(STAMP): pyproject.toml constraints.txt
 	touch $(STAMP)
 
 sitl: $(STAMP)
-	$(PY) -m fsw.main --sitl $(ARGS)
+	$(PY) -m hil.sitl $(ARGS)
 
+# the fast tier on both cores; the lint first (it takes a second)
 test: $(STAMP)
-	$(PY) -m pytest -q --benchmark-disable $(ARGS)
+	$(PY) -m ruff check .
+	$(PY) -m pytest -q -n 2 -m "not slow" --benchmark-disable $(ARGS)
+
+# long runs and the 10,000-case fuzz properties
+test-slow: $(STAMP)
+	$(PY) -m pytest -q -n 2 -m slow --benchmark-disable $(ARGS)
+
+lint: $(STAMP)
+	$(PY) -m ruff check .
 
 bench: $(STAMP)
 	$(PY) -m pytest -q tests/benchmarks --benchmark-only --benchmark-json=bench.json

@@ -480,7 +480,7 @@ def markdown(bench: dict) -> str:
         m = r["methods"]
         row = r["row"]
 
-        def f(name, part="full"):
+        def f(name, part="full", m=m):
             d = m.get(name, {})
             if f"{part}_rms_dps" not in d:
                 return "—"
@@ -534,7 +534,8 @@ def real_recordings(paths, rates_hz=(None, 10.0), max_s: float | None = None, lo
             row["best_beats_boer"] = row["methods"][best]["perp_rms_dps"] < row["methods"]["boer"]["perp_rms_dps"]
             out.append(row)
             log(f"[{time.monotonic() - t0:5.0f} s] {row['file']} {row['rate_hz']:.0f} Hz: Boer⊥ "
-                f"{row['methods']['boer']['perp_rms_dps']:.2f}, kalman⊥ {row['methods']['kalman']['perp_rms_dps']:.2f}, "
+                f"{row['methods']['boer']['perp_rms_dps']:.2f}, "
+                f"kalman⊥ {row['methods']['kalman']['perp_rms_dps']:.2f}, "
                 f"smoother⊥ {row['methods']['smoother']['perp_rms_dps']:.2f} °/s")
     return out
 

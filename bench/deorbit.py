@@ -149,7 +149,8 @@ class BenchResult:
             "attitude_source": self.attitude_source, "density_model": self.density,
             "yaw_err_max_rad": self.yaw_err_max_rad, "pitch_err_max_rad": self.pitch_err_max_rad,
             "converged_at_s": self.converged_at_s,
-            "roll_rate_max_radps": float(np.abs(np.diff(np.unwrap(self.trace.roll))).max()) if len(self.trace.roll) > 1 else 0.0,
+            "roll_rate_max_radps": (float(np.abs(np.diff(np.unwrap(self.trace.roll))).max())
+                                    if len(self.trace.roll) > 1 else 0.0),
             "capsule_openings": openings, "magnet_turns": turns,
             "energy_J": {k: round(v, 1) for k, v in led.as_dict().items()},
             "energy_truth_J": round(emu.energy_J, 1),
@@ -229,6 +230,11 @@ def _sign(ch) -> int:
     return 1 if min(r, 200 - r) < 50 else -1
 
 
+def row(name: str, this_run: str, paper: str) -> str:
+    """One line of the report's comparison table."""
+    return f"{name:34s}{this_run:>22s}{paper:>22s}"
+
+
 def report(r: BenchResult) -> str:
     d = r.as_dict()
     o, tu, e = d["capsule_openings"], d["magnet_turns"], d["energy_J"]
@@ -241,13 +247,13 @@ def report(r: BenchResult) -> str:
         f"  atmosphere: {r.density}",
         "",
         f"{'':34s}{'this run':>22s}{'lapkhanov2019':>22s}",
-        f"{'yaw error after ' + format(r.settle_s, '.0f') + ' s [rad]':34s}{d['yaw_err_max_rad']:>22.3f}{'<= 0.2':>22s}",
-        f"{'pitch error after ' + format(r.settle_s, '.0f') + ' s [rad]':34s}{d['pitch_err_max_rad']:>22.3f}{'<= 0.2':>22s}",
-        f"{'within 0.2 rad from [s]':34s}{('never' if math.isnan(conv) else format(conv, '.0f')):>22s}{'-':>22s}",
-        f"{'capsule openings pitch + yaw':34s}{format(o['pitch'], 'd') + ' + ' + format(o['yaw'], 'd'):>22s}{'15 + 30':>22s}",
-        f"{'magnet turns pitch + yaw':34s}{format(tu['pitch'], 'd') + ' + ' + format(tu['yaw'], 'd'):>22s}{'35 + 25':>22s}",
-        f"{'energy capsules + magnets [J]':34s}{format(e['capsules'], '.0f') + ' + ' + format(e['magnets'], '.0f'):>22s}{'1053 + 702':>22s}",
-        f"{'energy pitch + yaw channel [J]':34s}{format(e['pitch'], '.0f') + ' + ' + format(e['yaw'], '.0f'):>22s}{'-':>22s}",
+        row(f"yaw error after {r.settle_s:.0f} s [rad]", f"{d['yaw_err_max_rad']:.3f}", "<= 0.2"),
+        row(f"pitch error after {r.settle_s:.0f} s [rad]", f"{d['pitch_err_max_rad']:.3f}", "<= 0.2"),
+        row("within 0.2 rad from [s]", "never" if math.isnan(conv) else f"{conv:.0f}", "-"),
+        row("capsule openings pitch + yaw", f"{o['pitch']:d} + {o['yaw']:d}", "15 + 30"),
+        row("magnet turns pitch + yaw", f"{tu['pitch']:d} + {tu['yaw']:d}", "35 + 25"),
+        row("energy capsules + magnets [J]", f"{e['capsules']:.0f} + {e['magnets']:.0f}", "1053 + 702"),
+        row("energy pitch + yaw channel [J]", f"{e['pitch']:.0f} + {e['yaw']:.0f}", "-"),
         f"{'energy total [J]':34s}{e['total']:>22.0f}{'1755':>22s}",
         f"{'interlock violations':34s}{d['interlock_violations']:>22d}{'-':>22s}",
         f"  (flight monitor {d['interlock_violations_flight']}, emulator truth {d['interlock_violations_truth']}; "

@@ -285,7 +285,8 @@ def bench_scenario(name: str, runs: int, seed: int, duration_s: float,
                          p_shape=pshape, b_samples=bs)
         kappa = np.array([np.linalg.norm(r.p) / np.linalg.norm(p_true) for r in sc])
         out["kappa"] = {"kappa_true": float(np.linalg.norm(p_true)), "ratio_min": float(kappa.min()),
-                        "ratio_max": float(kappa.max()), "ratio_rms_dev_pct": float(100 * np.sqrt(np.mean((kappa - 1) ** 2))),
+                        "ratio_max": float(kappa.max()),
+                        "ratio_rms_dev_pct": float(100 * np.sqrt(np.mean((kappa - 1) ** 2))),
                         "within_3pct_runs": float(np.mean(np.abs(kappa - 1) <= 0.03))}
         if len(tr.scenario.torques) == 1 and tr.scenario.torques[0].duration_s <= 5.0:
             out["kappa"]["paper_eq18"] = _kappa_paper(tr, bm, p_guess, bs)
@@ -347,7 +348,8 @@ def linear_methods(tr: TruthRecord, runs: int, rng: np.random.Generator) -> dict
     Imax = inr.principal_axes(J)[0][-1]
     for k, v in est.items():
         v = np.array(v)
-        out[k] = {"mean": v.mean(axis=0).tolist(), "bias_pct_of_Imax": (100 * (v.mean(axis=0) - p_true) / Imax).tolist()}
+        out[k] = {"mean": v.mean(axis=0).tolist(),
+                  "bias_pct_of_Imax": (100 * (v.mean(axis=0) - p_true) / Imax).tolist()}
     return out
 
 
@@ -361,11 +363,13 @@ def table(r: dict) -> str:
     if "full" in r:
         f = r["full"]
         lines[-1] += f"; mean χ²/dof {f['chi2_per_dof_mean']:.3f}"
-        lines.append("   full tensor   truth    mean est  mean err   max|err| (% Imax)  ±95 % mean  cover95  cover99  (err/σ)²")
+        lines.append("   full tensor   truth    mean est  mean err   max|err| (% Imax)  ±95 % mean  cover95  cover99  "
+                     "(err/σ)²")
         for k, n in enumerate(names):
             lines.append(f"   {n:<8s} {f['truth'][k]:9.2f} {f['mean'][k]:10.2f} {f['mean_err'][k]:+9.3f} "
                          f"{f['max_abs_err'][k]:9.3f} ({f['max_abs_err_pct_of_Imax'][k]:5.2f} %) "
-                         f"{f['ci95_mean'][k]:9.3f}   {100 * f['coverage95'][k]:5.1f} %  {100 * f['coverage99'][k]:5.1f} %"
+                         f"{f['ci95_mean'][k]:9.3f}   {100 * f['coverage95'][k]:5.1f} %  "
+                         f"{100 * f['coverage99'][k]:5.1f} %"
                          f"  {f['z2_mean'][k]:6.2f}")
         lines.append(f"   local minima {f['local_minimum_runs']} of {r['runs']} runs (χ² vs single shooting from the "
                      f"truth: at most {f['chi2_above_truth_start_max']:+.2f})")
@@ -391,11 +395,13 @@ def _shape_lines(r: dict) -> list[str]:
     else:
         src = f"the torque-free {s['from_s']:.0f}–{s['to_s']:.0f} s alone"
     lines.append(f"   shape (up to scale, the torque's size not used) from {src}, {s['samples']} samples:")
-    lines.append(f"     I1/I3, I2/I3 errors rms {rms[0]:.3f} / {rms[1]:.3f} %, mean {s['ratio_err_pct_mean'][0]:+.3f} / "
+    lines.append(f"     I1/I3, I2/I3 errors rms {rms[0]:.3f} / {rms[1]:.3f} %, "
+                 f"mean {s['ratio_err_pct_mean'][0]:+.3f} / "
                  f"{s['ratio_err_pct_mean'][1]:+.3f} %, max {mx[0]:.3f} / {mx[1]:.3f} % "
                  f"({100 * s['within_0p5pct_runs']:.0f} % of runs within 0.5 %)")
-    lines.append(f"     Cramér–Rao bound σ {crb[0]:.3f} / {crb[1]:.3f} %; the fits' own σ {s['ratio_sd_fit_pct_mean'][0]:.3f} / "
-                 f"{s['ratio_sd_fit_pct_mean'][1]:.3f} %, their 95 % intervals covered {100 * s['ratio_coverage95'][0]:.0f} / "
+    lines.append(f"     Cramér–Rao bound σ {crb[0]:.3f} / {crb[1]:.3f} %; "
+                 f"the fits' own σ {s['ratio_sd_fit_pct_mean'][0]:.3f} / {s['ratio_sd_fit_pct_mean'][1]:.3f} %, "
+                 f"their 95 % intervals covered {100 * s['ratio_coverage95'][0]:.0f} / "
                  f"{100 * s['ratio_coverage95'][1]:.0f} %; local minima {s['local_minimum_runs']} of {r['runs']} runs "
                  f"(χ² vs single shooting from the truth: at most {s['chi2_above_truth_start_max']:+.2f})")
     lines.append(f"   κ from the known torque (output-error, shape fixed): κ̂/κ in [{kp['ratio_min']:.4f}, "
@@ -414,7 +420,8 @@ def _shape_target(r: dict) -> str:
     if rms > 0.5 and crb > 0.5:
         verdict += f" — below the information limit: the Cramér–Rao σ is {crb:.2f} %"
     return (f"shape ratios within 0.5 %: rms {rms:.3f} % (Cramér–Rao σ {crb:.3f} %) → {verdict}; every run: "
-            f"largest {mx:.3f} % ({100 * s['within_0p5pct_runs']:.0f} % of runs) → {'holds' if mx <= 0.5 else 'MISSED'}")
+            f"largest {mx:.3f} % ({100 * s['within_0p5pct_runs']:.0f} % of runs) → "
+            f"{'holds' if mx <= 0.5 else 'MISSED'}")
 
 
 def _coverage_target(r: dict) -> str:

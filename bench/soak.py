@@ -393,7 +393,7 @@ def _recovered(rec: FaultRecord, fsw: FlightSoftware, dec: Decoder) -> bool:
 
 def _figures(v: dict) -> dict:
     fsw, tlm, decoder, link, commander = v["fsw"], v["tlm"], v["decoder"], v["link"], v["commander"]
-    records, work = v["records"], v["work"]
+    records = v["records"]
     seg = decoder._recorded()
     received = set(seg.mag_gauss)
     sent = v["samples_sent"]
@@ -491,7 +491,8 @@ def report(fig: dict) -> str:
                  f"dropped (buffer full) {fig['frames_dropped_buffer_full']}; tlog {fig['tlog_frames']} "
                  f"(intact deliveries {fig['frames_delivered_intact_link_truth']})")
     lines.append(f"samples: sent {fig['samples_sent']}, received {fig['samples_received']} "
-                 f"({fig['samples_replayed']} replayed after {fig['link_outages']} outages), lost {fig['samples_lost']} "
+                 f"({fig['samples_replayed']} replayed after {fig['link_outages']} outages), "
+                 f"lost {fig['samples_lost']} "
                  f"(in outages {fig['samples_lost_in_outages']}); asked again {fig['sample_requests_sent']} times, "
                  f"{fig['samples_resent']} sent again; refused by the gate: "
                  + ", ".join(f"{k} {n}" for k, n in fig["samples_refused_by_gate"].items()))

@@ -18,7 +18,8 @@ with a bad CRC and frames of unknown message ids are rejected and counted (`grou
 fatal. About once a second a line shows the last magnetometer sample's time and |B|, the onboard rate
 estimate of the selected method, the simulator's true rate when DEBRIS_SIM_STATE arrives (SITL), the
 identification experiment's latest inertia estimate (DEBRIS_INERTIA_ESTIMATE: diagonal ± 95 %, state;
-all of them in `Decoder.inertia_estimates`), and the loss so far. At the end a summary: frames by type, loss per source, rejected data.
+all of them in `Decoder.inertia_estimates`), and the loss so far. At the end a summary: frames by type, loss
+per source, rejected data.
 
 Outputs
 - ``--tlog``: every intact frame as received (pymavlink tlog: 8-byte big-endian µs time stamp, then

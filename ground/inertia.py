@@ -194,7 +194,8 @@ def plot(path: str | Path, report: InertiaReport) -> None:
         ax.axhline(final[k], color="k", lw=1, label=f"final {final[k]:.1f} ± {hw[k]:.1f}")
         if report.truth_p is not None:
             ax.axhline(report.truth_p[k], color="C3", ls="--", lw=1, label=f"truth {report.truth_p[k]:.1f}")
-        lo, hi = final[k] - 6 * max(hw[k], 1e-3 * abs(final[k]) + 1e-6), final[k] + 6 * max(hw[k], 1e-3 * abs(final[k]) + 1e-6)
+        half = 6 * max(hw[k], 1e-3 * abs(final[k]) + 1e-6)
+        lo, hi = final[k] - half, final[k] + half
         ax.set_ylim(lo, hi)
         ax.set_title(f"{inr.COMPONENTS[k]} [kg·m²]")
         ax.set_xlabel("data up to t [s]")

@@ -23,7 +23,8 @@ reads as a gap. The flight software therefore says how many frames it has writte
 (DEBRIS_LINK_STATUS ``frames_sent``, 1 Hz): between two of these, the sender's count minus the frames
 accounted here (received + lost by sequence number) is the loss the sequence number could not show,
 a multiple of 256, added to ``lost`` (``hidden_gaps`` counts such corrections). A sender whose count
-goes back has restarted: the count starts over. To see long outages the stream's own clock is used where the rate is known from the
+goes back has restarted: the count starts over. To see long outages the stream's own clock is used where the
+rate is known from the
 stream itself: magnetometer samples (HIGHRES_IMU with the mag bits in fields_updated) carry
 time_usec, and a step of k median sample periods means k − 1 missing samples (``samples_missing``).
 That assumes a steady sample rate; a deliberate rate change shows as missing samples.

@@ -45,7 +45,8 @@ class Recorder:
 
     def __init__(self, csv: str | os.PathLike | None, rates_csv: str | os.PathLike | None, *,
                  protect=(), settle_s: float = SETTLE_S) -> None:
-        self.bases = {"csv": None if csv is None else Path(csv), "rates": None if rates_csv is None else Path(rates_csv)}
+        self.bases = {"csv": None if csv is None else Path(csv),
+                      "rates": None if rates_csv is None else Path(rates_csv)}
         self.settle_s = settle_s
         self._protect = [Path(p) for p in protect]
         self._files: dict[int, _Files] = {}

@@ -156,7 +156,8 @@ def rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_
     100 rad/s² for a hand-held sensor), a factor on σ_B (a field that is not quite uniform, a sensor
     not quite calibrated), the Gauss–Markov time τ (∞: the random walk) and, with a field model, the
     starting angle about B are chosen by maximum likelihood on the backward pass (a search over the
-    grids: the floor and τ jointly, then κ and the factor, then the floor and τ again). A finite τ matters where the samples say little about ω along B (a slow motion:
+    grids: the floor and τ jointly, then κ and the factor, then the floor and τ again). A finite τ matters where
+    the samples say little about ω along B (a slow motion:
     B barely turns in the body): that component then falls back to zero with the process's stationary
     spread instead of wandering off.
     """

@@ -152,7 +152,7 @@ class Environment:
     def __init__(self, orbit: CircularOrbit, field: FieldModel, J_kgm2: np.ndarray, *,
                  dipole_body_Am2: Callable[[], np.ndarray], sail_area_m2: float = 5.0,
                  body_area_m2: float = 0.58, cd: float = 2.2,
-                 r_cp_body_m: np.ndarray = np.array([-0.12, 0.0, 0.0]),
+                 r_cp_body_m: tuple[float, float, float] | np.ndarray = (-0.12, 0.0, 0.0),
                  atmosphere: ExponentialAtmosphere = VALLADO_600KM, era0_rad: float = 0.0) -> None:
         self.orbit = orbit
         self.field = field

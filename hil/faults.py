@@ -122,7 +122,8 @@ class FaultyLink:
         self._held: list[tuple[bytes, bool]] | None = None
         self._last_frame_at: int | None = None  # where the last frame written starts in _down
         self.truth = dict.fromkeys(("frames_written", "frames_lost", "frames_duplicated", "frames_reordered",
-                                    "garbage_bytes", "frames_delivered_intact", "writes_refused", "frames_corrupted_in_signature",
+                                    "garbage_bytes", "frames_delivered_intact", "writes_refused",
+                                    "frames_corrupted_in_signature",
                                     "uplink_frames_lost"), 0)
 
     # --- flight side ----------------------------------------------------------------------------
@@ -319,7 +320,8 @@ class FaultInjector:
         if self._wrong_id_bus_until is not None and now_s >= self._wrong_id_bus_until:
             self.chip.fault_bus_error_rate = 0.0
             self._wrong_id_bus_until = None
-        for f in [f for f in self.active if f.end_s <= now_s and (f.kind != "spike" or self._spike_measurements is None)]:
+        ended = [f for f in self.active if f.end_s <= now_s and (f.kind != "spike" or self._spike_measurements is None)]
+        for f in ended:
             self._end(f)
             self.active.remove(f)
             events.append(("end", f))

@@ -192,10 +192,10 @@ def status_line(t_s: float, fsw: FlightSoftware, tr) -> str:
     if tr is None or kf.flags & kf.NO_ESTIMATE:
         return line
     w, wt = np.degrees(kf.omega_radps), np.degrees(tr.omega_radps)
-    boer = fsw.estimators["boer"].omega_radps
+    boer_err = np.degrees(np.linalg.norm(fsw.estimators["boer"].omega_radps
+                                         - perpendicular(tr.omega_radps, tr.b_body_T)))
     return line + (f"  w_true=[{wt[0]:7.2f} {wt[1]:7.2f} {wt[2]:7.2f}] dps"
-                   f"  err={np.linalg.norm(w - wt):6.2f} dps"
-                   f"  boer_perp_err={np.degrees(np.linalg.norm(boer - perpendicular(tr.omega_radps, tr.b_body_T))):5.2f} dps")
+                   f"  err={np.linalg.norm(w - wt):6.2f} dps  boer_perp_err={boer_err:5.2f} dps")
 
 
 @dataclass

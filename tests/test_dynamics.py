@@ -51,7 +51,8 @@ def aist2d_full_tensor() -> np.ndarray:
     return C @ np.diag([175.0, 200.0, 285.0]) @ C.T
 
 
-def propagate(body: RigidBody, duration_s: float, dt_s: float, torque=np.zeros(3)) -> None:
+def propagate(body: RigidBody, duration_s: float, dt_s: float, torque=(0.0, 0.0, 0.0)) -> None:
+    torque = np.asarray(torque, dtype=float)
     for _ in range(int(round(duration_s / dt_s))):
         body.step(dt_s, torque)
 

@@ -152,7 +152,7 @@ def test_each_magnetometer_fault_is_flagged_and_survived(kind):
     accepted_at_end = None
     for k in range(int(30 * 50)):
         t = k / 50
-        for what, f in inj.update(t):
+        for what, _ in inj.update(t):
             if what == "end":
                 accepted_at_end = fsw.gate.accepted
         sim.advance_to(t)

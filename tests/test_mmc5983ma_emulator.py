@@ -321,9 +321,9 @@ def test_fault_rng_does_not_change_noise():
         emu.fault_bus_error_rate = rate
         values = []
         for _ in range(20):
-            retry(lambda: emu.write_register(CTRL0, TM_M))
+            retry(lambda emu=emu: emu.write_register(CTRL0, TM_M))
             clock.t += 0.01
-            values.append(retry(lambda: emu.read_registers(Register.XOUT0, 7)))
+            values.append(retry(lambda emu=emu: emu.read_registers(Register.XOUT0, 7)))
         runs.append(values)
     assert runs[0] == runs[1]
 

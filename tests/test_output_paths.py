@@ -89,7 +89,8 @@ def test_estimate_refuses_the_plot_over_the_rates(csv, tmp_path, capsys):
     assert not out.exists()
 
 
-@pytest.mark.parametrize("plot, message", [("missing/rates.png", "does not exist"), ("rates.txt", "cannot write a plot")])
+@pytest.mark.parametrize("plot, message", [("missing/rates.png", "does not exist"),
+                                           ("rates.txt", "cannot write a plot")])
 def test_estimate_checks_the_plot_before_the_fit(csv, tmp_path, capsys, plot, message):
     out = tmp_path / "r.csv"
     refused(capsys, estimate.main, [str(csv), "--rates", str(out), "--method", "smoother", "--plot",

@@ -133,7 +133,7 @@ def test_outgoing_signing_is_strictly_increasing_and_verifiable():
     setup_outgoing(p, KEY, clock)
     v = verifier()
     stamps = []
-    for k in range(5):
+    for _ in range(5):
         from fsw.telemetry.signing import sign_ready
         sign_ready(p, clock, now_s=0.0)  # the loop time does not move: timestamps still grow
         frame = mavlink.MAVLink_heartbeat_message(0, 0, 0, 0, 0, 3).pack(p)

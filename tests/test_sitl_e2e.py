@@ -140,8 +140,7 @@ def test_command_line_sitl_to_ground_csv(tmp_path):
                                "--duration", "15", "--csv", str(csv), "--rates-csv", str(rates),
                                "--tlog", str(tlog), "--quiet"], stdout=subprocess.PIPE, text=True)
     try:
-        import time
-        time.sleep(1.5)  # let the decoder bind
+        wait_udp_bound(port)  # the decoder listens
         fsw = subprocess.run([sys.executable, "-m", "fsw.main", "--sitl", "--duration", "10", "--speed", "0",
                               "--link", f"udpout:127.0.0.1:{port}"], capture_output=True, text=True,
                              timeout=60)

@@ -24,7 +24,7 @@ def tumble(J, w0_dps, dt_s, n, noise_T, seed, field=FIELD, torque=None):
     b, w = np.zeros((n, 3)), np.zeros((n, 3))
     for k in range(n):
         if k:
-            for j in range(int(round(dt_s / 0.05))):
+            for _ in range(int(round(dt_s / 0.05))):
                 body.step(0.05, np.zeros(3) if torque is None else torque(body))
         b[k] = dynamics.quat_to_dcm(body.q).T @ field.b_eci_T(t[k])
         w[k] = body.omega_radps
@@ -60,7 +60,8 @@ def test_euler_fit_with_the_field_model_removes_the_floor():
     """Asymmetric torque-free tumble at a 3 s step with the field along the orbit: the batch fit finds the
     rate to a small fraction of the field's 0.1–0.2 °/s turning, and the inertia shape."""
     t, b, w, _ = tumble(ASYM, [8.0, -6.0, 7.0], 3.0, 60, 0.5e-6, 3)
-    init = sm.Smoothed(t, w + np.radians(0.5), np.zeros_like(w), np.tile(kl.quat_aligning(b[0], FIELD(0.0)), (len(t), 1)),
+    init = sm.Smoothed(t, w + np.radians(0.5), np.zeros_like(w),
+                       np.tile(kl.quat_aligning(b[0], FIELD(0.0)), (len(t), 1)),
                        "rough")
     res = sm.euler_fit(t, b, 0.5e-6, field_eci_T=FIELD, init=init)
     assert res.chi2_dof < 1.5
@@ -107,7 +108,8 @@ def test_fixed_field_euler_fit_sees_the_floor_and_auto_falls_back():
 def test_torque_free_fit_with_a_known_tensor():
     J = np.diag([1.0, 1.2, 0.7])
     t, b, w, _ = tumble(J, [10.0, 3.0, -6.0], 1.0, 60, 0.3e-6, 4)
-    init = sm.Smoothed(t, w + np.radians(0.3), np.zeros_like(w), np.tile(kl.quat_aligning(b[0], FIELD(0.0)), (len(t), 1)),
+    init = sm.Smoothed(t, w + np.radians(0.3), np.zeros_like(w),
+                       np.tile(kl.quat_aligning(b[0], FIELD(0.0)), (len(t), 1)),
                        "rough")
     res = sm.euler_fit(t, b, 0.3e-6, field_eci_T=FIELD, inertia_kgm2=J, init=init)
     assert res.inertia_shape is None and res.chi2_dof < 1.5
@@ -121,7 +123,8 @@ def test_euler_rts_follows_a_small_unknown_torque():
         return -0.5 * body.omega_radps  # N·m, an eddy-current-like damping, J/0.5 ≈ 400 s for this body
 
     t, b, w, _ = tumble(ASYM, [8.0, -6.0, 7.0], 2.0, 60, 0.5e-6, 5, torque=damping)
-    init = sm.Smoothed(t, w + np.radians(0.3), np.zeros_like(w), np.tile(kl.quat_aligning(b[0], FIELD(0.0)), (len(t), 1)),
+    init = sm.Smoothed(t, w + np.radians(0.3), np.zeros_like(w),
+                       np.tile(kl.quat_aligning(b[0], FIELD(0.0)), (len(t), 1)),
                        "rough")
     eu = sm.euler_fit(t, b, 0.5e-6, field_eci_T=FIELD, init=init)
     er = sm.euler_rts_smooth(t, b, 0.5e-6, field_eci_T=FIELD, init=eu)

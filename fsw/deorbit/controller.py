@@ -115,7 +115,8 @@ def pulse_width_s(m_theor_Nm: float, m_ctrl_Nm: float, period_s: float, min_impu
     return 0.0 if t < min_impulse_s else min(t, period_s)
 
 
-def aero_stiffness_Nm_per_rad(rho_kgm3: float, speed_mps: float, cd: float, area_m2: float, cp_offset_m: float) -> float:
+def aero_stiffness_Nm_per_rad(rho_kgm3: float, speed_mps: float, cd: float, area_m2: float,
+                              cp_offset_m: float) -> float:
     """Weathervane stiffness of a sail behind the centre of mass: |r_cp|·½ρv²C_d·S [N·m/rad]."""
     return abs(cp_offset_m) * 0.5 * rho_kgm3 * speed_mps**2 * cd * area_m2
 

@@ -21,7 +21,8 @@ Stall detection (missed steps, detected by the home switch): at the end of every
 read closed if and only if the counted position is home (mod 200). A mismatch is a stall: the position
 is no longer known (state FAULT, fault STALL, `stalls` counted) until the next successful homing.
 Homing that does not find the switch within one turn is a FAULT too (STALL); one that cannot leave
-the switch reports STALL and SWITCH_DISAGREE (a stalled motor and a switch stuck closed look alike). Every motion has a deadline (profile time + margin);
+the switch reports STALL and SWITCH_DISAGREE (a stalled motor and a switch stuck closed look alike). Every
+motion has a deadline (profile time + margin);
 a motion that cannot complete (pulse generator failing) ends in FAULT with TIMEOUT.
 
 States (values = DEBRIS_MAGNET_STATE): IDLE, HOMING, TURNING, FAULT, UNHOMED (position unknown, the
