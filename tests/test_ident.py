@@ -148,6 +148,7 @@ class FakeMagnets:
         return self.p if self.is_open else np.zeros(3)
 
 
+@pytest.mark.slow
 def test_magnets_experiment_identifies_the_tensor_from_p_cross_b():
     """MAGNETS: the known moment is p × B, a function of the attitude the fit estimates. A 30 A·m² dipole
     for 240 s on a small body (diag(6, 7, 8.5) kg·m²). The sensor is quiet here (0.05 µT) so that a

@@ -14,6 +14,7 @@ FILES = sorted(DATA.glob("*.csv")) if DATA.is_dir() else []
 pytestmark = pytest.mark.skipif(not FILES, reason=f"no real recordings in {DATA}")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name,start_s,span_s", [
     ("xio_fusion_sensor_data.csv", 0.0, 40.0),                       # still, then hand-moved bursts
     ("broad_02_undisturbed_slow_rotation_B.csv", 60.0, 12.0),              # slow hand rotation

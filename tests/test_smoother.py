@@ -56,6 +56,7 @@ def test_rts_smoother_beats_its_filter_and_boer():
     assert np.all(np.isfinite(res.sigma_radps)) and res.method == "smoother"
 
 
+@pytest.mark.slow
 def test_euler_fit_with_the_field_model_removes_the_floor():
     """Asymmetric torque-free tumble at a 3 s step with the field along the orbit: the batch fit finds the
     rate to a small fraction of the field's 0.1–0.2 °/s turning, and the inertia shape."""
@@ -70,6 +71,7 @@ def test_euler_fit_with_the_field_model_removes_the_floor():
     assert np.all(res.sigma_radps > 0)
 
 
+@pytest.mark.slow
 def test_a_failed_batch_fit_is_redone_from_the_euler_filters_end_in_reversed_time():
     """A fast asymmetric tumble at a 3 s step (about 60° a step): started from a wrong rate the batch fit
     ends far from the data (χ²/dof ≫ 1); the checked fit starts it again, in reversed time, from where
@@ -116,6 +118,7 @@ def test_torque_free_fit_with_a_known_tensor():
     assert rms_dps(res.w_radps - w) < 0.05
 
 
+@pytest.mark.slow
 def test_euler_rts_follows_a_small_unknown_torque():
     """A magnetic damping torque the model does not know: the Euler-aware RTS smoother absorbs it as
     process noise and stays close to the truth."""
@@ -197,6 +200,7 @@ def test_a_libration_is_smoothed_with_a_bounded_rate_model():
     assert rms_dps(gm.w_radps - w) < rms_dps(w)
 
 
+@pytest.mark.slow
 def test_batch_fit_sigma_spans_its_near_equivalent_minima(monkeypatch):
     """A near-symmetric body tumbling at 15 °/s (the benchmark's undirected row, 1 s, 0.5 µT, a run where
     this happens): the fit's best minimum and another one are equally good (Δχ² < 1) but 0.1–0.2 °/s
