@@ -67,14 +67,15 @@ class Scheduler:
                 raise ValueError(f"task {task.name!r}: rate {task.rate_hz} Hz must be in (0, {self.rate_hz}] Hz")
             task.divider = max(1, round(self.rate_hz / task.rate_hz))
         self.stats = LoopStats()
-        self._timer = work_timer
+        #: what measures the work (wall time by default; a lockstep run may measure its own CPU time)
+        self.work_timer = work_timer
 
     def task(self, name: str) -> Task:
         return next(t for t in self.tasks if t.name == name)
 
     def tick(self, now_s: float) -> float:
         """Run the tasks due at this tick; returns the work time of the tick in seconds."""
-        timer = self._timer
+        timer = self.work_timer
         n = self.stats.ticks
         start = timer()
         for task in self.tasks:
