@@ -29,8 +29,8 @@ from typing import Callable, Protocol
 import numpy as np
 
 from .commands import CommandRouter, ParamTable, int_param
-from .estimation.kalman import RateKalman
 from .estimation.rate_formulas import BoerStream, DerivativeStream
+from .estimation.rate_kalman import RateKalman
 from .estimation.sample_gate import SampleGate, mark_gap
 from .scheduler import Scheduler, Task
 from .telemetry.dialect import mavlink
@@ -72,7 +72,7 @@ class FlightSoftware:
         `ident`: the inertia identification experiment (`fsw.ident.IdentExperiment`), or None;
         `deorbit`: the de-orbit kit (`fsw.deorbit.kit.DeorbitKit`), or None;
         `rate_filter`: the Kalman filter sent as DEBRIS_RATE_METHOD_KALMAN (default
-        `estimation.kalman.RateKalman`; e.g. an `AttitudeRateKalman` with the field along the orbit);
+        `estimation.rate_kalman.RateKalman`; e.g. an `AttitudeRateKalman` with the field along the orbit);
         `sample_store`: where the numbered samples are kept for the ground's requests (default: in
         memory, run id 0)."""
         self.source = source

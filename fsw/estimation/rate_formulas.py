@@ -44,15 +44,6 @@ DEGENERATE_SNR = 1.0
 FIELD_MIN_SIGMAS = 3.0
 
 
-def skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices [v]ₓ for v of shape (..., 3): [v]ₓ u = v × u."""
-    s = np.zeros(v.shape[:-1] + (3, 3))
-    s[..., 0, 1], s[..., 0, 2] = -v[..., 2], v[..., 1]
-    s[..., 1, 0], s[..., 1, 2] = v[..., 2], -v[..., 0]
-    s[..., 2, 0], s[..., 2, 1] = -v[..., 1], v[..., 0]
-    return s
-
-
 def _safe_div(num: np.ndarray, den: np.ndarray) -> np.ndarray:
     """num / den[..., None], 0 where den == 0 (callers flag those samples)."""
     den = np.asarray(den, dtype=float)
@@ -66,7 +57,7 @@ def _safe_div(num: np.ndarray, den: np.ndarray) -> np.ndarray:
 
 @njit(cache=True, inline="always")
 def _skew_ij(v0: float, v1: float, v2: float, i: int, j: int) -> float:
-    """Element (i, j) of [v]ₓ."""
+    """Element (i, j) of [v]ₓ (inlined into the compiled row kernels; rotations.skew is the array form)."""
     if i == j:
         return 0.0
     if i == 0:
