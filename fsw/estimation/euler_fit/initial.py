@@ -1,5 +1,5 @@
 """Starting values of the fit from the samples alone: segment lengths, rough rates per segment and a
-chain of segment attitudes."""
+chain of segment attitudes (:func:`retilt` also re-chains them between the multiple-shooting stages)."""
 from __future__ import annotations
 
 import math
@@ -12,6 +12,7 @@ from .propagation import body_from_inertial
 
 if TYPE_CHECKING:
     from .identification import FitOptions
+
 
 def retilt(q: np.ndarray, b_body: np.ndarray, b_inertial: np.ndarray) -> np.ndarray:
     """q turned by the smallest inertial rotation that makes R(q) b̂_body ∥ B_I (keeps the angle about B)."""

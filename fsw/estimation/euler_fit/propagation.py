@@ -125,7 +125,10 @@ def _inv_sym(J: np.ndarray) -> np.ndarray:
 
 
 def body_from_inertial(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """R(q)ᵀ v for unit quaternions q (4, nb) and v (3,) or (3, nb) → (3, nb)."""
+    """R(q)ᵀ v for unit quaternions q (4, nb) and v (3,) or (3, nb) → (3, nb).
+
+    The measurement model of every RK4 step, written out rather than as
+    ``rotations.quat_to_dcm(q).T @ v``: no (nb, 3, 3) matrices per step."""
     w, x, y, z = q
     v0, v1, v2 = v[0], v[1], v[2]
     xx, yy, zz = x * x, y * y, z * z
