@@ -41,9 +41,9 @@ carry the information limit of the random-walk model on the record (:func:`infor
 Methods: ``boer`` (perpendicular), ``derivative``, ``kotelnikov`` (series, analytic form); onboard:
 ``kalman`` (fsw RateKalman, fixed field, the filter flown by default), ``kalman_orbit`` (attitude
 filter with the field along the orbit), ``kalman_euler`` (that plus Euler's equations with the inertia
-shape estimated, acquired by parallel shape hypotheses: kalman.EulerAcquisitionKalman), ``kalman_mm``
+shape estimated, acquired by parallel shape hypotheses: filter_banks.EulerAcquisitionKalman), ``kalman_mm``
 (the attitude filter as a bank of rate models, random walk and Gauss–Markov, the likeliest
-publishing: kalman.RateModelBank); ground:
+publishing: filter_banks.RateModelBank); ground:
 ``smoother`` (RTS with the field model), ``euler`` (batch torque-free fit with the field model),
 ``euler_rts`` (RTS over the Euler filter), ``auto`` (ground.smoother.auto_choice: the Euler fit when
 χ²/dof ≤ 1.5 and it agrees with the Euler RTS smoother within 3 combined σ, else that smoother, else
@@ -61,11 +61,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fsw.argtypes import check_paths_or_exit, finite_float, int_range
+from fsw.estimation import attitude_kalman as ak
 from fsw.estimation import field_motion as fm
-from fsw.files import write_atomic
-from fsw.estimation import kalman as kl
+from fsw.estimation import filter_banks as fb
 from fsw.estimation import kotelnikov as ko
 from fsw.estimation import rate_formulas as rf
+from fsw.estimation import rate_kalman as rk
+from fsw.estimation import rotations as rot
+from fsw.files import write_atomic
 from ground import smoother as sm
 from hil import dynamics
 from hil.field import DipoleField, FieldAlongOrbit
@@ -132,7 +135,7 @@ def simulate(mode: str, body: str, dt_s: float, sigma_T: float, rng: np.random.G
 
 def _tumble(t, J, b_i, truth_field, rate, bdot, sigma_T, rng):
     """Rigid body (hil.dynamics, RK4) between the samples; with `bdot` the discrete −Ḃ law."""
-    q0 = dynamics.quat_normalize(rng.normal(size=4))
+    q0 = rot.quat_normalize(rng.normal(size=4))
     body_ = dynamics.RigidBody(J, q0, _random_unit(rng) * rate)
     n = len(t)
     b_true, w, b_meas = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
@@ -149,10 +152,10 @@ def _tumble(t, J, b_i, truth_field, rate, bdot, sigma_T, rng):
                 M = np.zeros(3)
                 if bdot:
                     tm = t0 + (j + 0.5) * h
-                    b_body = dynamics.quat_to_dcm(body_.q).T @ truth_field.b_eci_T(tm)
+                    b_body = rot.quat_to_dcm(body_.q).T @ truth_field.b_eci_T(tm)
                     M = np.cross(m, b_body)
                 body_.step(h, M)
-        b_true[k] = dynamics.quat_to_dcm(body_.q).T @ b_i[k]
+        b_true[k] = rot.quat_to_dcm(body_.q).T @ b_i[k]
         q[k] = body_.q
         w[k] = body_.omega_radps
         meas = _measure(b_true[k], sigma_T, rng)
@@ -179,7 +182,7 @@ def _orbital(t, orbit, b_i, rate, rng):
         z = -r / np.linalg.norm(r)
         y = np.cross(z, x)
         R_lo = np.column_stack([x, y, z])
-        return R_lo @ kl.so3_exp(amp * np.sin(2 * math.pi * tt / periods + phases))
+        return R_lo @ rot.so3_exp(amp * np.sin(2 * math.pi * tt / periods + phases))
 
     n = len(t)
     b_true, w, q = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 4))
@@ -187,9 +190,9 @@ def _orbital(t, orbit, b_i, rate, rng):
     for k in range(n):
         R = dcm(t[k])
         b_true[k] = R.T @ b_i[k]
-        q[k] = sm._quat_from_dcm(R)
+        q[k] = rot.quat_from_dcm(R)
         dR = dcm(t[k] - h).T @ dcm(t[k] + h)
-        w[k] = kl.quat_log(sm._quat_from_dcm(dR)) / (2 * h)
+        w[k] = rot.quat_log(rot.quat_from_dcm(dR)) / (2 * h)
     return b_true, w, q
 
 
@@ -226,8 +229,8 @@ def information_limit(run: Run, sigma_b_T: float, accel_radps2: float | None = N
         if k:
             phi = w[k - 1] * dt[k - 1]
             F = np.eye(6)
-            F[:3, :3] = kl.so3_exp(-phi)
-            F[:3, 3:] = dt[k - 1] * kl.so3_right_jacobian(phi)
+            F[:3, :3] = rot.so3_exp(-phi)
+            F[:3, 3:] = dt[k - 1] * rot.so3_right_jacobian(phi)
             qw = accel_radps2 ** 2 * dt[k - 1]
             d = dt[k - 1]
             Q = np.zeros((6, 6))
@@ -237,9 +240,9 @@ def information_limit(run: Run, sigma_b_T: float, accel_radps2: float | None = N
             P = F @ P @ F.T + Q
             Fs[k] = F
         Pp[k] = P
-        h = kl.quat_to_dcm(q[k]).T @ b_i[k]
+        h = rot.quat_to_dcm(q[k]).T @ b_i[k]
         bh[k] = h / np.linalg.norm(h)
-        H = np.hstack([kl.skew(h), np.zeros((3, 3))])
+        H = np.hstack([rot.skew(h), np.zeros((3, 3))])
         S = H @ P @ H.T + Rm
         K = np.linalg.solve(S, H @ P).T
         IKH = np.eye(6) - K @ H
@@ -276,11 +279,10 @@ def estimate(run: Run, sigma_b_T: float, methods=METHODS) -> dict[str, tuple[np.
         out["kotelnikov"] = ko.kotelnikov_rate(t, b, sigma_b_T)
     field = sm.tabulated(run.field, run.t_s)
     onboard = {
-        "kalman": lambda: kl.kalman_rate(run.t_s, run.b_T, sigma_b_T),
-        "kalman_orbit": lambda: kl.attitude_kalman_rate(run.t_s, run.b_T, sigma_b_T, field_eci_T=field),
-        "kalman_euler": lambda: kl.attitude_kalman_rate(run.t_s, run.b_T, sigma_b_T, field_eci_T=field,
-                                                        hypotheses=True),
-        "kalman_mm": lambda: kl.attitude_kalman_rate(run.t_s, run.b_T, sigma_b_T, field_eci_T=field, models=True),
+        "kalman": lambda: rk.kalman_rate(run.t_s, run.b_T, sigma_b_T),
+        "kalman_orbit": lambda: ak.attitude_kalman_rate(run.t_s, run.b_T, sigma_b_T, field_eci_T=field),
+        "kalman_euler": lambda: fb.euler_acquisition_rate(run.t_s, run.b_T, sigma_b_T, field_eci_T=field),
+        "kalman_mm": lambda: fb.rate_model_bank_rate(run.t_s, run.b_T, sigma_b_T, field_eci_T=field),
     }
     for name, fn in onboard.items():
         if name in methods:
@@ -524,7 +526,7 @@ def real_recordings(paths, rates_hz=(None, 10.0), max_s: float | None = None, lo
                    "methods": {}}
             t0 = time.monotonic()
             row["methods"]["boer"] = score(r, rf.boer_rate(r.t_s, r.b_T), True)
-            row["methods"]["kalman"] = score(r, kl.kalman_rate(r.t_s, r.b_T, sigma)[0], False)
+            row["methods"]["kalman"] = score(r, rk.kalman_rate(r.t_s, r.b_T, sigma)[0], False)
             sm_res = sm.rts_smooth(r.t_s, r.b_T, sigma)
             row["methods"]["smoother"] = score(r, sm_res.w_radps, False)
             row["smoother_noise"] = {k: sm_res.info[k] for k in ("kappa", "rate_accel_radps2", "sigma_factor",

@@ -33,8 +33,8 @@ import numpy as np
 
 from .app import App
 from .commands import CommandRouter, ParamTable, int_param
-from .estimation.kalman import RateKalman
 from .estimation.rate_formulas import BoerStream, DerivativeStream
+from .estimation.rate_kalman import RateKalman
 from .estimation.sample_gate import SampleGate, mark_gap
 from .scheduler import Scheduler, Task
 from .telemetry.dialect import mavlink
@@ -112,7 +112,7 @@ class FlightSoftware:
         `apps`: the onboard applications (`fsw.app.App`: the identification experiment, the de-orbit
         kit), run in this order after the estimators;
         `rate_filter`: the Kalman filter sent as DEBRIS_RATE_METHOD_KALMAN (default
-        `estimation.kalman.RateKalman`; e.g. an `AttitudeRateKalman` with the field along the orbit);
+        `estimation.rate_kalman.RateKalman`; e.g. an `AttitudeRateKalman` with the field along the orbit);
         `sample_store`: where the numbered samples are kept for the ground's requests (default: in
         memory, run id 0)."""
         self.source = source

@@ -29,10 +29,12 @@ from datetime import datetime
 import numpy as np
 
 from fsw.argtypes import check_paths_or_exit, finite_float
+from fsw.estimation import attitude_kalman as ak
 from fsw.estimation import field_check as fc
-from fsw.estimation import kalman as kl
+from fsw.estimation import filter_banks as fb
 from fsw.estimation import kotelnikov as ko
 from fsw.estimation import rate_formulas as rf
+from fsw.estimation import rate_kalman as rk
 from ground import smoother as sm
 from ground.field import scenario_field, tle_field
 from ground.recording import RateEstimates, Recording, RecordingError, read_recording, write_rate_estimates
@@ -90,16 +92,16 @@ def estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, fie
             s = np.column_stack([np.interp(t, tu, s[:, i], left=np.nan, right=np.nan) for i in range(3)])
         return w, s, notes
     if method == "kalman":
-        w, s, _ = kl.kalman_rate(t, b, sigma_b_T)
+        w, s, _ = rk.kalman_rate(t, b, sigma_b_T)
         return w, s, notes
     if method == "kalman-euler" and inertia_kgm2 is None:  # shape unknown: the parallel-hypothesis acquisition
-        w, s, _ = kl.attitude_kalman_rate(t, b, sigma_b_T, field_eci_T=sm.tabulated(field, t), hypotheses=True)
+        w, s, _ = fb.euler_acquisition_rate(t, b, sigma_b_T, field_eci_T=sm.tabulated(field, t))
         return w, s, notes
     if method == "kalman-mm":
-        w, s, _ = kl.attitude_kalman_rate(t, b, sigma_b_T, field_eci_T=sm.tabulated(field, t), models=True)
+        w, s, _ = fb.rate_model_bank_rate(t, b, sigma_b_T, field_eci_T=sm.tabulated(field, t))
         return w, s, notes
     if method in ("kalman-orbit", "kalman-euler"):
-        w, s, _ = kl.attitude_kalman_rate(t, b, sigma_b_T, field_eci_T=sm.tabulated(field, t),
+        w, s, _ = ak.attitude_kalman_rate(t, b, sigma_b_T, field_eci_T=sm.tabulated(field, t),
                                           estimate_inertia=method == "kalman-euler" and inertia_kgm2 is None,
                                           inertia_kgm2=inertia_kgm2 if method == "kalman-euler" else None)
         return w, s, notes

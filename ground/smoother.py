@@ -1,6 +1,6 @@
 """Ground smoothers of the body rate: every sample of a recording informs every estimate.
 
-Two models, both on the attitude filter of the flight software (fsw/estimation/kalman.py), with the
+Two models, both on the attitude filter of the flight software (fsw/estimation/attitude_kalman.py), with the
 field model along the orbit when one is given (which removes the field-motion floor) and the field
 fixed in inertial space otherwise (laboratory recordings):
 
@@ -29,8 +29,11 @@ from typing import Callable
 
 import numpy as np
 
-from fsw.estimation import kalman as kl
+from fsw.estimation import attitude_kalman as ak
+from fsw.estimation import filter_banks as fb
 from fsw.estimation.rate_formulas import unobserved_sigma
+from fsw.estimation import rate_kalman as rk
+from fsw.estimation import rotations as rot
 
 FieldFn = Callable[[float], np.ndarray]
 SHAPE_SIGMA_FLOOR = 0.01  # 1-σ floor of ln(J₂/J₁), ln(J₃/J₁) carried into the Euler RTS smoother
@@ -91,10 +94,10 @@ def rts(log: dict, n_att: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if restart[k + 1]:  # the filter started afresh at k + 1: nothing links the two stretches
             continue
         C = np.linalg.solve(P_p[k + 1], F[k + 1] @ P_f[k]).T
-        d = np.concatenate([kl.quat_log(kl.quat_mul(kl.quat_conj(q_p[k + 1]), q_s[k + 1])),
+        d = np.concatenate([rot.quat_log(rot.quat_mul(rot.quat_conj(q_p[k + 1]), q_s[k + 1])),
                             x_s[k + 1] - x_p[k + 1]])
         dx = C @ d
-        q_s[k] = kl.quat_mul(q_f[k], kl.quat_exp(dx[:n_att]))
+        q_s[k] = rot.quat_mul(q_f[k], rot.quat_exp(dx[:n_att]))
         x_s[k] = x_f[k] + dx[n_att:]
         P_s[k] = P_f[k] + C @ (P_s[k + 1] - P_p[k + 1]) @ C.T
     return q_s, x_s, P_s
@@ -124,8 +127,8 @@ def _forward(t, b, sigma_b_T, field_eci_T, noise, angle, start=None, store=False
     """One pass of the random-walk attitude filter over (t, b) from `start` (or the first sample);
     `noise` = (κ, rate floor [rad/s²], factor on σ_B, Gauss–Markov time of ω [s], ∞ for a random walk)."""
     kappa, accel, sfac, tau = noise
-    kf = kl.AttitudeRateKalman(sigma_b_T * sfac, field_eci_T=field_eci_T,
-                               tuning=kl.AttitudeKalmanTuning(kappa=kappa, rate_accel_radps2=accel, adapt_max=1.0,
+    kf = ak.AttitudeRateKalman(sigma_b_T * sfac, field_eci_T=field_eci_T,
+                               tuning=ak.AttitudeKalmanTuning(kappa=kappa, rate_accel_radps2=accel, adapt_max=1.0,
                                                               rate_tau_s=tau),
                                angle_about_b_rad=angle, store=store)
     kf.start(t[0], b[0], **(start or {}))
@@ -215,8 +218,8 @@ def _chi2(t, b, sigma_b_T, q, x, field_eci_T) -> float:
     """Σ |z − h|² / σ² of a smoothed trajectory."""
     total = 0.0
     for k in range(len(t)):
-        C = kl.quat_to_dcm(q[k])
-        b_i = np.asarray(field_eci_T(t[k]), float) if field_eci_T is not None else x[k, -3:] / kl.UT_PER_T
+        C = rot.quat_to_dcm(q[k])
+        b_i = np.asarray(field_eci_T(t[k]), float) if field_eci_T is not None else x[k, -3:] / rk.UT_PER_T
         r = b[k] - C.T @ b_i
         total += float(r @ r)
     return total / sigma_b_T ** 2
@@ -233,7 +236,7 @@ class _Trajectory:
     Jr: np.ndarray         # (N, 3, n) ∂r/∂δx₀
 
 
-def _trajectory(kf: kl.AttitudeRateKalman, t, z_uT, sb_uT, n) -> _Trajectory:
+def _trajectory(kf: ak.AttitudeRateKalman, t, z_uT, sb_uT, n) -> _Trajectory:
     """Propagate the filter's nominal state (no updates) across the first n samples."""
     q0, w0 = kf.q.copy(), kf.w.copy()
     nn = kf.n
@@ -282,20 +285,20 @@ def euler_fit(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T
     N = len(t)
     field_eci_T = tabulated(field_eci_T, t)
     init = init or rts_smooth(t, b, sigma_b_T, field_eci_T=field_eci_T)
-    tun = kl.AttitudeKalmanTuning(max_substep_rad=max_substep_rad, max_substeps=400)
+    tun = ak.AttitudeKalmanTuning(max_substep_rad=max_substep_rad, max_substeps=400)
 
     def filt():
-        return kl.AttitudeRateKalman(sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2,
+        return ak.AttitudeRateKalman(sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2,
                                      estimate_inertia=inertia_kgm2 is None, tuning=tun)
 
     kf = filt()
     if field_eci_T is None:  # the first sample's body axes are the frame; β the field in it
-        beta = kl.quat_to_dcm(init.q[0]) @ (b[0] * kl.UT_PER_T)
+        beta = rot.quat_to_dcm(init.q[0]) @ (b[0] * rk.UT_PER_T)
         kf.set_nominal(t[0], np.array([1.0, 0.0, 0.0, 0.0]), init.w_radps[0], beta_uT=beta, euler=True)
     else:
         kf.set_nominal(t[0], init.q[0], init.w_radps[0], euler=True)
-    z = b * kl.UT_PER_T
-    sb = sigma_b_T * kl.UT_PER_T
+    z = b * rk.UT_PER_T
+    sb = sigma_b_T * rk.UT_PER_T
     nn = kf.n
     free = np.ones(nn, bool)
     if field_eci_T is None:
@@ -320,7 +323,7 @@ def euler_fit(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T
         axis = b_i0 / np.linalg.norm(b_i0)
         for a in range(1, starts_about_b):
             other = _apply(kf, np.zeros(int(free.sum())), free)
-            other.q = kl.quat_mul(kl.quat_exp(axis * (2 * math.pi * a / starts_about_b)), kf.q)
+            other.q = rot.quat_mul(rot.quat_exp(axis * (2 * math.pi * a / starts_about_b)), kf.q)
             cands.append(_lm(other, t, z, sb, N, free, prior_w, 3))
         cands.sort(key=lambda kc: kc[1])
         kf, cost = _lm(cands[0][0], t, z, sb, N, free, prior_w, iterations)
@@ -381,7 +384,7 @@ def _local_solution(kf, t, z, sb, n, free, prior_w, s2: float | None = None):
 def euler_fit_from_filter(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *,
                           field_eci_T: FieldFn | None = None) -> Smoothed | None:
     """The batch fit of :func:`euler_fit` started from where the parallel-hypothesis Euler filter
-    (:class:`fsw.estimation.kalman.EulerAcquisitionKalman`) ends, for the records where the random-walk
+    (:class:`fsw.estimation.filter_banks.EulerAcquisitionKalman`) ends, for the records where the random-walk
     start leads the fit astray (a 3 s step at 15–28 °/s: the random-walk smoother lags the turning ω).
     The filter's estimate is good at the record's end, not at its start, so the fit runs in reversed
     time: t' = t_N − t, ω'(t') = −ω(t_N − t'), the same attitudes in reverse order; torque-free Euler
@@ -392,11 +395,11 @@ def euler_fit_from_filter(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *,
         return None
     t = np.asarray(t_s, float)
     b = np.asarray(b_T, float)
-    kf = kl.EulerAcquisitionKalman(sigma_b_T, field_eci_T=field_eci_T)
+    kf = fb.EulerAcquisitionKalman(sigma_b_T, field_eci_T=field_eci_T)
     with np.errstate(all="ignore"):  # a wrong hypothesis may diverge: the filter drops it
         for k in range(len(t)):
             kf.update(t[k], b[k])
-    if not kf.euler or kf.flags & kl.NO_ESTIMATE:
+    if not kf.euler or kf.flags & rk.NO_ESTIMATE:
         return None
     t_end = float(t[-1])
     tr = t_end - t[::-1]
@@ -437,39 +440,19 @@ def _wahba_start(kf, t, z, field_eci_T, n) -> np.ndarray:
     the SVD of Σ B_I,k (R_rel,k z_k)ᵀ (Markley 1988): the global optimum, whatever the angle about B.
     """
     traj_q = _trajectory(kf, t, z, 1.0, n).q
-    C0t = kl.quat_to_dcm(kf.q).T
+    C0t = rot.quat_to_dcm(kf.q).T
     Bm = np.zeros((3, 3))
     for k in range(n):
-        u = C0t @ (kl.quat_to_dcm(traj_q[k]) @ z[k])
+        u = C0t @ (rot.quat_to_dcm(traj_q[k]) @ z[k])
         Bm += np.outer(np.asarray(field_eci_T(t[k]), float), u)
     U, _, Vt = np.linalg.svd(Bm)
     D = np.diag([1.0, 1.0, np.linalg.det(U) * np.linalg.det(Vt)])
     R0 = U @ D @ Vt
-    return _quat_from_dcm(R0)
-
-
-def _quat_from_dcm(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion (scalar first) of a rotation matrix (Shepperd's method)."""
-    tr = np.trace(R)
-    i = int(np.argmax([tr, R[0, 0], R[1, 1], R[2, 2]]))
-    if i == 0:
-        w = 0.5 * math.sqrt(1.0 + tr)
-        q = [w, (R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w), (R[1, 0] - R[0, 1]) / (4 * w)]
-    elif i == 1:
-        x = 0.5 * math.sqrt(1.0 + 2 * R[0, 0] - tr)
-        q = [(R[2, 1] - R[1, 2]) / (4 * x), x, (R[0, 1] + R[1, 0]) / (4 * x), (R[0, 2] + R[2, 0]) / (4 * x)]
-    elif i == 2:
-        y = 0.5 * math.sqrt(1.0 + 2 * R[1, 1] - tr)
-        q = [(R[0, 2] - R[2, 0]) / (4 * y), (R[0, 1] + R[1, 0]) / (4 * y), y, (R[1, 2] + R[2, 1]) / (4 * y)]
-    else:
-        zz = 0.5 * math.sqrt(1.0 + 2 * R[2, 2] - tr)
-        q = [(R[1, 0] - R[0, 1]) / (4 * zz), (R[0, 2] + R[2, 0]) / (4 * zz), (R[1, 2] + R[2, 1]) / (4 * zz), zz]
-    q = np.array(q)
-    return q / np.linalg.norm(q)
+    return rot.quat_from_dcm(R0)
 
 
 def _same_start(a, b, tol_rad: float = 0.02) -> bool:
-    d = kl.quat_log(kl.quat_mul(kl.quat_conj(a.q), b.q))
+    d = rot.quat_log(rot.quat_mul(rot.quat_conj(a.q), b.q))
     return float(np.linalg.norm(d)) < tol_rad and float(np.linalg.norm(a.w - b.w)) < 1e-3
 
 
@@ -524,13 +507,13 @@ def _prior_grad(kf, w) -> np.ndarray:
     return g
 
 
-def _apply(kf: kl.AttitudeRateKalman, step: np.ndarray, free: np.ndarray) -> kl.AttitudeRateKalman:
+def _apply(kf: ak.AttitudeRateKalman, step: np.ndarray, free: np.ndarray) -> ak.AttitudeRateKalman:
     """A copy of the filter's nominal start state moved by the error-state step."""
     d = np.zeros(kf.n)
     d[free] = step
-    new = kl.AttitudeRateKalman.__new__(kl.AttitudeRateKalman)
+    new = ak.AttitudeRateKalman.__new__(ak.AttitudeRateKalman)
     new.__dict__.update(kf.__dict__)
-    new.q = kl.quat_mul(kf.q, kl.quat_exp(d[:3]))
+    new.q = rot.quat_mul(kf.q, rot.quat_exp(d[:3]))
     new.q /= np.linalg.norm(new.q)
     new.w = kf.w + d[3:6]
     new.p = kf.p + d[6:6 + kf.n_p]
@@ -564,9 +547,9 @@ def euler_rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, fiel
             J = np.eye(3)
 
     def run(accel, store):
-        tun = kl.AttitudeKalmanTuning(rate_accel_radps2=accel, adapt_max=1.0, max_substep_rad=0.25,
+        tun = ak.AttitudeKalmanTuning(rate_accel_radps2=accel, adapt_max=1.0, max_substep_rad=0.25,
                                       max_substeps=400)
-        kf = kl.AttitudeRateKalman(sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=J,
+        kf = ak.AttitudeRateKalman(sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=J,
                                    estimate_inertia=shape is not None, store=store, tuning=tun)
         n = kf.n
         P0 = np.zeros((n, n))
@@ -578,7 +561,7 @@ def euler_rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, fiel
             P0[6:8, 6:8] = cov_p + SHAPE_SIGMA_FLOOR ** 2 * np.eye(2)
         if field_eci_T is None:
             start["beta_uT"] = init.info.get("beta_uT")
-            P0[kf.i_beta:, kf.i_beta:] = (3 * sigma_b_T * kl.UT_PER_T) ** 2 * np.eye(3)
+            P0[kf.i_beta:, kf.i_beta:] = (3 * sigma_b_T * rk.UT_PER_T) ** 2 * np.eye(3)
         else:
             P0[:3, :3] = 0.1 ** 2 * np.eye(3)
         kf.start(t[0], b[0], **start)

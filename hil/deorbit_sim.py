@@ -17,8 +17,8 @@ from __future__ import annotations
 import numpy as np
 
 from fsw.deorbit.controller import AttitudeInput
+from fsw.estimation.rotations import quat_from_dcm, quat_to_dcm
 
-from . import dynamics
 from .deorbit_kit import DeorbitKitEmulator
 from .environment import (
     Environment,
@@ -30,25 +30,6 @@ from .environment import (
 from .field import b_eci_from_model_T
 from .scenario import DeorbitSpec, Scenario
 from .sim import Simulator, Truth
-
-
-def quat_from_dcm(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion [w, x, y, z] (w >= 0) of a rotation matrix (Shepperd's method)."""
-    t = np.trace(R)
-    if t > 0:
-        s = 2.0 * np.sqrt(t + 1.0)
-        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
-    else:
-        i = int(np.argmax(np.diag(R)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * np.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
-        q = [0.0, 0.0, 0.0, 0.0]
-        q[0] = (R[k, j] - R[j, k]) / s
-        q[1 + i] = 0.25 * s
-        q[1 + j] = (R[j, i] + R[i, j]) / s
-        q[1 + k] = (R[k, i] + R[i, k]) / s
-    q = np.array(q)
-    return q / np.linalg.norm(q) * (1.0 if q[0] >= 0 else -1.0)
 
 
 class DeorbitSimulator(Simulator):
@@ -102,12 +83,12 @@ class DeorbitSimulator(Simulator):
         env_moment = getattr(self, "_env_moment", None)
         if env_moment is not None:
             moment += env_moment
-        return Truth(self.t_s, self.body.omega_radps.copy(), q, dynamics.quat_to_dcm(q).T @ b_eci, moment)
+        return Truth(self.t_s, self.body.omega_radps.copy(), q, quat_to_dcm(q).T @ b_eci, moment)
 
     def attitude_orbital(self, t_s: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(R_bo, ω relative to the orbital frame in body axes, B in body axes) from the truth at `t_s`."""
         tr = self.truth(t_s)
-        R_bo = self.orbital_frame(tr.t_s).T @ dynamics.quat_to_dcm(tr.q_body_to_eci)
+        R_bo = self.orbital_frame(tr.t_s).T @ quat_to_dcm(tr.q_body_to_eci)
         w_rel = tr.omega_radps - orbital_rate_body_radps(R_bo, self.orbit.mean_motion_radps)
         return R_bo, w_rel, tr.b_body_T
 

@@ -3,7 +3,8 @@
 Conventions (see ``/work/shared/spec/physics-and-seeds.md`` §2):
 
 * Quaternion ``q = [w, x, y, z]`` (scalar first) rotates body -> inertial:
-  ``v_inertial = R(q) v_body`` with ``R = quat_to_dcm(q)`` = R_bodyToInertial.
+  ``v_inertial = R(q) v_body`` with ``R = quat_to_dcm(q)`` = R_bodyToInertial
+  (the quaternion helpers are in ``fsw.estimation.rotations``).
 * ``omega`` is the body rate relative to inertial space, in body axes [rad/s].
 * Kinematics: ``q_dot = 1/2 q ⊗ [0, omega]``, equivalently ``R_dot = R [omega×]``.
 * Dynamics (Euler, about the centre of mass, body axes):
@@ -17,70 +18,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from fsw.estimation.rotations import quat_normalize, quat_to_dcm
+
 __all__ = [
-    "quat_multiply",
-    "quat_conjugate",
-    "quat_normalize",
-    "quat_to_dcm",
     "quat_from_euler_deg",
     "quat_derivative",
     "euler_rhs",
     "validate_inertia",
     "RigidBody",
 ]
-
-
-def quat_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Hamilton product ``p ⊗ q`` of scalar-first quaternions ``[w, x, y, z]``.
-
-    Composition matches rotation matrices: ``R(p ⊗ q) = R(p) R(q)``.
-    """
-    pw, px, py, pz = p
-    qw, qx, qy, qz = q
-    return np.array(
-        [
-            pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw,
-        ]
-    )
-
-
-def quat_conjugate(q: np.ndarray) -> np.ndarray:
-    """Conjugate ``[w, -x, -y, -z]`` (the inverse rotation for a unit quaternion)."""
-    return np.array([q[0], -q[1], -q[2], -q[3]])
-
-
-def quat_normalize(q: np.ndarray) -> np.ndarray:
-    """Unit quaternion in the direction of ``q``; raises ValueError for a zero/non-finite ``q``."""
-    q = np.asarray(q, dtype=float)
-    if q.shape != (4,):
-        raise ValueError(f"quaternion must have shape (4,), got {q.shape}")
-    n = float(np.sqrt(q @ q))
-    if not np.isfinite(n) or n == 0.0:
-        raise ValueError(f"quaternion must be finite and nonzero, got {q}")
-    return q / n
-
-
-def quat_to_dcm(q: np.ndarray) -> np.ndarray:
-    """Direction cosine matrix R_bodyToInertial of the quaternion ``q = [w, x, y, z]``.
-
-    ``v_inertial = R v_body``. A non-unit ``q`` is treated as its normalised
-    direction (the factor ``s = 2/|q|^2`` does that without a separate division).
-    """
-    w, x, y, z = q
-    s = 2.0 / (w * w + x * x + y * y + z * z)
-    xx, yy, zz = s * x * x, s * y * y, s * z * z
-    xy, xz, yz = s * x * y, s * x * z, s * y * z
-    wx, wy, wz = s * w * x, s * w * y, s * w * z
-    return np.array(
-        [
-            [1.0 - (yy + zz), xy - wz, xz + wy],
-            [xy + wz, 1.0 - (xx + zz), yz - wx],
-            [xz - wy, yz + wx, 1.0 - (xx + yy)],
-        ]
-    )
 
 
 def quat_from_euler_deg(roll: float, pitch: float, yaw: float) -> np.ndarray:

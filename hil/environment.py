@@ -34,7 +34,8 @@ from typing import Callable
 
 import numpy as np
 
-from . import dynamics
+from fsw.estimation.rotations import quat_to_dcm
+
 from .field import FieldModel, b_eci_from_model_T
 from .orbit import MU_EARTH_M3S2, CircularOrbit
 
@@ -173,7 +174,7 @@ class Environment:
 
     def torque_Nm(self, t_s: float, q_body_to_eci: np.ndarray, b_eci_T: np.ndarray | None = None) -> np.ndarray:
         """Total torque at `t_s` for the attitude `q_body_to_eci`; the parts are kept in `last`."""
-        R_t = dynamics.quat_to_dcm(q_body_to_eci).T  # inertial -> body
+        R_t = quat_to_dcm(q_body_to_eci).T  # inertial -> body
         r = self.orbit.position_eci_m(t_s)
         v = self.orbit.velocity_eci_mps(t_s)
         b = self.b_eci_T(t_s) if b_eci_T is None else b_eci_T
@@ -188,4 +189,4 @@ class Environment:
     def attitude_orbital(self, t_s: float, q_body_to_eci: np.ndarray) -> np.ndarray:
         """R_bo (body -> orbital) at `t_s`."""
         R_oi = orbital_frame_dcm(self.orbit.position_eci_m(t_s), self.orbit.velocity_eci_mps(t_s))
-        return R_oi.T @ dynamics.quat_to_dcm(q_body_to_eci)
+        return R_oi.T @ quat_to_dcm(q_body_to_eci)

@@ -13,6 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fsw.estimation.rotations import quat_to_dcm
+
 from . import dynamics
 from .field import DipoleField
 from .mmc5983ma import EmulatedMmc5983ma
@@ -59,7 +61,7 @@ class Simulator:
         b_eci = self.field.b_eci_T(self.orbit.position_eci_m(self.t_s), self.t_s)
         q = self.body.q.copy()
         return Truth(self.t_s, self.body.omega_radps.copy(), q,
-                     dynamics.quat_to_dcm(q).T @ b_eci, self.scenario.moment_Nm(self.t_s).copy(), b_eci)
+                     quat_to_dcm(q).T @ b_eci, self.scenario.moment_Nm(self.t_s).copy(), b_eci)
 
     def advance_to(self, t_s: float) -> None:
         """Integrate the dynamics up to `t_s` in steps no longer than `max_step_s`."""
@@ -100,7 +102,7 @@ class Simulator:
         q /= np.linalg.norm(q)
         # interpolate the inertial field (smooth along the orbit), then rotate into the body
         b_eci = (1 - f) * _b_eci(a) + f * _b_eci(b)
-        b_body = dynamics.quat_to_dcm(q).T @ b_eci
+        b_body = quat_to_dcm(q).T @ b_eci
         return Truth(t_s, (1 - f) * a.omega_radps + f * b.omega_radps, q, b_body,
                      a.moment_Nm if f < 1 else b.moment_Nm, b_eci)
 
@@ -111,4 +113,4 @@ class Simulator:
 
 def _b_eci(tr: Truth) -> np.ndarray:
     """A snapshot's field in inertial axes (rotated back from the body when the snapshot did not keep it)."""
-    return tr.b_eci_T if tr.b_eci_T is not None else dynamics.quat_to_dcm(tr.q_body_to_eci) @ tr.b_body_T
+    return tr.b_eci_T if tr.b_eci_T is not None else quat_to_dcm(tr.q_body_to_eci) @ tr.b_body_T

@@ -6,9 +6,11 @@ import math
 import numpy as np
 import pytest
 
-from fsw.estimation import kalman as kl
+from fsw.estimation import attitude_kalman as ak
+from fsw.estimation import filter_banks as fb
 from fsw.estimation import kotelnikov as ko
 from fsw.estimation import rate_formulas as rf
+from fsw.estimation import rate_kalman as rk
 from ground.recording import RateEstimates, RecordingError, read_rate_estimates, write_rate_estimates
 
 SIGMA_B = 0.5e-6
@@ -71,10 +73,10 @@ def test_kotelnikov(form, field):
 
 
 def test_the_kalman_filter_on_a_zero_field():
-    w, s, flags = kl.kalman_rate(T, ZERO, SIGMA_B)       # was 0 ± 28.6 °/s: the prior, as an estimate
+    w, s, flags = rk.kalman_rate(T, ZERO, SIGMA_B)       # was 0 ± 28.6 °/s: the prior, as an estimate
     assert no_information(s)
     ok = ~np.isnan(s).any(axis=1)
-    assert np.all(flags[ok] & kl.DEGENERATE) and np.all(np.isfinite(w[ok]))
+    assert np.all(flags[ok] & rk.DEGENERATE) and np.all(np.isfinite(w[ok]))
 
 
 @pytest.mark.parametrize("kind", ["orbit", "models", "hypotheses"])
@@ -83,16 +85,16 @@ def test_the_attitude_filters_wait_for_a_field(kind):
     in a running filter that sample's σ is inf."""
     from fsw.estimation import field_motion as fm
     fld = fm.OrbitField(fm.CircularOrbitModel(500e3, 97.0))
-    kw = {"field_eci_T": fld, "models": kind == "models", "hypotheses": kind == "hypotheses"}
-    if kind == "hypotheses":
-        kw["estimate_inertia"] = True
+    run = {"orbit": ak.attitude_kalman_rate, "models": fb.rate_model_bank_rate,
+           "hypotheses": fb.euler_acquisition_rate}[kind]
+    kw = {"field_eci_T": fld}
     with np.errstate(all="raise"):
-        w, s, flags = kl.attitude_kalman_rate(T, ZERO, SIGMA_B, **kw)
-    assert np.all(np.isnan(w)) and np.all(np.isnan(s)) and np.all(flags & kl.DEGENERATE)
+        w, s, flags = run(T, ZERO, SIGMA_B, **kw)
+    assert np.all(np.isnan(w)) and np.all(np.isnan(s)) and np.all(flags & rk.DEGENERATE)
     b = 40e-6 * fld(T) / np.linalg.norm(fld(T), axis=1, keepdims=True)
     b[20] = 0.0
-    w, s, flags = kl.attitude_kalman_rate(T, b, SIGMA_B, **kw)
-    assert np.all(np.isinf(s[20])) and flags[20] & kl.DEGENERATE and np.all(np.isfinite(s[5:20]))
+    w, s, flags = run(T, b, SIGMA_B, **kw)
+    assert np.all(np.isinf(s[20])) and flags[20] & rk.DEGENERATE and np.all(np.isfinite(s[5:20]))
 
 
 def test_the_smoothers_on_a_zero_field():

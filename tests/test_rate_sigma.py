@@ -6,8 +6,9 @@ import math
 import numpy as np
 import pytest
 
+from fsw.estimation import attitude_kalman as ak
 from fsw.estimation import field_motion as fm
-from fsw.estimation import kalman as kl
+from fsw.estimation import rotations as rot
 from ground import smoother as sm
 from bench import accuracy as acc
 from hil import dynamics
@@ -18,14 +19,14 @@ ASYM = np.diag([175.0, 200.0, 285.0])
 
 def tumble(J, w0_dps, dt_s, n, noise_T, seed):
     rng = np.random.default_rng(seed)
-    body = dynamics.RigidBody(J, dynamics.quat_normalize(rng.normal(size=4)), np.radians(w0_dps))
+    body = dynamics.RigidBody(J, rot.quat_normalize(rng.normal(size=4)), np.radians(w0_dps))
     t = np.arange(n) * dt_s
     b, w, q = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 4))
     for k in range(n):
         if k:
             for _ in range(int(round(dt_s / 0.05))):
                 body.step(0.05, np.zeros(3))
-        b[k] = dynamics.quat_to_dcm(body.q).T @ FIELD.b_eci_T(t[k])
+        b[k] = rot.quat_to_dcm(body.q).T @ FIELD.b_eci_T(t[k])
         w[k], q[k] = body.omega_radps, body.q
     return t, b + rng.normal(scale=noise_T, size=b.shape), w, q
 
@@ -45,8 +46,8 @@ def test_variance_scale_is_the_noise_ratio_squared(factor, lo, hi):
     σ_B (scale ≈ 1); told σ_B / 2 the innovations are twice too large and the scale ≈ 4 (the random
     walk absorbs a little of it)."""
     t, b, w, q = tumble(np.eye(3), [5.0, -4.0, 6.0], 1.0, 150, 1.0e-6, 8)
-    kf = kl.AttitudeRateKalman(1.0e-6 / factor, field_eci_T=FIELD, store=True,
-                               tuning=kl.AttitudeKalmanTuning(kappa=0.03, rate_accel_radps2=1e-4, adapt_max=1.0))
+    kf = ak.AttitudeRateKalman(1.0e-6 / factor, field_eci_T=FIELD, store=True,
+                               tuning=ak.AttitudeKalmanTuning(kappa=0.03, rate_accel_radps2=1e-4, adapt_max=1.0))
     # started near the truth (the linear regime the χ² law is about)
     kf.start(t[0], b[0], q=q[0], omega_radps=w[0], P=np.diag([1e-4] * 3 + [1e-6] * 3))
     for k in range(1, len(t)):

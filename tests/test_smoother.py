@@ -7,8 +7,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from fsw.estimation import field_motion as fm
-from fsw.estimation import kalman as kl
 from fsw.estimation import rate_formulas as rf
+from fsw.estimation import rate_kalman as rk
+from fsw.estimation import rotations as rot
 from ground import smoother as sm
 from hil import dynamics
 
@@ -19,14 +20,14 @@ ASYM = np.diag([175.0, 200.0, 285.0])
 def tumble(J, w0_dps, dt_s, n, noise_T, seed, field=FIELD, torque=None):
     """A body (hil.dynamics RK4, 0.05 s steps) in the field along the orbit: t, noisy B, true ω, true B."""
     rng = np.random.default_rng(seed)
-    body = dynamics.RigidBody(J, dynamics.quat_normalize(rng.normal(size=4)), np.radians(w0_dps))
+    body = dynamics.RigidBody(J, rot.quat_normalize(rng.normal(size=4)), np.radians(w0_dps))
     t = np.arange(n) * dt_s
     b, w = np.zeros((n, 3)), np.zeros((n, 3))
     for k in range(n):
         if k:
             for _ in range(int(round(dt_s / 0.05))):
                 body.step(0.05, np.zeros(3) if torque is None else torque(body))
-        b[k] = dynamics.quat_to_dcm(body.q).T @ field.b_eci_T(t[k])
+        b[k] = rot.quat_to_dcm(body.q).T @ field.b_eci_T(t[k])
         w[k] = body.omega_radps
     return t, b + rng.normal(scale=noise_T, size=b.shape), w, b
 
@@ -38,7 +39,7 @@ def rms_dps(e):
 def test_quaternion_from_dcm_and_wahba():
     for phi in ([0.3, -0.2, 0.5], [3.0, 0.1, 0.0], [0.0, -3.1, 0.2], [0.1, 0.2, -3.1]):
         R = Rotation.from_rotvec(phi).as_matrix()
-        np.testing.assert_allclose(kl.quat_to_dcm(sm._quat_from_dcm(R)), R, atol=1e-12)
+        np.testing.assert_allclose(rot.quat_to_dcm(rot.quat_from_dcm(R)), R, atol=1e-12)
 
 
 def test_rts_smoother_beats_its_filter_and_boer():
@@ -47,7 +48,7 @@ def test_rts_smoother_beats_its_filter_and_boer():
     t, b, w, _ = tumble(np.diag([1.0, 1.02, 1.04]), [4.0, -3.0, 5.0], 1.0, 80, 0.5e-6, 2,
                         field=fm.OrbitField(fm.CircularOrbitModel(485e3, 97.5), fm.DipoleModel()))
     res = sm.rts_smooth(t, b, 0.5e-6, kappas=(0.03, 0.3), accels_radps2=(1e-4, 1e-2), sigma_factors=(1.0,))
-    filt, _, _ = kl.kalman_rate(t, b, 0.5e-6)
+    filt, _, _ = rk.kalman_rate(t, b, 0.5e-6)
     boer = rf.boer_rate(t, b)
     bh = b / np.linalg.norm(b, axis=1, keepdims=True)
     e_boer = boer[1:] - (w[1:] - np.sum(w[1:] * bh[1:], axis=1, keepdims=True) * bh[1:])
@@ -62,7 +63,7 @@ def test_euler_fit_with_the_field_model_removes_the_floor():
     rate to a small fraction of the field's 0.1–0.2 °/s turning, and the inertia shape."""
     t, b, w, _ = tumble(ASYM, [8.0, -6.0, 7.0], 3.0, 60, 0.5e-6, 3)
     init = sm.Smoothed(t, w + np.radians(0.5), np.zeros_like(w),
-                       np.tile(kl.quat_aligning(b[0], FIELD(0.0)), (len(t), 1)),
+                       np.tile(rot.quat_aligning(b[0], FIELD(0.0)), (len(t), 1)),
                        "rough")
     res = sm.euler_fit(t, b, 0.5e-6, field_eci_T=FIELD, init=init)
     assert res.chi2_dof < 1.5
@@ -77,7 +78,7 @@ def test_a_failed_batch_fit_is_redone_from_the_euler_filters_end_in_reversed_tim
     ends far from the data (χ²/dof ≫ 1); the checked fit starts it again, in reversed time, from where
     the parallel-hypothesis Euler filter ends, and gets the rate and the shape."""
     t, b, w, b_true = tumble(ASYM, [12.0, -15.0, 10.0], 3.0, 120, 0.5e-6, 11)
-    q0 = np.tile(kl.quat_aligning(b[0], FIELD(0.0)), (len(t), 1))
+    q0 = np.tile(rot.quat_aligning(b[0], FIELD(0.0)), (len(t), 1))
     wrong = sm.Smoothed(t, np.tile(np.radians([-5.0, 9.0, 2.0]), (len(t), 1)), np.zeros_like(w), q0, "wrong")
     first = sm.euler_fit(t, b, 0.5e-6, field_eci_T=FIELD, init=wrong)
     assert first.chi2_dof > 1.5  # the premise: this start leads the fit astray
@@ -90,7 +91,7 @@ def test_a_failed_batch_fit_is_redone_from_the_euler_filters_end_in_reversed_tim
     assert np.all(np.diff(res.t_s) > 0) and np.all(res.sigma_radps > 0)
     # the attitude is the forward one: it maps each sample's true body field onto the model's field
     for k in (0, 60, 119):
-        b_i = kl.quat_to_dcm(res.q[k]) @ b_true[k]
+        b_i = rot.quat_to_dcm(res.q[k]) @ b_true[k]
         b_m = FIELD(t[k])
         assert math.degrees(math.acos(np.dot(b_i, b_m) / np.linalg.norm(b_i) / np.linalg.norm(b_m))) < 0.5
     # a fit that explains the data is kept as it is; from the reversed fit's start it is the same solution
@@ -111,7 +112,7 @@ def test_torque_free_fit_with_a_known_tensor():
     J = np.diag([1.0, 1.2, 0.7])
     t, b, w, _ = tumble(J, [10.0, 3.0, -6.0], 1.0, 60, 0.3e-6, 4)
     init = sm.Smoothed(t, w + np.radians(0.3), np.zeros_like(w),
-                       np.tile(kl.quat_aligning(b[0], FIELD(0.0)), (len(t), 1)),
+                       np.tile(rot.quat_aligning(b[0], FIELD(0.0)), (len(t), 1)),
                        "rough")
     res = sm.euler_fit(t, b, 0.3e-6, field_eci_T=FIELD, inertia_kgm2=J, init=init)
     assert res.inertia_shape is None and res.chi2_dof < 1.5
@@ -127,7 +128,7 @@ def test_euler_rts_follows_a_small_unknown_torque():
 
     t, b, w, _ = tumble(ASYM, [8.0, -6.0, 7.0], 2.0, 60, 0.5e-6, 5, torque=damping)
     init = sm.Smoothed(t, w + np.radians(0.3), np.zeros_like(w),
-                       np.tile(kl.quat_aligning(b[0], FIELD(0.0)), (len(t), 1)),
+                       np.tile(rot.quat_aligning(b[0], FIELD(0.0)), (len(t), 1)),
                        "rough")
     eu = sm.euler_fit(t, b, 0.5e-6, field_eci_T=FIELD, init=init)
     er = sm.euler_rts_smooth(t, b, 0.5e-6, field_eci_T=FIELD, init=eu)

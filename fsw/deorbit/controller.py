@@ -50,6 +50,8 @@ import numpy as np
 from numba import njit
 from scipy.linalg import expm
 
+from ..estimation.rotations import rotvec_from_dcm
+
 MU_EARTH_M3S2 = 3.986004418e14
 OPENING_J = 2.0 * 11.7
 TURN_J = 1.0 * 11.7
@@ -71,22 +73,6 @@ def pointing_error(R_bo: np.ndarray) -> tuple[float, float]:
     alpha = math.acos(max(-1.0, min(1.0, f[0])))
     k = alpha / s if s > 1e-12 else 1.0
     return float(f[2] * k), float(-f[1] * k)
-
-
-def rotvec_from_dcm(R: np.ndarray) -> np.ndarray:
-    """Rotation vector (axis × angle) of a rotation matrix."""
-    c = max(-1.0, min(1.0, 0.5 * (np.trace(R) - 1.0)))
-    angle = math.acos(c)
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if angle < 1e-9:
-        return 0.5 * w
-    if math.pi - angle < 1e-6:  # 180°: axis from the diagonal
-        axis = np.sqrt(np.maximum((np.diag(R) + 1.0) / 2.0, 0.0))
-        i = int(np.argmax(axis))
-        axis[(i + 1) % 3] = math.copysign(axis[(i + 1) % 3], R[i, (i + 1) % 3])
-        axis[(i + 2) % 3] = math.copysign(axis[(i + 2) % 3], R[i, (i + 2) % 3])
-        return angle * axis / np.linalg.norm(axis)
-    return angle / (2.0 * math.sin(angle)) * w
 
 
 def magnet_moment_Nm(p_body_Am2: np.ndarray, b_body_T: np.ndarray) -> np.ndarray:

@@ -3,7 +3,7 @@
 A rate estimator that takes the field as fixed in inertial space reads the field's own turning as a
 body rate: along a LEO orbit B_I turns at about twice the orbital rate (0.1–0.2 °/s), which is the
 floor sedelnikov2024 notes in orbital-orientation mode. Given the orbit and a field model, B_I(t) is
-known and the attitude filter (kalman.AttitudeRateKalman) predicts B_body = Rᵀ B_I(t) instead.
+known and the attitude filter (attitude_kalman.AttitudeRateKalman) predicts B_body = Rᵀ B_I(t) instead.
 
 Flight code does not import the simulator: the field model here is the same IGRF-14 degree-1
 (centred tilted dipole) as hil/field.py and the circular orbit the same as hil/orbit.py

@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import optimize, stats
 
-from .rate_formulas import skew
+from .rotations import skew
 
 #: Component names in parameter order (DEBRIS_INERTIA_ESTIMATE order).
 COMPONENTS = ("Ixx", "Iyy", "Izz", "Ixy", "Ixz", "Iyz")

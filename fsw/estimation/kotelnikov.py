@@ -47,13 +47,6 @@ def sinc_derivative_kernels(n: int) -> tuple[np.ndarray, np.ndarray]:
     return d1, d2
 
 
-def kotelnikov_series(t_s: np.ndarray, b: np.ndarray, t_eval: np.ndarray) -> np.ndarray:
-    """B(t_eval) from uniform samples by the series itself (eq. 9), direct sum (O(N·M)); (M, 3)."""
-    t, b, dt = _uniform(t_s, b)
-    x = (np.asarray(t_eval, float)[:, None] - t[None, :]) / dt
-    return np.sinc(x) @ b
-
-
 def kotelnikov_derivatives(t_s: np.ndarray, b: np.ndarray, *, detrend: bool = True,
                            edge_samples: int = 8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """B, Ḃ, B̈ at the sample times from the series (with the edge handling of the module docstring)."""
@@ -134,13 +127,6 @@ def kotelnikov_rate(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float | None = 
         w[degenerate & np.isnan(w).any(axis=1)] = 0.0
         sig[np.isnan(w).any(axis=1)] = np.nan
     return w, sig
-
-
-def kotelnikov_boer_rate(t_s: np.ndarray, b_T: np.ndarray, **kw) -> np.ndarray:
-    """Perpendicular rate ω⊥ = (Ḃ × B)/|B|² with the series' analytic Ḃ."""
-    t, b, dt = _uniform(t_s, b_T)
-    _, db, _ = kotelnikov_derivatives(t, b, **kw)
-    return np.cross(db, b) / np.einsum("ij,ij->i", b, b)[:, None]
 
 
 def _uniform(t_s, b, uniform_tol: float = 0.02) -> tuple[np.ndarray, np.ndarray, float]:

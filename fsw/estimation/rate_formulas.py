@@ -16,8 +16,8 @@ end run the same kernels one sample at a time in the flight loop. Rows for which
 value yet (the first sample, or the first two) are NaN in the array forms.
 
 Uncertainty: `*_covariance` propagate white, independent per-axis measurement noise σ_B to first
-order (Jacobians below), which is a 1-σ statement; `*_error_bound_eq5/eq10` are the papers'
-worst-case bounds for a measurement error ±δ_B.
+order (Jacobians below), which is a 1-σ statement (the papers' worst-case bounds for a measurement
+error ±δ_B, eqs. 5 and 10, are in tests/estimation_reference.py, which the tests check against).
 
 Degenerate samples: a formula that divides by |B_k|² (Boer) or |ΔB_k|² (derivative) has nothing to
 say when that vector is lost in the noise — a zero or near-zero field, a field that does not change
@@ -44,15 +44,6 @@ DEGENERATE_SNR = 1.0
 FIELD_MIN_SIGMAS = 3.0
 
 
-def skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices [v]ₓ for v of shape (..., 3): [v]ₓ u = v × u."""
-    s = np.zeros(v.shape[:-1] + (3, 3))
-    s[..., 0, 1], s[..., 0, 2] = -v[..., 2], v[..., 1]
-    s[..., 1, 0], s[..., 1, 2] = v[..., 2], -v[..., 0]
-    s[..., 2, 0], s[..., 2, 1] = -v[..., 1], v[..., 0]
-    return s
-
-
 def _safe_div(num: np.ndarray, den: np.ndarray) -> np.ndarray:
     """num / den[..., None], 0 where den == 0 (callers flag those samples)."""
     den = np.asarray(den, dtype=float)
@@ -66,7 +57,7 @@ def _safe_div(num: np.ndarray, den: np.ndarray) -> np.ndarray:
 
 @njit(cache=True, inline="always")
 def _skew_ij(v0: float, v1: float, v2: float, i: int, j: int) -> float:
-    """Element (i, j) of [v]ₓ."""
+    """Element (i, j) of [v]ₓ (inlined into the compiled row kernels; rotations.skew is the array form)."""
     if i == j:
         return 0.0
     if i == 0:
@@ -223,41 +214,6 @@ def derivative_covariance(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float) ->
     """First-order covariance (N, 3, 3) of :func:`derivative_rate`; rows 0 and 1 NaN; diag(inf) on a
     degenerate row (|ΔB_k| ≤ √2 σ_B)."""
     return _rows(derivative_rows, 2, t_s, b_T, sigma_b_T)[1]
-
-
-def boer_error_bound_eq5(t_s: np.ndarray, b_T: np.ndarray, delta_b_T: float) -> np.ndarray:
-    """Per-axis error bound of the Boer formula, sedelnikov2024 eq. 5 (row 0 NaN).
-
-    δω_x = 2δ_B √(B_y² + B_z² + ΔB_y² + ΔB_z²) / (Δt |B|²), and cyclically.
-    """
-    t, b = _check(t_s, b_T)
-    out = np.full(b.shape, np.nan)
-    if len(t) > 1:
-        bk, db = b[1:], b[1:] - b[:-1]
-        s = bk**2 + db**2
-        num = np.sqrt(s.sum(axis=1, keepdims=True) - s)  # drop the own axis
-        out[1:] = 2.0 * delta_b_T * num / (np.diff(t) * (bk**2).sum(axis=1))[:, None]
-    return out
-
-
-def derivative_error_bound_eq10(t_s: np.ndarray, b_T: np.ndarray, delta_b_T: float) -> np.ndarray:
-    """Per-axis error bound of the derivative formula, sedelnikov2024 eq. 10 (rows 0, 1 NaN).
-
-    δω_x = δ* √(ΔB_y,k² + ΔB_z,k² + ΔB_y,k−1² + ΔB_z,k−1²) / (Δt |ΔB_k|²), δ* = 2δ_B + δ_B Δt
-    (the paper's δ*, which mixes units of T and T·s; kept as printed with Δt in seconds).
-    """
-    t, b = _check(t_s, b_T)
-    out = np.full(b.shape, np.nan)
-    if len(t) > 2:
-        dt = np.diff(t)[1:]
-        dk, d1 = b[2:] - b[1:-1], b[1:-1] - b[:-2]
-        s = dk**2 + d1**2
-        num = np.sqrt(s.sum(axis=1, keepdims=True) - s)
-        den = dt * (dk**2).sum(axis=1)
-        delta_star = 2.0 * delta_b_T + delta_b_T * dt
-        with np.errstate(divide="ignore", invalid="ignore"):
-            out[2:] = delta_star[:, None] * num / den[:, None]
-    return out
 
 
 def unobserved_sigma(sigma_radps: np.ndarray, b_T: np.ndarray, sigma_b_T: float) -> np.ndarray:

@@ -1,7 +1,7 @@
 """The onboard rate filter's predict and update as compiled pure functions over (x, P).
 
 State x = [B (µT, body axes), ω (rad/s)], covariance P (6×6); the model is the one documented in
-:mod:`fsw.estimation.kalman` (:class:`~fsw.estimation.kalman.RateKalman` is the stateful wrapper):
+:mod:`fsw.estimation.rate_kalman` (:class:`~fsw.estimation.rate_kalman.RateKalman` is the stateful wrapper):
 
     B⁻ = E B,  E = exp(−[φ]ₓ),  φ = ω Δt        (the field turns rigidly in the body; exact for constant ω)
     ω⁻ = ϕ ω,  ϕ = exp(−Δt/τ)                     (a random walk; τ = ∞ unless a pull to zero is asked for)
@@ -13,23 +13,17 @@ State x = [B (µT, body axes), ω (rad/s)], covariance P (6×6); the model is th
     y = z − B⁻,  S = P_BB + R,  K = P Hᵀ S⁻¹,  x⁺ = x + K y,  P⁺ = P − K H P   (Bar-Shalom et al. 2001, 5.2)
 
 Compiled with numba (nopython, cached on disk): a step is a fraction of a microsecond of arithmetic, and
-the call itself allocates nothing — every array is the caller's, including the work space.
+the call itself allocates nothing — every array is the caller's, including the work space. The
+rotation arithmetic (E, J_r, [B]ₓ) is written out inline here rather than calling the numpy helpers of
+:mod:`fsw.estimation.rotations`, which would allocate per step; only the compiled
+:func:`~fsw.estimation.rotations.jr_coefficients` is shared.
 """
 from __future__ import annotations
-
-import math
 
 import numpy as np
 from numba import njit
 
-
-@njit(cache=True)
-def jr_coefficients(th2: float) -> tuple[float, float]:
-    """(1 − cos θ)/θ² and (θ − sin θ)/θ³ for θ² = `th2`, with their series near θ = 0."""
-    if th2 < 1e-6:
-        return 0.5 - th2 / 24.0, 1.0 / 6.0 - th2 / 120.0
-    th = math.sqrt(th2)
-    return (1.0 - math.cos(th)) / th2, (th - math.sin(th)) / (th2 * th)
+from .rotations import jr_coefficients
 
 
 @njit(cache=True)

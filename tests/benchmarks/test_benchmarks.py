@@ -102,7 +102,7 @@ def _kalman_samples(n=2000, dt=0.01):
 
 def test_kalman_step(benchmark):
     """The onboard rate filter's step (predict over Δt + update with one field sample)."""
-    from fsw.estimation.kalman import RateKalman
+    from fsw.estimation.rate_kalman import RateKalman
 
     t, b = _kalman_samples()
     kf = RateKalman(0.05e-6)

@@ -1,0 +1,586 @@
+"""The attitude filter: a multiplicative EKF on attitude and rate (Markley 2003; Trawny & Roumeliotis 2005),
+with the field along the orbit and, once the rate is found, Euler's equations.
+
+Nominal state q (body → ECI), ω, optional inertia shape p, optional inertial field β; error state δθ
+(body axes), δω, δp, δβ. With a field model B_I(t) along the orbit it removes the 0.1–0.2 °/s floor that
+the fixed-field assumption of :class:`~fsw.estimation.rate_kalman.RateKalman` leaves (the field turns at
+about twice the orbital rate); with Euler's equations (a known tensor, or the shape
+J = diag(1, e^p₁, e^p₂) estimated) it follows the rate of an asymmetric tumbling body instead of lagging
+it. It keeps what the RTS smoother needs (ground/smoother.py). Banks of it (shape hypotheses, rate
+models) are in :mod:`fsw.estimation.filter_banks`.
+
+The Euler model pieces (:func:`euler_rate`, :func:`euler_jacobians`, the RK4 step and the substep
+transition) work on tuples of floats: they run per integration substep, where numpy's per-call
+overhead would dominate. Units inside: field in µT, rate in rad/s, time in s; the public interfaces
+take tesla.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from .rate_formulas import FIELD_MIN_SIGMAS, SIGMA_UNOBSERVED_RADPS
+from .rate_kalman import DATA_GAP, DEGENERATE, NO_ESTIMATE, PERPENDICULAR_ONLY, UT_PER_T, adapt_noise, run_stream
+from .rotations import (quat_aligning, quat_exp, quat_mul, quat_mul_tuple, quat_to_dcm, skew, so3_exp,
+                        so3_exp_jr_tuple, so3_right_jacobian)
+
+# --- Euler's equations on floats ---------------------------------------------------------------------
+
+
+def _m3(a, b):
+    """3×3 product of row-major 9-tuples."""
+    a0, a1, a2, a3, a4, a5, a6, a7, a8 = a
+    b0, b1, b2, b3, b4, b5, b6, b7, b8 = b
+    return (a0 * b0 + a1 * b3 + a2 * b6, a0 * b1 + a1 * b4 + a2 * b7, a0 * b2 + a1 * b5 + a2 * b8,
+            a3 * b0 + a4 * b3 + a5 * b6, a3 * b1 + a4 * b4 + a5 * b7, a3 * b2 + a4 * b5 + a5 * b8,
+            a6 * b0 + a7 * b3 + a8 * b6, a6 * b1 + a7 * b4 + a8 * b7, a6 * b2 + a7 * b5 + a8 * b8)
+
+
+def euler_rate(par, w, torque=None) -> tuple[float, float, float]:
+    """ω̇ from Euler's equations J ω̇ + ω × (J ω) = M, on floats.
+
+    `par` is ("shape", J₂/J₁, J₃/J₁) for a diagonal tensor known up to scale (torque-free: then
+    ω̇ = (k₁ω₂ω₃, k₂ω₃ω₁, k₃ω₁ω₂) with k₁ = (J₂ − J₃)/J₁ and cyclically), or ("J", J (9), J⁻¹ (9)).
+    """
+    w1, w2, w3 = w
+    if par[0] == "shape":
+        j2, j3 = par[1], par[2]
+        return ((j2 - j3) * w2 * w3, (j3 - 1.0) / j2 * w3 * w1, (1.0 - j2) / j3 * w1 * w2)
+    J, K = par[1], par[2]
+    h1 = J[0] * w1 + J[1] * w2 + J[2] * w3
+    h2 = J[3] * w1 + J[4] * w2 + J[5] * w3
+    h3 = J[6] * w1 + J[7] * w2 + J[8] * w3
+    e1, e2, e3 = -(w2 * h3 - w3 * h2), -(w3 * h1 - w1 * h3), -(w1 * h2 - w2 * h1)
+    if torque is not None:
+        e1, e2, e3 = e1 + torque[0], e2 + torque[1], e3 + torque[2]
+    return (K[0] * e1 + K[1] * e2 + K[2] * e3, K[3] * e1 + K[4] * e2 + K[5] * e3,
+            K[6] * e1 + K[7] * e2 + K[8] * e3)
+
+
+def euler_jacobians(par, w) -> tuple[tuple, tuple]:
+    """∂ω̇/∂ω (row-major 9-tuple) and ∂ω̇/∂(ln J₂/J₁, ln J₃/J₁) (row-major 3×2 6-tuple; zeros for a
+    known tensor)."""
+    w1, w2, w3 = w
+    if par[0] == "shape":
+        j2, j3 = par[1], par[2]
+        k1, k2, k3 = j2 - j3, (j3 - 1.0) / j2, (1.0 - j2) / j3
+        A = (0.0, k1 * w3, k1 * w2, k2 * w3, 0.0, k2 * w1, k3 * w2, k3 * w1, 0.0)
+        Ap = (j2 * w2 * w3, -j3 * w2 * w3, -k2 * w3 * w1, j3 / j2 * w3 * w1, -j2 / j3 * w1 * w2, -k3 * w1 * w2)
+        return A, Ap
+    J, K = par[1], par[2]
+    # ∂/∂ω of −J⁻¹ (ω × Jω) = −J⁻¹ ([ω]ₓ J − [Jω]ₓ)
+    h1 = J[0] * w1 + J[1] * w2 + J[2] * w3
+    h2 = J[3] * w1 + J[4] * w2 + J[5] * w3
+    h3 = J[6] * w1 + J[7] * w2 + J[8] * w3
+    W = (0.0, -w3, w2, w3, 0.0, -w1, -w2, w1, 0.0)
+    Hx = (0.0, -h3, h2, h3, 0.0, -h1, -h2, h1, 0.0)
+    M = tuple(u - v for u, v in zip(_m3(W, J), Hx))
+    return tuple(-v for v in _m3(K, M)), (0.0,) * 6
+
+
+def physical_shape(p) -> bool:
+    """J = diag(1, e^p₁, e^p₂) obeys the triangle inequalities J_i ≤ J_j + J_k (with a margin)."""
+    j = (1.0, math.exp(p[0]), math.exp(p[1]))
+    return all(j[i] <= 1.02 * (j[(i + 1) % 3] + j[(i + 2) % 3]) for i in range(3))
+
+
+def _rk4_attitude(par, q, w, h, m0, m_mid, m1):
+    """One RK4 step of q̇ = ½ q ⊗ [0, ω], ω̇ = euler_rate; returns (q, ω, the midpoint rate)."""
+    def qdot(qq, ww):
+        d = quat_mul_tuple(qq, (0.0, ww[0], ww[1], ww[2]))
+        return (0.5 * d[0], 0.5 * d[1], 0.5 * d[2], 0.5 * d[3])
+
+    def add(a, b, f):
+        return tuple(x + f * y for x, y in zip(a, b))
+
+    k1w = euler_rate(par, w, m0)
+    k1q = qdot(q, w)
+    w2 = add(w, k1w, 0.5 * h)
+    k2w = euler_rate(par, w2, m_mid)
+    k2q = qdot(add(q, k1q, 0.5 * h), w2)
+    w3 = add(w, k2w, 0.5 * h)
+    k3w = euler_rate(par, w3, m_mid)
+    k3q = qdot(add(q, k2q, 0.5 * h), w3)
+    w4 = add(w, k3w, h)
+    k4w = euler_rate(par, w4, m1)
+    k4q = qdot(add(q, k3q, h), w4)
+    f = h / 6.0
+    qn = tuple(a + f * (b + 2.0 * c + 2.0 * d + e) for a, b, c, d, e in zip(q, k1q, k2q, k3q, k4q))
+    nq = math.sqrt(sum(v * v for v in qn))
+    wn = tuple(a + f * (b + 2.0 * c + 2.0 * d + e) for a, b, c, d, e in zip(w, k1w, k2w, k3w, k4w))
+    return tuple(v / nq for v in qn), wn, tuple(0.5 * (a + b) for a, b in zip(w2, w3))
+
+
+def _substep_transition(par, wm, h, n, npar) -> np.ndarray:
+    """Error-state transition over a substep h at the midpoint rate ω_m (first order in the rate's
+    change): Φ_θθ = exp(−[ω_m h]ₓ), Φ_θω = h J_r(ω_m h) + ½h²A, Φ_ωω = I + Ah + ½(Ah)²,
+    Φ_ωp = (I + ½Ah) A_p h, Φ_θp = ½h² A_p; A = ∂ω̇/∂ω, A_p = ∂ω̇/∂p."""
+    A, Ap = euler_jacobians(par, wm)
+    E, _ = so3_exp_jr_tuple(-wm[0] * h, -wm[1] * h, -wm[2] * h)
+    _, Jr = so3_exp_jr_tuple(wm[0] * h, wm[1] * h, wm[2] * h)
+    Ah = tuple(v * h for v in A)
+    Ah2 = _m3(Ah, Ah)
+    tw = tuple(h * j + 0.5 * h * a for j, a in zip(Jr, Ah))
+    ww = tuple((1.0 if i in (0, 4, 8) else 0.0) + a + 0.5 * a2 for i, (a, a2) in enumerate(zip(Ah, Ah2)))
+    F = np.eye(n)
+    F[:3, :3] = np.reshape(E, (3, 3))
+    F[:3, 3:6] = np.reshape(tw, (3, 3))
+    F[3:6, 3:6] = np.reshape(ww, (3, 3))
+    if npar:
+        Aph = np.reshape(Ap, (3, 2)) * h
+        F[3:6, 6:8] = Aph + 0.5 * (np.reshape(Ah, (3, 3)) @ Aph)
+        F[:3, 6:8] = 0.5 * h * Aph
+    return F
+
+
+FieldFn = Callable[[float], np.ndarray]
+"""B_I(t): the inertial (ECI) field [T] at time t [s] along the orbit (fsw/estimation/field_motion.py)."""
+
+
+@dataclass
+class AttitudeKalmanTuning:
+    """Settings of :class:`AttitudeRateKalman` (SI units).
+
+    Dynamics: with neither `inertia_kgm2` nor `estimate_inertia`, ω is a random walk as in
+    :class:`~.rate_kalman.RateKalman` (`kappa`, `rate_accel_radps2`); with Euler's equations only
+    `rate_accel_radps2` remains (unmodelled torques), and `inertia_shape_rate` lets the shape drift.
+    sigma_log_inertia0: 1-σ of ln(J₂/J₁), ln(J₃/J₁) before any data (0.7: a factor of two).
+    field_sigma_T: 1-σ per axis of the field model's error, added to the measurement noise; with no
+      field model, `field_rate_radps` lets the (unknown, fixed) inertial field drift instead.
+    max_substep_rad: rotation per integration substep of Euler's equations (RK4).
+    rate_tau_s: with a finite value the random-walk phase's ω is a first-order Gauss–Markov process
+      instead, ω̇ = −ω/τ + w (stationary 1-σ per axis `rate_accel_radps2`·√(τ/2)): a motion that stays
+      bounded about zero (a libration about a held attitude). The component of ω along B, which the
+      samples see only as B turns in the body, then falls back to zero with a σ that grows back to
+      the stationary one instead of wandering off. Infinite (the default): a random walk.
+    """
+
+    kappa: float = 0.5
+    rate_accel_radps2: float = 1e-4
+    rate_tau_s: float = math.inf
+    inertia_shape_rate: float = 0.0
+    field_rate_radps: float = 2.5e-3
+    field_sigma_T: float = 0.0
+    sigma_rate0_radps: float = 0.5
+    sigma_log_inertia0: float = 0.7
+    max_substep_rad: float = 0.1
+    max_substeps: int = 200
+    euler_after_samples: int = 20
+    euler_sigma_rate_radps: float = 0.01
+    euler_sigma_rate_rel: float = 0.3
+    euler_nis_max: float = 6.0
+    nis_reset: float = 1e3
+    adapt_samples: float = 10.0
+    adapt_max: float = 1e4
+    euler_adapt_max: float | None = None
+    max_rate_radps: float = 100.0
+    max_step_angle_rad: float = 2.5
+    max_gap_s: float = 60.0
+    gap_factor: float = 1.8
+    sigma_flag_radps: float = 0.1
+
+
+class AttitudeRateKalman:
+    """Multiplicative EKF on attitude and rate, one sample at a time.
+
+    Nominal state: q (body → ECI, or → the body's own axes at the first sample when no field model is
+    given), ω (rad/s), p = (ln J₂/J₁, ln J₃/J₁) when the inertia shape is estimated, β = the inertial
+    field (µT) when no field model is given. Error state δx = [δθ, δω, δp, δβ] with the true attitude
+    R = R̂ exp([δθ]ₓ) (body-frame error): δθ̇ = −[ω]ₓ δθ + δω.
+
+    Measurement: z = Rᵀ (B_I(t) + β) + v, H = [[h]ₓ, 0, 0, Rᵀ].
+
+    Without a field model the attitude is defined relative to the first sample (P_θ = 0 there) and the
+    field is the state β: equivalent to :class:`~.rate_kalman.RateKalman` plus optional Euler dynamics.
+    With a field model the rotation about B at the first sample is unknown: `angle_about_b_rad` picks one
+    and the covariance about B starts at π²/3 (the smoother tries several).
+
+    Acquisition: Euler's equations are switched on only once the random-walk model has found the rate
+    (`euler_after_samples` samples and every 1-σ of ω below `euler_sigma_rate_radps` +
+    `euler_sigma_rate_rel`·|ω|); before that the
+    shape would absorb the large early errors and the filter would diverge. Innovations far outside S
+    (NIS > `nis_reset` three times in a row) send it back to acquisition.
+
+    `store=True` keeps, per sample, the predicted and filtered states, covariances, transition
+    matrices and normalised innovations (NIS) for the RTS smoother (ground/smoother.py).
+    """
+
+    PERPENDICULAR_ONLY, DEGENERATE, NO_ESTIMATE, DATA_GAP = PERPENDICULAR_ONLY, DEGENERATE, NO_ESTIMATE, DATA_GAP
+    gap_history = 0
+
+    def __init__(self, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
+                 inertia_kgm2: np.ndarray | None = None, estimate_inertia: bool = False,
+                 torque_Nm: Callable[[float], np.ndarray] | None = None,
+                 tuning: AttitudeKalmanTuning | None = None, angle_about_b_rad: float = 0.0,
+                 store: bool = False) -> None:
+        if not sigma_b_T > 0:
+            raise ValueError(f"sigma_b_T must be > 0, got {sigma_b_T!r}")
+        if inertia_kgm2 is not None and estimate_inertia:
+            raise ValueError("give a known inertia tensor or estimate its shape, not both")
+        if torque_Nm is not None and inertia_kgm2 is None:
+            raise ValueError("a known torque needs the absolute inertia tensor")
+        self.sigma_b_T = float(sigma_b_T)
+        self.tuning = tun = tuning or AttitudeKalmanTuning()
+        if not tun.rate_tau_s > 0:
+            raise ValueError(f"rate_tau_s must be > 0 (inf for a random walk), got {tun.rate_tau_s!r}")
+        self.field = field_eci_T
+        self.J = None if inertia_kgm2 is None else np.array(inertia_kgm2, float)
+        self.J_inv = None if self.J is None else np.linalg.inv(self.J)
+        self.torque = torque_Nm
+        self.n_p = 2 if estimate_inertia else 0
+        self.n_beta = 0 if field_eci_T is not None else 3
+        self.n = 6 + self.n_p + self.n_beta
+        self.i_beta = 6 + self.n_p
+        self.euler_model = self.J is not None or estimate_inertia
+        self.euler = False
+        self.angle_about_b_rad = float(angle_about_b_rad)
+        self.R = ((self.sigma_b_T ** 2 + tun.field_sigma_T ** 2) * UT_PER_T ** 2) * np.eye(3)
+        self.store = store
+        self.log: dict[str, list] = {k: [] for k in ("t", "qp", "xp", "Pp", "F", "q", "x", "P", "restart",
+                                                     "nis")}
+        self.omega_radps = np.zeros(3)
+        self.sigma_radps = np.full(3, SIGMA_UNOBSERVED_RADPS)
+        self.flags = NO_ESTIMATE
+        self.t_s = 0.0
+        self.nll = 0.0
+        self.nis = 0.0
+        self.resets = 0
+        self._started = False
+        self._gap = False
+        self._dt_nominal = math.inf
+
+    # -- public -----------------------------------------------------------------------------------
+    def reset(self) -> None:
+        self._started = False
+        self.omega_radps[:] = 0.0
+        self.sigma_radps[:] = SIGMA_UNOBSERVED_RADPS
+        self.flags = NO_ESTIMATE
+
+    def start(self, t_s: float, b_T, *, q: np.ndarray | None = None, omega_radps: np.ndarray | None = None,
+              p: np.ndarray | None = None, beta_uT: np.ndarray | None = None, P: np.ndarray | None = None) -> None:
+        """Start from the sample (t_s, b_T) with optional initial values (a smoother's restart);
+        missing ones take the defaults. Updates with the sample."""
+        tun = self.tuning
+        z = np.asarray(b_T, float) * UT_PER_T
+        if self.field is not None and np.linalg.norm(z) <= FIELD_MIN_SIGMAS * math.sqrt(self.R[0, 0]):
+            # no field, no direction to align the attitude with: wait for a sample that has one
+            self.omega_radps[:] = 0.0
+            self.sigma_radps[:] = SIGMA_UNOBSERVED_RADPS
+            self.flags = NO_ESTIMATE | DEGENERATE
+            return
+        self.w = np.zeros(3) if omega_radps is None else np.array(omega_radps, float)
+        self.p = np.zeros(self.n_p) if p is None else np.array(p, float)
+        n = self.n
+        P0 = np.zeros((n, n))
+        sb = math.sqrt(self.R[0, 0])
+        if self.field is None:
+            self.q = np.array([1.0, 0.0, 0.0, 0.0]) if q is None else np.array(q, float)
+            self.beta = z.copy() if beta_uT is None else np.array(beta_uT, float)
+            P0[self.i_beta:, self.i_beta:] = sb ** 2 * np.eye(3)
+        else:
+            b_i = np.asarray(self.field(t_s), float) * UT_PER_T
+            self.q = quat_aligning(z, b_i, self.angle_about_b_rad) if q is None else np.array(q, float)
+            self.beta = np.zeros(0)
+            bh = z / np.linalg.norm(z)
+            P0[:3, :3] = (sb / np.linalg.norm(z)) ** 2 * np.eye(3) + (math.pi ** 2 / 3) * np.outer(bh, bh)
+        P0[3:6, 3:6] = tun.sigma_rate0_radps ** 2 * np.eye(3)
+        P0[6:6 + self.n_p, 6:6 + self.n_p] = tun.sigma_log_inertia0 ** 2 * np.eye(self.n_p)
+        self.P = P0 if P is None else np.array(P, float)
+        self.euler = self.euler_model and omega_radps is not None and P is not None
+        self.adapt = 1.0
+        self._nis_mean = 3.0
+        self._samples = 0
+        self._bad = 0
+        self._started = True
+        self.t_s = t_s
+        self._record_prediction(t_s, np.eye(n), restart=True)
+        self._update(t_s, z)
+        self._publish(NO_ESTIMATE)
+
+    def set_nominal(self, t_s: float, q: np.ndarray, omega_radps: np.ndarray, p: np.ndarray | None = None,
+                    beta_uT: np.ndarray | None = None, euler: bool | None = None) -> None:
+        """Set the nominal state at `t_s` without a measurement (a propagator for batch fits)."""
+        self.q = np.array(q, float)
+        self.w = np.array(omega_radps, float)
+        self.p = np.zeros(self.n_p) if p is None else np.array(p, float)
+        if self.n_beta:
+            self.beta = np.zeros(3) if beta_uT is None else np.array(beta_uT, float)
+        else:
+            self.beta = np.zeros(0)
+        self.P = np.zeros((self.n, self.n))
+        self.t_s = t_s
+        self.euler = self.euler_model if euler is None else euler
+        self._started = True
+
+    def update(self, t_s: float, b_T) -> bool:
+        """Add a field sample (tesla, body axes) taken at `t_s`; True when an estimate was published."""
+        b = np.asarray(b_T, float)
+        if not np.all(np.isfinite(b)):
+            self._gap = True
+            return False
+        if not self._started:
+            self.start(t_s, b)
+            return True
+        dt = t_s - self.t_s
+        if not dt > 0:
+            return False
+        tun = self.tuning
+        gap = self._gap or dt > tun.gap_factor * self._dt_nominal
+        self._gap = False
+        self._dt_nominal = min(self._dt_nominal, dt)
+        if dt > tun.max_gap_s:
+            self.resets += 1
+            self.start(t_s, b)
+            self.flags |= DATA_GAP
+            return True
+        marks = {k: len(v) for k, v in self.log.items()}
+        try:
+            # a state that blows up is caught just below (non-finite → restart, counted), not warned about
+            with np.errstate(invalid="ignore", over="ignore"):
+                F = self.propagate(dt)
+                self.P = F @ self.P @ F.T + self._process_noise(dt)
+                self.t_s = t_s
+                self._record_prediction(t_s, F)
+                self._update(t_s, b * UT_PER_T)
+        except (ValueError, OverflowError, FloatingPointError, np.linalg.LinAlgError):
+            ok = False
+        else:
+            wn = float(np.linalg.norm(self.w))
+            # beyond about half a turn per step the samples alias: a rate that fast is a lost filter
+            ok = bool(np.all(np.isfinite(self.P)) and wn < tun.max_rate_radps
+                      and wn * min(dt, self._dt_nominal) < tun.max_step_angle_rad)
+        if not ok:  # diverged: start again from this sample, flagged (the smoother's log keeps the restart)
+            self.resets += 1
+            for k, v in self.log.items():
+                del v[marks[k]:]
+            self.start(t_s, b)
+            self.flags |= DEGENERATE | DATA_GAP
+            return True
+        self._publish(DATA_GAP if gap else 0)
+        return True
+
+    @property
+    def inertia_shape(self) -> np.ndarray:
+        """Estimated J / J₁ = diag(1, e^p₁, e^p₂) (ones when not estimated)."""
+        return np.concatenate([[1.0], np.exp(self.p)]) if self.n_p else np.ones(3)
+
+    def clone(self) -> AttitudeRateKalman:
+        """An independent copy of the running filter (state, covariance, adaptation; no stored log):
+        a hypothesis to run in parallel (:class:`~.filter_banks.EulerAcquisitionKalman`)."""
+        new = AttitudeRateKalman.__new__(AttitudeRateKalman)
+        new.__dict__.update(self.__dict__)
+        for k in ("q", "w", "p", "beta", "P", "omega_radps", "sigma_radps"):
+            if k in self.__dict__:
+                setattr(new, k, np.array(getattr(self, k), float))
+        new.store = False
+        new.log = {k: [] for k in self.log}
+        return new
+
+    def start_euler(self, p: np.ndarray, sigma_p: float) -> None:
+        """Switch Euler's equations on now, from the shape `p` (ln J₂/J₁, ln J₃/J₁) with 1-σ `sigma_p`
+        (uncorrelated with the rest); the noise adaptation of the random-walk phase starts again."""
+        if not self.n_p:
+            raise ValueError("start_euler needs a filter that estimates the inertia shape")
+        self.euler = True
+        self.p = np.array(p, float)
+        ip = slice(6, 6 + self.n_p)
+        self.P[ip, :] = 0.0
+        self.P[:, ip] = 0.0
+        self.P[ip, ip] = sigma_p ** 2 * np.eye(self.n_p)
+        self.adapt = 1.0
+        self._nis_mean = 3.0
+
+    def rate_found(self) -> bool:
+        """The acquisition test of the random-walk phase: enough samples and every 1-σ of ω below
+        `euler_sigma_rate_radps` + `euler_sigma_rate_rel`·|ω| (the innovation test excluded)."""
+        tun = self.tuning
+        return (self._started and self._samples >= tun.euler_after_samples
+                and float(self.sigma_radps.max()) < tun.euler_sigma_rate_radps
+                + tun.euler_sigma_rate_rel * float(np.linalg.norm(self.w)))
+
+    # -- model ------------------------------------------------------------------------------------
+    def _euler_params(self):
+        if self.J is not None:
+            return ("J", tuple(self.J.ravel()), tuple(self.J_inv.ravel()))
+        return ("shape", math.exp(self.p[0]), math.exp(self.p[1]))
+
+    def _torque(self, t_s: float):
+        if self.torque is None:
+            return None
+        m = self.torque(t_s)
+        return (float(m[0]), float(m[1]), float(m[2]))
+
+    def propagate(self, dt: float) -> np.ndarray:
+        """Advance the nominal state by dt; return the error-state transition Φ (n×n)."""
+        n = self.n
+        F = np.eye(n)
+        if not self.euler:
+            decay, mean = self._rate_decay(dt)
+            phi = self.w * (mean * dt)
+            self.q = quat_mul(self.q, quat_exp(phi))
+            self.q /= np.linalg.norm(self.q)
+            self.w = self.w * decay
+            F[:3, :3] = so3_exp(-phi)
+            F[:3, 3:6] = (mean * dt) * so3_right_jacobian(phi)
+            F[3:6, 3:6] = decay * np.eye(3)
+            return F
+        tun = self.tuning
+        wn = math.sqrt(float(self.w @ self.w))
+        if not math.isfinite(wn) or not np.all(np.isfinite(self.p)):
+            raise ValueError("non-finite state")
+        m = min(tun.max_substeps, max(1, int(math.ceil(wn * dt / tun.max_substep_rad))))
+        h = dt / m
+        par = self._euler_params()
+        q = tuple(float(v) for v in self.q)
+        w = tuple(float(v) for v in self.w)
+        t = self.t_s
+        npar = self.n_p
+        for _ in range(m):
+            mid = self._torque(t + 0.5 * h)
+            q, w, wm = _rk4_attitude(par, q, w, h, self._torque(t), mid, self._torque(t + h))
+            F = _substep_transition(par, wm, h, n, npar) @ F
+            t += h
+        self.q = np.array(q)
+        self.w = np.array(w)
+        return F
+
+    def _rate_decay(self, dt: float) -> tuple[float, float]:
+        """Gauss–Markov ω over a step: (e^(−dt/τ), mean of e^(−s/τ) over the step); (1, 1) for a
+        random walk."""
+        tau = self.tuning.rate_tau_s
+        if not math.isfinite(tau):
+            return 1.0, 1.0
+        x = dt / tau
+        return math.exp(-x), -math.expm1(-x) / x
+
+    def _process_noise(self, dt: float) -> np.ndarray:
+        tun = self.tuning
+        n = self.n
+        Q = np.zeros((n, n))
+        q_w = self.adapt * tun.rate_accel_radps2 ** 2 * dt
+        if not self.euler:  # κ|ω||ω⊥| (see RateKalman)
+            if math.isfinite(tun.rate_tau_s):  # Gauss–Markov: a²τ/2 (1 − e^(−2dt/τ)) per step
+                q_w *= -math.expm1(-2.0 * dt / tun.rate_tau_s) * tun.rate_tau_s / (2.0 * dt)
+            w2 = float(self.w @ self.w)
+            wb = float(self.w @ self._bhat)
+            q_w += tun.kappa ** 2 * w2 * max(w2 - wb * wb, 0.0) / 3.0 * dt
+        # ω a random walk with per-step variance q_w; its effect on the attitude over the step
+        Q[:3, :3] = q_w * dt * dt / 3.0 * np.eye(3)
+        Q[:3, 3:6] = Q[3:6, :3] = q_w * dt / 2.0 * np.eye(3)
+        Q[3:6, 3:6] = q_w * np.eye(3)
+        if self.n_p:
+            Q[6:6 + self.n_p, 6:6 + self.n_p] = tun.inertia_shape_rate ** 2 * dt * np.eye(self.n_p)
+        if self.n_beta:
+            b2 = float(self.beta @ self.beta)
+            Q[self.i_beta:, self.i_beta:] = tun.field_rate_radps ** 2 * b2 * dt * dt * np.eye(3)
+        return Q
+
+    def measurement(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted field h (µT, body) and H = ∂h/∂δx at the nominal state."""
+        C = quat_to_dcm(self.q)
+        b_i = (np.asarray(self.field(t_s), float) * UT_PER_T) if self.field is not None else self.beta
+        h = C.T @ b_i
+        H = np.zeros((3, self.n))
+        H[:, :3] = skew(h)
+        if self.n_beta:
+            H[:, self.i_beta:] = C.T
+        return h, H
+
+    def _update(self, t_s: float, z: np.ndarray) -> None:
+        h, H = self.measurement(t_s)
+        self._bhat = z / max(float(np.linalg.norm(z)), 1e-30)
+        P = self.P
+        y = z - h
+        S = H @ P @ H.T + self.R
+        K = np.linalg.solve(S, H @ P).T
+        dx = K @ y
+        IKH = np.eye(self.n) - K @ H
+        self.P = IKH @ P @ IKH.T + K @ self.R @ K.T
+        self.nis = float(y @ np.linalg.solve(S, y))
+        self.nll += 0.5 * (self.nis + math.log(max(np.linalg.det(S), 1e-300)))
+        self.q = quat_mul(self.q, quat_exp(dx[:3]))
+        self.q /= np.linalg.norm(self.q)
+        self.w = self.w + dx[3:6]
+        if self.n_p:
+            self.p = self.p + dx[6:6 + self.n_p]
+        if self.n_beta:
+            self.beta = self.beta + dx[self.i_beta:]
+        if self.store:
+            lg = self.log
+            lg["q"].append(self.q.copy())
+            lg["x"].append(self._x())
+            lg["P"].append(self.P.copy())
+            lg["nis"].append(self.nis)
+
+    def _x(self) -> np.ndarray:
+        return np.concatenate([self.w, self.p, self.beta])
+
+    def _record_prediction(self, t_s: float, F: np.ndarray, restart: bool = False) -> None:
+        if self.store:
+            lg = self.log
+            lg["restart"].append(restart)
+            lg["t"].append(t_s)
+            lg["qp"].append(self.q.copy())
+            lg["xp"].append(self._x())
+            lg["Pp"].append(self.P.copy())
+            lg["F"].append(F)
+
+    def _publish(self, flags: int) -> None:
+        w = self.w
+        s = np.sqrt(np.clip(np.diagonal(self.P)[3:6], 0.0, None))
+        if not (np.all(np.isfinite(w)) and np.all(np.isfinite(s)) and np.all(np.isfinite(self.q))):
+            self.omega_radps[:] = 0.0
+            self.sigma_radps[:] = SIGMA_UNOBSERVED_RADPS
+            self.flags = DEGENERATE | flags | NO_ESTIMATE
+            self.resets += 1
+            self._started = False
+            return
+        tun = self.tuning
+        self._samples += 1
+        self._bad = self._bad + 1 if self.nis > tun.nis_reset else 0
+        amax = tun.adapt_max if not self.euler or tun.euler_adapt_max is None else tun.euler_adapt_max
+        if amax > 1.0:
+            self.adapt = adapt_noise(self, tun.adapt_samples, amax)
+        if self._bad >= 3:  # lost: back to acquisition
+            self._bad = 0
+            self.resets += 1
+            self.euler = False
+            self._samples = 0
+            if self.n_p:
+                self.p[:] = 0.0
+                ip = slice(6, 6 + self.n_p)
+                self.P[ip, :] = 0.0
+                self.P[:, ip] = 0.0
+                self.P[ip, ip] = tun.sigma_log_inertia0 ** 2 * np.eye(self.n_p)
+            self.P[3:6, 3:6] += tun.sigma_rate0_radps ** 2 * np.eye(3)
+            flags |= DEGENERATE
+        elif (self.euler_model and not self.euler and self._samples >= tun.euler_after_samples
+              and self._nis_mean < tun.euler_nis_max
+              and s.max() < tun.euler_sigma_rate_radps + tun.euler_sigma_rate_rel * float(np.linalg.norm(w))):
+            self.euler = True
+        elif self.euler and self.n_p and not physical_shape(self.p):
+            # a shape no body has (a principal moment above the sum of the other two): start the
+            # shape again from a sphere, back in acquisition
+            self.euler = False
+            self._samples = 0
+            self.p[:] = 0.0
+            ip = slice(6, 6 + self.n_p)
+            self.P[ip, :] = 0.0
+            self.P[:, ip] = 0.0
+            self.P[ip, ip] = tun.sigma_log_inertia0 ** 2 * np.eye(self.n_p)
+            flags |= DEGENERATE
+        if s.max() > tun.sigma_flag_radps:
+            flags |= DEGENERATE
+        self.omega_radps[:] = w
+        self.sigma_radps[:] = np.minimum(s, SIGMA_UNOBSERVED_RADPS)
+        self.flags = flags
+
+
+def attitude_kalman_rate(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, **kwargs
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Run :class:`AttitudeRateKalman` (keyword arguments as its constructor) over a recording, as
+    :func:`fsw.estimation.rate_kalman.kalman_rate`."""
+    return run_stream(AttitudeRateKalman(sigma_b_T, **kwargs), t_s, b_T, sigma_b_T)
