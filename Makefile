@@ -3,7 +3,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: sitl test bench dialect clean
+.PHONY: sitl test bench dialect docs clean
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -23,6 +23,10 @@ bench: $(STAMP)
 
 dialect: $(STAMP)
 	$(PY) -m fsw.telemetry.dialect --generate
+
+# the result tables in docs/ from the benchmarks' JSON (standard library only: no venv needed)
+docs:
+	$(PYTHON) docs/tables.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .benchmarks build *.egg-info
