@@ -3,7 +3,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: sitl test bench dialect docs clean
+.PHONY: sitl test bench dialect clean
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -25,6 +25,7 @@ dialect: $(STAMP)
 	$(PY) -m fsw.telemetry.dialect --generate
 
 # the result tables in docs/ from the benchmarks' JSON (standard library only: no venv needed)
+.PHONY: docs
 docs:
 	$(PYTHON) docs/tables.py
 
