@@ -33,5 +33,10 @@ bench: $(STAMP)
 dialect: $(STAMP)
 	$(PY) -m fsw.telemetry.dialect --generate
 
+# the result tables in docs/ from the benchmarks' JSON (standard library only: no venv needed)
+.PHONY: docs
+docs:
+	$(PYTHON) docs/tables.py
+
 clean:
 	rm -rf $(VENV) .pytest_cache .benchmarks build *.egg-info

@@ -6,8 +6,8 @@
 The key itself is never printed. A new key is created exclusively; `--force` replaces only a regular
 file (atomically), never a symbolic link, FIFO or device (`fsw.telemetry.signing.write_key`); reading
 never waits on a FIFO (`load_key`). The same file goes to the flight computer (`python -m fsw.main
---key FILE`) and to the ground tools (`--key FILE`); README.md, "Security and faults", explains
-provisioning.
+--key FILE`) and to the ground tools (`--key FILE`); docs/ground.md, "Mission keys", explains
+provisioning, docs/link-and-security.md what the key protects.
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Magnetometer recordings and rate estimates as CSV: recording format v1 (spec/recording-format.md).
+"""Magnetometer recordings and rate estimates as CSV: recording format v1 (docs/spec/recording-format.md).
 
 One plain format for SITL output, telemetry exported by the ground station and public datasets, so
 that every estimator reads the same thing. Units are converted only here, at the file edge: the file

@@ -1,6 +1,6 @@
 """Rigid-body attitude dynamics and kinematics for the tumbling host.
 
-Conventions (see ``/work/shared/spec/physics-and-seeds.md`` §2):
+Conventions (see ``docs/spec/physics-and-seeds.md`` §2):
 
 * Quaternion ``q = [w, x, y, z]`` (scalar first) rotates body -> inertial:
   ``v_inertial = R(q) v_body`` with ``R = quat_to_dcm(q)`` = R_bodyToInertial

@@ -2,7 +2,7 @@
 
 It satisfies `fsw.bus.RegisterBus`, so the flight driver runs against it unchanged, directly or
 through the serial bridge (`hil.pty_link`). Datasheet behaviour reproduced (MMC5983MA datasheet
-Rev A, [DS pN]; numbers collected in `spec/mmc5983ma.md`):
+Rev A, [DS pN]; numbers collected in `docs/spec/mmc5983ma.md`):
 
 - Product ID 1 (0x2F) reads 0x30; Status (0x08) is read/write, writing 1 to a done bit clears it;
   Internal Control 0-3 (0x09-0x0C) are write-only [DS p13-16].

@@ -1,4 +1,4 @@
-"""MMC5983MA register map and decoding against the datasheet vectors of spec/mmc5983ma.md section 6."""
+"""MMC5983MA register map and decoding against the datasheet vectors of docs/spec/mmc5983ma.md section 6."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""Recording format v1 (spec/recording-format.md): the real data files, units at the edge, every
+"""Recording format v1 (docs/spec/recording-format.md): the real data files, units at the edge, every
 rejection rule with its line and column, atomic writes, and property tests (round trip; corrupted
 files give a valid recording or a RecordingError, never anything else, never a dropped row)."""
 from __future__ import annotations

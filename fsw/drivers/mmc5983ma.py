@@ -1,6 +1,6 @@
 """MMC5983MA driver: a non-blocking state machine on a register bus, time injected.
 
-Shaped like the PX4 / ArduPilot drivers (fact sheet `spec/mmc5983ma.md` section 4) with their known
+Shaped like the PX4 / ArduPilot drivers (fact sheet `docs/spec/mmc5983ma.md` section 4) with their known
 defects avoided; [DS pN] cites the MMC5983MA datasheet Rev A.
 
 States (values = DEBRIS_MAG_STATE in fsw/telemetry/debris.xml):

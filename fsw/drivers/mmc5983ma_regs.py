@@ -1,7 +1,7 @@
 """MEMSIC MMC5983MA register map, constants and pure output decoding.
 
 Source: MEMSIC MMC5983MA datasheet Rev A (4/3/2019), cited as [DS pN]; the fact sheet
-`spec/mmc5983ma.md` collects the numbers with their pages.
+`docs/spec/mmc5983ma.md` collects the numbers with their pages.
 
 Output format [DS p12-16]: each axis is an 18-bit unsigned offset-binary count
     c18 = (Out0 << 10) | (Out1 << 2) | two bits of XYZout2   (X: b7:6, Y: b5:4, Z: b3:2),

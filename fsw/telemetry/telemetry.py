@@ -4,7 +4,7 @@ Everything on the wire is defined once, in `debris.xml` (+ common.xml); this mod
 generated message classes. A failed write (serial port gone, network down) is counted, never raised
 into the flight loop.
 
-Rates and link budget (57,600 baud radio, 8N1 = 5,760 B/s): see README.md, "Link budget".
+Rates and link budget (57,600 baud radio, 8N1 = 5,760 B/s): see docs/telemetry.md, "Link budget".
 """
 from __future__ import annotations
 
@@ -123,7 +123,7 @@ class Telemetry:
 
     def sys_status(self, *, mag_healthy: bool, load_permille: int, errors_comm: int,
                    drop_rate_comm_centipercent: int = 0, errors_count=(0, 0, 0, 0)) -> None:
-        """`errors_count`: SYS_STATUS errors_count1..4 (README, "Security and faults")."""
+        """`errors_count`: SYS_STATUS errors_count1..4 (docs/link-and-security.md, "Faults survived")."""
         mag = mavlink.MAV_SYS_STATUS_SENSOR_3D_MAG
         e1, e2, e3, e4 = (min(max(int(e), 0), 65535) for e in errors_count)
         self._send(mavlink.MAVLink_sys_status_message(

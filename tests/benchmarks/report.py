@@ -1,4 +1,4 @@
-"""The README's speed table from a pytest-benchmark JSON file (`make bench` writes bench.json):
+"""The speed table of docs/performance.md from a pytest-benchmark JSON file (`make bench` writes bench.json):
 
     python tests/benchmarks/report.py bench.json
 
