@@ -530,7 +530,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", default="auto", metavar="S|auto",
                     help="record length in seconds, or auto (default): per scenario the shortest of "
                          f"{', '.join(f'{d:g}' for d in RECORD_LADDER_S)} s whose Cramér–Rao bound on the shape "
-                         f"ratios is <= {SHAPE_TARGET_PCT:g} % / {DESIGN_MARGIN:g}")
+                         f"ratios is <= {SHAPE_TARGET_PCT:g} %% / {DESIGN_MARGIN:g}")
     ap.add_argument("--scenarios", default=",".join(SCENARIOS), help="comma-separated scenario names")
     ap.add_argument("--quick", action="store_true", help="3 runs of 900 s: a smoke run")
     ap.add_argument("--no-linear", action="store_true", help="skip the linear-methods rows")

@@ -344,3 +344,15 @@ def test_soak_scenario_typo_is_a_one_line_error(capsys):
                                            ("--seed", "-3")])
 def test_soak_refuses_numbers_it_cannot_use(capsys, option, value):
     one_line_error(capsys, soak.main, ["--duration", "150", option, value, "--quiet"], 2, option)
+
+
+@pytest.mark.parametrize("module", ["fsw.main", "hil.sitl", "hil.pty_link", "ground.decode", "ground.estimate",
+                                    "ground.inertia", "ground.command", "ground.keys", "ground.replay",
+                                    "bench.accuracy", "bench.inertia", "bench.deorbit", "bench.soak"])
+def test_every_tool_explains_itself(module, capsys):
+    """--help of every command-line tool: exit 0 and a usage line (a stray % in a help text breaks it)."""
+    import importlib
+
+    with pytest.raises(SystemExit) as e:
+        importlib.import_module(module).main(["--help"])
+    assert e.value.code == 0 and capsys.readouterr().out.startswith("usage:")
