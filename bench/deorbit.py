@@ -1,11 +1,12 @@
 """Closed-loop benchmark of the de-orbit kit: `python -m bench.deorbit [--json FILE] [--plot FILE.png]`.
 
 The scenario of lapkhanov2019 section 6 (`hil/scenarios/amds_deorbit.toml`): the AMDS spacecraft at
-600 km from yaw 60°, pitch 45° (orbital frame) for 10,800 s. Composed like the SITL of `fsw.main`, in one
-process and in lockstep: the simulator (rigid body, orbit, field, aerodynamic and gravity-gradient
+600 km from yaw 60°, pitch 45° (orbital frame) for 10,800 s. Composed as SITL is (`hil.sitl.build`), in
+one process and in lockstep: the simulator (rigid body, orbit, field, aerodynamic and gravity-gradient
 torques, the magnets' M = p × B; `hil.deorbit_sim`) and the kit emulator (steppers, shutters, switches;
-`hil.deorbit_kit`) are advanced to the loop time, then the flight software's de-orbit task runs on the
-same clock through `fsw.scheduler.Scheduler`: drivers → sequencer (interlocks, recovery) → controller.
+`hil.deorbit_kit`) are advanced to the loop time, then the whole flight software ticks on the same clock
+(telemetry into a null link), its de-orbit application at 10 Hz: drivers → sequencer (interlocks,
+recovery) → controller.
 The controller is started with the ground command MAV_CMD_DEBRIS_CONTROLLER through the same handler the
 uplink uses. The controller's attitude comes from the simulation truth (the paper assumes it too).
 
@@ -31,14 +32,16 @@ import numpy as np
 from fsw.argtypes import check_paths_or_exit, finite_float
 from fsw.deorbit.controller import ControllerConfig, euler_zyx
 from fsw.deorbit.energy import PAPER_CAPSULES_J, PAPER_MAGNETS_J, PAPER_OPENINGS, PAPER_TOTAL_J, PAPER_TURNS
+from fsw.config import RunConfig
 from fsw.deorbit.kit import DeorbitKit
-from fsw.scheduler import Scheduler, Task
 from fsw.files import write_atomic
+from fsw.system import NullLink
 from fsw.telemetry.dialect import mavlink
 from ground.plot import check_plot_path, save_figure
 
 from hil import scenario as scenarios
-from hil.deorbit_sim import DeorbitSimulator, build_kit, controller_config
+from hil import sitl
+from hil.deorbit_sim import DeorbitSimulator
 
 DEFAULT_SCENARIO = "amds_deorbit"
 PAPER = {
@@ -180,11 +183,13 @@ def run_bench(scenario_name: str = DEFAULT_SCENARIO, *, duration_s: float | None
     duration = float(duration_s if duration_s is not None else spec.duration_s)
     settle = float(settle_s if settle_s is not None else min(spec.settle_s, duration))
     step = 1.0 / rate_hz
-    sim = DeorbitSimulator(scn, seed=seed, max_step_s=step)
-    cfg = controller or controller_config(sim, law=law)
-    kit = build_kit(sim, cfg, keep_pulses=True)
-    attitude = kit.attitude
-    sched = Scheduler(rate_hz, [Task("deorbit", kit.tick, rate_hz, 0.5 * step)])
+    box = sitl.build(sitl.SitlConfig(RunConfig(rate_hz=rate_hz, buffer_frames=0), scenario=scn, seed=seed,
+                                      max_step_s=step),
+                     link=NullLink(), run_id=0, ident=False,
+                     kit_options={"controller": controller, "law": law, "keep_pulses": True})
+    sim, fsw = box.sim, box.fsw
+    kit = fsw.apps["deorbit"]
+    cfg, attitude = kit.controller.config, kit.attitude
     # start the controller through its ground command handler
     start = SimpleNamespace(command=mavlink.MAV_CMD_DEBRIS_CONTROLLER, param1=1, param2=0, param3=0,
                             param4=0, param5=0, param6=0, param7=0)
@@ -203,7 +208,7 @@ def run_bench(scenario_name: str = DEFAULT_SCENARIO, *, duration_s: float | None
             result = kit.handle_command(start, t)
             if result != mavlink.MAV_RESULT_ACCEPTED:
                 raise RuntimeError(f"controller start refused: MAV_RESULT {result}")
-        sched.tick(t)
+        fsw.tick(t)
         if k % every == 0:
             R_bo, _, b_body = sim.attitude_orbital()
             yaw, pitch, roll = euler_zyx(R_bo)

@@ -236,7 +236,7 @@ def run(duration_s: float = 3600.0, *, seed: int = 1, scenario: str = "isoi", ra
     link = FaultyDatagramLink(rng_link, src_system=FSW_SYSID, src_component=FSW_COMPID)
     box = sitl.build(sitl.SitlConfig(RunConfig(rate_hz=rate_hz, buffer_frames=buffer_frames), scenario=scenario,
                                       seed=seed),
-                     link=link, key=key, clock=SigningClock(epoch=epoch, clock_set=True), run_id=0, apps=False)
+                     link=link, key=key, clock=SigningClock(epoch=epoch, clock_set=True), run_id=0, ident=False)
     scn, sim, fsw, tlm = box.scenario, box.sim, box.fsw, box.flight.tlm
     # the loop's work in this process's own CPU time: another process on the machine is not an overrun
     fsw.scheduler.work_timer = time.thread_time

@@ -16,12 +16,24 @@ from typing import Callable, Iterable
 from .app import App
 from .config import RunConfig
 from .flight import FieldSource, FlightSoftware
-from .telemetry.dialect import FSW_COMPID, FSW_SYSID
+from .telemetry.dialect import FSW_COMPID, FSW_SYSID, mavlink
 from .telemetry.sample_store import SampleStore
 from .telemetry.signing import SigningClock, key_fingerprint, load_key
 from .telemetry.store_forward import StoreForward
 from .telemetry.telemetry import Telemetry
 from .telemetry.udp_link import open_box_link
+
+
+class NullLink:
+    """A telemetry connection that packs with the flight software's ids, counts the bytes and drops them:
+    for runs of the whole flight software with no ground (benchmarks, tests)."""
+
+    def __init__(self) -> None:
+        self.mav = mavlink.MAVLink(self, srcSystem=FSW_SYSID, srcComponent=FSW_COMPID)
+        self.bytes = 0
+
+    def write(self, b: bytes) -> None:
+        self.bytes += len(b)
 
 
 @dataclass

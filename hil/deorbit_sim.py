@@ -134,9 +134,11 @@ def controller_config(sim: DeorbitSimulator, **overrides):
     return ControllerConfig(**fields)
 
 
-def build_kit(sim: DeorbitSimulator, controller=None, **kit_options):
+def build_kit(sim: DeorbitSimulator, controller=None, law: str = "mpc", **kit_options):
     """The flight software's de-orbit kit for a SITL run: the emulator's lines, the truth attitude, and a
-    controller configured for the scenario (:func:`controller_config`) unless `controller` is given."""
+    controller configured for the scenario with `law` (:func:`controller_config`) unless `controller` is
+    given."""
     from fsw.deorbit.kit import DeorbitKit
 
-    return DeorbitKit(sim.kit, TruthAttitude(sim), controller=controller or controller_config(sim), **kit_options)
+    return DeorbitKit(sim.kit, TruthAttitude(sim), controller=controller or controller_config(sim, law=law),
+                      **kit_options)

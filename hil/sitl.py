@@ -49,10 +49,13 @@ class SitlConfig:
     """A SITL run: the flight software's configuration and the simulated world's."""
 
     run: RunConfig = field(default_factory=lambda: RunConfig(speed=0.0))
-    scenario: str = "isoi"
+    #: a shipped scenario's name, a TOML file, or a loaded `hil.scenario.Scenario`
+    scenario: str | scenarios.Scenario = "isoi"
     seed: int = 0
     #: the identification experiment's starting tensor, × identity, kg·m²
     ident_inertia_guess_kgm2: float = 100.0
+    #: the simulator's integration step (default: 20 ms, or the loop period if shorter)
+    max_step_s: float | None = None
 
 
 @dataclass
@@ -104,16 +107,18 @@ def sitl_sensor(scenario_rate_hz: float, scenario_bw: Bandwidth, rate_hz: float 
 
 
 def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, clock=None,
-          run_id: int | None = None, apps: bool = True, ident_options: dict | None = None) -> Sitl:
+          run_id: int | None = None, ident: bool = True, ident_options: dict | None = None,
+          kit_options: dict | None = None) -> Sitl:
     """The simulator of `cfg.scenario` and the flight software on its emulated magnetometer.
 
     `link`, `uplink`, `key`, `clock`, `run_id`: as `fsw.system.build_flight` (the soak hands in its radio
-    model and key). `apps`: the identification experiment (a tug and a field model: SITL has both) and,
-    in a scenario with a [deorbit] table, the de-orbit kit on the emulated lines; `ident_options`: more of
-    the experiment's `fsw.ident.IdentConfig`."""
+    model and key). The applications: the identification experiment unless `ident` is False (a tug and a
+    field model: SITL has both; `ident_options`: more of its `fsw.ident.IdentConfig`), and in a scenario
+    with a [deorbit] table the de-orbit kit on the emulated lines (`kit_options`: for
+    `hil.deorbit_sim.build_kit`, e.g. the controller's law)."""
     r = cfg.run
-    scn = scenarios.load(cfg.scenario)
-    step = min(0.02, 1.0 / r.rate_hz)
+    scn = cfg.scenario if isinstance(cfg.scenario, scenarios.Scenario) else scenarios.load(cfg.scenario)
+    step = cfg.max_step_s or min(0.02, 1.0 / r.rate_hz)
     if scn.deorbit is not None:  # the de-orbit kit's scenario: environment torques and the kit emulator
         from .deorbit_sim import DeorbitSimulator
         sim = DeorbitSimulator(scn, seed=cfg.seed, max_step_s=step)
@@ -124,12 +129,12 @@ def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, 
     driver = Mmc5983ma(sim.sensor, bandwidth=bw, sample_period_s=1.0 / rate_hz, continuous=cm)
     sigma_b = math.hypot(scn.noise_T, bw.noise_rms_T)
     onboard = []
-    if apps:
+    if ident:
         from .ident_sitl import build_ident
         onboard.append(build_ident(scn, sim, sigma_b, cfg.ident_inertia_guess_kgm2, **(ident_options or {})))
-        if scn.deorbit is not None:
-            from .deorbit_sim import build_kit
-            onboard.append(build_kit(sim))
+    if scn.deorbit is not None:
+        from .deorbit_sim import build_kit
+        onboard.append(build_kit(sim, **(kit_options or {})))
     flight = build_flight(r, driver, sigma_b_T=sigma_b, sample_rate_hz=rate_hz, truth=sim.truth, apps=onboard,
                           link=link, uplink=uplink, key=key, clock=clock, run_id=run_id)
     return Sitl(cfg, scn, sim, driver, flight, sigma_b, warning)

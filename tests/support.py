@@ -2,7 +2,7 @@
 puts this directory on the path)."""
 import socket
 
-from fsw.telemetry.dialect import FSW_COMPID, FSW_SYSID, mavlink
+from fsw.system import NullLink  # noqa: F401  (the tests' null link is the benchmarks')
 
 
 def free_udp_port() -> int:
@@ -29,17 +29,6 @@ def wait_udp_bound(port: int, timeout_s: float = 60.0) -> None:
                 raise
         time.sleep(0.05)
     raise TimeoutError(f"nothing bound UDP port {port} within {timeout_s:g} s")
-
-
-class NullLink:
-    """A telemetry connection that packs with the flight software's ids, counts bytes and drops them."""
-
-    def __init__(self):
-        self.mav = mavlink.MAVLink(self, srcSystem=FSW_SYSID, srcComponent=FSW_COMPID)
-        self.bytes = 0
-
-    def write(self, b):
-        self.bytes += len(b)
 
 
 def exit_status(main, argv) -> int:

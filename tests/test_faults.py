@@ -141,7 +141,7 @@ def sys_status_health(fsw):
 
 @pytest.mark.parametrize("kind", MAG_KINDS)
 def test_each_magnetometer_fault_is_flagged_and_survived(kind):
-    box = sitl.build(sitl.SitlConfig(RunConfig(rate_hz=50.0, buffer_frames=0), seed=2), link=Null(), apps=False)
+    box = sitl.build(sitl.SitlConfig(RunConfig(rate_hz=50.0, buffer_frames=0), seed=2), link=Null(), ident=False)
     sim, driver, fsw = box.sim, box.driver, box.fsw
     severity = {"bus_errors": 1.0, "spike": 100e-6, "saturation": 1.1e-3}.get(kind, 0.0)
     duration = 0.0 if kind in ("spike", "chip_reset") else 5.0

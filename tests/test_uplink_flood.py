@@ -227,7 +227,7 @@ def test_the_flight_loop_under_a_1MBps_flood_over_udp():
     uplink = UdpLink("udpin:127.0.0.1:0", source_system=FSW_SYSID, source_component=FSW_COMPID)
     addr = uplink.sock.getsockname()
     box = sitl.build(sitl.SitlConfig(RunConfig(rate_hz=50.0, buffer_frames=0)), link=CaptureLink(), uplink=uplink,
-                     key=KEY, clock=SigningClock(epoch=T0, clock_set=True), apps=False)
+                     key=KEY, clock=SigningClock(epoch=T0, clock_set=True), ident=False)
     sim, fsw, tlm = box.sim, box.fsw, box.flight.tlm
     # the loop's work in this process's CPU time: a test running beside this one is not an overrun
     fsw.scheduler.work_timer = time.thread_time
