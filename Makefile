@@ -27,8 +27,8 @@ lint: $(STAMP)
 	$(PY) -m ruff check .
 
 bench: $(STAMP)
-	$(PY) -m pytest -q tests/benchmarks --benchmark-only --benchmark-json=bench.json
-	$(PY) tests/benchmarks/report.py bench.json
+	$(PY) -m pytest -q tests/bench/test_speed.py --benchmark-only --benchmark-json=bench.json
+	$(PY) tests/bench/report.py bench.json
 
 dialect: $(STAMP)
 	$(PY) -m fsw.telemetry.dialect --generate

@@ -1,6 +1,13 @@
 """Helpers shared by the test modules (importable from tests/ and its sub-directories: tests/conftest.py
 puts this directory on the path)."""
 import socket
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from fsw.telemetry.dialect import FSW_COMPID, FSW_SYSID, mavlink
+from ground.decode import tlog_record
 
 from fsw.system import NullLink  # noqa: F401  (the tests' null link is the benchmarks')
 
@@ -37,3 +44,46 @@ def exit_status(main, argv) -> int:
         return main(argv)
     except SystemExit as e:
         return e.code if isinstance(e.code, int) else 1
+
+
+#: the repository, and the optional laboratory recordings beside it (tests that read them skip without)
+ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = ROOT.parent / "shared" / "data"
+
+#: a body spinning at constant ω in a fixed field (`StubSource`)
+W_RADPS = np.radians([6.0, -5.0, 6.5])
+B_I_T = np.array([20e-6, -15e-6, 35e-6])
+
+
+class StubSource:
+    """Delivers the field of a body spinning at constant ω, one sample every `period_s`."""
+
+    def __init__(self, period_s):
+        self.period_s = period_s
+        self.next_s = 0.0
+        self.b_body_T = np.zeros(3)
+        self.sample_time_s = float("nan")
+
+    def update(self, now_s):
+        if now_s + 1e-9 < self.next_s:
+            return False
+        self.sample_time_s = self.next_s
+        self.b_body_T[:] = Rotation.from_rotvec(-W_RADPS * self.next_s).apply(B_I_T)
+        self.next_s += self.period_s
+        return True
+
+
+#: the Unix time of the first record of `good_tlog`
+WALL0 = 1_750_000_000.0
+
+
+def good_tlog(n=30) -> bytes:
+    """An intact tlog of `n` magnetometer samples (HIGHRES_IMU), 0.1 s apart."""
+    p = mavlink.MAVLink(None, srcSystem=FSW_SYSID, srcComponent=FSW_COMPID)
+    out = b""
+    for k in range(n):
+        msg = mavlink.MAVLink_highres_imu_message(k * 100_000, 0, 0, 0, 0, 0, 0, 0.3, 0.1, -0.2, 0, 0, 0, 0, 0x1C0)
+        msg.pack(p)
+        p.seq = (p.seq + 1) % 256
+        out += tlog_record(msg, WALL0 + 0.1 * k)
+    return out

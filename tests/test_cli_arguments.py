@@ -21,7 +21,7 @@ from ground import command, decode, estimate, inertia, keys
 from ground.recording import Recording, write_recording
 from bench import soak
 from support import exit_status
-from test_bad_input import good_tlog
+from support import good_tlog
 
 ROOT = Path(__file__).resolve().parents[1]
 

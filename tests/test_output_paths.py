@@ -11,7 +11,7 @@ from ground import decode, estimate, inertia
 from ground.recording import Recording, write_recording
 from bench import deorbit, soak
 from support import exit_status, free_udp_port
-from test_bad_input import good_tlog
+from support import good_tlog
 
 
 def snapshot(path):

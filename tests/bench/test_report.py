@@ -1,4 +1,4 @@
-"""The speed table printed by `make bench` (tests/benchmarks/report.py) from a benchmark JSON."""
+"""The speed table printed by `make bench` (tests/bench/report.py) from a benchmark JSON."""
 import importlib.util
 from pathlib import Path
 

@@ -1,14 +1,14 @@
 """The estimators on real magnetometer recordings (../shared/data, gyro as reference): on slices of each
 file, at the native rate and decimated to 10 Hz, the best method's error perpendicular to B is below the
 Boer formula's at the same sampling. The full table (whole files): `python -m bench.accuracy --real DIR`."""
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from bench import accuracy as acc
+from support import SHARED_DATA
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = SHARED_DATA
 FILES = sorted(DATA.glob("*.csv")) if DATA.is_dir() else []
 
 pytestmark = pytest.mark.skipif(not FILES, reason=f"no real recordings in {DATA}")

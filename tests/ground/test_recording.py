@@ -14,9 +14,10 @@ from hypothesis import strategies as st
 
 from ground.recording import (RateEstimates, Recording, RecordingError, read_rate_estimates,
                               read_recording, write_rate_estimates, write_recording)
+from support import SHARED_DATA
 
 # the project's shared data folder sits beside the repository (../shared/data)
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = SHARED_DATA
 HEADER = "t_s,bx_uT,by_uT,bz_uT"
 
 

@@ -1,7 +1,6 @@
 """A recording's field magnitude (fsw.estimation.field_check): refused when it cannot be µT (zero, nT,
 gauss, tesla) by every tool with a one-line error naming the file; warned when it is not the Earth's or
 not the orbit's model's; the lab recordings pass."""
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,8 +11,9 @@ from fsw.estimation import field_motion as fm
 from ground import estimate as ge
 from ground import inertia as gi
 from ground.recording import Recording, write_recording
+from support import SHARED_DATA
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = SHARED_DATA
 B_I_T = np.array([20e-6, -15e-6, 35e-6])          # 43 µT
 W = np.radians([6.0, -5.0, 6.5])
 #: µT in the file → what a file in other units holds (zero: a dead sensor)

@@ -7,28 +7,7 @@ from fsw.estimation import rate_formulas as rf
 from fsw.flight import FlightSoftware
 from fsw.telemetry.dialect import FSW_COMPID, FSW_SYSID, mavlink
 from fsw.telemetry.telemetry import Telemetry
-
-W_RADPS = np.radians([6.0, -5.0, 6.5])
-B_I_T = np.array([20e-6, -15e-6, 35e-6])
-
-
-class StubSource:
-    """Delivers the field of a body spinning at constant ω, one sample every `period_s`."""
-
-    def __init__(self, period_s):
-        self.period_s = period_s
-        self.next_s = 0.0
-        self.b_body_T = np.zeros(3)
-        self.sample_time_s = float("nan")
-
-    def update(self, now_s):
-        if now_s + 1e-9 < self.next_s:
-            return False
-        self.sample_time_s = self.next_s
-        self.b_body_T[:] = Rotation.from_rotvec(-W_RADPS * self.next_s).apply(B_I_T)
-        self.next_s += self.period_s
-        return True
-
+from support import B_I_T, W_RADPS, StubSource
 
 class Capture:
     """A link that keeps what is written, as pymavlink's mavfile would send it."""

@@ -17,7 +17,7 @@ from ground.recorder import Recorder
 from ground.recording import read_recording
 from support import free_udp_port
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 class Box:

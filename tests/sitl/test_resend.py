@@ -14,8 +14,8 @@ from ground.gaps import GapRequester, SeqGaps
 from ground.recorder import Recorder
 from ground.recording import read_recording
 from hil.faults import FaultyLink
+from support import StubSource
 
-from test_flight import StubSource
 
 UNIX0 = 1_750_000_000.0
 KEY = bytes(range(40, 72))

@@ -9,25 +9,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fsw.telemetry.dialect import FSW_COMPID, FSW_SYSID, mavlink
 from ground import decode
-from ground.decode import tlog_record
+from support import SHARED_DATA, WALL0, good_tlog
 from ground.recording import Recording, RecordingError, read_recording, write_recording
 from ground.tlog import TlogError, check_tlog
-
-WALL0 = 1_750_000_000.0
-
-
-def good_tlog(n=30) -> bytes:
-    p = mavlink.MAVLink(None, srcSystem=FSW_SYSID, srcComponent=FSW_COMPID)
-    out = b""
-    for k in range(n):
-        msg = mavlink.MAVLink_highres_imu_message(k * 100_000, 0, 0, 0, 0, 0, 0, 0.3, 0.1, -0.2, 0, 0, 0, 0, 0x1C0)
-        msg.pack(p)
-        p.seq = (p.seq + 1) % 256
-        out += tlog_record(msg, WALL0 + 0.1 * k)
-    return out
-
 
 RECORD = len(good_tlog(1))
 
@@ -218,7 +203,7 @@ def test_field_in_the_wrong_units_is_refused_when_checked(tmp_path, scale, looks
 def test_field_in_microtesla_passes_the_check(tmp_path):
     assert len(read_recording(field_file(tmp_path, 1.0), check_units=True)) == 50
     for name in ("broad_02_undisturbed_slow_rotation_B.csv", "xio_fusion_sensor_data.csv"):
-        path = Path(__file__).resolve().parents[2] / "shared" / "data" / name
+        path = SHARED_DATA / name
         if path.exists():
             read_recording(path, check_units=True)
 

@@ -1,6 +1,6 @@
 """The speed table of docs/performance.md from a pytest-benchmark JSON file (`make bench` writes bench.json):
 
-    python tests/benchmarks/report.py bench.json
+    python tests/bench/report.py bench.json
 
 Medians per benchmark, the issue's targets beside them, the Kalman step against filterpy's and the
 ground decoder's throughput in frames per second.
