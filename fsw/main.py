@@ -24,7 +24,7 @@ import sys  # noqa: E402
 
 from .argtypes import check_paths_or_exit  # noqa: E402
 from .config import RunConfig, add_run_options, check_loop_rate, run_config  # noqa: E402
-from .runner import run_loop, status_line, summary  # noqa: E402
+from .runner import run_loop, run_program, status_line, summary  # noqa: E402
 
 #: compositions that live outside the flight software, by the option that selects them
 HAND_OVER = {"--sitl": "hil.sitl", "--replay": "ground.replay"}
@@ -71,21 +71,11 @@ def main(argv=None) -> int:
             rest = [a for a in argv if a != option] if option == "--sitl" else argv[argv.index(option) + 1:] \
                 + argv[:argv.index(option)]
             return importlib.import_module(module).main(rest)
-    try:
+    def body() -> str:
         cfg, port = parse_args(argv)
-        try:
-            fsw, res = run(cfg, port)
-        except ValueError as e:  # an impossible sensor setting, a loop too slow, a bad key
-            print(f"error: {e}", file=sys.stderr)
-            return 2
-        except OSError as e:  # a serial port or link that cannot be opened
-            print(f"error: {e}", file=sys.stderr)
-            return 1
-        print(summary(fsw, res), flush=True)
-    except KeyboardInterrupt:  # Ctrl-C before the loop's own handler is in place (or after it is gone)
-        print("interrupted", file=sys.stderr, flush=True)
-        return 130
-    return 0
+        return summary(*run(cfg, port))
+
+    return run_program(body)
 
 
 if __name__ == "__main__":

@@ -199,3 +199,23 @@ def summary(fsw: FlightSoftware, res: LoopResult, extra: list[str] = ()) -> str:
     if g.rejected:
         lines.append("magnetometer samples refused: " + ", ".join(f"{n} {k}" for k, n in g.counts.items() if n))
     return "\n".join(lines)
+
+
+def run_program(body: Callable[[], str]) -> int:
+    """A run's command line around `body` (parse, build, run; returns the summary): the summary printed
+    and exit status 0; a bad configuration (ValueError) one line and 2, a device or link that cannot be
+    opened (OSError) one line and 1, Ctrl-C outside the loop one line and 130."""
+    try:
+        try:
+            text = body()
+        except ValueError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        except OSError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 1
+        print(text, flush=True)
+    except KeyboardInterrupt:  # before the loop's own handler is in place, or after it is gone
+        print("interrupted", file=sys.stderr, flush=True)
+        return 130
+    return 0

@@ -26,7 +26,7 @@ from fsw.argtypes import check_paths_or_exit  # noqa: E402
 from fsw.config import RunConfig, add_run_options, run_config  # noqa: E402
 from fsw.estimation import field_check  # noqa: E402
 from fsw.estimation.rate_formulas import unobserved_sigma  # noqa: E402
-from fsw.runner import run_loop, status_line, summary  # noqa: E402
+from fsw.runner import run_loop, run_program, status_line, summary  # noqa: E402
 from fsw.system import build_flight  # noqa: E402
 
 from .recording import RateEstimates, read_recording, write_rate_estimates  # noqa: E402
@@ -137,23 +137,14 @@ def main(argv=None) -> int:
     ap.add_argument("--rates-out", metavar="OUT.csv",
                     help="write the onboard Kalman filter's estimates, one row per sample")
     add_run_options(ap)
-    try:
+
+    def body() -> str:
         args = ap.parse_args(argv)
         check_paths_or_exit(ap, inputs={"INPUT.csv": args.input, "--key": args.key},
                             outputs={"--rates-out": args.rates_out})
-        try:
-            fsw, res = replay(args.input, run_config(args), rates_out=args.rates_out)
-        except ValueError as e:  # a bad recording, a field in the wrong units
-            print(f"error: {e}", file=sys.stderr)
-            return 2
-        except OSError as e:  # a link that cannot be opened
-            print(f"error: {e}", file=sys.stderr)
-            return 1
-        print(summary(fsw, res), flush=True)
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr, flush=True)
-        return 130
-    return 0
+        return summary(*replay(args.input, run_config(args), rates_out=args.rates_out))
+
+    return run_program(body)
 
 
 if __name__ == "__main__":

@@ -32,7 +32,7 @@ from fsw.config import RunConfig, add_run_options, check_loop_rate, run_config  
 from fsw.drivers.mmc5983ma import Mmc5983ma  # noqa: E402
 from fsw.drivers.mmc5983ma_regs import Bandwidth, ContinuousFrequency  # noqa: E402
 from fsw.flight import FlightSoftware  # noqa: E402
-from fsw.runner import LoopResult, run_loop  # noqa: E402
+from fsw.runner import LoopResult, run_loop, run_program  # noqa: E402
 from fsw.runner import status_line as flight_status  # noqa: E402
 from fsw.runner import summary as flight_summary  # noqa: E402
 from fsw.system import Flight, build_flight  # noqa: E402
@@ -275,21 +275,7 @@ def parse_args(argv=None) -> SitlConfig:
 
 
 def main(argv=None) -> int:
-    try:
-        cfg = parse_args(argv)
-        try:
-            r = run(cfg)
-        except ValueError as e:  # a bad scenario file, an impossible sensor setting, a loop too slow
-            print(f"error: {e}", file=sys.stderr)
-            return 2
-        except OSError as e:  # a link that cannot be opened
-            print(f"error: {e}", file=sys.stderr)
-            return 1
-        print(summary(r), flush=True)
-    except KeyboardInterrupt:  # Ctrl-C before the loop's own handler is in place (or after it is gone)
-        print("interrupted", file=sys.stderr, flush=True)
-        return 130
-    return 0
+    return run_program(lambda: summary(run(parse_args(argv))))
 
 
 if __name__ == "__main__":

@@ -38,6 +38,35 @@ def wait_udp_bound(port: int, timeout_s: float = 60.0) -> None:
     raise TimeoutError(f"nothing bound UDP port {port} within {timeout_s:g} s")
 
 
+class Capture:
+    """A telemetry link that keeps what is written, as pymavlink's mavfile would send it."""
+
+    def __init__(self):
+        self.buf = bytearray()
+        self.mav = mavlink.MAVLink(self, srcSystem=FSW_SYSID, srcComponent=FSW_COMPID)
+
+    def write(self, b):
+        self.buf += b
+
+    def messages(self):
+        return mavlink.MAVLink(None).parse_buffer(bytes(self.buf)) or []
+
+
+def moment_recording(path, n: int, pulse: slice) -> Path:
+    """A short recording with a known moment (0.2 N·m about x during `pulse`) and a circular orbit in its
+    metadata: enough for ground.inertia to start, not to fit anything."""
+    from ground.recording import Recording, write_recording
+
+    t = np.arange(float(n))
+    b = np.column_stack([np.cos(0.1 * t), np.sin(0.1 * t), np.full_like(t, 0.5)]) * 40e-6
+    m = np.zeros((n, 3))
+    m[pulse, 0] = 0.2
+    write_recording(path, Recording(t, b, m_Nm=m, metadata={
+        "orbit_altitude_km": "500", "orbit_inclination_deg": "97", "orbit_raan_deg": "0",
+        "orbit_arg_lat0_deg": "0", "field_epoch_year": "2025"}))
+    return Path(path)
+
+
 def exit_status(main, argv) -> int:
     """A tool's exit status from its `main(argv)`, whether it returns it or argparse exits with it."""
     try:

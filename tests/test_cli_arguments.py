@@ -20,7 +20,7 @@ from fsw.telemetry.signing import KeyFileError, load_key, write_key
 from ground import command, decode, estimate, inertia, keys
 from ground.recording import Recording, write_recording
 from bench import soak
-from support import exit_status
+from support import exit_status, moment_recording
 from support import good_tlog
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -134,15 +134,7 @@ def test_estimate_refuses_a_utc0_that_is_not_a_time(header_only, tmp_path, capsy
 
 @pytest.fixture
 def moment_csv(tmp_path):
-    t = np.arange(40.0)
-    b = np.column_stack([np.cos(0.1 * t), np.sin(0.1 * t), np.full_like(t, 0.5)]) * 40e-6
-    m = np.zeros((40, 3))
-    m[10:20, 0] = 0.2
-    path = tmp_path / "moment.csv"
-    write_recording(path, Recording(t, b, m_Nm=m, metadata={
-        "orbit_altitude_km": "500", "orbit_inclination_deg": "97", "orbit_raan_deg": "0",
-        "orbit_arg_lat0_deg": "0", "field_epoch_year": "2025"}))
-    return path
+    return moment_recording(tmp_path / "moment.csv", 40, slice(10, 20))
 
 
 @pytest.mark.parametrize("option, value", [("--sigma-uT", "nan"), ("--sigma-uT", "0"), ("--guess", "inf"),

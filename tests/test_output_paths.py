@@ -3,14 +3,12 @@ link, a symbolic link), and every output path is checked before any work: exit s
 naming both paths, the input untouched (bytes and modification time)."""
 import os
 
-import numpy as np
 import pytest
 
 from fsw import main as fsw_main
 from ground import decode, estimate, inertia
-from ground.recording import Recording, write_recording
 from bench import deorbit, soak
-from support import exit_status, free_udp_port
+from support import exit_status, free_udp_port, moment_recording
 from support import good_tlog
 
 
@@ -27,15 +25,7 @@ def tlog(tmp_path):
 
 @pytest.fixture
 def csv(tmp_path):
-    t = np.arange(30.0)
-    b = np.column_stack([np.cos(0.1 * t), np.sin(0.1 * t), np.full_like(t, 0.5)]) * 40e-6
-    m = np.zeros((30, 3))
-    m[10:15, 0] = 0.2
-    path = tmp_path / "run.csv"
-    write_recording(path, Recording(t, b, m_Nm=m, metadata={
-        "orbit_altitude_km": "500", "orbit_inclination_deg": "97", "orbit_raan_deg": "0",
-        "orbit_arg_lat0_deg": "0", "field_epoch_year": "2025"}))
-    return path
+    return moment_recording(tmp_path / "run.csv", 30, slice(10, 15))
 
 
 def refused(capsys, main, argv, *protected, message="is the same file as"):

@@ -10,9 +10,10 @@ from fsw.deorbit.kit import DeorbitKit
 from fsw.deorbit.sequencer import KitMode
 from fsw.drivers.capsule import CapsuleState
 from fsw.drivers.stepper import MagnetState
-from fsw.telemetry.dialect import FSW_COMPID, FSW_SYSID, mavlink
+from fsw.telemetry.dialect import mavlink
 from fsw.telemetry.telemetry import Telemetry
 from hil.deorbit_kit import DeorbitKitEmulator
+from support import Capture
 
 ACCEPTED, TEMP, DENIED, FAILED, UNSUPPORTED = (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_TEMPORARILY_REJECTED,
                                                mavlink.MAV_RESULT_DENIED, mavlink.MAV_RESULT_FAILED,
@@ -147,18 +148,6 @@ def test_handlers_survive_strange_messages(box):
     assert box.kit.handle_command(SimpleNamespace(command=CAPSULE), box.t) == DENIED  # no params at all
     assert box.kit.handle_command(SimpleNamespace(command=TURN, param1="x", param2=None), box.t) == DENIED
     assert box.kit.handle_command(object(), box.t) == UNSUPPORTED
-
-
-class Capture:
-    def __init__(self):
-        self.buf = bytearray()
-        self.mav = mavlink.MAVLink(self, srcSystem=FSW_SYSID, srcComponent=FSW_COMPID)
-
-    def write(self, b):
-        self.buf += b
-
-    def messages(self):
-        return mavlink.MAVLink(None).parse_buffer(bytes(self.buf)) or []
 
 
 def test_status_message_round_trip(box):

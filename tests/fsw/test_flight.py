@@ -5,24 +5,9 @@ from scipy.spatial.transform import Rotation
 
 from fsw.estimation import rate_formulas as rf
 from fsw.flight import FlightSoftware
-from fsw.telemetry.dialect import FSW_COMPID, FSW_SYSID, mavlink
+from fsw.telemetry.dialect import FSW_SYSID, mavlink
 from fsw.telemetry.telemetry import Telemetry
-from support import B_I_T, W_RADPS, StubSource
-
-class Capture:
-    """A link that keeps what is written, as pymavlink's mavfile would send it."""
-
-    def __init__(self):
-        self.buf = bytearray()
-        self.mav = mavlink.MAVLink(self, srcSystem=FSW_SYSID, srcComponent=FSW_COMPID)
-
-    def write(self, b):
-        self.buf += b
-
-    def messages(self):
-        parser = mavlink.MAVLink(None)
-        return parser.parse_buffer(bytes(self.buf)) or []
-
+from support import B_I_T, Capture, StubSource, W_RADPS
 
 def run(seconds, rate_hz=50.0, sample_period_s=0.1, **kw):
     link = Capture()

@@ -9,9 +9,10 @@ from scipy.spatial.transform import Rotation
 from fsw import main as fsw_main
 from fsw.flight import FlightSoftware
 from ground.replay import RecordingReplay
-from fsw.telemetry.dialect import FSW_COMPID, FSW_SYSID, mavlink
+from fsw.telemetry.dialect import mavlink
 from fsw.telemetry.telemetry import Telemetry
 from ground.recording import Recording, read_rate_estimates, write_recording
+from support import Capture
 
 B_I_T = np.array([20e-6, -15e-6, 35e-6])
 W = np.radians([6.0, -5.0, 6.5])
@@ -19,18 +20,6 @@ W = np.radians([6.0, -5.0, 6.5])
 
 def field(t):
     return Rotation.from_rotvec(-np.outer(t, W)).apply(B_I_T)
-
-
-class Capture:
-    def __init__(self):
-        self.buf = bytearray()
-        self.mav = mavlink.MAVLink(self, srcSystem=FSW_SYSID, srcComponent=FSW_COMPID)
-
-    def write(self, b):
-        self.buf += b
-
-    def messages(self):
-        return mavlink.MAVLink(None).parse_buffer(bytes(self.buf)) or []
 
 
 def test_replay_delivers_each_sample_once_at_its_time():
