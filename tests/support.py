@@ -29,3 +29,18 @@ def exit_status(main, argv) -> int:
         return main(argv)
     except SystemExit as e:
         return e.code if isinstance(e.code, int) else 1
+
+
+def tiers(prop, *strategies, **kw_strategies):
+    """A property (a function of the drawn values) as its two tests: the fast one, with the loaded
+    hypothesis profile (conftest.py: 200 examples, or 10,000 with HYPOTHESIS_PROFILE=fuzz), and the
+    slow tier's, marked ``slow``, with the ``fuzz`` profile (10,000 examples)::
+
+        test_reader, test_reader_fuzz = tiers(reader_property, inputs())
+    """
+    import pytest
+    from hypothesis import given, settings
+
+    fast = given(*strategies, **kw_strategies)(prop)
+    slow = settings(settings.get_profile("fuzz"))(given(*strategies, **kw_strategies)(prop))
+    return fast, pytest.mark.slow(slow)
