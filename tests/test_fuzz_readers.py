@@ -685,3 +685,165 @@ def key_file_property(workdir, case):
 
 
 test_key_file, test_key_file_fuzz = tiers(key_file_property, case=key_file_cases())
+
+
+# --- uplink bytes (the flight software's commands) --------------------------------------------------
+
+OTHER_KEY = bytes(range(100, 132))
+T0_TICKS = unix_to_timestamp(1_750_000_000.0)
+TAG_CMD = mavlink.MAV_CMD_USER_1
+
+
+def noise(rng: np.random.Generator, kind: str) -> bytes:
+    n = int(rng.integers(1, 300))
+    if kind == "random":
+        return rng.integers(0, 256, n, dtype=np.uint8).tobytes()
+    if kind == "stx flood":
+        return bytes([0xFD]) * n
+    # headers that pass every cheap check, then nothing right: the costly kind of flood
+    return b"".join(bytes([0xFD, 33, 0, 0, 0, 255, 190, 76, 0, 0]) + rng.integers(0, 256, 4, dtype=np.uint8).tobytes()
+                    for _ in range(n // 14 + 1))
+
+
+@st.composite
+def uplink_streams(draw):
+    """(chunks of bytes in arrival order, tags of the genuine commands): genuine signed COMMAND_LONGs
+    (param1 = a unique tag) among forged ones (another key, unsigned, to another system), replays,
+    damaged copies (a flipped byte, a cut, the last bytes lost, two spliced) and noise; cut into
+    chunks at random."""
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    now = [0.0]
+
+    def link(key, sysid=GCS_SYSID):
+        return GroundLink(lambda b: None, key, SigningClock(epoch=T0_TICKS), sysid=sysid)
+
+    ground, forger, plain = link(KEY), link(OTHER_KEY), link(None)
+    pieces, genuine, sent = [], [], []
+    for tag in range(draw(st.integers(1, 12))):
+        now[0] += float(rng.uniform(0, 2))
+        kind = draw(st.sampled_from(["genuine", "genuine", "other key", "unsigned", "not for us", "replay", "flip",
+                                     "cut", "tail lost", "splice", "noise"]))
+        if kind == "genuine":
+            f = ground.command_long(TAG_CMD, [float(tag)], now[0])
+            genuine.append(tag)
+            sent.append(f)
+        elif kind == "other key":
+            f = forger.command_long(TAG_CMD, [float(tag)], now[0])
+        elif kind == "unsigned":
+            f = plain.command_long(TAG_CMD, [float(tag)], now[0])
+        elif kind == "not for us":
+            f = ground.command_long(TAG_CMD, [float(tag)], now[0], target=(FSW_SYSID + 1, FSW_COMPID))
+        elif kind == "noise":
+            f = noise(rng, draw(st.sampled_from(["random", "stx flood", "header flood"])))
+        else:
+            g = bytearray(ground.command_long(TAG_CMD, [float(tag)], now[0]))  # made, never sent whole
+            if kind == "replay":
+                f = sent[int(rng.integers(len(sent)))] if sent else b""
+            elif kind == "flip":
+                g[int(rng.integers(len(g)))] ^= int(rng.integers(1, 256))
+                f = bytes(g)
+            elif kind == "cut":
+                a = int(rng.integers(len(g)))
+                f = bytes(g[:a] + g[a + int(rng.integers(1, 20)):])
+            elif kind == "tail lost":
+                f = bytes(g[:-int(rng.integers(1, 14))])
+            else:
+                h = ground.command_long(TAG_CMD, [float(tag) + 0.5], now[0])
+                f = bytes(g[:len(g) // 2]) + h[len(h) // 2:]
+        pieces.append(f)
+    data = b"".join(pieces)
+    cuts = sorted(set(draw(st.lists(st.integers(0, len(data)), max_size=8))) | {0, len(data)})
+    return [data[a:b] for a, b in zip(cuts, cuts[1:])], genuine
+
+
+def make_uplink(key, **kw):
+    router = CommandRouter()
+    obeyed: list[float] = []
+    router.register(TAG_CMD, lambda m, t: obeyed.append(m.param1))
+    answers: list = []
+    up = Uplink(None, router, sysid=FSW_SYSID, compid=FSW_COMPID, key=key,
+                clock=SigningClock(epoch=T0_TICKS, clock_set=True), reply=answers.append, **kw)
+    return up, obeyed, answers
+
+
+def uplink_property(case):
+    """Fed as a stream: never raises; with the key, exactly the genuine commands are obeyed, each once;
+    without a key, none (a state-changing command needs a signature)."""
+    chunks, genuine = case
+    for key in (KEY, None):
+        up, obeyed, _ = make_uplink(key)
+        for k, c in enumerate(chunks):
+            up.feed(c, 0.01 * k)
+        assert up.counters.parser_resets == 0
+        assert up.counters.bytes == sum(map(len, chunks))
+        if key is None:
+            assert obeyed == []
+        else:
+            assert obeyed == [float(t) for t in genuine], (obeyed, genuine)
+
+
+test_uplink, test_uplink_fuzz = tiers(uplink_property, case=uplink_streams())
+
+
+class StreamLink:
+    """A byte stream (a serial radio): recv(n) gives at most n bytes of what has arrived."""
+
+    def __init__(self, data: bytes) -> None:
+        self.data = bytearray(data)
+        self.served = 0
+
+    def recv(self, n: int) -> bytes:
+        out = bytes(self.data[:n])
+        del self.data[:n]
+        self.served += len(out)
+        return out
+
+
+class DatagramLink:
+    """A UDP socket: read_datagrams(n) gives at most n of the waiting datagrams (data, address, size)."""
+
+    def __init__(self, datagrams: list[tuple[bytes, tuple]]) -> None:
+        self.waiting = list(datagrams)
+        self.served = 0
+
+    def read_datagrams(self, n: int) -> list:
+        out, self.waiting = self.waiting[:n], self.waiting[n:]
+        self.served += len(out)
+        return [(d, addr, len(d)) for d, addr in out]
+
+
+BUDGETS = dict(max_bytes_per_tick=512, max_datagrams_per_tick=8, max_parsed_per_tick=4, max_crc_checks_per_tick=6,
+               max_frames_per_tick=3)
+
+
+def bounded_work_property(case):
+    """Polled a tick at a time, on a stream link and on a datagram link: per tick at most the budgets'
+    bytes read, datagrams taken, CRCs computed and frames decoded, whatever arrives; never raises;
+    never obeys a frame that is not genuine; a genuine command arriving alone on a quiet datagram link
+    is obeyed."""
+    chunks, genuine = case
+    data = b"".join(chunks)
+    for conn in (StreamLink(data), DatagramLink([(c, ("10.0.0.9", 14550 + k % 3)) for k, c in enumerate(chunks)])):
+        up, obeyed, _ = make_uplink(KEY, **BUDGETS)
+        decoded = []
+        real_decode = up._deframer.decode
+        up._deframer.decode = lambda f: decoded.append(f) or real_decode(f)
+        for tick in range(2 + len(data) // 64):
+            crc0, served0, n0 = up._deframer.crc_checks, conn.served, len(decoded)
+            up.poll(0.02 * tick)
+            assert up._deframer.crc_checks - crc0 <= BUDGETS["max_crc_checks_per_tick"]
+            assert len(decoded) - n0 <= BUDGETS["max_frames_per_tick"]
+            limit = BUDGETS["max_bytes_per_tick"] if isinstance(conn, StreamLink) else BUDGETS["max_datagrams_per_tick"]
+            assert conn.served - served0 <= limit
+        assert up.counters.parser_resets == 0
+        assert set(obeyed) <= {float(t) for t in genuine} and len(obeyed) == len(set(obeyed))
+    quiet = GroundLink(lambda b: None, KEY, SigningClock(epoch=T0_TICKS))
+    up, obeyed, _ = make_uplink(KEY, **BUDGETS)
+    up.conn = DatagramLink([(c, ("10.0.0.9", 14550)) for c in chunks] +
+                           [(quiet.command_long(TAG_CMD, [99.0], 1000.0), ("10.0.0.1", 14550))])
+    for tick in range(len(chunks) // BUDGETS["max_datagrams_per_tick"] + 2):
+        up.poll(1000.0 + 0.02 * tick)
+    assert 99.0 in obeyed
+
+
+test_uplink_bounded_work, test_uplink_bounded_work_fuzz = tiers(bounded_work_property, case=uplink_streams())
