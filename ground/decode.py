@@ -31,8 +31,8 @@ Outputs
   where none arrived or the estimate is flagged DEBRIS_ESTIMATE_FLAGS_NO_ESTIMATE.
 The CSVs are written while the frames arrive, one file per run of each source's flight software
 (`ground.recorder`: names, order, what a crash leaves), and completed when decoding stops: duration or
-count reached, end of a tlog, SIGINT or SIGTERM. Frames with non-finite values (or a negative σ) are
-counted and left out, never written. Every source (sysid, compid) is kept apart (`ground.streams`).
+count reached, end of a tlog, SIGINT or SIGTERM. Frames with non-finite values (or a negative σ), or a
+sample time of 2**53 µs or more (`MAX_TIME_US`), are counted and left out, never written. Every source (sysid, compid) is kept apart (`ground.streams`).
 
 Nothing lost to the link: the box numbers its samples and keeps them (`fsw.telemetry.sample_store`).
 On a live link the decoder asks again for the numbers that did not arrive (DEBRIS_SAMPLE_REQUEST,
@@ -72,7 +72,7 @@ from fsw.argtypes import check_paths_or_exit, finite_float, int_range, link_url
 from fsw.files import check_paths
 
 from .command import GroundLink
-from .link_stats import MAG_FIELDS, LinkStats
+from .link_stats import MAG_FIELDS, MAX_TIME_US, LinkStats
 from .recorder import Recorder
 from .recording import RateEstimates, Recording, write_rate_estimates, write_recording
 from .streams import Segment, Stream
@@ -208,10 +208,13 @@ class Decoder:
     def _sample_message(self, kind: str, msg, now_s: float) -> None:
         if kind == "HIGHRES_IMU" and msg.fields_updated & MAG_FIELDS != MAG_FIELDS:
             return
+        t_us = int(msg.time_usec)
+        if t_us >= MAX_TIME_US:
+            self.invalid[kind] += 1
+            return
         stream = self._stream(msg)
         if stream is None:
             return
-        t_us = int(msg.time_usec)
         if kind in ("DEBRIS_MAG_SAMPLE", "HIGHRES_IMU"):
             b = f32(*msg.mag) if kind == "DEBRIS_MAG_SAMPLE" else f32(msg.xmag, msg.ymag, msg.zmag)
             if not all(map(math.isfinite, b)):
@@ -425,7 +428,7 @@ class Decoder:
             refused = ", ".join(f"{k} {n}" for k, n in sorted(self.unauthenticated.items())) or "none"
             out.append(f"signatures: {self.verifier.counts[Verdict.OK]} frames verified; refused: {refused}")
         if self.invalid:
-            out.append("not recorded, non-finite values: "
+            out.append("not recorded, non-finite values or impossible times: "
                        + ", ".join(f"{k} {n}" for k, n in sorted(self.invalid.items())))
         return "\n".join(out)
 
