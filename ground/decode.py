@@ -618,8 +618,7 @@ class _LiveLink:
             time.sleep(0.1)
             return out
         for data, _addr, _size in datagrams:
-            out += self.deframer.feed(data)
-            out += self.deframer.flush()
+            out += self.deframer.feed(data, end=True)  # a datagram holds whole frames
         return out
 
     def flush(self) -> list:

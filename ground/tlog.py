@@ -159,7 +159,7 @@ class _Scanner:
         return _T_MIN_US <= t < _T_MAX_US and (last is None or abs(t - last) <= _RESYNC_US)
 
     def parse(self, data: bytes) -> list:
-        return self.deframer.feed(data) + self.deframer.flush()
+        return self.deframer.feed(data, end=True)
 
     @staticmethod
     def intact(messages: list) -> bool:

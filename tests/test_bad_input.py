@@ -303,3 +303,22 @@ def test_truncated_and_non_monotonic_csv_name_their_line(tmp_path):
     back.write_text("\n".join(lines) + "\n")
     with pytest.raises(RecordingError, match=r"back\.csv:12: column 't_s': time .* not after"):
         read_recording(back)
+
+
+def test_signed_frames_whose_signature_ends_in_a_start_byte_are_intact_records(tmp_path):
+    """A start byte in a signed frame's last bytes may begin a frame cut in two by a read (the
+    deframer looks at those bytes again on a stream); a tlog record is whole: the frame is intact."""
+    p = mavlink.MAVLink(None, srcSystem=FSW_SYSID, srcComponent=FSW_COMPID)
+    clock = SigningClock(epoch=unix_to_timestamp(WALL0))
+    setup_outgoing(p, bytes(range(7, 39)), clock)
+    out, kept = b"", 0
+    for k in range(3000):
+        frame = mavlink.MAVLink_heartbeat_message(18, 8, 0, 0, 4, 3).pack(p)
+        p.seq = (p.seq + 1) % 256
+        if 0xFD in frame[-9:]:
+            out += struct.pack(">Q", int((WALL0 + 0.1 * kept) * 1e6)) + frame
+            kept += 1
+    path = tmp_path / "fd.tlog"
+    path.write_bytes(out)
+    report = check_tlog(path)
+    assert kept > 50 and report.records == kept and not report.damaged

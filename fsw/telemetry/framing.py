@@ -195,8 +195,10 @@ class Deframer:
         return n
 
     # --- messages --------------------------------------------------------------------------------
-    def feed(self, data: bytes) -> list:
-        return [self.decode(x) if isinstance(x, bytes) else x for x in self.feed_frames(data)]
+    def feed(self, data: bytes, *, end: bool = False) -> list:
+        """The messages (and BAD_DATA) in the stream so far; `end`: the stream ends with `data` (a
+        datagram, a tlog record, a file), as :meth:`flush` after it, but nothing is looked at twice."""
+        return [self.decode(x) if isinstance(x, bytes) else x for x in self.feed_frames(data, end=end)]
 
     def flush(self) -> list:
         """End of the stream: whatever is left is either a frame or junk."""
@@ -211,10 +213,10 @@ class Deframer:
             return mavlink.MAVLink_bad_data(bytearray(frame), _UNDECODABLE)
 
     # --- raw frames ------------------------------------------------------------------------------
-    def feed_frames(self, data: bytes) -> list:
+    def feed_frames(self, data: bytes, *, end: bool = False) -> list:
         """Like :meth:`feed`, but intact frames come as their raw bytes (CRC checked, not decoded)."""
         self._buf += data
-        return self._scan(final=False)
+        return self.flush_frames() if end else self._scan(final=False)
 
     def flush_frames(self) -> list:
         out = self._scan(final=True)
