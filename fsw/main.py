@@ -27,7 +27,6 @@ if __name__ == "__main__":  # Ctrl-C while the modules below load (a second or m
 
     signal.signal(signal.SIGINT, _interrupted)
 
-import argparse  # noqa: E402
 import gc  # noqa: E402
 import math  # noqa: E402
 import threading  # noqa: E402
@@ -37,7 +36,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from .argtypes import check_paths_or_exit, finite_float, int_range, link_url  # noqa: E402
+from .argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range, link_url  # noqa: E402
 from .drivers.mmc5983ma import Mmc5983ma  # noqa: E402
 from .drivers.mmc5983ma_regs import Bandwidth, ContinuousFrequency  # noqa: E402
 from .flight import FlightSoftware  # noqa: E402
@@ -169,7 +168,7 @@ def sitl_sensor(scenario_rate_hz: float, scenario_bw: Bandwidth, rate_hz: float 
 
 
 def parse_args(argv=None):
-    ap = argparse.ArgumentParser(prog="python -m fsw.main", description=__doc__.splitlines()[0])
+    ap = ArgumentParser(prog="python -m fsw.main", description=__doc__.splitlines()[0])
     mode = ap.add_mutually_exclusive_group(required=True)
     mode.add_argument("--sitl", action="store_true", help="run against the in-process simulator (lockstep)")
     mode.add_argument("--mag-serial", metavar="PORT",
@@ -221,7 +220,7 @@ def parse_args(argv=None):
         ap.error("--rates-out needs --replay")
     scenario_file = args.scenario if args.sitl and Path(args.scenario).is_file() else None
     check_paths_or_exit(ap, inputs={"--replay": args.replay, "--key": args.key, "--scenario": scenario_file},
-                        outputs={"--rates-out": args.rates_out})
+                        outputs={"--rates-out": args.rates_out, "--sample-store": args.sample_store})
     return args
 
 

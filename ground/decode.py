@@ -46,7 +46,6 @@ and not used (the link accounting and the tlog still see every intact frame).
 """
 from __future__ import annotations
 
-import argparse
 import itertools
 import math
 import select
@@ -68,7 +67,7 @@ from fsw.telemetry.signing import Verdict, Verifier, load_key, unix_clock
 from fsw.telemetry.framing import Deframer
 from fsw.telemetry.udp_link import UDP_MAX_PAYLOAD, UdpLink
 
-from fsw.argtypes import check_paths_or_exit, finite_float, int_range, link_url
+from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range, link_url
 from fsw.files import check_paths
 
 from .command import GroundLink
@@ -660,7 +659,7 @@ def sent_methods() -> dict[str, int]:
 
 def main(argv: list[str] | None = None) -> int:
     sent = sent_methods()
-    ap = argparse.ArgumentParser(prog="python -m ground.decode", description=__doc__.splitlines()[0])
+    ap = ArgumentParser(prog="python -m ground.decode", description=__doc__.splitlines()[0])
     ap.add_argument("url", type=link_url, help="pymavlink connection string: udpin:0.0.0.0:14550, tcp:HOST:PORT, "
                                                "a serial device, or a .tlog file")
     ap.add_argument("--baud", type=int_range(1), default=115200, help="serial baud rate (default 115200)")

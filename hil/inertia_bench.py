@@ -46,7 +46,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fsw.argtypes import check_paths_or_exit, finite_float, int_range
+from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range
 from fsw.estimation import euler_fit as ef
 from fsw.estimation import inertia as inr
 from fsw.files import write_atomic
@@ -516,14 +516,14 @@ def crb_lines(table_: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m hil.inertia_bench", description=__doc__.splitlines()[0])
+    ap = ArgumentParser(prog="python -m hil.inertia_bench", description=__doc__.splitlines()[0])
     ap.add_argument("--json", metavar="FILE", help="write all the numbers as JSON")
     ap.add_argument("--runs", type=int_range(2), default=20, help="Monte-Carlo runs per scenario (default 20)")
     ap.add_argument("--seed", type=int_range(0), default=1, help="seed of the noise draws (default 1)")
     ap.add_argument("--duration", default="auto", metavar="S|auto",
                     help="record length in seconds, or auto (default): per scenario the shortest of "
                          f"{', '.join(f'{d:g}' for d in RECORD_LADDER_S)} s whose Cramér–Rao bound on the shape "
-                         f"ratios is <= {SHAPE_TARGET_PCT:g} % / {DESIGN_MARGIN:g}")
+                         f"ratios is <= {SHAPE_TARGET_PCT:g} %% / {DESIGN_MARGIN:g}")
     ap.add_argument("--scenarios", default=",".join(SCENARIOS), help="comma-separated scenario names")
     ap.add_argument("--quick", action="store_true", help="3 runs of 900 s: a smoke run")
     ap.add_argument("--no-linear", action="store_true", help="skip the linear-methods rows")
@@ -536,12 +536,17 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     check_paths_or_exit(ap, outputs={"--json": args.json})
     names = [s.strip() for s in args.scenarios.split(",") if s.strip()]
+    if not names:
+        ap.error(f"--scenarios {args.scenarios!r}: no scenario named")
+    fits = tuple(f.strip() for f in args.fits.split(",") if f.strip())
+    if not fits or not set(fits) <= {"full", "shape"}:
+        ap.error(f"--fits {args.fits!r}: give full, shape or full,shape")
     try:
         for name in names:
             scenarios.load(name)
     except scenarios.ScenarioError as e:
         ap.error(f"--scenarios: {e}")
-    if args.crb:
+    if args.crb is not None:
         try:
             lengths = [finite_float(0, min_exclusive=True)(x) for x in args.crb.split(",")]
         except argparse.ArgumentTypeError as e:
@@ -580,7 +585,7 @@ def main(argv: list[str] | None = None) -> int:
             r = bench_scenario(name, args.runs, args.seed, duration,
                                log=lambda m: print("  " + m, file=sys.stderr, flush=True),
                                linear=not args.no_linear,
-                               fits=tuple(f.strip() for f in args.fits.split(",")),
+                               fits=fits,
                                shape_from=args.shape_data, truth=truth)
             if design is not None:
                 r["record_design"] = design
