@@ -73,6 +73,8 @@ def link_url(text: str) -> str:
     """An argparse `type` for a pymavlink connection string: a network one (``udpin:``, ``udpout:``,
     ``tcp:`` ...) needs HOST:PORT with a port in 1..65535; anything else (a serial device, a file)
     passes unchanged, for the tool that opens it to judge."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("empty: give a connection string or a device")
     lower = text.lower()
     prefix = next((p for p in _NETWORK_PREFIXES if lower.startswith(p)), None)
     if prefix is None:

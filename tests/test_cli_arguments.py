@@ -440,3 +440,20 @@ def test_command_refuses_two_things_to_do(capsys):
     """--set-param with --get-param (or a command) ran the first and ignored the rest, even invalid."""
     one_line_error(capsys, command.main, ["udpout:127.0.0.1:9", "--set-param", "TLM_SAMPLE_HZ", "5", "--get-param",
                                           "ÄBC", "--wait", "0.1"], 2, "one of COMMAND")
+
+
+@pytest.mark.parametrize("main, argv, words", [
+    (fsw_main.main, ["--sitl", "--key", "", "--link", "udpout:127.0.0.1:9"], ("--key", "empty path")),
+    (fsw_main.main, ["--replay", "", "--link", "udpout:127.0.0.1:9"], ("--replay", "empty path")),
+    (decode.main, ["udpin:127.0.0.1:9", "--key", ""], ("--key", "empty path")),
+    (decode.main, [""], ("url", "empty")),
+    (command.main, ["udpout:127.0.0.1:9", "capsule", "--key", ""], ("--key", "empty path")),
+    (estimate.main, ["", "--rates", "r.csv"], ("input", "empty path")),
+], ids=["fsw.main --key", "fsw.main --replay", "ground.decode --key", "ground.decode URL", "ground.command --key",
+        "ground.estimate input"])
+def test_an_empty_path_is_refused_not_taken_for_none(capsys, monkeypatch, main, argv, words):
+    """An empty path (a shell variable not set) was taken for "not given": fsw.main --key "" ran with no
+    key at all, --replay "" ran on target with no serial port, ground.decode "" read the current folder."""
+    no_work(monkeypatch, "fsw.main:FlightSoftware", "ground.decode:run", "ground.command:Session",
+            "ground.estimate:read_recording")
+    one_line_error(capsys, main, argv, 2, *words)
