@@ -33,6 +33,8 @@ from typing import Callable
 import numpy as np
 import pytest
 from hypothesis import strategies as st
+from support import free_udp_port, tiers
+from test_bad_input import good_tlog
 
 import fsw.main
 import fsw.telemetry.dialect
@@ -50,8 +52,6 @@ import hil.sim
 import hil.soak
 from ground.recording import Recording, write_recording
 from hil import scenario as scenarios
-from support import free_udp_port, tiers
-from test_bad_input import good_tlog
 
 # --- the files every example starts from -------------------------------------------------------------
 
@@ -569,7 +569,8 @@ def argvs(draw, tool: Tool):
     role = {n: o.role for n, o in tool.positionals + list(tool.options.items())}
     for name, (text, ok) in list(chosen.items()):
         # "=INPUT" is an input only when this argv names an input file; "=OUTPUT", when another output
-        if text == "=INPUT" and not any(role[n] == "in" and str(x[0]).startswith("{files}/") for n, x in chosen.items()):
+        if text == "=INPUT" and not any(role[n] == "in" and str(x[0]).startswith("{files}/")
+                                        for n, x in chosen.items()):
             chosen[name] = (text, None)
         if text == "=OUTPUT" and not any(role[n] == "out" and n != name and str(x[0]).startswith("{out}/")
                                          for n, x in chosen.items()):
@@ -683,7 +684,7 @@ def cli_property(tool: Tool):
         argv = _resolve(words, chosen, tool, files, out, PORT)
         before = FRESH[files]
         with pytest.MonkeyPatch.context() as mp:
-            status, err, reached = run_tool(tool, argv, mp)
+            status, err, _ = run_tool(tool, argv, mp)
         shown = f"{tool.name} {argv}: status {status}, stderr {err[-500:]!r}"
         assert "Traceback" not in err, shown
         assert not re.search(r"^\w+(Error|Exception|Interrupt)\b", err, re.M), shown

@@ -13,30 +13,39 @@ marked slow, with 10,000 examples. Run the slow tier with ``pytest -m slow tests
 """
 from __future__ import annotations
 
+import copy
+import datetime as dt
 import math
 import os
 import stat
 import struct
+import tomllib
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import pytest
 from hypothesis import strategies as st
+from support import tiers
 
 from fsw.commands import CommandRouter
-from fsw.telemetry.dialect import FSW_COMPID, FSW_SYSID, GCS_COMPID, GCS_SYSID, mavlink
+from fsw.telemetry.dialect import FSW_COMPID, FSW_SYSID, GCS_SYSID, mavlink
 from fsw.telemetry.framing import MESSAGES, Deframer, crc_x25
-from fsw.telemetry.signing import (KEY_FILE_MAX_BYTES, KeyFileError, SigningClock, load_key, setup_outgoing,
-                                   sign_ready, unix_to_timestamp)
+from fsw.telemetry.signing import (
+    KEY_FILE_MAX_BYTES,
+    KeyFileError,
+    SigningClock,
+    load_key,
+    setup_outgoing,
+    sign_ready,
+    unix_to_timestamp,
+)
 from fsw.telemetry.uplink import Uplink
 from ground.command import GroundLink
-from ground.decode import Decoder, tlog_record
-from ground.recording import (RecordingError, read_rate_estimates, read_recording, write_rate_estimates,
-                              write_recording)
+from ground.decode import Decoder
+from ground.recording import RecordingError, read_rate_estimates, read_recording, write_rate_estimates, write_recording
 from ground.tlog import TlogError, read_tlog
 from hil import scenario as scenarios
-from support import tiers
 
 
 @pytest.fixture(scope="module")
@@ -356,7 +365,8 @@ def tlog_cases(draw):
             del owner[pos:stop]
         elif op in ("insert", "copy"):
             if op == "insert":
-                new = draw(st.binary(min_size=1, max_size=40) | st.sampled_from([b"\xfd", b"\xfd\x09\x00", b"\x00" * 8]))
+                new = draw(st.binary(min_size=1, max_size=40)
+                           | st.sampled_from([b"\xfd", b"\xfd\x09\x00", b"\x00" * 8]))
             else:
                 a = draw(st.integers(0, max(len(data) - 1, 0)))
                 new = bytes(data[a:a + draw(st.integers(1, 120))]) or b"\x00"
@@ -400,11 +410,8 @@ test_tlog, test_tlog_fuzz = tiers(tlog_property, case=tlog_cases())
 
 # --- TOML scenarios ---------------------------------------------------------------------------------
 
-import copy  # noqa: E402
-import datetime as dt  # noqa: E402
-import tomllib  # noqa: E402
-
-SHIPPED = {name: tomllib.loads(scenarios.resolve(name).read_text(encoding="utf-8")) for name in scenarios.scenario_names()}
+SHIPPED = {name: tomllib.loads(scenarios.resolve(name).read_text(encoding="utf-8"))
+           for name in scenarios.scenario_names()}
 #: the tables every scenario needs, each with every key (hil/scenario.py's docstring)
 REQUIRED_TABLES = ("body", "initial", "orbit", "field", "sensor")
 
@@ -557,7 +564,8 @@ def scenario_cases(draw):
                 d[key] = draw(st.sampled_from(NOT_A_NUMBER + ODD_NUMBERS + [[0.0, 0.0, 0.0], [1.0, 2.0]]))
         elif op == "inertia" and isinstance(doc.get("body"), dict):
             doc["body"]["inertia_kgm2"] = draw(st.sampled_from([
-                [[1, 0, 0], [0, 1, 0], [0, 0, 3]], [[1, 0.5, 0], [0, 1, 0], [0, 0, 1]], [[-1, 0, 0], [0, 1, 0], [0, 0, 1]],
+                [[1, 0, 0], [0, 1, 0], [0, 0, 3]], [[1, 0.5, 0], [0, 1, 0], [0, 0, 1]],
+                [[-1, 0, 0], [0, 1, 0], [0, 0, 1]],
                 [[0, 0, 0], [0, 0, 0], [0, 0, 0]], [[1e308, 0, 0], [0, 1e308, 0], [0, 0, 1e308]],
                 [[1e-300, 0, 0], [0, 1e-300, 0], [0, 0, 1e-300]], [[2, 1, 1], [1, 2, 1], [1, 1, 2]]]))
         elif op == "deep":
@@ -578,7 +586,9 @@ def scenario_cases(draw):
 
 def check_scenario(scn: scenarios.Scenario) -> None:
     """The values a loaded scenario holds obey what hil/scenario.py promises."""
-    finite = lambda a: np.all(np.isfinite(np.asarray(a, dtype=float)))  # noqa: E731
+    def finite(a) -> bool:
+        return bool(np.all(np.isfinite(np.asarray(a, dtype=float))))
+
     J = scn.inertia_kgm2
     assert J.shape == (3, 3) and finite(J) and np.allclose(J, J.T, rtol=0, atol=1e-12 * np.abs(J).max())
     assert np.linalg.eigvalsh(J)[0] > 0
@@ -833,9 +843,13 @@ def bounded_work_property(case):
     data = b"".join(chunks)
     for conn in (StreamLink(data), DatagramLink([(c, ("10.0.0.9", 14550 + k % 3)) for k, c in enumerate(chunks)])):
         up, obeyed, _ = make_uplink(KEY, **BUDGETS)
-        decoded = []
-        real_decode = up._deframer.decode
-        up._deframer.decode = lambda f: decoded.append(f) or real_decode(f)
+        decoded: list = []
+
+        def counting(frame, decoded=decoded, real=up._deframer.decode):
+            decoded.append(frame)
+            return real(frame)
+
+        up._deframer.decode = counting
         for tick in range(2 + len(data) // 64):
             crc0, served0, n0 = up._deframer.crc_checks, conn.served, len(decoded)
             up.poll(0.02 * tick)
