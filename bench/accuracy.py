@@ -51,7 +51,6 @@ the random-walk RTS smoother).
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
@@ -60,7 +59,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fsw.argtypes import check_paths_or_exit, finite_float, int_range
+from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range
 from fsw.estimation import attitude_kalman as ak
 from fsw.estimation import field_motion as fm
 from fsw.estimation import filter_banks as fb
@@ -514,9 +513,14 @@ def real_recordings(paths, rates_hz=(None, 10.0), max_s: float | None = None, lo
     out = []
     for path in paths:
         rec = read_recording(path)
-        if max_s is not None:
+        if rec.w_ref_radps is None:
+            raise ValueError(f"{path}: no reference rate (wx_dps, wy_dps, wz_dps) to score against")
+        if max_s is not None and len(rec):
             m = rec.t_s < rec.t_s[0] + max_s
             rec = Recording(rec.t_s[m], rec.b_T[m], rec.m_Nm[m], rec.w_ref_radps[m])
+        if len(rec) < 10:
+            raise ValueError(f"{path}: {len(rec)} samples" + (f" in the first {max_s:g} s" if max_s else "")
+                             + ", too few to score (10 at least)")
         for hz in rates_hz:
             r = decimate(rec, hz) if hz else rec
             sigma = noise_estimate_T(r.b_T)
@@ -556,7 +560,7 @@ def real_markdown(rows: list[dict]) -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.accuracy", description=__doc__.splitlines()[0])
+    ap = ArgumentParser(prog="python -m bench.accuracy", description=__doc__.splitlines()[0])
     ap.add_argument("--json", metavar="FILE", help="write every number (per row and method) as JSON")
     ap.add_argument("--runs", type=int_range(1), default=3, help="Monte-Carlo runs per row (default 3)")
     ap.add_argument("--seed", type=int_range(0), default=2024, help="base seed (default 2024)")
@@ -571,10 +575,21 @@ def main(argv=None) -> int:
     ap.add_argument("--max-s", type=finite_float(0, min_exclusive=True), default=None,
                     help="with --real: only the first S seconds of each")
     args = ap.parse_args(argv)
-    check_paths_or_exit(ap, outputs={"--json": args.json})
-    if args.real:
+    real = []
+    if args.real is not None:
         from pathlib import Path
-        rows = real_recordings(sorted(Path(args.real).glob("*.csv")), max_s=args.max_s)
+        if not Path(args.real).is_dir():
+            ap.error(f"--real {args.real}: not a directory")
+        real = sorted(p for p in Path(args.real).glob("*.csv") if p.is_file())
+        if not real:
+            ap.error(f"--real {args.real}: no recordings (*.csv) in it")
+    check_paths_or_exit(ap, inputs=[("--real", p) for p in real], outputs={"--json": args.json})
+    if args.real is not None:
+        try:
+            rows = real_recordings(real, max_s=args.max_s)
+        except ValueError as e:  # a file that is not a recording with a reference rate (RecordingError too)
+            print(f"hil.accuracy: {e}", file=sys.stderr)
+            return 1
         print()
         print(real_markdown(rows))
         if args.json:

@@ -17,7 +17,6 @@ Figures 3-8: yaw, pitch, the control moments and the pulses of both channels).
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import math
@@ -29,7 +28,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from fsw.argtypes import check_paths_or_exit, finite_float
+from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float
 from fsw.deorbit.controller import ControllerConfig, euler_zyx
 from fsw.deorbit.energy import PAPER_CAPSULES_J, PAPER_MAGNETS_J, PAPER_OPENINGS, PAPER_TOTAL_J, PAPER_TURNS
 from fsw.config import RunConfig
@@ -78,7 +77,12 @@ class Fault:
                 value = (name, level in ("1", "on", "true"))
             else:
                 value = float(parts[3])
-        return cls(float(parts[2]), CHANNELS[parts[1]], parts[0], value)
+                if not math.isfinite(value):
+                    raise ValueError(f"bad fault {text!r}: the value must be a finite number")
+        t_s = float(parts[2])
+        if not (math.isfinite(t_s) and t_s >= 0):  # NaN: never injected, silently
+            raise ValueError(f"bad fault {text!r}: the time must be a finite number of seconds >= 0")
+        return cls(t_s, CHANNELS[parts[1]], parts[0], value)
 
 
 @dataclass
@@ -313,7 +317,7 @@ def plot(r: BenchResult, path: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.deorbit", description=__doc__.splitlines()[0])
+    ap = ArgumentParser(prog="python -m bench.deorbit", description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default=DEFAULT_SCENARIO, metavar="NAME|FILE")
     ap.add_argument("--duration", type=finite_float(0, min_exclusive=True), default=None, metavar="S",
                     help="default: the scenario's (10,800 s)")

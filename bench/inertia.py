@@ -46,7 +46,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fsw.argtypes import check_paths_or_exit, finite_float, int_range
+from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range
 from fsw.estimation import euler_fit as ef
 from fsw.estimation import inertia as inr
 from fsw.files import write_atomic
@@ -523,7 +523,7 @@ def crb_lines(table_: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.inertia", description=__doc__.splitlines()[0])
+    ap = ArgumentParser(prog="python -m bench.inertia", description=__doc__.splitlines()[0])
     ap.add_argument("--json", metavar="FILE", help="write all the numbers as JSON")
     ap.add_argument("--runs", type=int_range(2), default=20, help="Monte-Carlo runs per scenario (default 20)")
     ap.add_argument("--seed", type=int_range(0), default=1, help="seed of the noise draws (default 1)")
@@ -543,12 +543,17 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     check_paths_or_exit(ap, outputs={"--json": args.json})
     names = [s.strip() for s in args.scenarios.split(",") if s.strip()]
+    if not names:
+        ap.error(f"--scenarios {args.scenarios!r}: no scenario named")
+    fits = tuple(f.strip() for f in args.fits.split(",") if f.strip())
+    if not fits or not set(fits) <= {"full", "shape"}:
+        ap.error(f"--fits {args.fits!r}: give full, shape or full,shape")
     try:
         for name in names:
             scenarios.load(name)
     except scenarios.ScenarioError as e:
         ap.error(f"--scenarios: {e}")
-    if args.crb:
+    if args.crb is not None:
         try:
             lengths = [finite_float(0, min_exclusive=True)(x) for x in args.crb.split(",")]
         except argparse.ArgumentTypeError as e:
@@ -587,7 +592,7 @@ def main(argv: list[str] | None = None) -> int:
             r = bench_scenario(name, args.runs, args.seed, duration,
                                log=lambda m: print("  " + m, file=sys.stderr, flush=True),
                                linear=not args.no_linear,
-                               fits=tuple(f.strip() for f in args.fits.split(",")),
+                               fits=fits,
                                shape_from=args.shape_data, truth=truth)
             if design is not None:
                 r["record_design"] = design

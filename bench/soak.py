@@ -34,7 +34,6 @@ did not arrive (`ground.gaps`), so the target is 0 whatever the link did.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
@@ -45,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fsw.argtypes import check_paths_or_exit, finite_float, int_range
+from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range
 from fsw.files import write_atomic
 from fsw.flight import FlightSoftware
 from fsw.telemetry.dialect import FSW_COMPID, FSW_SYSID, mavlink
@@ -506,7 +505,7 @@ def report(fig: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.soak", description=__doc__.splitlines()[0])
+    ap = ArgumentParser(prog="python -m bench.soak", description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=finite_float(120), default=3600.0, metavar="S",
                     help="simulated seconds, >= 120: faults start at 30 s and the last minute is quiet "
                          "(default 3600; at least 300 for a meaningful schedule)")

@@ -1,5 +1,6 @@
 """Command-line argument types shared by the tools: numbers that are finite and in range, link URLs
-whose port exists, and the output-path check of `fsw.files` as an argparse error.
+whose port exists, the output-path check of `fsw.files` as an argparse error, and the parser every
+tool builds (:class:`ArgumentParser`).
 
 Every option that takes a number uses :func:`finite_float` or :func:`int_range`: ``nan``, ``inf`` and
 values out of range are refused by argparse itself (exit status 2, ``argument --x: ...``), so that a
@@ -72,6 +73,8 @@ def link_url(text: str) -> str:
     """An argparse `type` for a pymavlink connection string: a network one (``udpin:``, ``udpout:``,
     ``tcp:`` ...) needs HOST:PORT with a port in 1..65535; anything else (a serial device, a file)
     passes unchanged, for the tool that opens it to judge."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("empty: give a connection string or a device")
     lower = text.lower()
     prefix = next((p for p in _NETWORK_PREFIXES if lower.startswith(p)), None)
     if prefix is None:
@@ -83,6 +86,19 @@ def link_url(text: str) -> str:
     if not port.isdigit() or not 1 <= int(port) <= 65535:
         raise argparse.ArgumentTypeError(f"{text!r}: port must be a number in 1..65535, got {port!r}")
     return text
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse's parser, except that ``--option=--`` gives the option the value ``--`` (for its type to
+    judge). Python 3.11's argparse drops a ``--`` wherever it appears, so that the option got an empty
+    list: no type check, and a TypeError deep in the tool (``--rate=--``)."""
+
+    def _get_values(self, action, arg_strings):
+        if action.option_strings and action.nargs is None and arg_strings == ["--"]:
+            value = self._get_value(action, "--")
+            self._check_value(action, value)
+            return value
+        return super()._get_values(action, arg_strings)
 
 
 def check_paths_or_exit(ap: argparse.ArgumentParser, inputs=(), outputs=()) -> None:

@@ -8,7 +8,8 @@ with a one-line :class:`PathError` naming the paths:
   files that exist (so hard links and symbolic links are caught), the same resolved path
   (`os.path.realpath`, symbolic links in the directories followed) for files not created yet;
 - an output whose directory does not exist, is not a directory or is not writable;
-- an output that exists and is a directory, a FIFO, a device or a socket, or is not writable.
+- an output that exists and is a directory, a FIFO, a device or a socket, or is not writable;
+- an empty path, input or output (``--key ""`` from an unset shell variable is not "no key").
 
 :func:`atomic_file` / :func:`write_atomic` write through a temporary file in the same directory that
 replaces the target only when complete (`os.replace`): a crash or an error leaves the old file, or no
@@ -42,8 +43,17 @@ _DEFAULT_MODE = 0o666 & ~_umask()
 
 def _pairs(paths: Mapping[str, PathLike | None] | Iterable[tuple[str, PathLike | None]]
            ) -> list[tuple[str, str]]:
+    """(label, path) of the paths given (None: not given); an empty path is refused: it names no file,
+    and a tool that took it for "not given" would quietly do something else (run without a key)."""
     items = paths.items() if isinstance(paths, Mapping) else paths
-    return [(label, os.fspath(p)) for label, p in items if p is not None and os.fspath(p) != ""]
+    out = []
+    for label, p in items:
+        if p is None:
+            continue
+        if os.fspath(p) == "":
+            raise PathError(f"{label or 'path'}: empty path")
+        out.append((label, os.fspath(p)))
+    return out
 
 
 def _identity(path: str) -> tuple:

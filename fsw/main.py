@@ -18,11 +18,10 @@ if __name__ == "__main__":
 
     interrupt_quietly()
 
-import argparse  # noqa: E402
 import importlib  # noqa: E402
 import sys  # noqa: E402
 
-from .argtypes import check_paths_or_exit  # noqa: E402
+from .argtypes import ArgumentParser, check_paths_or_exit  # noqa: E402
 from .config import RunConfig, add_run_options, check_loop_rate, run_config  # noqa: E402
 from .runner import run_loop, run_program, status_line, summary  # noqa: E402
 
@@ -32,7 +31,7 @@ HAND_OVER = {"--sitl": "hil.sitl", "--replay": "ground.replay"}
 
 def parse_args(argv=None) -> tuple[RunConfig, str]:
     """(configuration, serial port of the magnetometer's register bridge)."""
-    ap = argparse.ArgumentParser(
+    ap = ArgumentParser(
         prog="python -m fsw.main", description=__doc__.splitlines()[0],
         epilog="--sitl ...: the same options and the simulator's (python -m hil.sitl --help); "
                "--replay INPUT.csv ...: a recording as the magnetometer (python -m ground.replay --help)")
@@ -40,7 +39,7 @@ def parse_args(argv=None) -> tuple[RunConfig, str]:
                     help="the MMC5983MA behind a serial register bridge (e.g. the pty of python -m hil.pty_link)")
     add_run_options(ap)
     args = ap.parse_args(argv)
-    check_paths_or_exit(ap, inputs={"--key": args.key}, outputs={})
+    check_paths_or_exit(ap, inputs={"--key": args.key}, outputs={"--sample-store": args.sample_store})
     return run_config(args, sample_rate_hz=args.sample_rate or 1.0), args.mag_serial
 
 

@@ -29,7 +29,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
-from fsw.argtypes import finite_float, int_range, link_url
+from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range, link_url
 from fsw.telemetry import dialect
 from fsw.telemetry.dialect import FSW_COMPID, FSW_SYSID, GCS_COMPID, GCS_SYSID, mavlink
 from fsw.telemetry.framing import Deframer
@@ -270,7 +270,7 @@ class Session:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m ground.command", description=__doc__.splitlines()[0],
+    ap = ArgumentParser(prog="python -m ground.command", description=__doc__.splitlines()[0],
                                  epilog="Commands: python -m ground.command --list")
     ap.add_argument("url", nargs="?", type=link_url,
                     help="udpin:0.0.0.0:14550, udpout:HOST:PORT, tcp:HOST:PORT or a serial device")
@@ -294,6 +294,9 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.url is None or (args.command is None and not args.set_param and not args.get_param):
         ap.error("URL and COMMAND (or --set-param / --get-param) are required")
+    if sum(x is not None for x in (args.command, args.set_param, args.get_param)) > 1:
+        ap.error("give one of COMMAND, --set-param and --get-param (the others would be ignored)")
+    check_paths_or_exit(ap, inputs={"--key": args.key})
     target = args.target
     try:
         if args.set_param:

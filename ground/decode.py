@@ -32,8 +32,9 @@ Outputs
   where none arrived or the estimate is flagged DEBRIS_ESTIMATE_FLAGS_NO_ESTIMATE.
 The CSVs are written while the frames arrive, one file per run of each source's flight software
 (`ground.recorder`: names, order, what a crash leaves), and completed when decoding stops: duration or
-count reached, end of a tlog, SIGINT or SIGTERM. Frames with non-finite values (or a negative σ) are
-counted and left out, never written. Every source (sysid, compid) is kept apart (`ground.streams`).
+count reached, end of a tlog, SIGINT or SIGTERM. Frames with non-finite values (or a negative σ), or a
+sample time of 2**53 µs or more (`MAX_TIME_US`), are counted and left out, never written. Every source
+(sysid, compid) is kept apart (`ground.streams`).
 
 Nothing lost to the link: the box numbers its samples and keeps them (`fsw.telemetry.sample_store`).
 On a live link the decoder asks again for the numbers that did not arrive (DEBRIS_SAMPLE_REQUEST,
@@ -47,7 +48,6 @@ and not used (the link accounting and the tlog still see every intact frame).
 """
 from __future__ import annotations
 
-import argparse
 import itertools
 import math
 import select
@@ -69,11 +69,11 @@ from fsw.telemetry.signing import Verdict, Verifier, load_key, unix_clock
 from fsw.telemetry.framing import Deframer
 from fsw.telemetry.udp_link import UDP_MAX_PAYLOAD, UdpLink
 
-from fsw.argtypes import check_paths_or_exit, finite_float, int_range, link_url
+from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range, link_url
 from fsw.files import check_paths
 
 from .command import GroundLink
-from .link_stats import MAG_FIELDS, LinkStats
+from .link_stats import MAG_FIELDS, MAX_TIME_US, LinkStats
 from .recorder import Recorder
 from .recording import RateEstimates, Recording, write_rate_estimates, write_recording
 from .streams import Segment, Stream
@@ -209,10 +209,13 @@ class Decoder:
     def _sample_message(self, kind: str, msg, now_s: float) -> None:
         if kind == "HIGHRES_IMU" and msg.fields_updated & MAG_FIELDS != MAG_FIELDS:
             return
+        t_us = int(msg.time_usec)
+        if t_us >= MAX_TIME_US:
+            self.invalid[kind] += 1
+            return
         stream = self._stream(msg)
         if stream is None:
             return
-        t_us = int(msg.time_usec)
         if kind in ("DEBRIS_MAG_SAMPLE", "HIGHRES_IMU"):
             b = f32(*msg.mag) if kind == "DEBRIS_MAG_SAMPLE" else f32(msg.xmag, msg.ymag, msg.zmag)
             if not all(map(math.isfinite, b)):
@@ -426,7 +429,7 @@ class Decoder:
             refused = ", ".join(f"{k} {n}" for k, n in sorted(self.unauthenticated.items())) or "none"
             out.append(f"signatures: {self.verifier.counts[Verdict.OK]} frames verified; refused: {refused}")
         if self.invalid:
-            out.append("not recorded, non-finite values: "
+            out.append("not recorded, non-finite values or impossible times: "
                        + ", ".join(f"{k} {n}" for k, n in sorted(self.invalid.items())))
         return "\n".join(out)
 
@@ -616,8 +619,7 @@ class _LiveLink:
             time.sleep(0.1)
             return out
         for data, _addr, _size in datagrams:
-            out += self.deframer.feed(data)
-            out += self.deframer.flush()
+            out += self.deframer.feed(data, end=True)  # a datagram holds whole frames
         return out
 
     def flush(self) -> list:
@@ -659,7 +661,7 @@ def sent_methods() -> dict[str, int]:
 
 def main(argv: list[str] | None = None) -> int:
     sent = sent_methods()
-    ap = argparse.ArgumentParser(prog="python -m ground.decode", description=__doc__.splitlines()[0])
+    ap = ArgumentParser(prog="python -m ground.decode", description=__doc__.splitlines()[0])
     ap.add_argument("url", type=link_url, help="pymavlink connection string: udpin:0.0.0.0:14550, tcp:HOST:PORT, "
                                                "a serial device, or a .tlog file")
     ap.add_argument("--baud", type=int_range(1), default=115200, help="serial baud rate (default 115200)")

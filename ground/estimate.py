@@ -28,7 +28,7 @@ from datetime import datetime
 
 import numpy as np
 
-from fsw.argtypes import check_paths_or_exit, finite_float
+from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float
 from fsw.estimation import attitude_kalman as ak
 from fsw.estimation import field_check as fc
 from fsw.estimation import filter_banks as fb
@@ -196,7 +196,7 @@ def inertia_main(argv) -> int:
     """`python -m ground.estimate INPUT.csv --inertia OUT.json [options of python -m ground.inertia]`."""
     from ground import inertia as gi
 
-    ap = argparse.ArgumentParser(prog="python -m ground.estimate INPUT.csv --inertia OUT.json",
+    ap = ArgumentParser(prog="python -m ground.estimate INPUT.csv --inertia OUT.json",
                                  description="the inertia tensor from a recording (output-error fit, ground.inertia)")
     ap.add_argument("input", help="recording, format v1 (CSV), with the known moment in m*_Nm")
     ap.add_argument("--inertia", required=True, metavar="OUT.json", help="inertia estimate to write (JSON)")
@@ -210,7 +210,7 @@ def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if "--inertia" in argv:
         return inertia_main(argv)
-    ap = argparse.ArgumentParser(prog="python -m ground.estimate", description=__doc__.splitlines()[0],
+    ap = ArgumentParser(prog="python -m ground.estimate", description=__doc__.splitlines()[0],
                                  epilog="With --inertia OUT.json instead of --rates: the inertia tensor "
                                         "(options: python -m ground.inertia --help).")
     ap.add_argument("input", help="recording, format v1 (CSV)")

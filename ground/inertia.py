@@ -32,7 +32,7 @@ from typing import Callable
 
 import numpy as np
 
-from fsw.argtypes import check_paths_or_exit, finite_float, int_range
+from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range
 from fsw.estimation import euler_fit as ef
 from fsw.estimation import field_check as fc
 from fsw.estimation import field_motion as fm
@@ -237,7 +237,7 @@ def summary(report: InertiaReport) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m ground.inertia", description=__doc__.splitlines()[0])
+    ap = ArgumentParser(prog="python -m ground.inertia", description=__doc__.splitlines()[0])
     ap.add_argument("input", help="recording-format CSV with the field and the known moment m*_Nm")
     ap.add_argument("output", help="inertia JSON to write")
     add_arguments(ap)

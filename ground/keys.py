@@ -11,11 +11,10 @@ provisioning, docs/link-and-security.md what the key protects.
 """
 from __future__ import annotations
 
-import argparse
 import secrets
 import sys
 
-from fsw.argtypes import check_paths_or_exit
+from fsw.argtypes import ArgumentParser, check_paths_or_exit
 from fsw.telemetry.signing import KEY_BYTES, KeyFileError, key_fingerprint, load_key, write_key
 
 
@@ -27,7 +26,7 @@ def new_key(path: str, *, overwrite: bool = False) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m ground.keys", description=__doc__.splitlines()[0])
+    ap = ArgumentParser(prog="python -m ground.keys", description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="action", required=True)
     n = sub.add_parser("new", help="create a new key file (mode 0600)")
     n.add_argument("file")

@@ -44,6 +44,9 @@ from fsw.telemetry.dialect import mavlink
 
 #: How far back (in frames) duplicates and late frames are recognised.
 REORDER_WINDOW = 16
+#: Sample times at or beyond 2**53 µs (285 years) are impossible and refused: no float holds them to the
+#: µs (two of them would make the same time in a recording), no int64 at all from 2**63 on.
+MAX_TIME_US = 2**53
 #: HIGHRES_IMU fields_updated bits of a magnetometer sample.
 MAG_FIELDS = (mavlink.HIGHRES_IMU_UPDATED_XMAG | mavlink.HIGHRES_IMU_UPDATED_YMAG
               | mavlink.HIGHRES_IMU_UPDATED_ZMAG)
@@ -164,7 +167,7 @@ class LinkStats:
             return
         src.received += 1
         kind = msg.get_type()
-        if kind == "HIGHRES_IMU" and msg.fields_updated & MAG_FIELDS == MAG_FIELDS:
+        if kind == "HIGHRES_IMU" and msg.fields_updated & MAG_FIELDS == MAG_FIELDS and msg.time_usec < MAX_TIME_US:
             src.sample_times_us.append(int(msg.time_usec))
         elif kind == "DEBRIS_LINK_STATUS" and self.last_verdict == "new" and getattr(msg, "frames_sent", 0):
             src.sender_count(int(msg.frames_sent))

@@ -15,14 +15,13 @@ if __name__ == "__main__":
 
     interrupt_quietly()
 
-import argparse  # noqa: E402
 import sys  # noqa: E402
 from dataclasses import replace  # noqa: E402
 from typing import TextIO  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from fsw.argtypes import check_paths_or_exit  # noqa: E402
+from fsw.argtypes import ArgumentParser, check_paths_or_exit  # noqa: E402
 from fsw.config import RunConfig, add_run_options, run_config  # noqa: E402
 from fsw.estimation import field_check  # noqa: E402
 from fsw.estimation.rate_formulas import unobserved_sigma  # noqa: E402
@@ -132,7 +131,7 @@ def write_replay_rates(path, source: RecordingReplay, rates: dict, recording: st
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m ground.replay", description=__doc__.splitlines()[0])
+    ap = ArgumentParser(prog="python -m ground.replay", description=__doc__.splitlines()[0])
     ap.add_argument("input", metavar="INPUT.csv", help="a recording (format v1)")
     ap.add_argument("--rates-out", metavar="OUT.csv",
                     help="write the onboard Kalman filter's estimates, one row per sample")
@@ -141,7 +140,7 @@ def main(argv=None) -> int:
     def body() -> str:
         args = ap.parse_args(argv)
         check_paths_or_exit(ap, inputs={"INPUT.csv": args.input, "--key": args.key},
-                            outputs={"--rates-out": args.rates_out})
+                            outputs={"--rates-out": args.rates_out, "--sample-store": args.sample_store})
         return summary(*replay(args.input, run_config(args), rates_out=args.rates_out))
 
     return run_program(body)

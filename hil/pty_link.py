@@ -186,17 +186,16 @@ def main(argv: list[str] | None = None) -> int:
     Prints the pty path; run the flight software against it with
     `python -m fsw.main --mag-serial PATH`.
     """
-    import argparse
     import signal
     import sys
     import time
 
-    from fsw.argtypes import finite_float, int_range
+    from fsw.argtypes import ArgumentParser, finite_float, int_range
 
     from .scenario import ScenarioError, load
     from .sim import Simulator
 
-    ap = argparse.ArgumentParser(prog="python -m hil.pty_link", description=main.__doc__.splitlines()[0])
+    ap = ArgumentParser(prog="python -m hil.pty_link", description=main.__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="isoi", metavar="NAME|FILE", help="scenario (default isoi)")
     ap.add_argument("--seed", type=int_range(0), default=0, help="random seed (default 0)")
     ap.add_argument("--duration", type=finite_float(0, min_exclusive=True), default=None, metavar="S",

@@ -151,7 +151,7 @@ def _numbers(v, shape: tuple) -> np.ndarray | None:
         return None
     try:
         a = np.array(v, dtype=float)
-    except (TypeError, ValueError):  # ragged
+    except (TypeError, ValueError, OverflowError):  # ragged, or an integer no float holds
         return None
     return a if a.shape == shape and np.all(np.isfinite(a)) else None
 
@@ -159,11 +159,15 @@ def _numbers(v, shape: tuple) -> np.ndarray | None:
 def load(name_or_path: str = DEFAULT_SCENARIO) -> Scenario:
     path = resolve(name_or_path)
     try:
-        doc = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise ScenarioError(f"{path}: not valid TOML: {e}") from None
+        text = path.read_text(encoding="utf-8")  # TOML is UTF-8, whatever the locale
     except (OSError, UnicodeDecodeError) as e:
         raise ScenarioError(f"{path}: cannot read: {getattr(e, 'strerror', None) or e}") from None
+    try:
+        doc = tomllib.loads(text)
+    except ValueError as e:  # TOMLDecodeError, or an integer of more than 4300 digits
+        raise ScenarioError(f"{path}: not valid TOML: {e}") from None
+    except RecursionError:
+        raise ScenarioError(f"{path}: not valid TOML: arrays or tables nested too deeply") from None
 
     def fail(key: str, why: str):
         raise ScenarioError(f"{path}: {key}: {why}")
@@ -189,7 +193,10 @@ def load(name_or_path: str = DEFAULT_SCENARIO) -> Scenario:
                 fail(f"{name}.{k}", "missing")
             v = table[k]
             if typ is float and isinstance(v, int) and not isinstance(v, bool):
-                v = float(v)
+                try:
+                    v = float(v)
+                except OverflowError:
+                    fail(f"{name}.{k}", f"must be finite (an integer of {len(str(abs(v)))} digits)")
             if not isinstance(v, typ):
                 fail(f"{name}.{k}", f"expected {typ.__name__}, got {type(v).__name__}")
             if typ is float and not np.isfinite(v):
@@ -208,7 +215,7 @@ def load(name_or_path: str = DEFAULT_SCENARIO) -> Scenario:
     ev = np.linalg.eigvalsh(J)
     if ev[0] <= 0:
         fail("body.inertia_kgm2", f"must be positive definite (eigenvalues {ev})")
-    if ev[0] + ev[1] < ev[2] * (1 - 1e-9):
+    if ev[0] / ev[2] + ev[1] / ev[2] < 1 - 1e-9:  # (divided: no overflow near the float limit)
         fail("body.inertia_kgm2", f"principal moments {ev} violate the triangle inequality")
     mass = float(sec["body"]["mass_kg"])
     if mass <= 0:

@@ -27,7 +27,7 @@ from typing import TextIO  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from fsw.argtypes import check_paths_or_exit, finite_float, int_range  # noqa: E402
+from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range  # noqa: E402
 from fsw.config import RunConfig, add_run_options, check_loop_rate, run_config  # noqa: E402
 from fsw.drivers.mmc5983ma import Mmc5983ma  # noqa: E402
 from fsw.drivers.mmc5983ma_regs import Bandwidth, ContinuousFrequency  # noqa: E402
@@ -260,12 +260,13 @@ def add_sitl_options(ap: argparse.ArgumentParser) -> None:
 
 
 def parse_args(argv=None) -> SitlConfig:
-    ap = argparse.ArgumentParser(prog="python -m hil.sitl", description=__doc__.splitlines()[0])
+    ap = ArgumentParser(prog="python -m hil.sitl", description=__doc__.splitlines()[0])
     add_run_options(ap)
     add_sitl_options(ap)
     args = ap.parse_args(argv)
     scenario_file = args.scenario if Path(args.scenario).is_file() else None
-    check_paths_or_exit(ap, inputs={"--key": args.key, "--scenario": scenario_file}, outputs={})
+    check_paths_or_exit(ap, inputs={"--key": args.key, "--scenario": scenario_file},
+                        outputs={"--sample-store": args.sample_store})
     try:
         scenarios.load(args.scenario)
     except ValueError as e:

@@ -116,3 +116,18 @@ def good_tlog(n=30) -> bytes:
         p.seq = (p.seq + 1) % 256
         out += tlog_record(msg, WALL0 + 0.1 * k)
     return out
+
+
+def tiers(prop, *strategies, **kw_strategies):
+    """A property (a function of the drawn values) as its two tests: the fast one, with the loaded
+    hypothesis profile (conftest.py: 200 examples, or 10,000 with HYPOTHESIS_PROFILE=fuzz), and the
+    slow tier's, marked ``slow``, with the ``fuzz`` profile (10,000 examples)::
+
+        test_reader, test_reader_fuzz = tiers(reader_property, inputs())
+    """
+    import pytest
+    from hypothesis import given, settings
+
+    fast = given(*strategies, **kw_strategies)(prop)
+    slow = settings(settings.get_profile("fuzz"))(given(*strategies, **kw_strategies)(prop))
+    return fast, pytest.mark.slow(slow)

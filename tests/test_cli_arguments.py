@@ -348,3 +348,117 @@ def test_every_tool_explains_itself(module, capsys):
     with pytest.raises(SystemExit) as e:
         importlib.import_module(module).main(["--help"])
     assert e.value.code == 0 and capsys.readouterr().out.startswith("usage:")
+
+
+# --- found by the argument fuzz (tests/test_fuzz_cli.py) -------------------------------------------
+
+@pytest.mark.parametrize("main, argv, option", [
+    (soak.main, ["--quiet", "--rate=--"], "--rate"),
+    (fsw_main.main, ["--sitl", "--quiet", "--rate=--", "--link", "udpout:127.0.0.1:9"], "--rate"),
+    (decode.main, ["udpin:127.0.0.1:9", "--duration=--"], "--duration"),
+    (command.main, ["udpout:127.0.0.1:9", "capsule", "--timeout=--"], "--timeout"),
+], ids=["bench.soak", "fsw.main", "ground.decode", "ground.command"])
+def test_an_option_given_the_value_dashdash_is_refused(capsys, monkeypatch, main, argv, option):
+    """Python 3.11's argparse read --rate=-- as an empty list, unchecked: a TypeError traceback later
+    (or a run with a rate of [])."""
+    no_work(monkeypatch, "bench.soak:run", "hil.sitl:build", "ground.decode:run", "ground.command:Session")
+    one_line_error(capsys, main, argv, 2, option, "'--'")
+
+
+def no_work(monkeypatch, *targets):
+    """Replace the heavy work of the tools with a failure: an argument that should be refused is."""
+    def reached(*args, **kwargs):
+        raise AssertionError("the tool went on to its work")
+
+    for t in targets:
+        module, attr = t.split(":")
+        monkeypatch.setattr(__import__(module, fromlist=[attr]), attr, reached)
+
+
+def test_inertia_bench_help_is_printed(capsys):
+    """A '%' in a help text made --help raise ValueError (argparse formats help with %)."""
+    from bench import inertia as inertia_bench
+    assert exit_status(inertia_bench.main, ["--help"]) == 0
+    assert "Cramér–Rao bound on the shape ratios is <= 0.5 %" in " ".join(capsys.readouterr().out.split())
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--scenarios", ","], ("--scenarios", "no scenario")),
+    (["--fits", "bogus"], ("--fits", "full, shape")),
+    (["--fits", ""], ("--fits",)),
+    (["--crb", ""], ("--crb",)),
+])
+def test_inertia_bench_refuses_what_would_run_nothing(capsys, monkeypatch, argv, words):
+    """These ran no scenario, or no fit, and exited 0 (an empty --crb was taken for none)."""
+    from bench import inertia as inertia_bench
+    no_work(monkeypatch, "bench.inertia:bench_scenario", "bench.inertia:truth_record",
+            "bench.inertia:crb_table")
+    one_line_error(capsys, inertia_bench.main, argv, 2, *words)
+
+
+@pytest.mark.parametrize("what", ["missing", "empty", "file", "not a recording", "no reference"])
+def test_accuracy_on_real_recordings_refuses_a_folder_it_cannot_use(tmp_path, capsys, what):
+    """--real on a missing or empty folder printed an empty table and exited 0; a CSV that is not a
+    recording (or has no reference rate) raised a traceback."""
+    from hil import accuracy
+    folder = tmp_path / "real"
+    if what != "missing":
+        folder.mkdir()
+    if what == "file":
+        folder.rmdir()
+        folder.write_text("x\n")
+    elif what == "not a recording":
+        (folder / "a.csv").write_text("hello\n")
+    elif what == "no reference":
+        t = np.arange(40.0)
+        write_recording(folder / "a.csv", Recording(t, np.column_stack([np.cos(t), np.sin(t), t * 0 + 1]) * 4e-5))
+    status = 1 if what in ("not a recording", "no reference") else 2
+    one_line_error(capsys, accuracy.main, ["--real", str(folder)], status, str(folder))
+
+
+@pytest.mark.parametrize("text", ["stall:pitch:nan", "stall:pitch:inf", "stuck:yaw:900:nan", "stall:pitch:-5"])
+def test_a_fault_at_no_time_is_refused(text):
+    """A fault at NaN seconds was accepted and never injected."""
+    from hil.deorbit_bench import Fault
+    with pytest.raises(ValueError, match="bad fault"):
+        Fault.parse(text)
+
+
+@pytest.mark.parametrize("store", ["input", "folder", "key"])
+def test_the_sample_store_is_checked_as_an_output(tmp_path, capsys, monkeypatch, store):
+    """--sample-store was opened unchecked: naming the --replay input (or the key, or a folder) moved
+    it aside to NAME.bad and wrote a store in its place."""
+    src = tmp_path / "in.csv"
+    t = np.arange(40.0)
+    write_recording(src, Recording(t, np.column_stack([np.cos(t), np.sin(t), t * 0 + 1]) * 4e-5))
+    key = tmp_path / "k.key"
+    write_key(key, bytes(range(7, 39)))
+    path = {"input": src, "folder": tmp_path, "key": key}[store]
+    no_work(monkeypatch, "fsw.main:FlightSoftware")
+    one_line_error(capsys, fsw_main.main, ["--replay", str(src), "--key", str(key), "--sample-store", str(path),
+                                           "--link", "udpout:127.0.0.1:9"], 2, "--sample-store",
+                   protected=(src, key))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.csv", "k.key"]
+
+
+def test_command_refuses_two_things_to_do(capsys):
+    """--set-param with --get-param (or a command) ran the first and ignored the rest, even invalid."""
+    one_line_error(capsys, command.main, ["udpout:127.0.0.1:9", "--set-param", "TLM_SAMPLE_HZ", "5", "--get-param",
+                                          "ÄBC", "--wait", "0.1"], 2, "one of COMMAND")
+
+
+@pytest.mark.parametrize("main, argv, words", [
+    (fsw_main.main, ["--sitl", "--key", "", "--link", "udpout:127.0.0.1:9"], ("--key", "empty path")),
+    (fsw_main.main, ["--replay", "", "--link", "udpout:127.0.0.1:9"], ("--replay", "empty path")),
+    (decode.main, ["udpin:127.0.0.1:9", "--key", ""], ("--key", "empty path")),
+    (decode.main, [""], ("url", "empty")),
+    (command.main, ["udpout:127.0.0.1:9", "capsule", "--key", ""], ("--key", "empty path")),
+    (estimate.main, ["", "--rates", "r.csv"], ("input", "empty path")),
+], ids=["fsw.main --key", "fsw.main --replay", "ground.decode --key", "ground.decode URL", "ground.command --key",
+        "ground.estimate input"])
+def test_an_empty_path_is_refused_not_taken_for_none(capsys, monkeypatch, main, argv, words):
+    """An empty path (a shell variable not set) was taken for "not given": fsw.main --key "" ran with no
+    key at all, --replay "" ran on target with no serial port, ground.decode "" read the current folder."""
+    no_work(monkeypatch, "fsw.main:FlightSoftware", "ground.decode:run", "ground.command:Session",
+            "ground.estimate:read_recording")
+    one_line_error(capsys, main, argv, 2, *words)

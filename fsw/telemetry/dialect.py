@@ -8,7 +8,6 @@ MAVLink 2 only: every connection opened here speaks MAVLink 2 from its first fra
 """
 from __future__ import annotations
 
-import argparse
 import os
 import shutil
 import sys
@@ -20,6 +19,7 @@ os.environ.setdefault("MAVLINK20", "1")  # pymavlink's mavutil picks v2.0 bindin
 from pymavlink import mavutil  # noqa: E402
 
 from . import mavlink_debris as mavlink  # noqa: E402,F401  (re-exported: fsw.telemetry.dialect.mavlink)
+from ..argtypes import ArgumentParser  # noqa: E402
 
 XML_PATH = Path(__file__).with_name("debris.xml")
 BINDINGS_PATH = Path(__file__).with_name("mavlink_debris.py")
@@ -71,7 +71,7 @@ def open_link(url: str, *, source_system: int, source_component: int, input: boo
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--generate", action="store_true",
                     help=f"regenerate {BINDINGS_PATH.name} from {XML_PATH.name}")
     args = ap.parse_args(argv)

@@ -40,6 +40,10 @@ follows inside the data already there (then the candidate was noise): line noise
 never holds the command back. At most one frame length (280 bytes) waits. The signature block of a
 signed frame is not covered by its CRC: a frame cut inside it takes its "signature" from whatever
 follows, so a signed candidate inside whose last 13 bytes a complete good frame starts is refused.
+When a frame that has not arrived whole may start inside those 13 bytes, the signed frame is passed
+on at once (a genuine one is not held back) and its last bytes from that start byte on are looked at
+again with what follows: a command whose first bytes went into a cut frame's "signature" is still
+found (they are then counted twice, in the frame and in the junk, when no frame starts there).
 Nothing raises, whatever the bytes.
 """
 from __future__ import annotations
@@ -191,8 +195,10 @@ class Deframer:
         return n
 
     # --- messages --------------------------------------------------------------------------------
-    def feed(self, data: bytes) -> list:
-        return [self.decode(x) if isinstance(x, bytes) else x for x in self.feed_frames(data)]
+    def feed(self, data: bytes, *, end: bool = False) -> list:
+        """The messages (and BAD_DATA) in the stream so far; `end`: the stream ends with `data` (a
+        datagram, a tlog record, a file), as :meth:`flush` after it, but nothing is looked at twice."""
+        return [self.decode(x) if isinstance(x, bytes) else x for x in self.feed_frames(data, end=end)]
 
     def flush(self) -> list:
         """End of the stream: whatever is left is either a frame or junk."""
@@ -207,10 +213,10 @@ class Deframer:
             return mavlink.MAVLink_bad_data(bytearray(frame), _UNDECODABLE)
 
     # --- raw frames ------------------------------------------------------------------------------
-    def feed_frames(self, data: bytes) -> list:
+    def feed_frames(self, data: bytes, *, end: bool = False) -> list:
         """Like :meth:`feed`, but intact frames come as their raw bytes (CRC checked, not decoded)."""
         self._buf += data
-        return self._scan(final=False)
+        return self.flush_frames() if end else self._scan(final=False)
 
     def flush_frames(self) -> list:
         out = self._scan(final=True)
@@ -282,9 +288,9 @@ class Deframer:
                     break  # wait for more bytes
                 head = (0, 0)  # at the end, or a good frame starts inside it: this start byte is noise
             length = head[0]
+            signed = length and b[i] == STX_V2 and b[i + 2] & IFLAG_SIGNED
             ok = length and self._crc_ok(i, length, head[1]) and not (
-                b[i] == STX_V2 and b[i + 2] & IFLAG_SIGNED
-                and self._complete_frame_after(i + length - SIGNATURE_LEN, i + length))
+                signed and self._complete_frame_after(i + length - SIGNATURE_LEN, i + length))
             # (a signed frame cut inside its signature block, not covered by the CRC, is refused: the
             # next frame starts there)
             if self.starved:
@@ -293,7 +299,10 @@ class Deframer:
                 out += self._emit_junk()
                 out.append(bytes(b[i:i + length]))
                 self.frames += 1
-                i += length
+                # a frame whose rest has not arrived may start inside the signature block: those bytes are
+                # looked at again (the frame may be one cut inside its signature, that frame the next)
+                j = self._frame_may_start(i + length - SIGNATURE_LEN, i + length) if signed and not final else -1
+                i = j if j >= 0 else i + length
                 continue
             self._junk.append(b[i])
             i += 1
@@ -301,6 +310,22 @@ class Deframer:
         if len(self._junk) > 2 * MAX_FRAME:  # a long run of noise: report it now
             out += self._emit_junk()
         return out
+
+    def _frame_may_start(self, start: int, stop: int) -> int:
+        """The first place in [start, stop) where a frame whose end has not arrived yet may start (a
+        start byte whose header is incomplete, or passes the header checks and declares a frame longer
+        than the data), or -1."""
+        n = len(self._buf)
+        j = start
+        while j < stop:
+            j = self._candidate(j, n, stop)
+            if j < 0:
+                return -1
+            head = self._header(j, n)
+            if head is None or (head[0] and j + head[0] > n):
+                return j
+            j += 1
+        return -1
 
     def _complete_frame_after(self, start: int, stop: int | None = None) -> bool:
         """Whether a complete, valid frame starts somewhere in [start, stop). Then an incomplete

@@ -98,6 +98,9 @@ def load_key(path: str | os.PathLike) -> bytes:
         raise KeyFileError(f"{p}: cannot read key file: {e.strerror or e}") from None
     finally:
         os.close(fd)
+    if len(raw) > KEY_FILE_MAX_BYTES:  # the rest was never read: it is no key file, whatever it begins with
+        raise KeyFileError(f"{p}: more than {KEY_FILE_MAX_BYTES} bytes: not a key file "
+                           f"(expected {2 * KEY_BYTES} hex digits)")
     try:
         key = bytes.fromhex(raw.decode("ascii").strip())
     except (UnicodeDecodeError, ValueError):

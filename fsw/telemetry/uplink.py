@@ -237,7 +237,7 @@ class Uplink:
         """One datagram, parsed on its own (no frame spans two datagrams)."""
         df = self._deframer
         try:
-            items = df.feed_frames(data) + df.flush_frames()
+            items = df.feed_frames(data, end=True)
             if df.starved:  # out of CRC checks for this tick: the rest is dropped
                 left = df.discard()
                 self.counters.dropped_bytes += left

@@ -159,3 +159,35 @@ def test_uplink_never_raises_and_never_obeys_noise(data, cuts):
         for c in chunks(data, cuts):
             up.feed(c, 0.0)
         assert runs == []
+
+
+def test_a_command_after_a_frame_cut_in_its_signature_is_obeyed_whatever_the_reads():
+    """Found by the fuzz (tests/test_fuzz_readers.py): a signed frame that lost the last bytes of its
+    signature, then a command read in two pieces. The cut frame took the command's first bytes as its
+    signature (the CRC does not cover it) and the command was lost, unless it had arrived whole."""
+    ground = GroundLink(lambda b: None, KEY, SigningClock(epoch=T0))
+    for lost in (1, 3, 12):
+        cut = ground.command_long(mavlink.MAV_CMD_USER_1, [1], 0.0)[:-lost]
+        good = ground.command_long(mavlink.MAV_CMD_USER_1, [2], 0.01)
+        data = cut + good
+        for split in range(len(cut) - 5, len(data) + 1):
+            up, runs, _ = make_uplink()
+            up.feed(data[:split], 0.0)
+            up.feed(data[split:], 0.01)
+            assert runs == [2], (lost, split)
+            assert up.counters.bad_signature + up.counters.garbage_bytes > 0   # the cut frame: refused
+
+
+def test_a_command_whose_signature_ends_in_a_start_byte_is_obeyed_at_once():
+    """A signed frame with a start byte in its signature block is passed on as soon as it is whole,
+    not held until more bytes arrive (the last thing the ground sends is a command)."""
+    ground = GroundLink(lambda b: None, KEY, SigningClock(epoch=T0))
+    for k in range(2000):
+        frame = ground.command_long(mavlink.MAV_CMD_USER_1, [k], 0.0)
+        if frame[-1] == 0xFD:
+            break
+    else:
+        raise AssertionError("no signature ending in 0xFD in 2000 frames")
+    up, runs, _ = make_uplink()
+    up.feed(frame, 0.0)
+    assert runs == [k]

@@ -7,9 +7,9 @@ import stat
 import pytest
 
 from fsw.telemetry.dialect import mavlink
-from fsw.telemetry.signing import (NEW_STREAM_WINDOW, TICKS_PER_S, TIMESTAMP_MAX, KeyFileError, SigningClock, Verdict,
-                                   Verifier, is_signed, load_key, setup_outgoing, sign_frame, signature_fields,
-                                   unix_to_timestamp, write_key)
+from fsw.telemetry.signing import (KEY_FILE_MAX_BYTES, NEW_STREAM_WINDOW, TICKS_PER_S, TIMESTAMP_MAX, KeyFileError,
+                                   SigningClock, Verdict, Verifier, is_signed, load_key, setup_outgoing, sign_frame,
+                                   signature_fields, unix_to_timestamp, write_key)
 from ground import keys
 
 KEY = bytes(range(32))
@@ -179,3 +179,20 @@ def test_bad_key_files_are_refused(tmp_path):
         load_key(short)
     with pytest.raises(KeyFileError, match="cannot read"):
         load_key(tmp_path / "missing.key")
+
+
+@pytest.mark.parametrize("tail, ok", [(b"", True), (b" " * (KEY_FILE_MAX_BYTES - 65), True),
+                                      (b" " * (KEY_FILE_MAX_BYTES - 64), False),
+                                      (b" " * 5000 + b"not a key", False)],
+                         ids=["key", "at the limit", "a byte more", "anything after"])
+def test_a_key_file_longer_than_the_limit_is_refused(tmp_path, tail, ok):
+    """Found by the fuzz (tests/test_fuzz_readers.py): only the first KEY_FILE_MAX_BYTES + 1 bytes were
+    read, so a key followed by anything at all was accepted."""
+    path = tmp_path / "long.key"
+    path.write_bytes(KEY.hex().encode() + b"\n" + tail)
+    path.chmod(0o600)
+    if ok:
+        assert load_key(path) == KEY
+    else:
+        with pytest.raises(KeyFileError, match=f"more than {KEY_FILE_MAX_BYTES} bytes"):
+            load_key(path)

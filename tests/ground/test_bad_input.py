@@ -9,10 +9,13 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from fsw.telemetry.dialect import FSW_COMPID, FSW_SYSID, mavlink
+from fsw.telemetry.signing import SigningClock, setup_outgoing, unix_to_timestamp
 from ground import decode
-from support import SHARED_DATA, WALL0, good_tlog
+from ground.decode import tlog_record
 from ground.recording import Recording, RecordingError, read_recording, write_recording
-from ground.tlog import TlogError, check_tlog
+from ground.tlog import TlogError, check_tlog, read_tlog
+from support import SHARED_DATA, WALL0, good_tlog
 
 RECORD = len(good_tlog(1))
 
@@ -53,6 +56,12 @@ def swap(d: bytes, k: int) -> bytes:
 
 
 STAMP = struct.pack(">Q", int((WALL0 + 9) * 1e6))
+DAYS_30 = 30 * 86400
+
+
+def restamp(d: bytes, k: int, t_s: float) -> bytes:
+    """Record k with its time stamp set to WALL0 + t_s (a damaged time stamp that reads as another date)."""
+    return d[:k * RECORD] + struct.pack(">Q", int((WALL0 + t_s) * 1e6)) + d[k * RECORD + 8:]
 
 
 def all_at_once(d: bytes) -> bytes:
@@ -75,6 +84,13 @@ def all_at_once(d: bytes) -> bytes:
     ("two time stamps out of order", lambda d: swap(d, 0), 30, dict(time_back=1)),
     ("all at once", lambda d: all_at_once(d), 28, dict(junk_bytes=77, damaged_records=1, cut_bytes=RECORD - 7,
                                                      time_back=1)),
+    # found by the fuzz (tests/test_fuzz_readers.py): these lost every record after the first, or one
+    ("first time stamp days off", lambda d: restamp(d, 0, DAYS_30), 30, dict(time_back=1)),
+    ("a time stamp days ahead", lambda d: restamp(d, 10, DAYS_30), 30, dict(time_jumps=1, time_back=1)),
+    ("a time stamp without its frame inside", lambda d: d[:5 * RECORD] + STAMP + d[5 * RECORD:], 30,
+     dict(junk_bytes=8)),
+    ("a record cut to 7 bytes of its time stamp", lambda d: d[:5 * RECORD + 7] + d[6 * RECORD:], 29,
+     dict(junk_bytes=7)),
 ])
 def test_a_damaged_tlog_keeps_every_intact_record_and_reports_the_rest(tmp_path, capsys, name, mutate, kept, counts):
     data = mutate(good_tlog())
@@ -82,7 +98,7 @@ def test_a_damaged_tlog_keeps_every_intact_record_and_reports_the_rest(tmp_path,
     src.write_bytes(data)
     report = check_tlog(src)
     assert report.records == kept and report.damaged
-    for what in ("junk_bytes", "damaged_records", "cut_bytes", "time_back"):
+    for what in ("junk_bytes", "damaged_records", "cut_bytes", "time_back", "time_jumps"):
         assert getattr(report, what) == counts.get(what, 0), what
     if "damaged_records" in counts:
         assert report.damaged_bytes > 0
@@ -90,6 +106,59 @@ def test_a_damaged_tlog_keeps_every_intact_record_and_reports_the_rest(tmp_path,
     assert rc == 0 and len(outs) == 3 and src.read_bytes() == data
     assert len(read_recording(tmp_path / "out.csv")) == kept
     assert check_tlog(tmp_path / "copy.tlog").records == kept      # the copy holds the intact frames only
+
+
+def mixed_tlog(n=20, key: bytes | None = None) -> tuple[bytes, list[int]]:
+    """Records of alternately a HIGHRES_IMU frame (long) and a HEARTBEAT (short), signed with `key` when
+    given; and each record's offset."""
+    p = mavlink.MAVLink(None, srcSystem=FSW_SYSID, srcComponent=FSW_COMPID)
+    if key is not None:
+        setup_outgoing(p, key, SigningClock(epoch=unix_to_timestamp(WALL0)))
+    out, offsets = b"", []
+    for k in range(n):
+        msg = mavlink.MAVLink_highres_imu_message(k * 100_000, 0, 0, 0, 0, 0, 0, 0.3, 0.1, -0.2, 0, 0, 0, 0, 0x1C0) \
+            if k % 2 == 0 else mavlink.MAVLink_heartbeat_message(18, 8, 0, 0, 4, 3)
+        msg.pack(p)
+        p.seq = (p.seq + 1) % 256
+        offsets.append(len(out))
+        out += tlog_record(msg, WALL0 + 0.1 * k)
+    return out, offsets
+
+
+def kept_times(path) -> list[int]:
+    return [r.t_us for r in read_tlog(path)]
+
+
+def test_a_signed_frame_cut_inside_its_signature_does_not_take_the_next_record(tmp_path):
+    """Found by the fuzz: the signature block is not covered by the CRC, so a signed frame that lost its
+    last byte still "checked" with the next record's first byte as its own, and that record was lost."""
+    d, offsets = mixed_tlog(key=bytes(range(7, 39)))
+    cut = offsets[6] - 1                          # record 5 (a heartbeat) loses the last byte of its signature
+    path = tmp_path / "signed.tlog"
+    path.write_bytes(d[:cut] + d[cut + 1:])
+    everything = kept_times_of(d, tmp_path)
+    assert kept_times(path) == everything[:5] + everything[6:]
+    report = check_tlog(path)
+    assert report.damaged_records == 1 and report.damaged_bytes == offsets[6] - offsets[5] - 1
+
+
+def test_a_damaged_frame_ending_where_a_record_starts_does_not_hide_one_inside_it(tmp_path):
+    """Found by the fuzz: a long frame that lost exactly the length of the short record after it ended
+    where the record after that starts, and was kept with the intact short record inside it."""
+    d, offsets = mixed_tlog()
+    length = offsets[6] - offsets[5]                # record 5, a heartbeat
+    start = offsets[4] + 20                         # inside record 4's payload, a HIGHRES_IMU
+    assert offsets[5] - start > length
+    path = tmp_path / "cut.tlog"
+    path.write_bytes(d[:start] + d[start + length:])
+    everything = kept_times_of(d, tmp_path)
+    assert kept_times(path) == everything[:4] + everything[5:]
+
+
+def kept_times_of(data: bytes, tmp_path) -> list[int]:
+    path = tmp_path / "whole.tlog"
+    path.write_bytes(data)
+    return kept_times(path)
 
 
 def test_any_one_flipped_bit_of_a_length_byte_loses_that_record_only(tmp_path):
@@ -221,3 +290,22 @@ def test_truncated_and_non_monotonic_csv_name_their_line(tmp_path):
     back.write_text("\n".join(lines) + "\n")
     with pytest.raises(RecordingError, match=r"back\.csv:12: column 't_s': time .* not after"):
         read_recording(back)
+
+
+def test_signed_frames_whose_signature_ends_in_a_start_byte_are_intact_records(tmp_path):
+    """A start byte in a signed frame's last bytes may begin a frame cut in two by a read (the
+    deframer looks at those bytes again on a stream); a tlog record is whole: the frame is intact."""
+    p = mavlink.MAVLink(None, srcSystem=FSW_SYSID, srcComponent=FSW_COMPID)
+    clock = SigningClock(epoch=unix_to_timestamp(WALL0))
+    setup_outgoing(p, bytes(range(7, 39)), clock)
+    out, kept = b"", 0
+    for _ in range(3000):
+        frame = mavlink.MAVLink_heartbeat_message(18, 8, 0, 0, 4, 3).pack(p)
+        p.seq = (p.seq + 1) % 256
+        if 0xFD in frame[-9:]:
+            out += struct.pack(">Q", int((WALL0 + 0.1 * kept) * 1e6)) + frame
+            kept += 1
+    path = tmp_path / "fd.tlog"
+    path.write_bytes(out)
+    report = check_tlog(path)
+    assert kept > 50 and report.records == kept and not report.damaged

@@ -302,3 +302,25 @@ def test_non_finite_values_are_counted_not_recorded(tmp_path: Path) -> None:
     assert np.isnan(read_rate_estimates(tmp_path / "e.csv").w_radps).all()
     assert dict(dec.invalid) == {"HIGHRES_IMU": 1, "DEBRIS_RATE_ESTIMATE": 1, "DEBRIS_SIM_STATE": 1}
     assert "non-finite values" in dec.summary_text()
+
+
+@pytest.mark.parametrize("time_us", [2**53, 2**63, 2**64 - 1])
+def test_impossible_sample_times_are_counted_not_recorded(tmp_path: Path, time_us: int) -> None:
+    """Found by the fuzz (tests/test_fuzz_readers.py): a sample time of 2**63 µs or more (any uint64 is
+    a valid time_usec) made the summary raise OverflowError; from 2**53 µs on, two times could become
+    the same float in the recording, which the writer refuses."""
+    dec = Decoder()
+    parser = mavlink.MAVLink(None)
+    packer = mavlink.MAVLink(None, srcSystem=FSW[0], srcComponent=FSW[1])
+    msgs = [packer.highres_imu_encode(t_us(0), 0, 0, 0, 0, 0, 0, 0.3, 0, 0.1, 0, 0, 0, 0, 0x1C0),
+            packer.highres_imu_encode(time_us, 0, 0, 0, 0, 0, 0, 0.3, 0, 0.1, 0, 0, 0, 0, 0x1C0),
+            packer.debris_mag_sample_encode(time_us, 0, 7, [0.3, 0, 0.1], 0)]
+    for msg in msgs:
+        frame = msg.pack(packer)
+        packer.seq += 1
+        for m in parser.parse_buffer(frame):
+            dec.handle(m, 0.0)
+    assert "impossible times" in dec.summary_text()
+    dec.write(csv=tmp_path / "r.csv")
+    assert len(read_recording(tmp_path / "r.csv")) == 1
+    assert dec.invalid["DEBRIS_MAG_SAMPLE"] == 1 and dec.invalid["HIGHRES_IMU"] == 1

@@ -91,3 +91,25 @@ def test_wrong_kinds_of_values_are_refused_with_the_key_named(tmp_path, text, ke
     with pytest.raises(scenario.ScenarioError) as e:
         scenario.load(str(p))
     assert f"{p}: {key}: " in str(e.value) and words in str(e.value)
+
+
+@pytest.mark.parametrize("old, new, key", [
+    pytest.param("mass_kg = 5.5", "mass_kg = 1" + "0" * 400, "body.mass_kg", id="number no float holds"),
+    pytest.param("omega_dps = [6.0, -5.0, 6.5]", "omega_dps = [6.0, -5.0, 1" + "0" * 400 + "]", "initial.omega_dps",
+                 id="in a vector"),
+    pytest.param("mass_kg = 5.5", "mass_kg = " + "9" * 5000, "not valid TOML", id="5000 digits"),
+    pytest.param("mass_kg = 5.5", "mass_kg = " + "[" * 5000 + "]" * 5000, "nested too deeply", id="nested 5000 deep"),
+    pytest.param("bridge_offset_uT = [1.2, -0.8, 0.5]", "bridge_offset_uT = [1.2, -0.8, 0.5]\n[[torque]]\nstart_s = 1"
+                 + "0" * 400 + "\nduration_s = 1.0\nmoment_Nm = [0.1, 0.0, 0.0]", "torque[0].start_s",
+                 id="pulse start no float holds"),
+])
+def test_numbers_and_nesting_no_float_or_parser_can_hold_are_scenario_errors(tmp_path, old, new, key):
+    """Found by the fuzz (tests/test_fuzz_readers.py): these raised OverflowError, ValueError and
+    RecursionError, which the tools do not catch (a traceback)."""
+    p = tmp_path / "bad.toml"
+    assert old in BASE
+    p.write_text(BASE.replace(old, new))
+    with pytest.raises(scenario.ScenarioError) as e:
+        scenario.load(str(p))
+    assert str(e.value).startswith(f"{p}: ") and key in str(e.value)
+
