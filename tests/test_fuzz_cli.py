@@ -1,6 +1,6 @@
-"""Property-based fuzz of every command-line tool's arguments: fsw.main, ground.decode, ground.estimate
-(rates and --inertia), ground.inertia, ground.command, ground.keys, hil.soak, hil.accuracy,
-hil.inertia_bench, hil.deorbit_bench, hil.pty_link and fsw.telemetry.dialect.
+"""Property-based fuzz of every command-line tool's arguments: fsw.main (target), hil.sitl, ground.replay,
+ground.decode, ground.estimate (rates and --inertia), ground.inertia, ground.command, ground.keys,
+bench.soak, bench.accuracy, bench.inertia, bench.deorbit, hil.pty_link and fsw.telemetry.dialect.
 
 Each argv is built from the tool's real options (`SPECS`, checked against the parser the tool builds:
 `test_the_specs_name_every_option`) with values drawn from valid and hostile ones: empty, NaN, ±inf,
@@ -33,9 +33,12 @@ from typing import Callable
 import numpy as np
 import pytest
 from hypothesis import strategies as st
-from support import free_udp_port, tiers
-from test_bad_input import good_tlog
+from support import free_udp_port, good_tlog, tiers
 
+import bench.accuracy
+import bench.deorbit
+import bench.inertia
+import bench.soak
 import fsw.main
 import fsw.telemetry.dialect
 import ground.command
@@ -44,12 +47,10 @@ import ground.estimate
 import ground.inertia
 import ground.keys
 import ground.plot
-import hil.accuracy
-import hil.deorbit_bench
-import hil.inertia_bench
+import ground.replay
 import hil.pty_link
 import hil.sim
-import hil.soak
+import hil.sitl
 from ground.recording import Recording, write_recording
 from hil import scenario as scenarios
 
@@ -219,12 +220,9 @@ TLE1 = "1 25544U 98067A   26325.50000000  .00016717  00000-0  10270-3 0  9005"
 TLE2 = "2 25544  51.6400 208.9163 0006317  69.9862  25.2906 15.50000000    05"
 
 
-def _fsw_main_judge(v, chosen):
-    modes = [m for m in ("--sitl", "--mag-serial", "--replay") if m in chosen]
-    if len(modes) != 1 or ("--rates-out" in chosen and modes != ["--replay"]):
+def _target_judge(v, chosen):
+    if "--mag-serial" not in chosen:  # required on target
         return False
-    if modes != ["--sitl"] and "--scenario" in chosen and chosen["--scenario"][1] is False:
-        v = _without(chosen, "--scenario")  # the scenario is only read in SITL
     return v
 
 
@@ -288,30 +286,40 @@ def verdict(chosen) -> bool | None:
     return False if False in vs else None if None in vs else True
 
 
+#: the options every run of the flight software takes (fsw.config.add_run_options)
+RUN_OPTIONS = {
+    "--duration": Opt(floats(0, lo_open=True)),
+    "--rate": Opt(floats(0, 1000, lo_open=True)),
+    "--link": Opt(URL_OUT),
+    "--baud": Opt(ints(1)),
+    "--key": Opt(KEY, role="in"),
+    "--uplink": Opt(URL_IN + [(u, False) for u, ok in URL_OUT if ok is False]),
+    "--buffer-frames": Opt(ints(0, 1_000_000)),
+    "--sample-store": Opt(OUT, role="out"),
+    "--sample-rate": Opt(floats(0, 1000, lo_open=True)),
+    "--sigma-uT": Opt(floats(0, lo_open=True)),
+    "--max-sample-tlm-hz": Opt(floats(0.01, 1000)),
+    "--quiet": flag(),
+}
+
+
 SPECS: list[Tool] = [
     Tool("fsw.main", fsw.main.main, {
-        "--sitl": flag(),
-        "--mag-serial": Opt([("{files}/missing-serial", False), ("{files}/rec.csv", None), ("/dev/null", None),
+        "--mag-serial": Opt([("{files}/missing-serial", None), ("{files}/rec.csv", None), ("/dev/null", None),
                              ("{files}/fifo", None), ("", False)], role="in"),
-        "--replay": Opt(IN_RECORDING, role="in"),
-        "--rates-out": Opt(OUT, role="out"),
+        **RUN_OPTIONS,
+    }, stubs=["fsw.drivers.serial_bus:SerialBus"], judge=_target_judge),
+    Tool("hil.sitl", hil.sitl.main, {
         "--scenario": Opt(SCENARIO + [("amds_deorbit", True)], role="in"),
-        "--duration": Opt(floats(0, lo_open=True)),
         "--speed": Opt(floats(0)),
-        "--rate": Opt(floats(0, 1000, lo_open=True)),
-        "--link": Opt(URL_OUT),
-        "--baud": Opt(ints(1)),
-        "--key": Opt(KEY, role="in"),
-        "--uplink": Opt(URL_IN + [(u, False) for u, ok in URL_OUT if ok is False]),
-        "--buffer-frames": Opt(ints(0, 1_000_000)),
-        "--sample-store": Opt(OUT, role="out"),
         "--seed": Opt(ints(0)),
-        "--sample-rate": Opt(floats(0, 1000, lo_open=True)),
-        "--sigma-uT": Opt(floats(0, lo_open=True)),
-        "--max-sample-tlm-hz": Opt(floats(0.01, 1000)),
-        "--quiet": flag(),
         "--ident-inertia-guess": Opt(floats(0, lo_open=True)),
-    }, stubs=["fsw.main:FlightSoftware"], judge=_fsw_main_judge),
+        **RUN_OPTIONS,
+    }, stubs=["fsw.system:FlightSoftware"]),
+    Tool("ground.replay", ground.replay.main, {
+        "--rates-out": Opt(OUT, role="out"),
+        **RUN_OPTIONS,
+    }, positionals=[("input", Opt(IN_RECORDING, role="in"))], stubs=["fsw.system:FlightSoftware"]),
     Tool("ground.decode", ground.decode.main, {
         "--baud": Opt(ints(1)),
         "--tlog": Opt(OUT, role="out"),
@@ -399,15 +407,15 @@ SPECS: list[Tool] = [
                                     ("{files}/link.csv", False), ("{files}/open.key", True),
                                     ("{files}/zero.key", True), ("", False)], role="out", required=True))],
          judge=_keys_judge, probe=("new", "x")),
-    Tool("hil.soak", hil.soak.main, {
+    Tool("bench.soak", bench.soak.main, {
         "--duration": Opt(floats(120)),
         "--json": Opt(OUT, role="out"),
         "--seed": Opt(ints(0)),
         "--scenario": Opt(SCENARIO, role="in"),
         "--rate": Opt(floats(0, 1000, lo_open=True)),
         "--quiet": flag(),
-    }, stubs=["hil.soak:run"]),
-    Tool("hil.accuracy", hil.accuracy.main, {
+    }, stubs=["bench.soak:run"]),
+    Tool("bench.accuracy", bench.accuracy.main, {
         "--json": Opt(OUT, role="out"),
         "--runs": Opt(ints(1)),
         "--seed": Opt(ints(0)),
@@ -421,8 +429,8 @@ SPECS: list[Tool] = [
         "--real": Opt([("{files}/realdir", True), ("{files}/missing", False), ("{files}/emptydir", False),
                        ("{files}/rec.csv", False), ("", False), ("{files}/fifo", False)], role="in"),
         "--max-s": Opt(floats(0, lo_open=True)),
-    }, stubs=["hil.accuracy:run_benchmark", "hil.accuracy:real_recordings"], judge=_accuracy_judge),
-    Tool("hil.inertia_bench", hil.inertia_bench.main, {
+    }, stubs=["bench.accuracy:run_benchmark", "bench.accuracy:real_recordings"], judge=_accuracy_judge),
+    Tool("bench.inertia", bench.inertia.main, {
         "--json": Opt(OUT, role="out"),
         "--runs": Opt(ints(2)),
         "--seed": Opt(ints(0)),
@@ -437,9 +445,9 @@ SPECS: list[Tool] = [
         "--shape-data": Opt(choices(["all", "free"])),
         "--crb": Opt([("900", True), ("900,1800", True), ("", False), ("nan", False), ("0", False), ("a", False),
                       ("900,", False)]),
-    }, stubs=["hil.inertia_bench:bench_scenario", "hil.inertia_bench:truth_record", "hil.inertia_bench:crb_table"],
+    }, stubs=["bench.inertia:bench_scenario", "bench.inertia:truth_record", "bench.inertia:crb_table"],
         judge=_inertia_bench_judge),
-    Tool("hil.deorbit_bench", hil.deorbit_bench.main, {
+    Tool("bench.deorbit", bench.deorbit.main, {
         "--scenario": Opt(DEORBIT_SCENARIO, role="in"),
         "--duration": Opt(floats(0, lo_open=True)),
         "--rate": Opt(floats(1, 100)),
@@ -452,7 +460,7 @@ SPECS: list[Tool] = [
                        repeat=True),
         "--json": Opt(OUT, role="out"),
         "--plot": Opt(PNG, role="out"),
-    }, stubs=["hil.deorbit_bench:DeorbitSimulator"]),
+    }, stubs=["fsw.system:FlightSoftware"]),
     Tool("hil.pty_link", hil.pty_link.main, {
         "--scenario": Opt(SCENARIO, role="in"),
         "--seed": Opt(ints(0)),
