@@ -400,7 +400,7 @@ def test_inertia_bench_refuses_what_would_run_nothing(capsys, monkeypatch, argv,
 def test_accuracy_on_real_recordings_refuses_a_folder_it_cannot_use(tmp_path, capsys, what):
     """--real on a missing or empty folder printed an empty table and exited 0; a CSV that is not a
     recording (or has no reference rate) raised a traceback."""
-    from hil import accuracy
+    from bench import accuracy
     folder = tmp_path / "real"
     if what != "missing":
         folder.mkdir()
@@ -419,7 +419,7 @@ def test_accuracy_on_real_recordings_refuses_a_folder_it_cannot_use(tmp_path, ca
 @pytest.mark.parametrize("text", ["stall:pitch:nan", "stall:pitch:inf", "stuck:yaw:900:nan", "stall:pitch:-5"])
 def test_a_fault_at_no_time_is_refused(text):
     """A fault at NaN seconds was accepted and never injected."""
-    from hil.deorbit_bench import Fault
+    from bench.deorbit import Fault
     with pytest.raises(ValueError, match="bad fault"):
         Fault.parse(text)
 
@@ -434,7 +434,7 @@ def test_the_sample_store_is_checked_as_an_output(tmp_path, capsys, monkeypatch,
     key = tmp_path / "k.key"
     write_key(key, bytes(range(7, 39)))
     path = {"input": src, "folder": tmp_path, "key": key}[store]
-    no_work(monkeypatch, "fsw.main:FlightSoftware")
+    no_work(monkeypatch, "fsw.system:FlightSoftware")
     one_line_error(capsys, fsw_main.main, ["--replay", str(src), "--key", str(key), "--sample-store", str(path),
                                            "--link", "udpout:127.0.0.1:9"], 2, "--sample-store",
                    protected=(src, key))
@@ -449,7 +449,7 @@ def test_command_refuses_two_things_to_do(capsys):
 
 @pytest.mark.parametrize("main, argv, words", [
     (fsw_main.main, ["--sitl", "--key", "", "--link", "udpout:127.0.0.1:9"], ("--key", "empty path")),
-    (fsw_main.main, ["--replay", "", "--link", "udpout:127.0.0.1:9"], ("--replay", "empty path")),
+    (fsw_main.main, ["--replay", "", "--link", "udpout:127.0.0.1:9"], ("INPUT.csv", "empty path")),
     (decode.main, ["udpin:127.0.0.1:9", "--key", ""], ("--key", "empty path")),
     (decode.main, [""], ("url", "empty")),
     (command.main, ["udpout:127.0.0.1:9", "capsule", "--key", ""], ("--key", "empty path")),
@@ -459,6 +459,6 @@ def test_command_refuses_two_things_to_do(capsys):
 def test_an_empty_path_is_refused_not_taken_for_none(capsys, monkeypatch, main, argv, words):
     """An empty path (a shell variable not set) was taken for "not given": fsw.main --key "" ran with no
     key at all, --replay "" ran on target with no serial port, ground.decode "" read the current folder."""
-    no_work(monkeypatch, "fsw.main:FlightSoftware", "ground.decode:run", "ground.command:Session",
+    no_work(monkeypatch, "fsw.system:FlightSoftware", "ground.decode:run", "ground.command:Session",
             "ground.estimate:read_recording")
     one_line_error(capsys, main, argv, 2, *words)
