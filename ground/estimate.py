@@ -170,7 +170,7 @@ def inertia_tensor(text: str) -> np.ndarray:
     if moments[0] <= 0:
         raise argparse.ArgumentTypeError(f"must be positive definite (principal moments "
                                          f"{', '.join(f'{m:g}' for m in moments)} kg·m²)")
-    if moments[0] + moments[1] < moments[2] * (1 - 1e-9):
+    if moments[0] / moments[2] + moments[1] / moments[2] < 1 - 1e-9:  # (divided: no overflow near the float limit)
         raise argparse.ArgumentTypeError(f"principal moments {', '.join(f'{m:g}' for m in moments)} kg·m² "
                                          "violate the triangle inequality (no body has them)")
     return tensor

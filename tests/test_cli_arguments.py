@@ -462,3 +462,18 @@ def test_an_empty_path_is_refused_not_taken_for_none(capsys, monkeypatch, main, 
     no_work(monkeypatch, "fsw.system:FlightSoftware", "ground.decode:run", "ground.command:Session",
             "ground.estimate:read_recording")
     one_line_error(capsys, main, argv, 2, *words)
+
+
+def test_the_triangle_check_does_not_overflow_near_the_float_limit(tmp_path):
+    """Principal moments near 1.8e308: their sum overflowed (a RuntimeWarning on stderr, the check on inf)."""
+    import warnings
+
+    from hil import scenario
+    path = tmp_path / "big.toml"
+    path.write_text((scenario.SCENARIO_DIR / "isoi.toml").read_text().replace(
+        "inertia_kgm2 = [[0.058, 0.0, 0.0], [0.0, 0.058, 0.0], [0.0, 0.0, 0.011]]",
+        "inertia_kgm2 = [[1e308, 0.0, 0.0], [0.0, 1e308, 0.0], [0.0, 0.0, 1e308]]"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert estimate.inertia_tensor("1e308,1e308,1e308")[0, 0] == 1e308
+        assert scenario.load(str(path)).inertia_kgm2[0, 0] == 1e308

@@ -239,6 +239,8 @@ def _command_judge(v, chosen):
         return _without(chosen, "url", "command", "params", "--set-param", "--get-param", "--key")
     if "url" not in chosen and "command" in chosen:  # the command word is taken for the URL (a serial device)
         return None if v is not False else _without(chosen, "command", "params")
+    if "command" not in chosen and "params" in chosen:  # the first parameter is taken for the command
+        return None if v is not False else _without(chosen, "params")
     if "url" not in chosen or not ({"command", "--set-param", "--get-param"} & set(chosen)):
         return False
     if sum(x in chosen for x in ("command", "--set-param", "--get-param")) > 1:
@@ -265,6 +267,8 @@ def _accuracy_judge(v, chosen):
     if "--real" in chosen:
         return _without(chosen, "--rows", "--methods", "--runs", "--record-samples", "--warmup-s", "--jobs",
                         "--quick", "--seed")
+    if "--quick" in chosen:  # two rows of its own, one short run each
+        return _without(chosen, "--rows", "--runs", "--record-samples", "--warmup-s")
     return v
 
 
@@ -605,6 +609,10 @@ class Hung(BaseException):
     pass
 
 
+def role_of(tool: Tool, name: str) -> str:
+    return (tool.options.get(name) or dict(tool.positionals)[name]).role
+
+
 def _resolve(words: list[str], chosen: dict, tool: Tool, files: Path, out: Path, port: int) -> list[str]:
     role = {n: o.role for n, o in tool.positionals + list(tool.options.items())}
     inputs = [files / x[0].removeprefix("{files}/") for n, x in chosen.items()
@@ -705,9 +713,11 @@ def cli_property(tool: Tool):
         if status == 2:
             assert not any(out.iterdir()), f"{shown}: refused, but wrote {list(out.iterdir())}"
         after = snapshot(files)
-        written = set()  # ground.keys new FILE --force replaces FILE: its output
-        if tool.name == "ground.keys" and v is not False and chosen.get("file", ("",))[0].startswith("{files}/"):
-            written.add(chosen["file"][0].removeprefix("{files}/"))
+        written = set()  # outputs named among the fixture files (ground.keys new FILE --force; through a link)
+        for n, (text, _ok) in chosen.items():
+            if v is not False and role_of(tool, n) == "out" and str(text).startswith("{files}/"):
+                name = text.removeprefix("{files}/")
+                written |= {name, os.path.relpath(os.path.realpath(files / name), files)}
         changed = {k for k in before.keys() | after.keys() if before.get(k) != after.get(k)} - written
         assert not changed, f"{shown}: changed {sorted(changed)}"
     prop.__name__ = f"cli_{tool.name.replace('.', '_').replace(' --', '_')}"
