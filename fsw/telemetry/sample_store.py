@@ -7,8 +7,9 @@ recording on the ground ends complete.
   on where the previous run stopped and the previous runs' samples can still be sent. The file is
   written in place, sample by sample, and its header (the next number) after the sample: a process
   killed between the two leaves a sample the header does not yet count, never a counted sample that is
-  not there. A file that is not a store of this layout and capacity is not loaded: it is moved aside
-  (``.bad``) and a new store begins (`reset_reason` says why).
+  not there. A store file of another layout or capacity, or cut short, is not loaded: it is moved aside
+  (``.bad``) and a new store begins; a file that is not a sample store at all is never touched (the
+  samples are then kept in memory). `reset_reason` says which.
 - :class:`Resender`: the ground's requests (ranges of sample numbers) in a bounded queue, served from
   the store within a byte budget per second (token bucket, one second deep), after the live telemetry.
   A request for samples the store no longer has is answered with what it still has; the ground learns
@@ -33,6 +34,14 @@ _HEADER = np.dtype([("magic", "S16"), ("capacity", "<u8"), ("next_seq", "<u8")])
 _RECORD = np.dtype([("seq", "<u8"), ("run_id", "<u4"), ("pad", "<u4"), ("t_us", "<u8"), ("b_T", "<f8", (3,))])
 
 
+def _has_magic(p: Path) -> bool:
+    try:
+        with open(p, "rb") as f:
+            return f.read(len(_MAGIC)) == _MAGIC
+    except OSError:
+        return False
+
+
 class SampleStore:
     """Numbered samples, the last `capacity` of them; in a file when `path` is given."""
 
@@ -45,11 +54,11 @@ class SampleStore:
         self.path = None if path is None else Path(path)
         self.reset_reason = ""
         self._map = None
-        if self.path is None:
+        if self.path is not None:
+            self._open_file()
+        if self._map is None:
             self._header = np.zeros(1, dtype=_HEADER)
             self._records = np.zeros(self.capacity, dtype=_RECORD)
-        else:
-            self._open_file()
         self._header["magic"] = _MAGIC
         self._header["capacity"] = self.capacity
         self._next = int(self._header["next_seq"][0])
@@ -61,7 +70,11 @@ class SampleStore:
     def _open_file(self) -> None:
         size = _HEADER.itemsize + self.capacity * _RECORD.itemsize
         p = self.path
-        if p.exists():
+        if p.exists() or p.is_symlink():
+            if not p.is_file() or p.is_symlink() or not _has_magic(p):  # somebody else's file: never touched
+                self.reset_reason = f"{p}: not a sample store, left alone; samples kept in memory only"
+                self.path = None
+                return
             why = self._unusable(p, size)
             if why:
                 self.reset_reason = f"{p}: {why}; moved to {p.name}.bad, a new store begins"
@@ -74,13 +87,10 @@ class SampleStore:
         self._records = self._map[_HEADER.itemsize:].view(_RECORD)
 
     def _unusable(self, p: Path, size: int) -> str:
-        if not p.is_file():
-            return "not a regular file"
+        """Why a store file (it has the magic) cannot be continued, or ""."""
         if p.stat().st_size != size:
             return f"{p.stat().st_size} bytes, a store of {self.capacity} samples has {size}"
         head = np.fromfile(p, dtype=_HEADER, count=1)
-        if head["magic"][0] != _MAGIC:
-            return "not a sample store"
         if int(head["capacity"][0]) != self.capacity:
             return f"capacity {int(head['capacity'][0])}, not {self.capacity}"
         return ""

@@ -43,17 +43,37 @@ def test_a_slot_the_previous_run_did_not_finish_is_not_served(tmp_path):
     assert s2.get(9) is None and s2.get(8) is not None
 
 
-@pytest.mark.parametrize("damage", ["short", "foreign", "capacity"])
-def test_a_file_that_is_not_a_store_of_this_size_is_moved_aside_never_loaded(tmp_path, damage):
+@pytest.mark.parametrize("damage", ["short", "capacity"])
+def test_a_store_of_another_size_is_moved_aside_never_loaded(tmp_path, damage):
     path = tmp_path / "samples.bin"
     if damage == "capacity":
         SampleStore(50, path=path).close()
     else:
         SampleStore(100, path=path).close()
-        data = path.read_bytes()
-        path.write_bytes(data[:100] if damage == "short" else b"x" * len(data))
+        path.write_bytes(path.read_bytes()[:100])
     s = SampleStore(100, path=path)
-    assert s.next_seq == 0 and s.reset_reason and (tmp_path / "samples.bin.bad").exists()
+    assert s.next_seq == 0 and s.persistent and s.reset_reason and (tmp_path / "samples.bin.bad").exists()
+
+
+@pytest.mark.parametrize("kind", ["file", "folder", "link"])
+def test_a_path_that_is_not_a_store_is_never_touched(tmp_path, kind):
+    """A recording, a folder or a link given as the store by mistake stays as it was; the samples are
+    kept in memory and the reason said."""
+    path = tmp_path / "samples.bin"
+    if kind == "file":
+        path.write_bytes(b"t_s,bx_uT,by_uT,bz_uT\n0,1,2,3\n")
+    elif kind == "folder":
+        path.mkdir()
+    else:
+        (tmp_path / "target").write_bytes(b"x")
+        path.symlink_to(tmp_path / "target")
+    before = sorted(p.name for p in tmp_path.iterdir())
+    s = SampleStore(100, path=path)
+    fill(s, 5)
+    assert not s.persistent and "not a sample store" in s.reset_reason and s.get(4) is not None
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+    if kind == "file":
+        assert path.read_bytes().startswith(b"t_s,")
 
 
 def send_log(sent, bytes_per_frame=50, down=False):
