@@ -511,8 +511,10 @@ DEBRIS_TLE_STATE_NO_TIME = 2
 enums["DEBRIS_TLE_STATE"][2] = EnumEntry("DEBRIS_TLE_STATE_NO_TIME", """A TLE (e.g. kept across a restart) but no UTC yet: not used.""")
 DEBRIS_TLE_STATE_STALE = 3
 enums["DEBRIS_TLE_STATE"][3] = EnumEntry("DEBRIS_TLE_STATE_STALE", """The TLE is older than the age limit (parameter TLE_MAX_AGE_D): not used.""")
-DEBRIS_TLE_STATE_ENUM_END = 4
-enums["DEBRIS_TLE_STATE"][4] = EnumEntry("DEBRIS_TLE_STATE_ENUM_END", """""")
+DEBRIS_TLE_STATE_FUTURE = 4
+enums["DEBRIS_TLE_STATE"][4] = EnumEntry("DEBRIS_TLE_STATE_FUTURE", """The TLE's epoch is after the onboard UTC (the time set since is earlier): not used.""")
+DEBRIS_TLE_STATE_ENUM_END = 5
+enums["DEBRIS_TLE_STATE"][5] = EnumEntry("DEBRIS_TLE_STATE_ENUM_END", """""")
 
 # DEBRIS_TLE_REFUSAL
 enums["DEBRIS_TLE_REFUSAL"] = Enum()

@@ -363,7 +363,9 @@ class Uplink:
             c.ignored += 1
 
     def _for_us(self, msg) -> bool:
-        return msg.target_system in (0, self.sysid) and msg.target_component in (0, self.compid)
+        """Addressed to us, or to everyone (a message without target fields, e.g. SYSTEM_TIME)."""
+        return getattr(msg, "target_system", 0) in (0, self.sysid) and getattr(msg, "target_component", 0) in (
+            0, self.compid)
 
     # --- output ---------------------------------------------------------------------------------
     def _param_value(self, request, name: str) -> None:
