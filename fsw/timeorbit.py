@@ -21,8 +21,9 @@ An onboard application (`fsw.app.App`, task "timeorbit", 1 Hz) around the pure p
   neither stale nor from the future, else None and why: what needs it (the identification
   experiment) refuses then, it never flies on a missing or stale orbit. The task computes the knots
   around the loop time ahead of need, one batch at a time.
-- **Telemetry** (1 Hz): SYSTEM_TIME (the UTC estimate) and DEBRIS_TIME_ORBIT (offset age, drift, TLE
-  epoch, age and state, counters, field degree).
+- **Telemetry**: SYSTEM_TIME (the UTC estimate, 1 Hz) and DEBRIS_TIME_ORBIT (offset age, drift, TLE
+  epoch, age and state, counters, field degree; every `status_period_s`, and at once after a time
+  set, a TLE loaded or a refusal, so that the ground sees the effect of what it sent).
 
 Time is the loop's ``now_s`` (the monotonic clock on target, the simulator's in SITL); nothing reads
 the wall clock.
@@ -72,6 +73,7 @@ class TimeOrbit:
     name = "timeorbit"
     rate_hz = 1.0
     budget = 0.5  # a batch of knots (SGP4 + IGRF): ~2–5 ms once a minute
+    status_period_s = 5.0
 
     def __init__(self, *, tle_file: str | Path | None = None, max_tle_age_d: float = DEFAULT_TLE_MAX_AGE_D,
                  degree: int = FLIGHT_DEGREE, knot_step_s: float = KNOT_STEP_S,
@@ -93,6 +95,7 @@ class TimeOrbit:
         self.notes: list[str] = []
         self._staged: tuple[str, str] | None = None
         self._field: OnboardOrbitField | None = None
+        self._next_status_s = -math.inf
         if self.tle_file is not None:
             self._read_tle_file()
 
@@ -143,7 +146,9 @@ class TimeOrbit:
 
     def telemetry(self, now_s: float, tlm) -> None:
         tlm.system_time(now_s, self.clock.utc_s(now_s))
-        tlm.time_orbit(now_s, **self.message_fields(now_s))
+        if now_s >= self._next_status_s:
+            tlm.time_orbit(now_s, **self.message_fields(now_s))
+            self._next_status_s = now_s + self.status_period_s
 
     # --- time ----------------------------------------------------------------------------------------
     def on_system_time(self, msg, now_s: float, authenticated: bool) -> None:
@@ -151,10 +156,12 @@ class TimeOrbit:
         utc_s = float(getattr(msg, "time_unix_usec", 0)) * 1e-6
         if not authenticated:
             self.time_refused += 1
+            self._next_status_s = -math.inf
             self.last_error = "time set refused: not signed with the mission key"
             return
         if not (math.isfinite(utc_s) and utc_s >= MIN_UTC_S):
             self.time_refused += 1
+            self._next_status_s = -math.inf
             self.last_error = f"time set refused: {utc_s:.0f} s is before 2020"
             return
         self.set_time(now_s, utc_s)
@@ -162,6 +169,7 @@ class TimeOrbit:
     def set_time(self, now_s: float, utc_s: float) -> None:
         self.clock.set(now_s, utc_s)
         self._field = None  # rebuilt on the new time
+        self._next_status_s = -math.inf
 
     def utc_s(self, now_s: float) -> float:
         return self.clock.utc_s(now_s)
@@ -198,6 +206,7 @@ class TimeOrbit:
         self.tle = tle
         self.tle_loaded += 1
         self._field = None
+        self._next_status_s = -math.inf
         self.tle_persisted = False
         if self.tle_file is not None:
             try:
@@ -209,6 +218,7 @@ class TimeOrbit:
 
     def _refuse(self, reason: str, text: str, result: int = mavlink.MAV_RESULT_DENIED) -> int:
         self.tle_refused += 1
+        self._next_status_s = -math.inf
         self.last_refusal = REFUSAL[reason]
         self.last_error = text
         return result
