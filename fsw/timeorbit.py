@@ -14,13 +14,17 @@ An onboard application (`fsw.app.App`, task "timeorbit", 1 Hz) around the pure p
   replay safety; the CRC binds the command to exactly the lines the ground meant. Refusals
   (`DEBRIS_TLE_REFUSAL`, counted): not staged / CRC differs, bad format, bad checksum, epoch after the
   onboard UTC, epoch older than the parameter TLE_MAX_AGE_D → DENIED; no onboard UTC yet →
-  TEMPORARILY_REJECTED (set the time, then load again). A TLE in force is written atomically to
+  TEMPORARILY_REJECTED (set the time, then load again). The COMMAND_ACK's result_param2 carries the
+  reason. A TLE in force is written atomically to
   `tle_file` (a plain two-line file) and read back at start.
 - **Field**: :meth:`TimeOrbit.field_now` gives the field along the orbit (IGRF-14 at the flight
   degree, SGP4, knots every 60 s, interpolated) when a TLE and the UTC are on board and the TLE is
   neither stale nor from the future, else None and why: what needs it (the identification
   experiment) refuses then, it never flies on a missing or stale orbit. The task computes the knots
   around the loop time ahead of need, one batch at a time.
+- **Time sync** (https://mavlink.io/en/services/timesync.html): a TIMESYNC request (tc1 = 0) is
+  answered with tc1 = the onboard UTC in ns (the box's loop time before a time set: the magnitude tells
+  which), ts1 mirrored: the ground sees the time it set, and the round trip.
 - **Telemetry**: SYSTEM_TIME (the UTC estimate, 1 Hz) and DEBRIS_TIME_ORBIT (offset age, drift, TLE
   epoch, age and state, counters, field degree; every `status_period_s`, and at once after a time
   set, a TLE loaded or a refusal, so that the ground sees the effect of what it sent).
@@ -96,6 +100,7 @@ class TimeOrbit:
         self._staged: tuple[str, str] | None = None
         self._field: OnboardOrbitField | None = None
         self._next_status_s = -math.inf
+        self._router = None
         if self.tle_file is not None:
             self._read_tle_file()
 
@@ -124,13 +129,14 @@ class TimeOrbit:
 
     # --- the application's contract ------------------------------------------------------------------
     def register(self, router) -> None:
+        self._router = router
         router.register(mavlink.MAV_CMD_DEBRIS_TLE_LOAD, self.cmd_tle_load, changes_state=True)
 
     def register_params(self, params) -> None:
         params.register("TLE_MAX_AGE_D", lambda: self.max_tle_age_s / 86400.0, self._set_max_age, 0.1, 365.0)
 
     def message_handlers(self) -> dict:
-        return {"SYSTEM_TIME": self.on_system_time, "DEBRIS_TLE": self.on_tle}
+        return {"SYSTEM_TIME": self.on_system_time, "DEBRIS_TLE": self.on_tle, "TIMESYNC": self.on_timesync}
 
     def tick(self, now_s: float, sample) -> None:
         """Compute the knots around the loop time ahead of need (one batch), when the field is available."""
@@ -165,6 +171,13 @@ class TimeOrbit:
             self.last_error = f"time set refused: {utc_s:.0f} s is before 2020"
             return
         self.set_time(now_s, utc_s)
+
+    def on_timesync(self, msg, now_s: float, authenticated: bool):
+        """TIMESYNC request (tc1 = 0) → the answer: tc1 = the onboard UTC [ns] (loop time before a set)."""
+        if int(getattr(msg, "tc1", 1)) != 0:
+            return None  # an answer to someone else's request
+        t_ns = int(round((self.clock.utc_s(now_s) if self.clock.known else now_s) * 1e9))
+        return mavlink.MAVLink_timesync_message(t_ns, int(msg.ts1))
 
     def set_time(self, now_s: float, utc_s: float) -> None:
         self.clock.set(now_s, utc_s)
@@ -221,6 +234,8 @@ class TimeOrbit:
         self._next_status_s = -math.inf
         self.last_refusal = REFUSAL[reason]
         self.last_error = text
+        if self._router is not None:
+            self._router.set_result_param2(self.last_refusal)
         return result
 
     def _set_max_age(self, days: float) -> None:

@@ -17,11 +17,12 @@ be sending: the first frame from it tells where it is); ``udpout:HOST:PORT`` sen
 listens for commands (`fsw.main --uplink udpin:0.0.0.0:PORT`); a serial device talks over the radio.
 
 ``time`` sends SYSTEM_TIME (``time_unix_usec``: the ground's clock, or the ISO 8601 UTC given, e.g.
-``2026-05-01T12:00:00Z``) and waits until the box's DEBRIS_TIME_ORBIT reports that UTC (within
-``TIME_MATCH_S``); ``tle`` checks the two lines first (69 characters, modulo-10 checksums, one
-satellite: a bad TLE is a one-line error, exit status 2, nothing sent), then stages them (DEBRIS_TLE)
-and loads them with MAV_CMD_DEBRIS_TLE_LOAD carrying their CRC; a refusal is printed with the box's
-reason (DEBRIS_TIME_ORBIT.tle_last_refusal). A FILE may hold a name line before the two lines.
+``2026-05-01T12:00:00Z``), then a TIMESYNC request: the box answers with its UTC, which must match the
+time sent within ``TIME_MATCH_S`` (the round trip is printed). ``tle`` checks the two lines first
+(69 characters, modulo-10 checksums, one satellite: a bad TLE is a one-line error, exit status 2,
+nothing sent), then stages them (DEBRIS_TLE) and loads them with MAV_CMD_DEBRIS_TLE_LOAD carrying
+their CRC; a refusal is printed with the box's reason (the COMMAND_ACK's result_param2, a
+DEBRIS_TLE_REFUSAL). A FILE may hold a name line before the two lines.
 
 Command protocol (https://mavlink.io/en/services/command.html): without an answer within
 ``--timeout`` the command is sent again with ``confirmation`` + 1, up to ``--retries`` times; the box
@@ -321,22 +322,23 @@ def read_tle_args(items: Sequence[str]):
 
 
 def send_time(s: "Session", utc_s: float | None, *, target=(FSW_SYSID, FSW_COMPID), timeout_s: float = 1.0,
-              retries: int = 3) -> float | None:
-    """SYSTEM_TIME (UTC `utc_s`, None: the ground's clock at each send) until the box reports it (the
-    UTC it reports, or None)."""
+              retries: int = 3) -> tuple[float, float] | None:
+    """SYSTEM_TIME (UTC `utc_s`, None: the ground's clock at each send), then TIMESYNC, until the box's
+    answer shows the time taken: (the UTC the box reported, the round trip [s]), or None."""
     for _ in range(retries + 1):
         sent_at = s.now()
         utc = sent_at if utc_s is None else utc_s
         s.link.send(mavlink.MAVLink_system_time_message(int(round(utc * 1e6)), 0), sent_at)
-
-        def taken(r: Reply, utc=utc, sent_at=sent_at) -> bool:
-            if not (_trusted(r) and _is_from(r, target) and r.msg.get_type() == "DEBRIS_TIME_ORBIT"):
-                return False
-            expected = utc + (s.now() - sent_at)
-            return r.msg.utc_usec != 0 and abs(r.msg.utc_usec * 1e-6 - expected) <= TIME_MATCH_S
-        r = s.wait(taken, max(timeout_s, 1.5))  # the box reports once a second
-        if r is not None:
-            return r.msg.utc_usec * 1e-6
+        ts1 = int(s.now() * 1e9)
+        s.link.send(mavlink.MAVLink_timesync_message(0, ts1), s.now())
+        r = s.wait(lambda r, ts1=ts1: _trusted(r) and _is_from(r, target) and r.msg.get_type() == "TIMESYNC"
+                   and r.msg.tc1 != 0 and r.msg.ts1 == ts1, timeout_s)
+        if r is None:
+            continue
+        back = s.now()
+        expected = utc + (back + ts1 * 1e-9) / 2 - sent_at  # the box answered half a round trip ago
+        if abs(r.msg.tc1 * 1e-9 - expected) <= TIME_MATCH_S:
+            return r.msg.tc1 * 1e-9, back - ts1 * 1e-9
     return None
 
 
@@ -354,16 +356,9 @@ def send_tle(s: "Session", tle, *, target=(FSW_SYSID, FSW_COMPID), timeout_s: fl
                    and r.msg.command == command, timeout_s)
         if r is None:
             continue
-        result = int(r.msg.result)
-        if result in (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_IN_PROGRESS):
-            return result, ""
-        st = s.wait(lambda r: _trusted(r) and _is_from(r, target) and r.msg.get_type() == "DEBRIS_TIME_ORBIT",
-                    1.5)
-        reason = ""
-        if st is not None:
-            e = mavlink.enums["DEBRIS_TLE_REFUSAL"].get(st.msg.tle_last_refusal)
-            reason = e.description if e is not None else str(st.msg.tle_last_refusal)
-        return result, reason
+        result, code = int(r.msg.result), int(r.msg.result_param2)
+        e = mavlink.enums["DEBRIS_TLE_REFUSAL"].get(code) if code else None
+        return result, (e.description if e is not None else "")
     return None, ""
 
 
@@ -446,7 +441,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"time: the box did not report the time sent after {args.retries + 1} attempts",
                       file=sys.stderr)
                 return 3
-            print(f"time: the box reports UTC {_iso(got)}")
+            print(f"time: the box reports UTC {_iso(got[0])} (round trip {got[1] * 1e3:.0f} ms)")
             return 0
         if special == TLE:
             result, reason = send_tle(s, tle, target=target, timeout_s=args.timeout, retries=args.retries)
