@@ -201,3 +201,25 @@ def test_a_tle_that_cannot_be_kept_is_still_flown_and_the_failure_said(tmp_path)
     box.send_time(EPOCH + 60.0)
     assert box.send_tle(L1, L2) == R.MAV_RESULT_ACCEPTED
     assert box.to.persist_errors == 1 and not box.to.tle_persisted and "not kept" in box.to.last_error
+
+
+def test_the_ack_says_why_and_timesync_answers_with_the_onboard_utc():
+    box = Box()
+    box.send_tle(L1, L2)
+    ack = [r.msg for r in box.received if r.msg.get_type() == "COMMAND_ACK"][-1]
+    assert (ack.result, ack.result_param2) == (R.MAV_RESULT_TEMPORARILY_REJECTED, R.DEBRIS_TLE_REFUSAL_NO_TIME)
+    # TIMESYNC before a time set: the loop time in ns; after: the onboard UTC, ts1 mirrored
+    box.ground.send(R.MAVLink_timesync_message(0, 123), box.now)
+    box.run(0.2)
+    first = box.last("TIMESYNC")
+    assert first.ts1 == 123 and abs(first.tc1 * 1e-9 - box.now) < 0.3
+    box.send_time(EPOCH + 100.0)
+    t_set = box.now - 0.2
+    box.ground.send(R.MAVLink_timesync_message(0, 456), box.now)
+    box.run(0.2)
+    ts = box.last("TIMESYNC")
+    assert ts.ts1 == 456 and abs(ts.tc1 * 1e-9 - (EPOCH + 100.0 + box.now - t_set)) < 0.3
+    box.send_time(EPOCH + 200.0)
+    assert box.send_tle(L1, L2) == R.MAV_RESULT_ACCEPTED
+    ack = [r.msg for r in box.received if r.msg.get_type() == "COMMAND_ACK"][-1]
+    assert ack.result_param2 == 0
