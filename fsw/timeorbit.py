@@ -278,6 +278,18 @@ class TimeOrbit:
         return self._field, ""
 
     # --- telemetry -----------------------------------------------------------------------------------
+    def summary_line(self, now_s: float) -> str | None:
+        """The end-of-run line, when anything was set or refused (None otherwise)."""
+        c = self.clock
+        if not (c.sets or self.time_refused or self.tle_loaded or self.tle_refused):
+            return None
+        utc = f"UTC {_iso(c.utc_s(now_s))} ({c.sets} sets" + (
+            f", drift {c.drift_ppm:.1f} ppm)" if math.isfinite(c.drift) else ")") if c.known else "no UTC"
+        tle = (f"TLE {self.tle.satnum} epoch {_iso(self.tle.epoch_utc_s)}: {STATE_NAMES[self.tle_state(now_s)]}"
+               if self.tle else "no TLE")
+        return (f"time and orbit: {utc}; {tle}; refused {self.time_refused} time sets, {self.tle_refused} TLEs"
+                + (f" (last: {self.last_error})" if self.tle_refused or self.time_refused else ""))
+
     def message_fields(self, now_s: float) -> dict:
         c = self.clock
         utc = c.utc_s(now_s)
