@@ -40,7 +40,7 @@ from pathlib import Path
 
 from .commands import int_param
 from .estimation import tle as tles
-from .estimation.igrf import FLIGHT_DEGREE
+from .estimation.igrf import FLIGHT_DEGREE, load_coefficients
 from .estimation.onboard_field import KNOT_STEP_S, OnboardOrbitField, affine_utc
 from .estimation.utc_clock import UtcEstimator
 from .files import write_atomic
@@ -101,6 +101,7 @@ class TimeOrbit:
         self._field: OnboardOrbitField | None = None
         self._next_status_s = -math.inf
         self._router = None
+        load_coefficients()  # at start-up, not in the tick that first needs the field
         if self.tle_file is not None:
             self._read_tle_file()
 

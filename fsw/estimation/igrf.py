@@ -50,6 +50,11 @@ def _coefficients() -> tuple[np.ndarray, list[tuple[int, int]], np.ndarray, np.n
     return _COEFFS
 
 
+def load_coefficients() -> None:
+    """Read the coefficients now (ppigrf imports pandas and parses its file: ~0.5 s), before a loop runs."""
+    _coefficients()
+
+
 def unix_to_decimal_year(utc_s: float) -> float:
     from datetime import datetime, timezone
     return _year_fraction(datetime.fromtimestamp(float(utc_s), timezone.utc).replace(tzinfo=None))

@@ -189,6 +189,13 @@ def test_a_bad_tle_file_is_said_and_not_used(tmp_path, content):
     assert path.read_text() == content           # left as it was until a good TLE replaces it
 
 
+def test_the_field_models_coefficients_are_read_before_the_loop():
+    from fsw.estimation import igrf
+    igrf._COEFFS = None
+    TimeOrbit()
+    assert igrf._COEFFS is not None
+
+
 def test_a_time_before_2020_is_refused():
     box = Box()
     box.send_time(0.0)
