@@ -230,3 +230,18 @@ def test_the_ack_says_why_and_timesync_answers_with_the_onboard_utc():
     assert box.send_tle(L1, L2) == R.MAV_RESULT_ACCEPTED
     ack = [r.msg for r in box.received if r.msg.get_type() == "COMMAND_ACK"][-1]
     assert ack.result_param2 == 0
+
+
+def test_the_drift_of_the_box_clock_from_successive_sets_is_reported():
+    from types import SimpleNamespace
+    to = TimeOrbit()
+    drift = 40e-6                                    # the box's clock runs 40 ppm fast
+    for k in range(6):                               # a set every 20 min of true time
+        utc = EPOCH + 1200.0 * k
+        mono = 50.0 + 1200.0 * k * (1 + drift)
+        to.on_system_time(SimpleNamespace(time_unix_usec=int(utc * 1e6)), mono, True)
+    f = to.message_fields(50.0 + 7200.0 * (1 + drift))
+    # UTC = mono / (1 + drift): the estimator sees UTC − mono shrink by 40 ppm of the box's time
+    assert f["drift_ppm"] == pytest.approx(-drift / (1 + drift) * 1e6, abs=0.01)
+    assert f["utc_usec"] * 1e-6 == pytest.approx(EPOCH + 7200.0, abs=1e-3)
+    assert f["time_sets"] == 6 and abs(f["last_set_residual"]) < 0.05
