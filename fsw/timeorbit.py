@@ -201,8 +201,20 @@ class TimeOrbit:
         crc = int_param(msg.param1, 0, 0xFFFFFF, "crc")
         if self._staged is None or tle_crc(*self._staged) != crc:
             return self._refuse("not staged", "TLE load refused: no DEBRIS_TLE staged with this CRC")
+        return self.check_and_load(*self._staged, now_s)
+
+    def preset(self, now_s: float, utc_s: float, line1: str | None = None, line2: str | None = None) -> int:
+        """What a composition hands the box before the loop (SITL: the scenario's UTC and TLE): the time,
+        then the TLE through the same checks as an upload; the MAV_RESULT of the TLE (ACCEPTED without one)."""
+        self.set_time(now_s, utc_s)
+        if line1 is None or line2 is None:
+            return mavlink.MAV_RESULT_ACCEPTED
+        return self.check_and_load(line1, line2, now_s)
+
+    def check_and_load(self, line1: str, line2: str, now_s: float) -> int:
+        """Format, checksums, epoch against the onboard UTC and the age limit; then in force. MAV_RESULT."""
         try:
-            tle = tles.parse_tle(*self._staged)
+            tle = tles.parse_tle(line1, line2)
         except tles.TleError as e:
             return self._refuse(e.reason, f"TLE refused: {e}")
         if not self.clock.known:

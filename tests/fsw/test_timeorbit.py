@@ -189,6 +189,14 @@ def test_a_bad_tle_file_is_said_and_not_used(tmp_path, content):
     assert path.read_text() == content           # left as it was until a good TLE replaces it
 
 
+def test_a_composition_presets_time_and_tle_through_the_same_checks():
+    to = TimeOrbit(max_tle_age_d=3.0)
+    assert to.preset(0.0, EPOCH + 5 * DAY, L1, L2) == R.MAV_RESULT_DENIED          # too old for the limit
+    assert to.last_refusal == R.DEBRIS_TLE_REFUSAL_TOO_OLD and to.tle is None
+    assert to.preset(0.0, EPOCH + 1 * DAY, L1, L2) == R.MAV_RESULT_ACCEPTED
+    assert to.tle_state(10.0) == R.DEBRIS_TLE_STATE_OK and to.field_now(10.0)[0] is not None
+
+
 def test_the_field_models_coefficients_are_read_before_the_loop():
     from fsw.estimation import igrf
     igrf._COEFFS = None
