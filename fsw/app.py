@@ -41,3 +41,7 @@ class App(Protocol):
 
     def telemetry(self, now_s: float, tlm: Telemetry) -> None:
         """Send what is due (it keeps its own rates); called right after each tick."""
+
+    # optional: register_params(params) — its parameters (`fsw.commands.ParamTable`);
+    # message_handlers() -> {message type: handler(msg, now_s, authenticated)} — messages from the ground
+    # beyond commands (e.g. SYSTEM_TIME), handed over by the uplink after its signature check

@@ -32,7 +32,9 @@ Rules applied before a handler runs (MAVLink command protocol, https://mavlink.i
   again (the ground resends when an ACK was lost; the command must not act twice).
 
 The router does not send anything; the uplink answers each COMMAND_LONG with a COMMAND_ACK carrying
-the returned result. It has no dependency on the link or on signing.
+the returned result and :attr:`CommandRouter.result_param2` (0 unless the handler set it with
+:meth:`CommandRouter.set_result_param2`, e.g. why a command was refused). It has no dependency on
+the link or on signing.
 
 Parameters (PARAM_SET / PARAM_REQUEST_*), same idea::
 
@@ -119,7 +121,13 @@ class CommandRouter:
     def __init__(self) -> None:
         self._handlers: dict[int, _Entry] = {}
         self.counters = CommandCounters()
-        self._last: tuple[int, tuple, float, int] | None = None  # (command, params, time, result)
+        self._last: tuple | None = None  # (command, params, time, result, result_param2)
+        #: COMMAND_ACK.result_param2 of the latest command handled (a handler's detail, e.g. a reason code)
+        self.result_param2 = 0
+
+    def set_result_param2(self, value: int) -> None:
+        """For a handler: the COMMAND_ACK's result_param2 (int32) of the command it is handling."""
+        self.result_param2 = int(value)
 
     def register(self, command: int, handler: Handler, *, changes_state: bool = True) -> None:
         """Route `command` (a MAV_CMD value) to `handler`. Registering a command twice is an error."""
@@ -138,6 +146,7 @@ class CommandRouter:
     def handle(self, msg, now_s: float, *, authenticated: bool = True) -> int:
         """Run the handler of ``msg.command``; returns the MAV_RESULT for the COMMAND_ACK. Never raises."""
         c = self.counters
+        self.result_param2 = 0
         try:
             command = int(msg.command)
             params = _params(msg)
@@ -157,6 +166,7 @@ class CommandRouter:
         if (confirmation > 0 and last is not None and last[0] == command and _same_params(last[1], params)
                 and 0.0 <= now_s - last[2] <= self.retry_window_s):
             c.retries += 1
+            self.result_param2 = last[4]
             return last[3]
         try:
             result = entry.handler(msg, now_s)
@@ -180,7 +190,7 @@ class CommandRouter:
             c.unsupported += 1
         else:
             c.failed += 1
-        self._last = (command, params, now_s, result)
+        self._last = (command, params, now_s, result, self.result_param2)
         return result
 
 

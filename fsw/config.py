@@ -45,6 +45,10 @@ class RunConfig:
     sigma_T: float = 1.5e-6
     max_sample_tlm_hz: float = 20.0
     quiet: bool = False
+    #: file that keeps the TLE in force across a restart (None: in memory only)
+    tle_file: str | None = None
+    #: a TLE older than this is refused and, once on board, no longer used (parameter TLE_MAX_AGE_D)
+    tle_max_age_d: float = 14.0
 
 
 def add_run_options(ap: argparse.ArgumentParser) -> None:

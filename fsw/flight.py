@@ -139,15 +139,22 @@ class FlightSoftware:
         self._register_params(sample_rate_hz or rate_hz)
         self.commands.register(mavlink.MAV_CMD_REQUEST_MESSAGE, self._request_message, changes_state=False)
         self.apps: dict[str, App] = {}
+        messages = {"DEBRIS_SAMPLE_REQUEST": self._sample_request}
         for app in apps:
             if app.name in self.apps:
                 raise ValueError(f"two applications named {app.name!r}")
             app.register(self.commands)
+            if hasattr(app, "register_params"):
+                app.register_params(self.params)
+            for kind, handler in (app.message_handlers() if hasattr(app, "message_handlers") else {}).items():
+                if kind in messages:
+                    raise ValueError(f"two handlers for {kind}")
+                messages[kind] = handler
             self.apps[app.name] = app
         self.uplink = None if uplink is None else Uplink(
             uplink, self.commands, sysid=telemetry.mav.srcSystem, compid=telemetry.mav.srcComponent, key=key,
             clock=telemetry.clock, reply=telemetry.send_now if uplink is telemetry.conn else None,
-            params=self.params, handlers={"DEBRIS_SAMPLE_REQUEST": self._sample_request})
+            params=self.params, handlers=messages)
         period = 1.0 / rate_hz
         self.scheduler = Scheduler(rate_hz, [
             Task("uplink", self._uplink, rate_hz, 0.1 * period),

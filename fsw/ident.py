@@ -17,7 +17,9 @@ Sequence, started by MAV_CMD_DEBRIS_IDENT_START (54000) and stopped by MAV_CMD_D
 Handlers follow `fsw.commands`: ``(msg, now_s) -> MAV_RESULT``; an out-of-range parameter raises
 `BadParam` (→ DENIED); a second start while one runs → TEMPORARILY_REJECTED. Time is the loop's
 ``now_s``, never the wall clock. The flight software must not import the simulator: the field model
-along the orbit and the actuators come in as callables.
+along the orbit and the actuators come in as callables. The field may also come from a provider with
+``field_now(now_s) -> (field or None, why)`` (on target: `fsw.timeorbit.TimeOrbit`, the TLE and UTC on
+board); the field in force at the start is the one the experiment's fits use.
 """
 from __future__ import annotations
 
@@ -55,6 +57,26 @@ class Tug(Protocol):
     def apply(self, start_s: float, duration_s: float, moment_Nm: np.ndarray) -> None: ...
 
     def stop(self, now_s: float) -> None: ...
+
+
+class FieldProvider(Protocol):
+    """Where the field along the orbit comes from when it may be missing or stale (`fsw.timeorbit`)."""
+
+    def field_now(self, now_s: float) -> tuple[FieldFn | None, str]: ...   # (field, "") or (None, why)
+
+
+class AnnouncedTug:
+    """A tug commanded on its own (by the ground or the tug's operator), not by the box: the START
+    command announces the moment it will apply and when; the box records it and acts on nothing."""
+
+    def __init__(self) -> None:
+        self.announced: list[tuple[float, float, np.ndarray]] = []
+
+    def apply(self, start_s: float, duration_s: float, moment_Nm: np.ndarray) -> None:
+        self.announced.append((float(start_s), float(duration_s), np.array(moment_Nm, float)))
+
+    def stop(self, now_s: float) -> None:
+        pass
 
 
 class Magnets(Protocol):
@@ -101,10 +123,11 @@ class IdentExperiment:
     rate_hz = math.inf  # every tick: it keeps every sample
     budget = 0.3
 
-    def __init__(self, *, sigma_b_T: float, b_inertial: FieldFn | None, tug: Tug | None = None,
+    def __init__(self, *, sigma_b_T: float, b_inertial: FieldFn | FieldProvider | None, tug: Tug | None = None,
                  magnets: Magnets | None = None, config: IdentConfig | None = None) -> None:
         self.sigma_b_T = float(sigma_b_T)
         self.b_inertial = b_inertial
+        self._b_fit: FieldFn | None = None   # the field of the experiment in progress
         self.tug = tug
         self.magnets = magnets
         self.cfg = config or IdentConfig()
@@ -152,11 +175,13 @@ class IdentExperiment:
                 raise BadParam("no tug interface on board")
         elif self.magnets is None:
             raise BadParam("MAGNETS source: no magnets interface on board")
-        if self.b_inertial is None:
-            raise BadParam("no orbit/field model on board: the fit needs B along the orbit")
+        b_fit, why = self._field_now(now_s)
+        if b_fit is None:
+            raise BadParam(f"no orbit/field model on board: {why}")
         if self.state in RUNNING:
             return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         self._reset()
+        self._b_fit = b_fit
         self.source, self.moment_Nm = source, moment
         self.t_start_s = now_s
         self._last_job_s = now_s          # the first running estimate comes update_every_s later at most
@@ -173,6 +198,12 @@ class IdentExperiment:
             self._job = None
             self._set_state(ABORTED)
         return mavlink.MAV_RESULT_ACCEPTED
+
+    def _field_now(self, now_s: float) -> tuple[FieldFn | None, str]:
+        provider = getattr(self.b_inertial, "field_now", None)
+        if provider is not None:
+            return provider(now_s)
+        return self.b_inertial, "the fit needs B along the orbit"
 
     # --- loop ------------------------------------------------------------------------------------
     def tick(self, now_s: float, sample) -> None:
@@ -280,7 +311,8 @@ class IdentExperiment:
         t = np.array(self.t)
         b = np.array(self.b)
         g = self.cfg.inertia_guess_kgm2
-        self._job = ef.identify_steps(t, b[None], self.b_inertial, self.known_action(), self.sigma_b_T,
+        b_fit = self._b_fit if self._b_fit is not None else self.b_inertial
+        self._job = ef.identify_steps(t, b[None], b_fit, self.known_action(), self.sigma_b_T,
                                       np.array([g, g, g, 0.0, 0.0, 0.0]), self.cfg.fit,
                                       chunk=self.cfg.work_per_tick)
         self._job_meta = (len(t), float(t[-1]), final)

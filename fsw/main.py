@@ -21,7 +21,7 @@ if __name__ == "__main__":
 import importlib  # noqa: E402
 import sys  # noqa: E402
 
-from .argtypes import ArgumentParser, check_paths_or_exit  # noqa: E402
+from .argtypes import ArgumentParser, check_paths_or_exit, finite_float  # noqa: E402
 from .config import RunConfig, add_run_options, check_loop_rate, run_config  # noqa: E402
 from .runner import run_loop, run_program, status_line, summary  # noqa: E402
 
@@ -38,20 +38,35 @@ def parse_args(argv=None) -> tuple[RunConfig, str]:
     ap.add_argument("--mag-serial", metavar="PORT", required=True,
                     help="the MMC5983MA behind a serial register bridge (e.g. the pty of python -m hil.pty_link)")
     add_run_options(ap)
+    ap.add_argument("--tle-file", metavar="FILE", default=None,
+                    help="keep the TLE in force in this file (written atomically at each upload, read at start) so "
+                         "that it survives a restart (default: in memory only)")
+    ap.add_argument("--tle-max-age", type=finite_float(0.1, 365.0), default=14.0, metavar="DAYS",
+                    help="a TLE older than this is refused and no longer used once on board (0.1 to 365 days, "
+                         "default 14; parameter TLE_MAX_AGE_D in flight)")
     args = ap.parse_args(argv)
-    check_paths_or_exit(ap, inputs={"--key": args.key}, outputs={"--sample-store": args.sample_store})
-    return run_config(args, sample_rate_hz=args.sample_rate or 1.0), args.mag_serial
+    check_paths_or_exit(ap, inputs={"--key": args.key},
+                        outputs={"--sample-store": args.sample_store, "--tle-file": args.tle_file})
+    return run_config(args, sample_rate_hz=args.sample_rate or 1.0, tle_file=args.tle_file,
+                      tle_max_age_d=args.tle_max_age), args.mag_serial
 
 
 def run(cfg: RunConfig, port: str, out=sys.stdout):
     """Build the flight software on the chip behind `port` and run the loop on the monotonic clock."""
     from .drivers.mmc5983ma import Mmc5983ma
     from .drivers.serial_bus import SerialBus
+    from .ident import AnnouncedTug, IdentExperiment
     from .system import build_flight
+    from .timeorbit import TimeOrbit
 
     warning = check_loop_rate(cfg.rate_hz, cfg.sample_rate_hz)
     source = Mmc5983ma(SerialBus(port), sample_period_s=1.0 / cfg.sample_rate_hz)
-    flight = build_flight(cfg, source, sigma_b_T=cfg.sigma_T, sample_rate_hz=cfg.sample_rate_hz)
+    timeorbit = TimeOrbit(tle_file=cfg.tle_file, max_tle_age_d=cfg.tle_max_age_d)
+    # the identification experiment: its field along the orbit from the TLE and UTC on board (refused without
+    # them), the tug commanded on its own (the START command announces its moment)
+    ident = IdentExperiment(sigma_b_T=cfg.sigma_T, b_inertial=timeorbit, tug=AnnouncedTug())
+    flight = build_flight(cfg, source, sigma_b_T=cfg.sigma_T, sample_rate_hz=cfg.sample_rate_hz, apps=[ident],
+                          timeorbit=timeorbit)
     fsw = flight.fsw
     print("\n".join([f"target: MMC5983MA on {port}, loop {cfg.rate_hz:g} Hz, link {cfg.link}", *flight.notes,
                      *([warning] if warning else [])]), file=out, flush=True)

@@ -178,6 +178,10 @@ def summary(fsw: FlightSoftware, res: LoopResult, extra: list[str] = ()) -> str:
     if rs.requests or rs.refused:
         lines.append(f"samples asked for again: {rs.requests} requests ({rs.refused} refused), {rs.resent} sent "
                      f"again, {rs.unavailable} no longer held, {rs.queued} waiting")
+    to = fsw.apps.get("timeorbit")
+    to_line = to.summary_line(res.t_s) if to is not None else None
+    if to_line:
+        lines.append(to_line)
     if fsw.uplink is not None:
         u = fsw.uplink.link_counters()
         line = (f"uplink: {u['cmd_accepted']} commands accepted; rejected: {u['rejected_unsigned']} unsigned, "

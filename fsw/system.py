@@ -22,6 +22,7 @@ from .telemetry.signing import SigningClock, key_fingerprint, load_key
 from .telemetry.store_forward import StoreForward
 from .telemetry.telemetry import Telemetry
 from .telemetry.udp_link import open_box_link
+from .timeorbit import TimeOrbit
 
 
 class NullLink:
@@ -46,6 +47,8 @@ class Flight:
     uplink: object | None
     store: SampleStore
     key: bytes | None
+    #: time, orbit and field on board
+    timeorbit: TimeOrbit | None = None
     #: lines for the run's header: key, command link, sample store
     notes: list[str] = field(default_factory=list)
     _opened: list = field(default_factory=list)
@@ -63,7 +66,7 @@ class Flight:
 def build_flight(cfg: RunConfig, source: FieldSource, *, sigma_b_T: float, sample_rate_hz: float,
                  truth: Callable[[float], object] | None = None, apps: Iterable[App] = (),
                  link=None, uplink=None, key: bytes | None = None, clock: SigningClock | None = None,
-                 run_id: int | None = None, rate_filter=None) -> Flight:
+                 run_id: int | None = None, rate_filter=None, timeorbit: TimeOrbit | None = None) -> Flight:
     """The flight software for `source` from `cfg`.
 
     `link` / `uplink`: connections to use instead of opening `cfg.link` / `cfg.uplink` (the soak's
@@ -71,7 +74,8 @@ def build_flight(cfg: RunConfig, source: FieldSource, *, sigma_b_T: float, sampl
     the signing clock (default: the wall clock, this being the program's edge — a SITL run faster than
     real time still signs with real time, which the ground compares with its own clock); `run_id`: the
     sample store's run id (default: random, a new one at every start, so that the ground tells runs
-    apart)."""
+    apart); `timeorbit`: the time/orbit application (default: one from `cfg.tle_file` and
+    `cfg.tle_max_age_d`), always the first application."""
     opened = []
     try:
         if key is None and cfg.key_file:
@@ -94,13 +98,16 @@ def build_flight(cfg: RunConfig, source: FieldSource, *, sigma_b_T: float, sampl
         for conn in opened:
             conn.close()
         raise
+    if timeorbit is None:
+        timeorbit = TimeOrbit(tle_file=cfg.tle_file, max_tle_age_d=cfg.tle_max_age_d)
     fsw = FlightSoftware(source, tlm, rate_hz=cfg.rate_hz, sigma_b_T=sigma_b_T, truth=truth,
                          max_sample_tlm_hz=cfg.max_sample_tlm_hz, sample_rate_hz=sample_rate_hz, uplink=uplink,
-                         key=key, apps=apps, rate_filter=rate_filter, sample_store=store)
+                         key=key, apps=(timeorbit, *apps), rate_filter=rate_filter, sample_store=store)
     notes = [f"mission key {key_fingerprint(key)}: commands must be signed, telemetry is signed" if key else
              "no mission key: commands that change state are refused"]
     if uplink is not link:
         notes[0] += f"; commands on {cfg.uplink or 'their own link'}"
     if store.reset_reason:
         notes.append(f"sample store: {store.reset_reason}")
-    return Flight(fsw, tlm, link, uplink, store, key, notes, opened)
+    notes += timeorbit.notes
+    return Flight(fsw, tlm, link, uplink, store, key, timeorbit, notes, opened)

@@ -3,6 +3,8 @@
     python -m ground.command URL --key FILE COMMAND [PARAM ...]    COMMAND_LONG → COMMAND_ACK
     python -m ground.command URL --key FILE --set-param NAME VALUE PARAM_SET → PARAM_VALUE
     python -m ground.command URL [--key FILE] --get-param NAME     PARAM_REQUEST_READ → PARAM_VALUE
+    python -m ground.command URL --key FILE time [UTC]              SYSTEM_TIME (the ground's clock, or UTC given)
+    python -m ground.command URL --key FILE tle FILE | LINE1 LINE2  DEBRIS_TLE + MAV_CMD_DEBRIS_TLE_LOAD
     python -m ground.command --list                                 the project's commands and their params
 
 COMMAND is a MAV_CMD by name — ``MAV_CMD_DEBRIS_CAPSULE``, ``DEBRIS_CAPSULE`` or ``capsule`` (the
@@ -13,6 +15,14 @@ missing ones are 0, ``nan`` is allowed (MAVLink's "default").
 URL: ``udpin:0.0.0.0:14550`` listens for the box's telemetry and answers to its address (the box must
 be sending: the first frame from it tells where it is); ``udpout:HOST:PORT`` sends to a box that
 listens for commands (`fsw.main --uplink udpin:0.0.0.0:PORT`); a serial device talks over the radio.
+
+``time`` sends SYSTEM_TIME (``time_unix_usec``: the ground's clock, or the ISO 8601 UTC given, e.g.
+``2026-05-01T12:00:00Z``), then a TIMESYNC request: the box answers with its UTC, which must match the
+time sent within ``TIME_MATCH_S`` (the round trip is printed). ``tle`` checks the two lines first
+(69 characters, modulo-10 checksums, one satellite: a bad TLE is a one-line error, exit status 2,
+nothing sent), then stages them (DEBRIS_TLE) and loads them with MAV_CMD_DEBRIS_TLE_LOAD carrying
+their CRC; a refusal is printed with the box's reason (the COMMAND_ACK's result_param2, a
+DEBRIS_TLE_REFUSAL). A FILE may hold a name line before the two lines.
 
 Command protocol (https://mavlink.io/en/services/command.html): without an answer within
 ``--timeout`` the command is sent again with ``confirmation`` + 1, up to ``--retries`` times; the box
@@ -269,6 +279,89 @@ class Session:
         return None
 
 
+#: how close the box's reported UTC must come to the time sent for `time` to count as taken, s
+TIME_MATCH_S = 2.0
+#: the special COMMANDs
+TIME, TLE = "time", "tle"
+
+
+def parse_utc(text: str) -> float:
+    """Unix seconds of an ISO 8601 UTC (a time without a zone is UTC); UsageError otherwise."""
+    from datetime import datetime, timezone
+    try:
+        dt = datetime.fromisoformat(text.strip().replace("Z", "+00:00"))
+    except ValueError:
+        raise UsageError(f"time {text!r}: not an ISO 8601 UTC such as 2026-05-01T12:00:00Z") from None
+    if dt.tzinfo is None:
+        dt = dt.replace(tzinfo=timezone.utc)
+    return dt.timestamp()
+
+
+def read_tle_args(items: Sequence[str]):
+    """The checked TLE of `tle FILE` or `tle LINE1 LINE2` (`fsw.estimation.tle.Tle`); UsageError otherwise."""
+    from pathlib import Path
+
+    from fsw.estimation.tle import TleError, parse_tle
+    if len(items) == 1:
+        try:
+            text = Path(items[0]).read_text(encoding="ascii")
+        except (OSError, UnicodeDecodeError) as e:
+            raise UsageError(f"TLE file {items[0]}: {e}") from None
+        lines = [ln.rstrip() for ln in text.splitlines() if ln.strip()]
+        lines = [ln for ln in lines if ln[:2] in ("1 ", "2 ")]
+        if len(lines) != 2:
+            raise UsageError(f"TLE file {items[0]}: {len(lines)} element lines (starting '1 ' or '2 '), need 2")
+    elif len(items) == 2:
+        lines = list(items)
+    else:
+        raise UsageError("tle takes a file or the two lines (quoted)")
+    try:
+        return parse_tle(*lines)
+    except TleError as e:
+        raise UsageError(f"bad TLE ({e.reason}): {e}") from None
+
+
+def send_time(s: "Session", utc_s: float | None, *, target=(FSW_SYSID, FSW_COMPID), timeout_s: float = 1.0,
+              retries: int = 3) -> tuple[float, float] | None:
+    """SYSTEM_TIME (UTC `utc_s`, None: the ground's clock at each send), then TIMESYNC, until the box's
+    answer shows the time taken: (the UTC the box reported, the round trip [s]), or None."""
+    for _ in range(retries + 1):
+        sent_at = s.now()
+        utc = sent_at if utc_s is None else utc_s
+        s.link.send(mavlink.MAVLink_system_time_message(int(round(utc * 1e6)), 0), sent_at)
+        ts1 = int(s.now() * 1e9)
+        s.link.send(mavlink.MAVLink_timesync_message(0, ts1), s.now())
+        r = s.wait(lambda r, ts1=ts1: _trusted(r) and _is_from(r, target) and r.msg.get_type() == "TIMESYNC"
+                   and r.msg.tc1 != 0 and r.msg.ts1 == ts1, timeout_s)
+        if r is None:
+            continue
+        back = s.now()
+        expected = utc + (back + ts1 * 1e-9) / 2 - sent_at  # the box answered half a round trip ago
+        if abs(r.msg.tc1 * 1e-9 - expected) <= TIME_MATCH_S:
+            return r.msg.tc1 * 1e-9, back - ts1 * 1e-9
+    return None
+
+
+def send_tle(s: "Session", tle, *, target=(FSW_SYSID, FSW_COMPID), timeout_s: float = 1.0,
+             retries: int = 3) -> tuple[int | None, str]:
+    """Stage (DEBRIS_TLE) and load (MAV_CMD_DEBRIS_TLE_LOAD) `tle`: (MAV_RESULT or None, the box's reason)."""
+    from fsw.timeorbit import tle_crc
+    crc = tle_crc(tle.line1, tle.line2)
+    command = mavlink.MAV_CMD_DEBRIS_TLE_LOAD
+    for attempt in range(retries + 1):
+        s.link.send(mavlink.MAVLink_debris_tle_message(target[0], target[1], tle.line1.encode(),
+                                                       tle.line2.encode()), s.now())
+        s.link.command_long(command, [float(crc)], s.now(), target=target, confirmation=attempt)
+        r = s.wait(lambda r: _trusted(r) and _is_from(r, target) and r.msg.get_type() == "COMMAND_ACK"
+                   and r.msg.command == command, timeout_s)
+        if r is None:
+            continue
+        result, code = int(r.msg.result), int(r.msg.result_param2)
+        e = mavlink.enums["DEBRIS_TLE_REFUSAL"].get(code) if code else None
+        return result, (e.description if e is not None else "")
+    return None, ""
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = ArgumentParser(prog="python -m ground.command", description=__doc__.splitlines()[0],
                                  epilog="Commands: python -m ground.command --list")
@@ -298,12 +391,19 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("give one of COMMAND, --set-param and --get-param (the others would be ignored)")
     check_paths_or_exit(ap, inputs={"--key": args.key})
     target = args.target
+    special = args.command.lower() if args.command and args.command.lower() in (TIME, TLE) else None
     try:
         if args.set_param:
             param_id(args.set_param[0])
             set_value = mavlink_float(args.set_param[1], f"--set-param {args.set_param[0]}")
         elif args.get_param:
             param_id(args.get_param)
+        elif special == TIME:
+            if len(args.params) > 1:
+                raise UsageError("time takes at most one argument: the UTC to set (default: this computer's clock)")
+            time_utc = parse_utc(args.params[0]) if args.params and args.params[0] != "now" else None
+        elif special == TLE:
+            tle = read_tle_args(args.params)
         elif args.command is not None:
             command = resolve_command(args.command)
             params = parse_params(command, args.params)
@@ -335,6 +435,23 @@ def main(argv: list[str] | None = None) -> int:
                 if args.set_param and value != set_value else ""
             print(f"{name} = {value:g}{asked}")
             return 1 if asked else 0
+        if special == TIME:
+            got = send_time(s, time_utc, target=target, timeout_s=args.timeout, retries=args.retries)
+            if got is None:
+                print(f"time: the box did not report the time sent after {args.retries + 1} attempts",
+                      file=sys.stderr)
+                return 3
+            print(f"time: the box reports UTC {_iso(got[0])} (round trip {got[1] * 1e3:.0f} ms)")
+            return 0
+        if special == TLE:
+            result, reason = send_tle(s, tle, target=target, timeout_s=args.timeout, retries=args.retries)
+            if result is None:
+                print(f"tle: no answer after {args.retries + 1} attempts", file=sys.stderr)
+                return 3
+            why = f": {reason}" if reason else ""
+            print(f"tle: satellite {tle.satnum}, epoch {_iso(tle.epoch_utc_s)}: "
+                  f"{RESULT_NAMES.get(result, result)}{why}")
+            return 0 if result == mavlink.MAV_RESULT_ACCEPTED else 1
         result = s.command(command, params, target=target, timeout_s=args.timeout, retries=args.retries)
     finally:
         s.close()
@@ -345,6 +462,11 @@ def main(argv: list[str] | None = None) -> int:
         return 3
     print(f"{shown}: {RESULT_NAMES.get(result, result)}")
     return 0 if result in (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_IN_PROGRESS) else 1
+
+
+def _iso(utc_s: float) -> str:
+    from datetime import datetime, timezone
+    return datetime.fromtimestamp(utc_s, timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
 if __name__ == "__main__":

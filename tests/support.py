@@ -131,3 +131,16 @@ def tiers(prop, *strategies, **kw_strategies):
     fast = given(*strategies, **kw_strategies)(prop)
     slow = settings(settings.get_profile("fuzz"))(given(*strategies, **kw_strategies)(prop))
     return fast, pytest.mark.slow(slow)
+
+
+def circular_tle(altitude_km=485.0, inclination_deg=97.5, epoch="26120.50000000", raan_deg=30.0, satnum="99999"):
+    """A TLE of a near-circular orbit (e = 0.0001) at `altitude_km` above the WGS-72 equatorial radius,
+    epoch `epoch` (YYDDD.DDDDDDDD), checksums right."""
+    import math
+
+    from fsw.estimation.tle import checksum
+    a_km = 6378.135 + altitude_km
+    rev_per_day = math.sqrt(398600.8 / a_km ** 3) * 86400.0 / (2 * math.pi)
+    l1 = f"1 {satnum}U 26001A   {epoch}  .00000000  00000-0  00000-0 0  999"
+    l2 = f"2 {satnum} {inclination_deg:8.4f} {raan_deg:8.4f} 0001000   0.0000   0.0000 {rev_per_day:11.8f}    1"
+    return tuple(line + str(checksum(line + "0")) for line in (l1, l2))

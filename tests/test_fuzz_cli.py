@@ -311,6 +311,8 @@ SPECS: list[Tool] = [
     Tool("fsw.main", fsw.main.main, {
         "--mag-serial": Opt([("{files}/missing-serial", None), ("{files}/rec.csv", None), ("/dev/null", None),
                              ("{files}/fifo", None), ("", False)], role="in"),
+        "--tle-file": Opt(OUT, role="out"),
+        "--tle-max-age": Opt(floats(0.1, 365)),
         **RUN_OPTIONS,
     }, stubs=["fsw.drivers.serial_bus:SerialBus"], judge=_target_judge),
     Tool("hil.sitl", hil.sitl.main, {
@@ -398,7 +400,8 @@ SPECS: list[Tool] = [
                                  ("udpout:127.0.0.1:99999", False), ("udpout:nohost", False)], required=True)),
                     ("command", Opt([("capsule", True), ("DEBRIS_CAPSULE", True), ("MAV_CMD_DEBRIS_CAPSULE", True),
                                      ("400", True), ("0", True), ("65535", True), ("70000", False),
-                                     ("nosuch", False), ("", False), ("1.5", False)])),
+                                     ("nosuch", False), ("", False), ("1.5", False), ("time", None),
+                                     ("tle", None)])),
                     ("params", Opt([("0", True), ("1", True), ("nan", True), ("-1", True), ("channel=0", True),
                                     ("param7=1", True), ("1e39", False), ("abc", False), ("param9=1", False),
                                     ("nolabel=1", False), ("inf", False), ("=1", False)]))],

@@ -98,12 +98,13 @@ class TleOrbitModel:
         return r[0] if np.ndim(t_s) == 0 else r
 
 
-def _gmst_rad(jd_ut1: float) -> float:
-    """Greenwich mean sidereal time (IAU 1982, as in Vallado), radians."""
-    tu = (jd_ut1 - 2451545.0) / 36525.0
+def _gmst_rad(jd_ut1):
+    """Greenwich mean sidereal time (IAU 1982, as in Vallado), radians (a float, or an array for an array)."""
+    tu = (np.asarray(jd_ut1, float) - 2451545.0) / 36525.0
     g = (67310.54841 + (876600.0 * 3600.0 + 8640184.812866) * tu + 0.093104 * tu ** 2
          - 6.2e-6 * tu ** 3)
-    return math.radians((g % 86400.0) / 240.0)
+    rad = np.radians((g % 86400.0) / 240.0)
+    return float(rad) if rad.ndim == 0 else rad
 
 
 def _rot_z(v: np.ndarray, angle) -> np.ndarray:

@@ -500,6 +500,44 @@ enums["DEBRIS_SAMPLE_FLAGS"][1] = EnumEntry("DEBRIS_SAMPLE_FLAGS_RESENT", """Sen
 DEBRIS_SAMPLE_FLAGS_ENUM_END = 2
 enums["DEBRIS_SAMPLE_FLAGS"][2] = EnumEntry("DEBRIS_SAMPLE_FLAGS_ENUM_END", """""")
 
+# DEBRIS_TLE_STATE
+enums["DEBRIS_TLE_STATE"] = Enum()
+enums["DEBRIS_TLE_STATE"].bitmask = False
+DEBRIS_TLE_STATE_NONE = 0
+enums["DEBRIS_TLE_STATE"][0] = EnumEntry("DEBRIS_TLE_STATE_NONE", """No TLE on board.""")
+DEBRIS_TLE_STATE_OK = 1
+enums["DEBRIS_TLE_STATE"][1] = EnumEntry("DEBRIS_TLE_STATE_OK", """A TLE and the onboard UTC: orbit and field on board.""")
+DEBRIS_TLE_STATE_NO_TIME = 2
+enums["DEBRIS_TLE_STATE"][2] = EnumEntry("DEBRIS_TLE_STATE_NO_TIME", """A TLE (e.g. kept across a restart) but no UTC yet: not used.""")
+DEBRIS_TLE_STATE_STALE = 3
+enums["DEBRIS_TLE_STATE"][3] = EnumEntry("DEBRIS_TLE_STATE_STALE", """The TLE is older than the age limit (parameter TLE_MAX_AGE_D): not used.""")
+DEBRIS_TLE_STATE_FUTURE = 4
+enums["DEBRIS_TLE_STATE"][4] = EnumEntry("DEBRIS_TLE_STATE_FUTURE", """The TLE's epoch is after the onboard UTC (the time set since is earlier): not used.""")
+DEBRIS_TLE_STATE_ENUM_END = 5
+enums["DEBRIS_TLE_STATE"][5] = EnumEntry("DEBRIS_TLE_STATE_ENUM_END", """""")
+
+# DEBRIS_TLE_REFUSAL
+enums["DEBRIS_TLE_REFUSAL"] = Enum()
+enums["DEBRIS_TLE_REFUSAL"].bitmask = False
+DEBRIS_TLE_REFUSAL_NONE = 0
+enums["DEBRIS_TLE_REFUSAL"][0] = EnumEntry("DEBRIS_TLE_REFUSAL_NONE", """Nothing refused.""")
+DEBRIS_TLE_REFUSAL_NOT_STAGED = 1
+enums["DEBRIS_TLE_REFUSAL"][1] = EnumEntry("DEBRIS_TLE_REFUSAL_NOT_STAGED", """No DEBRIS_TLE staged, or its CRC is not the command's.""")
+DEBRIS_TLE_REFUSAL_FORMAT = 2
+enums["DEBRIS_TLE_REFUSAL"][2] = EnumEntry("DEBRIS_TLE_REFUSAL_FORMAT", """Not two 69-character TLE lines of one satellite.""")
+DEBRIS_TLE_REFUSAL_CHECKSUM = 3
+enums["DEBRIS_TLE_REFUSAL"][3] = EnumEntry("DEBRIS_TLE_REFUSAL_CHECKSUM", """A line's modulo-10 checksum is wrong.""")
+DEBRIS_TLE_REFUSAL_FUTURE_EPOCH = 4
+enums["DEBRIS_TLE_REFUSAL"][4] = EnumEntry("DEBRIS_TLE_REFUSAL_FUTURE_EPOCH", """The epoch is after the onboard UTC.""")
+DEBRIS_TLE_REFUSAL_TOO_OLD = 5
+enums["DEBRIS_TLE_REFUSAL"][5] = EnumEntry("DEBRIS_TLE_REFUSAL_TOO_OLD", """The epoch is older than the age limit.""")
+DEBRIS_TLE_REFUSAL_NO_TIME = 6
+enums["DEBRIS_TLE_REFUSAL"][6] = EnumEntry("DEBRIS_TLE_REFUSAL_NO_TIME", """No onboard UTC to check the epoch against: set the time first.""")
+DEBRIS_TLE_REFUSAL_UNSIGNED = 7
+enums["DEBRIS_TLE_REFUSAL"][7] = EnumEntry("DEBRIS_TLE_REFUSAL_UNSIGNED", """Not signed with the mission key (no key on board).""")
+DEBRIS_TLE_REFUSAL_ENUM_END = 8
+enums["DEBRIS_TLE_REFUSAL"][8] = EnumEntry("DEBRIS_TLE_REFUSAL_ENUM_END", """""")
+
 # MAV_CMD
 enums["MAV_CMD"] = Enum()
 enums["MAV_CMD"].bitmask = False
@@ -2860,8 +2898,18 @@ enums["MAV_CMD"][54015].param[4] = """Reserved (default:0)"""
 enums["MAV_CMD"][54015].param[5] = """Reserved (default:0)"""
 enums["MAV_CMD"][54015].param[6] = """Reserved (default:0)"""
 enums["MAV_CMD"][54015].param[7] = """Reserved (default:0)"""
-MAV_CMD_ENUM_END = 54016
-enums["MAV_CMD"][54016] = EnumEntry("MAV_CMD_ENUM_END", """""")
+MAV_CMD_DEBRIS_TLE_LOAD = 54030
+enums["MAV_CMD"][54030] = EnumEntry("MAV_CMD_DEBRIS_TLE_LOAD", """Check the TLE staged by DEBRIS_TLE (checksums, epoch against the onboard UTC and the age limit) and put it in force (kept across a restart). DENIED: not staged or CRC differs, bad format or checksum, epoch in the future or too old; TEMPORARILY_REJECTED: no onboard UTC yet.""")
+enums["MAV_CMD"][54030].param[1] = """CRC-32 of line1 + line2 (138 characters), its low 24 bits."""
+enums["MAV_CMD"][54030].label[1] = """Crc"""
+enums["MAV_CMD"][54030].param[2] = """Reserved (default:0)"""
+enums["MAV_CMD"][54030].param[3] = """Reserved (default:0)"""
+enums["MAV_CMD"][54030].param[4] = """Reserved (default:0)"""
+enums["MAV_CMD"][54030].param[5] = """Reserved (default:0)"""
+enums["MAV_CMD"][54030].param[6] = """Reserved (default:0)"""
+enums["MAV_CMD"][54030].param[7] = """Reserved (default:0)"""
+MAV_CMD_ENUM_END = 54031
+enums["MAV_CMD"][54031] = EnumEntry("MAV_CMD_ENUM_END", """""")
 
 # HL_FAILURE_FLAG
 enums["HL_FAILURE_FLAG"] = Enum()
@@ -6558,6 +6606,8 @@ MAVLINK_MSG_ID_DEBRIS_LINK_STATUS = 54006
 MAVLINK_MSG_ID_DEBRIS_MAG_SAMPLE = 54007
 MAVLINK_MSG_ID_DEBRIS_SAMPLE_STORE = 54008
 MAVLINK_MSG_ID_DEBRIS_SAMPLE_REQUEST = 54009
+MAVLINK_MSG_ID_DEBRIS_TIME_ORBIT = 54020
+MAVLINK_MSG_ID_DEBRIS_TLE = 54021
 MAVLINK_MSG_ID_SYS_STATUS = 1
 MAVLINK_MSG_ID_SYSTEM_TIME = 2
 MAVLINK_MSG_ID_PING = 4
@@ -7244,6 +7294,106 @@ class MAVLink_debris_sample_request_message(MAVLink_message):
 # Define name on the class for backwards compatibility (it is now msgname).
 # Done with setattr to hide the class variable from mypy.
 setattr(MAVLink_debris_sample_request_message, "name", mavlink_msg_deprecated_name_property())
+
+
+class MAVLink_debris_time_orbit_message(MAVLink_message):
+    """
+    What the box knows of time and orbit: its UTC estimate (set from
+    the ground by signed SYSTEM_TIME), its clock's drift, the TLE on
+    board and its age, the refusals.
+    """
+
+    id = MAVLINK_MSG_ID_DEBRIS_TIME_ORBIT
+    msgname = "DEBRIS_TIME_ORBIT"
+    fieldnames = ["time_usec", "utc_usec", "time_set_age", "drift_ppm", "last_set_residual", "time_sets", "time_refused", "tle_epoch_usec", "tle_age", "tle_state", "tle_loaded", "tle_refused", "tle_last_refusal", "field_degree", "tle_persisted"]
+    ordered_fieldnames = ["time_usec", "utc_usec", "tle_epoch_usec", "time_set_age", "drift_ppm", "last_set_residual", "tle_age", "time_sets", "time_refused", "tle_loaded", "tle_refused", "tle_state", "tle_last_refusal", "field_degree", "tle_persisted"]
+    fieldtypes = ["uint64_t", "uint64_t", "float", "float", "float", "uint16_t", "uint16_t", "uint64_t", "float", "uint8_t", "uint16_t", "uint16_t", "uint8_t", "uint8_t", "uint8_t"]
+    fielddisplays_by_name: Dict[str, str] = {}
+    fieldenums_by_name: Dict[str, str] = {"tle_state": "DEBRIS_TLE_STATE", "tle_last_refusal": "DEBRIS_TLE_REFUSAL"}
+    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "utc_usec": "us", "time_set_age": "s", "last_set_residual": "s", "tle_epoch_usec": "us", "tle_age": "s"}
+    native_format = bytearray(b"<QQQffffHHHHBBBB")
+    orders = [0, 1, 3, 4, 5, 7, 8, 2, 6, 11, 9, 10, 12, 13, 14]
+    lengths = [1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1]
+    array_lengths = [0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0]
+    crc_extra = 0
+    unpacker = struct.Struct("<QQQffffHHHHBBBB")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(self, time_usec: int, utc_usec: int, time_set_age: float, drift_ppm: float, last_set_residual: float, time_sets: int, time_refused: int, tle_epoch_usec: int, tle_age: float, tle_state: int, tle_loaded: int, tle_refused: int, tle_last_refusal: int, field_degree: int, tle_persisted: int):
+        MAVLink_message.__init__(self, MAVLink_debris_time_orbit_message.id, MAVLink_debris_time_orbit_message.msgname)
+        self._fieldnames = MAVLink_debris_time_orbit_message.fieldnames
+        self._instance_field = MAVLink_debris_time_orbit_message.instance_field
+        self._instance_offset = MAVLink_debris_time_orbit_message.instance_offset
+        self.time_usec = time_usec
+        self.utc_usec = utc_usec
+        self.time_set_age = time_set_age
+        self.drift_ppm = drift_ppm
+        self.last_set_residual = last_set_residual
+        self.time_sets = time_sets
+        self.time_refused = time_refused
+        self.tle_epoch_usec = tle_epoch_usec
+        self.tle_age = tle_age
+        self.tle_state = tle_state
+        self.tle_loaded = tle_loaded
+        self.tle_refused = tle_refused
+        self.tle_last_refusal = tle_last_refusal
+        self.field_degree = field_degree
+        self.tle_persisted = tle_persisted
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.utc_usec, self.tle_epoch_usec, self.time_set_age, self.drift_ppm, self.last_set_residual, self.tle_age, self.time_sets, self.time_refused, self.tle_loaded, self.tle_refused, self.tle_state, self.tle_last_refusal, self.field_degree, self.tle_persisted), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_debris_time_orbit_message, "name", mavlink_msg_deprecated_name_property())
+
+
+class MAVLink_debris_tle_message(MAVLink_message):
+    """
+    Ground to box: stage a two-line element set;
+    MAV_CMD_DEBRIS_TLE_LOAD with its CRC then checks it and puts it in
+    force (answered by COMMAND_ACK). With a mission key loaded it must
+    be signed.
+    """
+
+    id = MAVLINK_MSG_ID_DEBRIS_TLE
+    msgname = "DEBRIS_TLE"
+    fieldnames = ["target_system", "target_component", "line1", "line2"]
+    ordered_fieldnames = ["target_system", "target_component", "line1", "line2"]
+    fieldtypes = ["uint8_t", "uint8_t", "char", "char"]
+    fielddisplays_by_name: Dict[str, str] = {}
+    fieldenums_by_name: Dict[str, str] = {}
+    fieldunits_by_name: Dict[str, str] = {}
+    native_format = bytearray(b"<BBcc")
+    orders = [0, 1, 2, 3]
+    lengths = [1, 1, 1, 1]
+    array_lengths = [0, 0, 69, 69]
+    crc_extra = 49
+    unpacker = struct.Struct("<BB69s69s")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(self, target_system: int, target_component: int, line1: bytes, line2: bytes):
+        MAVLink_message.__init__(self, MAVLink_debris_tle_message.id, MAVLink_debris_tle_message.msgname)
+        self._fieldnames = MAVLink_debris_tle_message.fieldnames
+        self._instance_field = MAVLink_debris_tle_message.instance_field
+        self._instance_offset = MAVLink_debris_tle_message.instance_offset
+        self.target_system = target_system
+        self.target_component = target_component
+        self._line1_raw = line1
+        self.line1 = line1.split(b"\x00", 1)[0].decode("ascii", errors="replace")
+        self._line2_raw = line2
+        self.line2 = line2.split(b"\x00", 1)[0].decode("ascii", errors="replace")
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.target_system, self.target_component, self._line1_raw, self._line2_raw), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_debris_tle_message, "name", mavlink_msg_deprecated_name_property())
 
 
 class MAVLink_sys_status_message(MAVLink_message):
@@ -17329,6 +17479,8 @@ mavlink_map: Dict[int, Type[MAVLink_message]] = {
     MAVLINK_MSG_ID_DEBRIS_MAG_SAMPLE: MAVLink_debris_mag_sample_message,
     MAVLINK_MSG_ID_DEBRIS_SAMPLE_STORE: MAVLink_debris_sample_store_message,
     MAVLINK_MSG_ID_DEBRIS_SAMPLE_REQUEST: MAVLink_debris_sample_request_message,
+    MAVLINK_MSG_ID_DEBRIS_TIME_ORBIT: MAVLink_debris_time_orbit_message,
+    MAVLINK_MSG_ID_DEBRIS_TLE: MAVLink_debris_tle_message,
     MAVLINK_MSG_ID_SYS_STATUS: MAVLink_sys_status_message,
     MAVLINK_MSG_ID_SYSTEM_TIME: MAVLink_system_time_message,
     MAVLINK_MSG_ID_PING: MAVLink_ping_message,
@@ -18306,6 +18458,84 @@ class MAVLink(object):
 
         """
         self.send(self.debris_sample_request_encode(target_system, target_component, first_seq, count), force_mavlink1=force_mavlink1)
+
+    def debris_time_orbit_encode(self, time_usec: int, utc_usec: int, time_set_age: float, drift_ppm: float, last_set_residual: float, time_sets: int, time_refused: int, tle_epoch_usec: int, tle_age: float, tle_state: int, tle_loaded: int, tle_refused: int, tle_last_refusal: int, field_degree: int, tle_persisted: int) -> MAVLink_debris_time_orbit_message:
+        """
+        What the box knows of time and orbit: its UTC estimate (set from the
+        ground by signed SYSTEM_TIME), its clock's drift, the TLE on
+        board and its age, the refusals.
+
+        time_usec                 : Loop time. [us] (type:uint64_t)
+        utc_usec                  : Onboard UTC estimate (Unix epoch; 0: not set). [us] (type:uint64_t)
+        time_set_age              : Loop time since the latest time set (NaN: never). [s] (type:float)
+        drift_ppm                 : The box clock's rate error from successive sets, parts per million (NaN: not yet known). (type:float)
+        last_set_residual         : The latest set against the time predicted just before it (NaN: first set). [s] (type:float)
+        time_sets                 : Time sets accepted since start. (type:uint16_t)
+        time_refused              : Time sets refused since start (unsigned without a key, before 2020, not finite). (type:uint16_t)
+        tle_epoch_usec            : Epoch of the TLE on board (Unix epoch; 0: none). [us] (type:uint64_t)
+        tle_age                   : Onboard UTC minus the TLE's epoch (NaN: no TLE or no UTC). [s] (type:float)
+        tle_state                 : Whether the orbit on board may be used. (type:uint8_t, values:DEBRIS_TLE_STATE)
+        tle_loaded                : TLEs put in force since start. (type:uint16_t)
+        tle_refused               : TLE uploads refused since start (any reason, unsigned included). (type:uint16_t)
+        tle_last_refusal          : Why the latest refusal. (type:uint8_t, values:DEBRIS_TLE_REFUSAL)
+        field_degree              : Degree of the onboard IGRF-14 field model. (type:uint8_t)
+        tle_persisted             : 1 when the TLE on board is kept in a file across a restart. (type:uint8_t)
+
+        """
+        return MAVLink_debris_time_orbit_message(time_usec, utc_usec, time_set_age, drift_ppm, last_set_residual, time_sets, time_refused, tle_epoch_usec, tle_age, tle_state, tle_loaded, tle_refused, tle_last_refusal, field_degree, tle_persisted)
+
+    def debris_time_orbit_send(self, time_usec: int, utc_usec: int, time_set_age: float, drift_ppm: float, last_set_residual: float, time_sets: int, time_refused: int, tle_epoch_usec: int, tle_age: float, tle_state: int, tle_loaded: int, tle_refused: int, tle_last_refusal: int, field_degree: int, tle_persisted: int, force_mavlink1: bool = False) -> None:
+        """
+        What the box knows of time and orbit: its UTC estimate (set from the
+        ground by signed SYSTEM_TIME), its clock's drift, the TLE on
+        board and its age, the refusals.
+
+        time_usec                 : Loop time. [us] (type:uint64_t)
+        utc_usec                  : Onboard UTC estimate (Unix epoch; 0: not set). [us] (type:uint64_t)
+        time_set_age              : Loop time since the latest time set (NaN: never). [s] (type:float)
+        drift_ppm                 : The box clock's rate error from successive sets, parts per million (NaN: not yet known). (type:float)
+        last_set_residual         : The latest set against the time predicted just before it (NaN: first set). [s] (type:float)
+        time_sets                 : Time sets accepted since start. (type:uint16_t)
+        time_refused              : Time sets refused since start (unsigned without a key, before 2020, not finite). (type:uint16_t)
+        tle_epoch_usec            : Epoch of the TLE on board (Unix epoch; 0: none). [us] (type:uint64_t)
+        tle_age                   : Onboard UTC minus the TLE's epoch (NaN: no TLE or no UTC). [s] (type:float)
+        tle_state                 : Whether the orbit on board may be used. (type:uint8_t, values:DEBRIS_TLE_STATE)
+        tle_loaded                : TLEs put in force since start. (type:uint16_t)
+        tle_refused               : TLE uploads refused since start (any reason, unsigned included). (type:uint16_t)
+        tle_last_refusal          : Why the latest refusal. (type:uint8_t, values:DEBRIS_TLE_REFUSAL)
+        field_degree              : Degree of the onboard IGRF-14 field model. (type:uint8_t)
+        tle_persisted             : 1 when the TLE on board is kept in a file across a restart. (type:uint8_t)
+
+        """
+        self.send(self.debris_time_orbit_encode(time_usec, utc_usec, time_set_age, drift_ppm, last_set_residual, time_sets, time_refused, tle_epoch_usec, tle_age, tle_state, tle_loaded, tle_refused, tle_last_refusal, field_degree, tle_persisted), force_mavlink1=force_mavlink1)
+
+    def debris_tle_encode(self, target_system: int, target_component: int, line1: bytes, line2: bytes) -> MAVLink_debris_tle_message:
+        """
+        Ground to box: stage a two-line element set; MAV_CMD_DEBRIS_TLE_LOAD
+        with its CRC then checks it and puts it in force (answered by
+        COMMAND_ACK). With a mission key loaded it must be signed.
+
+        target_system             : System ID. (type:uint8_t)
+        target_component          : Component ID. (type:uint8_t)
+        line1                     : TLE line 1 (69 characters). (type:char)
+        line2                     : TLE line 2 (69 characters). (type:char)
+
+        """
+        return MAVLink_debris_tle_message(target_system, target_component, line1, line2)
+
+    def debris_tle_send(self, target_system: int, target_component: int, line1: bytes, line2: bytes, force_mavlink1: bool = False) -> None:
+        """
+        Ground to box: stage a two-line element set; MAV_CMD_DEBRIS_TLE_LOAD
+        with its CRC then checks it and puts it in force (answered by
+        COMMAND_ACK). With a mission key loaded it must be signed.
+
+        target_system             : System ID. (type:uint8_t)
+        target_component          : Component ID. (type:uint8_t)
+        line1                     : TLE line 1 (69 characters). (type:char)
+        line2                     : TLE line 2 (69 characters). (type:char)
+
+        """
+        self.send(self.debris_tle_encode(target_system, target_component, line1, line2), force_mavlink1=force_mavlink1)
 
     def sys_status_encode(self, onboard_control_sensors_present: int, onboard_control_sensors_enabled: int, onboard_control_sensors_health: int, load: int, voltage_battery: int, current_battery: int, battery_remaining: int, drop_rate_comm: int, errors_comm: int, errors_count1: int, errors_count2: int, errors_count3: int, errors_count4: int, onboard_control_sensors_present_extended: int = 0, onboard_control_sensors_enabled_extended: int = 0, onboard_control_sensors_health_extended: int = 0) -> MAVLink_sys_status_message:
         """

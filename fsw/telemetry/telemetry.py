@@ -214,6 +214,15 @@ class Telemetry:
             [int(x) for x in st.capsule_state], [int(x) for x in st.magnet_state], [int(x) for x in st.polarity],
             [int(x) for x in st.fault], int(st.controller_state)))
 
+    def system_time(self, t_s: float, utc_s: float) -> None:
+        """SYSTEM_TIME: the onboard UTC estimate (0 when not set) and the loop time."""
+        utc_us = int(round(utc_s * 1e6)) if utc_s == utc_s else 0
+        self._send(mavlink.MAVLink_system_time_message(max(utc_us, 0), int(t_s * 1e3) & 0xFFFFFFFF))
+
+    def time_orbit(self, t_s: float, **fields) -> None:
+        """DEBRIS_TIME_ORBIT (`fsw.timeorbit.TimeOrbit.message_fields`)."""
+        self._send(mavlink.MAVLink_debris_time_orbit_message(usec(t_s), **fields))
+
     def statustext(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> None:
         """STATUSTEXT (at most 50 characters, cut beyond): events such as the de-orbit kit's transitions."""
         self._send(mavlink.MAVLink_statustext_message(severity, text.encode("ascii", "replace")[:50]))

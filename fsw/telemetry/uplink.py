@@ -14,7 +14,8 @@ parser. Per frame:
    → COMMAND_ACK to the sender; COMMAND_INT → COMMAND_ACK MAV_RESULT_COMMAND_LONG_ONLY;
    PARAM_SET → `fsw.commands.ParamTable` (authenticated only) → PARAM_VALUE with the value now in
    force; PARAM_REQUEST_READ / PARAM_REQUEST_LIST → PARAM_VALUE (reading changes nothing);
-   anything else is counted and ignored.
+   the message types given as `handlers` → their handler (which may return an answer, sent like a
+   COMMAND_ACK: e.g. TIMESYNC); anything else is counted and ignored.
 
 Bounded work, a loop tick at a time, whatever arrives (`poll`; the budgets are arguments of
 :class:`Uplink`, sized for 50 Hz on a slow core, far above what a ground station sends):
@@ -120,7 +121,8 @@ class Uplink:
         datagrams parsed, bytes parsed (stream links: read), frame candidates CRC-checked, frames
         decoded. A genuine ground station needs one or two of each. `handlers`: message type →
         handler(msg, now_s, authenticated) for the messages addressed to us beyond commands and parameters
-        (e.g. DEBRIS_SAMPLE_REQUEST)."""
+        (e.g. DEBRIS_SAMPLE_REQUEST); a handler's return value, when not None, is a message sent back as
+        the answer."""
         self.conn = conn
         self.router = router
         self.params = params if params is not None else ParamTable()
@@ -331,12 +333,14 @@ class Uplink:
                 self._answer_to(addr, now_s, authenticated=False)  # no key: the last well-formed sender
         self._addr = addr
         if handler is not None:
-            handler(msg, now_s, authenticated)
+            answer = handler(msg, now_s, authenticated)
+            if answer is not None:
+                self._answer(msg, answer)
         elif kind == "COMMAND_LONG":
             c.commands += 1
             result = self.router.handle(msg, now_s, authenticated=authenticated)
             self._answer(msg, mavlink.MAVLink_command_ack_message(
-                msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
+                msg.command, result, 0, self.router.result_param2, msg.get_srcSystem(), msg.get_srcComponent()))
         elif kind == "COMMAND_INT":
             self._answer(msg, mavlink.MAVLink_command_ack_message(
                 msg.command, mavlink.MAV_RESULT_COMMAND_LONG_ONLY, 0, 0, msg.get_srcSystem(),
@@ -363,7 +367,9 @@ class Uplink:
             c.ignored += 1
 
     def _for_us(self, msg) -> bool:
-        return msg.target_system in (0, self.sysid) and msg.target_component in (0, self.compid)
+        """Addressed to us, or to everyone (a message without target fields, e.g. SYSTEM_TIME)."""
+        return getattr(msg, "target_system", 0) in (0, self.sysid) and getattr(msg, "target_component", 0) in (
+            0, self.compid)
 
     # --- output ---------------------------------------------------------------------------------
     def _param_value(self, request, name: str) -> None:

@@ -64,6 +64,22 @@ def test_router_results_and_counters():
     assert r.registered() == sorted([R.MAV_CMD_DEBRIS_CAPSULE, R.MAV_CMD_DEBRIS_SAFE_MODE, R.MAV_CMD_REQUEST_MESSAGE])
 
 
+def test_a_handler_says_why_in_result_param2_and_a_retry_repeats_it():
+    r = CommandRouter()
+
+    def refuse(msg, now_s):
+        r.set_result_param2(7)
+        return R.MAV_RESULT_DENIED
+
+    r.register(R.MAV_CMD_DEBRIS_CAPSULE, refuse)
+    r.register(R.MAV_CMD_DEBRIS_SAFE_MODE, lambda m, t: None)
+    assert r.handle(cmd(R.MAV_CMD_DEBRIS_CAPSULE, 1), 0.0) == R.MAV_RESULT_DENIED and r.result_param2 == 7
+    assert r.handle(cmd(R.MAV_CMD_DEBRIS_SAFE_MODE, 1), 1.0) == R.MAV_RESULT_ACCEPTED and r.result_param2 == 0
+    assert r.handle(cmd(R.MAV_CMD_DEBRIS_CAPSULE, 1), 2.0) == R.MAV_RESULT_DENIED
+    assert r.handle(cmd(R.MAV_CMD_DEBRIS_CAPSULE, 1, confirmation=1), 3.0) == R.MAV_RESULT_DENIED
+    assert r.result_param2 == 7 and r.counters.retries == 1
+
+
 def test_a_retransmission_gets_the_same_answer_without_acting_twice():
     r = CommandRouter()
     runs = []
