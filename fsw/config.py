@@ -12,6 +12,7 @@ import argparse
 from dataclasses import dataclass, replace
 
 from .argtypes import finite_float, int_range, link_url
+from .telemetry.signing import KeyFileError, load_key
 from .telemetry.store_forward import DEFAULT_CAPACITY
 
 DEFAULT_LINK = "udpout:127.0.0.1:14550"
@@ -91,6 +92,16 @@ def run_config(args: argparse.Namespace, **overrides) -> RunConfig:
                     sample_rate_hz=args.sample_rate, sigma_T=args.sigma_uT * 1e-6,
                     max_sample_tlm_hz=args.max_sample_tlm_hz, quiet=args.quiet)
     return replace(cfg, **overrides)
+
+
+def check_key_or_exit(ap: argparse.ArgumentParser, key_file: str | None) -> None:
+    """Read the mission key at start (mode, length, not all zero): a bad key is a usage error before any
+    device is opened, never a failure once the loop is being built."""
+    if key_file is not None:
+        try:
+            load_key(key_file)
+        except KeyFileError as e:
+            ap.error(f"--key {e}")
 
 
 def check_loop_rate(rate_hz: float, sample_rate_hz: float) -> str | None:

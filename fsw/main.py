@@ -22,7 +22,7 @@ import importlib  # noqa: E402
 import sys  # noqa: E402
 
 from .argtypes import ArgumentParser, check_paths_or_exit, finite_float  # noqa: E402
-from .config import RunConfig, add_run_options, check_loop_rate, run_config  # noqa: E402
+from .config import RunConfig, add_run_options, check_key_or_exit, check_loop_rate, run_config  # noqa: E402
 from .runner import run_loop, run_program, status_line, summary  # noqa: E402
 
 #: compositions that live outside the flight software, by the option that selects them
@@ -47,6 +47,7 @@ def parse_args(argv=None) -> tuple[RunConfig, str]:
     args = ap.parse_args(argv)
     check_paths_or_exit(ap, inputs={"--key": args.key},
                         outputs={"--sample-store": args.sample_store, "--tle-file": args.tle_file})
+    check_key_or_exit(ap, args.key)
     return run_config(args, sample_rate_hz=args.sample_rate or 1.0, tle_file=args.tle_file,
                       tle_max_age_d=args.tle_max_age), args.mag_serial
 

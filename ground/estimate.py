@@ -35,6 +35,7 @@ from fsw.estimation import filter_banks as fb
 from fsw.estimation import kotelnikov as ko
 from fsw.estimation import rate_formulas as rf
 from fsw.estimation import rate_kalman as rk
+from fsw.estimation.tle import TleError, parse_tle
 from ground import smoother as sm
 from ground.field import scenario_field, tle_field
 from ground.recording import RateEstimates, Recording, RecordingError, read_recording, write_rate_estimates
@@ -231,6 +232,11 @@ def main(argv=None) -> int:
         ap.error("--tle needs --utc0")
     if args.scenario and args.tle:
         ap.error("give --scenario or --tle, not both")
+    if args.tle:
+        try:
+            parse_tle(*args.tle)
+        except TleError as e:
+            ap.error(f"--tle: {e}")
     check_paths_or_exit(ap, inputs={"input": args.input, "--scenario": args.scenario},
                         outputs={"--rates": args.rates, "--plot": args.plot})
     if args.plot:

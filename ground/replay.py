@@ -22,7 +22,7 @@ from typing import TextIO  # noqa: E402
 import numpy as np  # noqa: E402
 
 from fsw.argtypes import ArgumentParser, check_paths_or_exit  # noqa: E402
-from fsw.config import RunConfig, add_run_options, run_config  # noqa: E402
+from fsw.config import RunConfig, add_run_options, check_key_or_exit, run_config  # noqa: E402
 from fsw.estimation import field_check  # noqa: E402
 from fsw.estimation.rate_formulas import unobserved_sigma  # noqa: E402
 from fsw.runner import run_loop, run_program, status_line, summary  # noqa: E402
@@ -141,6 +141,7 @@ def main(argv=None) -> int:
         args = ap.parse_args(argv)
         check_paths_or_exit(ap, inputs={"INPUT.csv": args.input, "--key": args.key},
                             outputs={"--rates-out": args.rates_out, "--sample-store": args.sample_store})
+        check_key_or_exit(ap, args.key)
         return summary(*replay(args.input, run_config(args), rates_out=args.rates_out))
 
     return run_program(body)

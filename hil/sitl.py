@@ -28,7 +28,7 @@ from typing import TextIO  # noqa: E402
 import numpy as np  # noqa: E402
 
 from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range  # noqa: E402
-from fsw.config import RunConfig, add_run_options, check_loop_rate, run_config  # noqa: E402
+from fsw.config import RunConfig, add_run_options, check_key_or_exit, check_loop_rate, run_config  # noqa: E402
 from fsw.drivers.mmc5983ma import Mmc5983ma  # noqa: E402
 from fsw.drivers.mmc5983ma_regs import Bandwidth, ContinuousFrequency  # noqa: E402
 from fsw.flight import FlightSoftware  # noqa: E402
@@ -267,6 +267,7 @@ def parse_args(argv=None) -> SitlConfig:
     scenario_file = args.scenario if Path(args.scenario).is_file() else None
     check_paths_or_exit(ap, inputs={"--key": args.key, "--scenario": scenario_file},
                         outputs={"--sample-store": args.sample_store})
+    check_key_or_exit(ap, args.key)
     try:
         scenarios.load(args.scenario)
     except ValueError as e:

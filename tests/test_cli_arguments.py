@@ -24,6 +24,9 @@ from support import exit_status, moment_recording
 from support import good_tlog
 
 ROOT = Path(__file__).resolve().parents[1]
+#: the field-check tests' TLE (checksums right)
+TLE1 = "1 25544U 98067A   26325.50000000  .00016717  00000-0  10270-3 0  9000"
+TLE2 = "2 25544  51.6400 208.9163 0006317  69.9862  25.2906 15.50000000    09"
 
 
 def snapshot(*paths):
@@ -123,6 +126,15 @@ def test_estimate_on_too_few_samples_after_decimation(tmp_path, capsys):
 def test_estimate_refuses_numbers_it_cannot_use(header_only, tmp_path, capsys, option, value, words):
     one_line_error(capsys, estimate.main, [str(header_only), "--rates", str(tmp_path / "r.csv"), "--method", "euler",
                                            f"{option}={value}"], 2, *words, protected=(header_only,))
+
+
+@pytest.mark.parametrize("lines, words", [(["1", "2"], ("--tle", "line 1", "69")),
+                                           ([f"{TLE1[:-1]}1", TLE2], ("--tle", "checksum")),
+                                           ([TLE2, TLE1], ("--tle", "line 1", "does not start"))])
+def test_estimate_refuses_two_lines_that_are_not_a_tle(header_only, tmp_path, capsys, lines, words):
+    one_line_error(capsys, estimate.main, [str(header_only), "--rates", str(tmp_path / "r.csv"), "--tle", *lines,
+                                           "--utc0", "2026-11-21T12:00:00"], 2, *words, protected=(header_only,))
+    assert not (tmp_path / "r.csv").exists()
 
 
 def test_estimate_refuses_a_utc0_that_is_not_a_time(header_only, tmp_path, capsys):
@@ -232,6 +244,17 @@ def test_an_all_zero_key_is_refused_when_loaded_and_when_created(tmp_path, capsy
     one_line_error(capsys, keys.main, ["fingerprint", str(path)], 1, "zero.key", "0x00")
     one_line_error(capsys, fsw_main.main, ["--sitl", "--key", str(path), "--duration", "1", "--speed", "0", "--quiet",
                                            "--link", "udpout:127.0.0.1:9"], 2, "zero.key", "not a secret")
+
+
+@pytest.mark.parametrize("mode, words", [(0o644, ("open.key", "accessible by others")), (None, ("missing.key",))])
+def test_the_target_refuses_a_bad_key_before_it_opens_the_device(tmp_path, capsys, mode, words):
+    path = tmp_path / ("open.key" if mode else "missing.key")
+    if mode:
+        path.write_text("ab" * 32 + "\n")
+        path.chmod(mode)
+    # the port does not exist either: the key is named, at parse time, not the port after start-up
+    one_line_error(capsys, fsw_main.main, ["--mag-serial", str(tmp_path / "no-such-tty"), "--key", str(path),
+                                           "--link", "udpout:127.0.0.1:9", "--quiet"], 2, "--key", *words)
 
 
 # --- fsw.main --------------------------------------------------------------------------------------

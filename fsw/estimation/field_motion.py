@@ -82,8 +82,10 @@ class TleOrbitModel:
     """
 
     def __init__(self, line1: str, line2: str, utc0: tuple[int, int, int, int, int, float]) -> None:
-        from sgp4.api import Satrec, jday
-        self.sat = Satrec.twoline2rv(line1, line2)
+        from sgp4.api import jday
+
+        from .tle import parse_tle
+        self.sat = parse_tle(line1, line2).satrec()  # TleError (a ValueError) for two lines that are not a TLE
         self.jd0, self.fr0 = jday(*utc0)
         self.era0_rad = _gmst_rad(self.jd0 + self.fr0)
 

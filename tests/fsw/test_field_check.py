@@ -56,8 +56,8 @@ def test_the_lab_recordings_pass_without_a_warning(name):
     assert 43.0 < fc.median_uT(rec.b_T) < 45.0
 
 
-TLE1 = "1 25544U 98067A   26325.50000000  .00016717  00000-0  10270-3 0  9005"
-TLE2 = "2 25544  51.6400 208.9163 0006317  69.9862  25.2906 15.50000000    05"
+TLE1 = "1 25544U 98067A   26325.50000000  .00016717  00000-0  10270-3 0  9000"
+TLE2 = "2 25544  51.6400 208.9163 0006317  69.9862  25.2906 15.50000000    09"
 ORBIT = {"orbit_altitude_km": "485", "orbit_inclination_deg": "97.5", "orbit_raan_deg": "30",
          "orbit_arg_lat0_deg": "10", "field_epoch_year": "2026"}
 

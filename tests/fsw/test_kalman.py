@@ -102,7 +102,7 @@ def test_field_model_matches_the_simulator():
 
 
 def test_tle_orbit_radius_and_field():
-    l1 = "1 25544U 98067A   24001.50000000  .00016717  00000-0  10270-3 0  9005"
+    l1 = "1 25544U 98067A   24001.50000000  .00016717  00000-0  10270-3 0  9009"
     l2 = "2 25544  51.6416 247.4627 0006703 130.5360 325.0288 15.72125391 12345"
     orbit = fm.TleOrbitModel(l1, l2, (2024, 1, 1, 12, 0, 0.0))
     r = np.linalg.norm(orbit.position_eci_m(np.array([0.0, 600.0, 1200.0])), axis=1)
