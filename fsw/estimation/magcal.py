@@ -168,6 +168,14 @@ class Stats:
     n: int = 0
     weight: float = 0.0
 
+    def remove(self, other: "Stats") -> None:
+        """Take `other`'s samples out of these sums (they were added to both, with the same forgetting)."""
+        for name in ("m", "hm", "raw_m", "raw_hm"):
+            getattr(self, name).__isub__(getattr(other, name))
+        self.h4 -= other.h4
+        self.n -= other.n
+        self.weight -= other.weight
+
     def matrix(self, raw: bool = False) -> np.ndarray:
         """Σ w ã ãᵀ (11×11)."""
         m, hm = (self.raw_m, self.raw_hm) if raw else (self.m, self.hm)
@@ -316,21 +324,33 @@ class Limits:
     #: of the Fisher matrix normalised by its diagonal: a sphere of directions well covered gives 3–5;
     #: above ~30 the quadratic model's bias from the noise is several σ (bench.calibration)
     max_condition: float = 25.0
-    max_chi2_dof: float = 4.0        #: residual χ² per degree of freedom
+    max_chi2_dof: float = 4.0        #: residual χ² per degree of freedom, all samples
+    #: residual χ² per sample of the samples since the last solution (a bad stretch, diluted in the
+    #: sums of a whole orbit, shows there)
+    max_window_chi2: float = 3.0
     max_hard_iron_uT: float = 300.0  #: plausibility of |b| per axis
     max_soft_iron: float = 0.4       #: |eigenvalue of D|
-    #: change from the last good calibration refused when above both this (b per axis, µT; D's terms)
-    #: and `max_change_sigmas` of the last good one's σ ...
-    max_change_uT: float = 10.0
-    max_change_soft: float = 0.05
+    #: change from the last good calibration refused when above both this (b per axis, µT; D's terms:
+    #: a thermal drift's worth between two solutions) and `max_change_sigmas` of the σ of the
+    #: difference (the last good one's and this one's) ...
+    max_change_uT: float = 1.0
+    max_change_soft: float = 0.01
     max_change_sigmas: float = 5.0
     #: ... unless that many successive solutions in a row insist on it (the host really changed)
     confirm_change_after: int = 3
+    #: stretches in a row that do not fit the last good calibration before the sums start again
+    restart_after: int = 10
     goal_sigma_uT: float = 0.1       #: σ of b per axis for `converged`
     goal_sigma_soft: float = 0.002   #: σ of D's terms for `converged`
 
 
 CHANGE_TOO_LARGE = "change from the last good calibration too large"
+WINDOW_RESIDUAL = "residual of the latest samples too large"
+
+
+def window_chi2(recent: Stats, theta: np.ndarray) -> float:
+    """χ² per sample of `recent`'s samples under θ."""
+    return cost(*normal_equations(recent, raw=True), phi_of_theta(theta)[0]) / max(recent.weight, 1e-12)
 
 
 def normalised_condition(F: np.ndarray) -> float:
@@ -342,11 +362,11 @@ def normalised_condition(F: np.ndarray) -> float:
 
 
 def check(sol: Solution, last_good: np.ndarray | None, lim: Limits, last_sigma: np.ndarray | None = None,
-          insisted: int = 0) -> tuple[str | None, np.ndarray | None]:
+          insisted: int = 0, recent: Stats | None = None) -> tuple[str | None, np.ndarray | None]:
     """(None, covariance) when `sol` may be published, else (why not, None). The covariance is the
     inverse Fisher matrix scaled by the residual's χ²/dof when that is above 1 (σ_z is approximate).
     `last_sigma`: the last good calibration's σ (µT units); `insisted`: how many solutions in a row were
-    refused for their change already."""
+    refused for their change already; `recent`: the samples since the last solution."""
     th = sol.theta
     if not sol.converged or not np.all(np.isfinite(th)):
         return "did not converge", None
@@ -358,13 +378,18 @@ def check(sol: Solution, last_good: np.ndarray | None, lim: Limits, last_sigma: 
         return "ill-conditioned (covariance not positive)", None
     if sol.chi2_dof > lim.max_chi2_dof:
         return f"residual too large (chi2/dof {sol.chi2_dof:.3g})", None
+    if recent is not None and recent.n > 0:
+        chi2 = window_chi2(recent, th)
+        if chi2 > lim.max_window_chi2:
+            return f"{WINDOW_RESIDUAL} (chi2/sample {chi2:.3g})", None
     ev = np.linalg.eigvalsh(_sym(th[3:]))
     if np.max(np.abs(th[:3])) > lim.max_hard_iron_uT or np.max(np.abs(ev)) > lim.max_soft_iron:
         return "implausible values", None
     if last_good is not None and insisted < lim.confirm_change_after:
         bound = np.array([lim.max_change_uT] * 3 + [lim.max_change_soft] * 6)
         if last_sigma is not None:
-            bound = np.maximum(bound, lim.max_change_sigmas * last_sigma)
+            both = np.sqrt(last_sigma ** 2 + np.diag(cov))
+            bound = np.maximum(bound, lim.max_change_sigmas * both)
         if np.any(np.abs(th - last_good) > bound):
             return CHANGE_TOO_LARGE, None
     return None, cov
@@ -389,7 +414,7 @@ def estimate(b_meas_T: np.ndarray, b_model_T: np.ndarray, sigma_T: float, sigma_
 
 
 def _solve(st: Stats, last_good: np.ndarray | None, lim: Limits,
-           last_sigma: np.ndarray | None = None, insisted: int = 0):
+           last_sigma: np.ndarray | None = None, insisted: int = 0, recent: Stats | None = None):
     if st.n < 2 * N_PHI:
         return None, "too few samples", None
     theta0 = centred_estimate(st)
@@ -399,7 +424,7 @@ def _solve(st: Stats, last_good: np.ndarray | None, lim: Limits,
         sol = refine(st, t0)
         if sol.converged:
             break
-    why, cov = check(sol, last_good, lim, last_sigma, insisted)
+    why, cov = check(sol, last_good, lim, last_sigma, insisted, recent)
     if why:
         return None, why, sol
     return to_calibration(sol.theta, cov), None, sol
@@ -425,6 +450,7 @@ class MagCal:
 
     def reset(self) -> None:
         self.stats = Stats()
+        self.recent = Stats()  # the samples since the last solution
         self.calibration = IDENTITY
         self._good: np.ndarray | None = None
         self.state = COLLECTING
@@ -432,6 +458,10 @@ class MagCal:
         self.chi2_dof = math.nan
         self.solves = 0
         self.rejections = 0
+        #: samples of refused stretches taken out of the sums; such stretches in a row; restarts
+        self.dropped = 0
+        self.misfits = 0
+        self.restarts = 0
         self.converged_at_s: float | None = None
         self._t_last: float | None = None
         self._t_solve: float | None = None
@@ -454,8 +484,9 @@ class MagCal:
         if self.memory_s is not None and self._t_last is not None:
             forget = math.exp(-max(t_s - self._t_last, 0.0) / self.memory_s)
         self._t_last = t_s
-        accumulate(self.stats, np.asarray(b_meas_T) * UT_PER_T, b_model_mag_T * UT_PER_T, self.sigma_uT,
-                   self.sigma_model_uT, forget)
+        b_uT, h_uT = np.asarray(b_meas_T) * UT_PER_T, b_model_mag_T * UT_PER_T
+        accumulate(self.stats, b_uT, h_uT, self.sigma_uT, self.sigma_model_uT, forget)
+        accumulate(self.recent, b_uT, h_uT, self.sigma_uT, self.sigma_model_uT, forget)
         if self._t_solve is None:
             self._t_solve = t_s
         if self.stats.n < self.min_samples or t_s - self._t_solve < self.solve_every_s:
@@ -464,10 +495,27 @@ class MagCal:
         return self.solve(t_s)
 
     def solve(self, t_s: float) -> bool:
-        """Solve the statistics now; True when the result was published."""
+        """Solve the statistics now; True when the result was published. First, with a good calibration,
+        the samples since the last solution are tested against it: a stretch that does not fit (χ² per
+        sample above `max_window_chi2`: a magnet, a fault) is taken out of the sums and counted in
+        `dropped`; after `restart_after` such stretches in a row the host is taken to have changed and the
+        sums start again from the latest one (the last good calibration stays applied meanwhile)."""
         self.solves += 1
+        recent, self.recent = self.recent, Stats()
+        if self._good is not None and recent.n and window_chi2(recent, self._good) > self.limits.max_window_chi2:
+            self.misfits += 1
+            self.dropped += recent.n
+            self.stats.remove(recent)
+            if self.misfits >= self.limits.restart_after:
+                self.stats, self.misfits = recent, 0
+                self.restarts += 1
+            self.rejections += 1
+            self.reason = f"{WINDOW_RESIDUAL} for the last good calibration: {recent.n} samples left out"
+            self.state = REJECTED
+            return False
+        self.misfits = 0
         last_sigma = None if self._good is None else self.calibration.sigma * _UT_SCALE
-        cal, why, sol = _solve(self.stats, self._good, self.limits, last_sigma, self._insisted)
+        cal, why, sol = _solve(self.stats, self._good, self.limits, last_sigma, self._insisted, recent)
         self.chi2_dof = sol.chi2_dof if sol is not None else math.nan
         self._insisted = self._insisted + 1 if why == CHANGE_TOO_LARGE else 0
         if cal is None:
