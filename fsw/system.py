@@ -63,7 +63,7 @@ class Flight:
 def build_flight(cfg: RunConfig, source: FieldSource, *, sigma_b_T: float, sample_rate_hz: float,
                  truth: Callable[[float], object] | None = None, apps: Iterable[App] = (),
                  link=None, uplink=None, key: bytes | None = None, clock: SigningClock | None = None,
-                 run_id: int | None = None, rate_filter=None) -> Flight:
+                 run_id: int | None = None, rate_filter=None, field=None) -> Flight:
     """The flight software for `source` from `cfg`.
 
     `link` / `uplink`: connections to use instead of opening `cfg.link` / `cfg.uplink` (the soak's
@@ -71,7 +71,8 @@ def build_flight(cfg: RunConfig, source: FieldSource, *, sigma_b_T: float, sampl
     the signing clock (default: the wall clock, this being the program's edge — a SITL run faster than
     real time still signs with real time, which the ground compares with its own clock); `run_id`: the
     sample store's run id (default: random, a new one at every start, so that the ground tells runs
-    apart)."""
+    apart); `field`: the field along the orbit on board, for the host-magnetics calibration (None: it is
+    inactive, and the notes say so)."""
     opened = []
     try:
         if key is None and cfg.key_file:
@@ -96,11 +97,13 @@ def build_flight(cfg: RunConfig, source: FieldSource, *, sigma_b_T: float, sampl
         raise
     fsw = FlightSoftware(source, tlm, rate_hz=cfg.rate_hz, sigma_b_T=sigma_b_T, truth=truth,
                          max_sample_tlm_hz=cfg.max_sample_tlm_hz, sample_rate_hz=sample_rate_hz, uplink=uplink,
-                         key=key, apps=apps, rate_filter=rate_filter, sample_store=store)
+                         key=key, apps=apps, rate_filter=rate_filter, sample_store=store, field=field)
     notes = [f"mission key {key_fingerprint(key)}: commands must be signed, telemetry is signed" if key else
              "no mission key: commands that change state are refused"]
     if uplink is not link:
         notes[0] += f"; commands on {cfg.uplink or 'their own link'}"
+    if field is None:
+        notes.append("host-magnetics calibration inactive: no orbit/field model on board")
     if store.reset_reason:
         notes.append(f"sample store: {store.reset_reason}")
     return Flight(fsw, tlm, link, uplink, store, key, notes, opened)

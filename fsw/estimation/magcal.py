@@ -168,6 +168,17 @@ class Stats:
     n: int = 0
     weight: float = 0.0
 
+    def add(self, other: "Stats", forget: float = 1.0) -> None:
+        """Add `other`'s samples, after multiplying what is here by `forget`."""
+        for name in ("m", "hm", "raw_m", "raw_hm"):
+            a = getattr(self, name)
+            if forget != 1.0:
+                a *= forget
+            a += getattr(other, name)
+        self.h4 = self.h4 * forget + other.h4
+        self.weight = self.weight * forget + other.weight
+        self.n += other.n
+
     def remove(self, other: "Stats") -> None:
         """Take `other`'s samples out of these sums (they were added to both, with the same forgetting)."""
         for name in ("m", "hm", "raw_m", "raw_hm"):
@@ -187,25 +198,39 @@ class Stats:
         return S
 
 
+def contribution(b_meas_uT: np.ndarray, b_model_uT: np.ndarray, sigma_uT: float,
+                 sigma_model_uT: float = 0.0) -> Stats:
+    """The statistics of samples (n, 3) with the model's magnitudes (n,)."""
+    h = np.atleast_1d(np.asarray(b_model_uT, float))
+    w = weights(h, sigma_uT, sigma_model_uT)
+    if len(h) == 1:  # one sample: the monomials on floats (numpy's per-call overhead dominates here)
+        x, y, z = (float(v) for v in np.ravel(b_meas_uT))
+        adj = np.array(_monomials_1(x, y, z, sigma_uT ** 2))
+        raw = np.array(_monomials_1(x, y, z, 0.0))
+        w0, h2 = float(w[0]), float(h[0]) ** 2
+        return Stats(w0 * adj, w0 * h2 * adj[_M2_IN_M4], w0 * h2 * h2, w0 * raw, w0 * h2 * raw[_M2_IN_M4], 1, 1.0)
+    adj, raw = monomials(b_meas_uT, sigma_uT), monomials(b_meas_uT)
+    wh = w * h * h
+    return Stats(w @ adj, wh @ adj[:, _M2_IN_M4], float(np.sum(wh * h * h)), w @ raw, wh @ raw[:, _M2_IN_M4],
+                 len(h), float(len(h)))
+
+
+_EXP_ROWS = tuple(tuple(int(v) for v in e) for e in _M4)
+
+
+def _monomials_1(x: float, y: float, z: float, s2: float) -> list:
+    def he(v):
+        v2 = v * v
+        return (1.0, v, v2 - s2, v2 * v - 3 * s2 * v, v2 * v2 - 6 * s2 * v2 + 3 * s2 * s2)
+    hx, hy, hz = he(x), he(y), he(z)
+    return [hx[p] * hy[q] * hz[r] for p, q, r in _EXP_ROWS]
+
+
 def accumulate(st: Stats, b_meas_uT: np.ndarray, b_model_uT: np.ndarray, sigma_uT: float,
                sigma_model_uT: float = 0.0, forget: float = 1.0) -> Stats:
     """The statistics with samples (n, 3) and the model's magnitudes (n,) added (in place); `forget`
     multiplies what was there first."""
-    if forget != 1.0:
-        for name in ("m", "hm", "raw_m", "raw_hm"):
-            getattr(st, name).__imul__(forget)
-        st.h4 *= forget
-        st.weight *= forget
-    h = np.atleast_1d(np.asarray(b_model_uT, float))
-    w = weights(h, sigma_uT, sigma_model_uT)
-    adj, raw = monomials(b_meas_uT, sigma_uT), monomials(b_meas_uT)
-    st.m += w @ adj
-    st.raw_m += w @ raw
-    st.hm += (w * h * h) @ adj[:, _M2_IN_M4]
-    st.raw_hm += (w * h * h) @ raw[:, _M2_IN_M4]
-    st.h4 += float(np.sum(w * h ** 4))
-    st.n += len(h)
-    st.weight += len(h)
+    st.add(contribution(b_meas_uT, b_model_uT, sigma_uT, sigma_model_uT), forget)
     return st
 
 
@@ -484,9 +509,10 @@ class MagCal:
         if self.memory_s is not None and self._t_last is not None:
             forget = math.exp(-max(t_s - self._t_last, 0.0) / self.memory_s)
         self._t_last = t_s
-        b_uT, h_uT = np.asarray(b_meas_T) * UT_PER_T, b_model_mag_T * UT_PER_T
-        accumulate(self.stats, b_uT, h_uT, self.sigma_uT, self.sigma_model_uT, forget)
-        accumulate(self.recent, b_uT, h_uT, self.sigma_uT, self.sigma_model_uT, forget)
+        c = contribution(np.asarray(b_meas_T) * UT_PER_T, b_model_mag_T * UT_PER_T, self.sigma_uT,
+                         self.sigma_model_uT)
+        self.stats.add(c, forget)
+        self.recent.add(c, forget)
         if self._t_solve is None:
             self._t_solve = t_s
         if self.stats.n < self.min_samples or t_s - self._t_solve < self.solve_every_s:

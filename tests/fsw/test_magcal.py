@@ -1,54 +1,15 @@
 """Host-magnetics calibration (fsw.estimation.magcal) against the simulator's truth: a torque-free tumble
 (hil.dynamics) in the field along the orbit (hil.field, hil.orbit), a host B_meas = S B_true + h."""
-import functools
-import math
-
 import numpy as np
 import pytest
 
-from fsw.estimation import field_motion as fm
 from fsw.estimation import magcal as mc
-from hil.dynamics import RigidBody
-from hil.field import DipoleField, FieldAlongOrbit
-from hil.orbit import CircularOrbit
+from support import MAGCAL_PERIOD_S as PERIOD_S
+from support import magcal_host as host
+from support import magcal_orbit as orbit
+from support import magcal_tumble as tumble
 
-ALT_M, INC_DEG, EPOCH = 485e3, 97.5, 2025.5
-PERIOD_S = CircularOrbit(ALT_M, INC_DEG).period_s
 SIGMA_T = 1.5e-6
-
-
-@functools.lru_cache(maxsize=None)
-def orbit(rate_hz: float = 1.0):
-    t = np.arange(0.0, PERIOD_S, 1.0 / rate_hz)
-    b_eci = FieldAlongOrbit(CircularOrbit(ALT_M, INC_DEG), DipoleField(EPOCH)).b_eci_T(t)
-    # |B| from the flight software's own field model (the one the flight loop uses)
-    b_mag = np.linalg.norm(fm.OrbitField(fm.CircularOrbitModel(ALT_M, INC_DEG), fm.DipoleModel(EPOCH)).b_eci_T(t),
-                           axis=1)
-    return t, b_eci, b_mag
-
-
-@functools.lru_cache(maxsize=None)
-def tumble(seed: int) -> np.ndarray:
-    """B in body axes along a torque-free tumble (2–5 °/s) of an asymmetric body, one orbit at 1 Hz."""
-    t, b_eci, _ = orbit()
-    rng = np.random.default_rng(1000 + seed)
-    w = rng.normal(size=3)
-    body = RigidBody(np.diag([180.0, 220.0, 260.0]), rng.normal(size=4),
-                     w / np.linalg.norm(w) * math.radians(rng.uniform(2.0, 5.0)))
-    out = np.empty_like(b_eci)
-    for k, tk in enumerate(t):
-        while body.t_s < tk - 1e-9:
-            body.step(min(2.0, tk - body.t_s), np.zeros(3))
-        out[k] = body.dcm.T @ b_eci[k]
-    return out
-
-
-def host(seed: int):
-    """(S symmetric, h [T]): hard iron to ±50 µT, soft iron to 10 %."""
-    rng = np.random.default_rng(seed)
-    A = rng.uniform(-0.1, 0.1, (3, 3))
-    return np.eye(3) + np.triu(A) + np.triu(A, 1).T, rng.uniform(-50e-6, 50e-6, 3)
-
 
 def measure(b_body, S, h, seed, sigma_T=SIGMA_T):
     clean = b_body @ S.T + h
