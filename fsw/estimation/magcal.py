@@ -487,6 +487,8 @@ class MagCal:
         self.dropped = 0
         self.misfits = 0
         self.restarts = 0
+        #: sample times of the first calibration published, and of the first within the σ goals
+        self.first_good_at_s: float | None = None
         self.converged_at_s: float | None = None
         self._t_last: float | None = None
         self._t_solve: float | None = None
@@ -556,6 +558,8 @@ class MagCal:
         ok = (np.max(sig[:3]) * UT_PER_T <= self.limits.goal_sigma_uT
               and np.max(sig[3:]) <= self.limits.goal_sigma_soft)
         self.state = CONVERGED if ok else UNCERTAIN
+        if self.first_good_at_s is None:
+            self.first_good_at_s = t_s
         if ok and self.converged_at_s is None:
             self.converged_at_s = t_s
         return True
