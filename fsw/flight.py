@@ -8,6 +8,9 @@ Tasks (base rate = the loop rate), in the order they run within a tick:
 |           |              |                | reads the ground's frames, verifies, runs commands (ACK)   |
 | sensor    | loop rate    | 20 % of period | advances the magnetometer driver; latches a new sample,    |
 |           |              |                | refused if implausible (`estimation.sample_gate`)          |
+| calibration | loop rate  | 10 % of period | host hard/soft iron taken out of the sample (needs the     |
+|           |              |                | field along the orbit: `fsw.host_calibration`), then       |
+|           |              |                | DEBRIS_MAGCAL every 10 s                                   |
 | estimator | loop rate    | 30 % of period | runs the rate estimators on a new sample                   |
 | *app*     | the app's    | the app's      | each onboard application (`fsw.app.App`): its tick with    |
 |           |              |                | the sample of this tick, then its telemetry — the inertia  |
@@ -36,6 +39,7 @@ from .commands import CommandRouter, ParamTable, int_param
 from .estimation.rate_formulas import BoerStream, DerivativeStream
 from .estimation.rate_kalman import RateKalman
 from .estimation.sample_gate import SampleGate, mark_gap
+from .host_calibration import FixedField, HostCalibration
 from .scheduler import Scheduler, Task
 from .telemetry.dialect import mavlink
 from .telemetry.sample_store import Resender, SampleStore
@@ -106,7 +110,8 @@ class FlightSoftware:
     def __init__(self, source: FieldSource, telemetry: Telemetry, *, rate_hz: float, sigma_b_T: float,
                  truth: Callable[[float], object] | None = None, max_sample_tlm_hz: float = 20.0,
                  sample_rate_hz: float | None = None, uplink=None, key: bytes | None = None,
-                 apps: Iterable[App] = (), rate_filter=None, sample_store: SampleStore | None = None) -> None:
+                 apps: Iterable[App] = (), rate_filter=None, sample_store: SampleStore | None = None,
+                 field=None, field_provider=None) -> None:
         """`uplink`: the connection commands arrive on (usually the telemetry link itself, `telemetry.conn`;
         None: no uplink); `key`: the mission key (None: every state-changing command is refused);
         `apps`: the onboard applications (`fsw.app.App`: the identification experiment, the de-orbit
@@ -114,7 +119,11 @@ class FlightSoftware:
         `rate_filter`: the Kalman filter sent as DEBRIS_RATE_METHOD_KALMAN (default
         `estimation.rate_kalman.RateKalman`; e.g. an `AttitudeRateKalman` with the field along the orbit);
         `sample_store`: where the numbered samples are kept for the ground's requests (default: in
-        memory, run id 0)."""
+        memory, run id 0); `field`: the field along the orbit on board for the whole run (an
+        `estimation.field_motion.OrbitField`), which the host-magnetics calibration needs, or
+        `field_provider`: where it comes from when it may come and go (the time-and-orbit application);
+        neither: the calibration is inactive and says so. The samples sent and stored are the sensor's own; the
+        estimators and the applications get them calibrated."""
         self.source = source
         self.driver = source if isinstance(source, SensorDriver) else None
         self.tlm = telemetry
@@ -127,6 +136,9 @@ class FlightSoftware:
         self.new_estimate = {name: False for name in self.estimators}
         self.samples = 0
         self.latched = LatchedSample()
+        #: the sensor's own sample (what is sent and stored), before the calibration
+        self.raw_b_T = np.zeros(3)
+        self.calibration = HostCalibration(sigma_b_T, FixedField(field) if field is not None else field_provider)
         # at most max_sample_tlm_hz samples (with their estimates) go out on the link
         self._tlm_every = max(1, int(np.ceil((sample_rate_hz or rate_hz) / max_sample_tlm_hz)))
         self.gate = SampleGate(sigma_b_T, 1.0 / (sample_rate_hz or rate_hz))
@@ -159,6 +171,7 @@ class FlightSoftware:
         self.scheduler = Scheduler(rate_hz, [
             Task("uplink", self._uplink, rate_hz, 0.1 * period),
             Task("sensor", self._sensor, rate_hz, 0.2 * period),
+            Task("calibration", self._calibrate, rate_hz, 0.1 * period),
             Task("estimator", self._estimate, rate_hz, 0.3 * period),
             *(Task(app.name, self._app_task(app), min(app.rate_hz, rate_hz), app.budget * period)
               for app in self.apps.values()),
@@ -235,6 +248,12 @@ class FlightSoftware:
                 for est in self.estimators.values():  # history too old to difference against
                     est.reset()
 
+    def _calibrate(self, now_s: float) -> None:
+        if self.new_sample:
+            self.raw_b_T[:] = self.latched.b_T
+            self.latched.b_T[:] = self.calibration.process(self.sample_t_s, self.raw_b_T)
+        self.calibration.telemetry(now_s, self.tlm)
+
     def _estimate(self, now_s: float) -> None:
         for name, est in self.estimators.items():
             self.new_estimate[name] = self.new_sample and est.update(self.sample_t_s, self.sample_b_T)
@@ -269,8 +288,8 @@ class FlightSoftware:
             return
         t = self.sample_t_s
         self.tlm_samples += 1
-        seq = self.sample_store.append(t, self.sample_b_T)
-        self.tlm.mag_sample(t, self.sample_b_T, seq, self.sample_store.run_id)
+        seq = self.sample_store.append(t, self.raw_b_T)
+        self.tlm.mag_sample(t, self.raw_b_T, seq, self.sample_store.run_id)
         for name, est in self.estimators.items():
             if self.new_estimate[name]:
                 self.tlm.rate_estimate(t, est.omega_radps, est.sigma_radps, METHODS[name], est.flags)

@@ -66,7 +66,8 @@ class Flight:
 def build_flight(cfg: RunConfig, source: FieldSource, *, sigma_b_T: float, sample_rate_hz: float,
                  truth: Callable[[float], object] | None = None, apps: Iterable[App] = (),
                  link=None, uplink=None, key: bytes | None = None, clock: SigningClock | None = None,
-                 run_id: int | None = None, rate_filter=None, timeorbit: TimeOrbit | None = None) -> Flight:
+                 run_id: int | None = None, rate_filter=None, timeorbit: TimeOrbit | None = None,
+                 field=None) -> Flight:
     """The flight software for `source` from `cfg`.
 
     `link` / `uplink`: connections to use instead of opening `cfg.link` / `cfg.uplink` (the soak's
@@ -75,7 +76,9 @@ def build_flight(cfg: RunConfig, source: FieldSource, *, sigma_b_T: float, sampl
     real time still signs with real time, which the ground compares with its own clock); `run_id`: the
     sample store's run id (default: random, a new one at every start, so that the ground tells runs
     apart); `timeorbit`: the time/orbit application (default: one from `cfg.tle_file` and
-    `cfg.tle_max_age_d`), always the first application."""
+    `cfg.tle_max_age_d`), always the first application; `field`: a field along the orbit known for the
+    whole run, for the host-magnetics calibration (None: the calibration takes the time/orbit
+    application's, once time and a usable TLE are on board)."""
     opened = []
     try:
         if key is None and cfg.key_file:
@@ -102,11 +105,14 @@ def build_flight(cfg: RunConfig, source: FieldSource, *, sigma_b_T: float, sampl
         timeorbit = TimeOrbit(tle_file=cfg.tle_file, max_tle_age_d=cfg.tle_max_age_d)
     fsw = FlightSoftware(source, tlm, rate_hz=cfg.rate_hz, sigma_b_T=sigma_b_T, truth=truth,
                          max_sample_tlm_hz=cfg.max_sample_tlm_hz, sample_rate_hz=sample_rate_hz, uplink=uplink,
-                         key=key, apps=(timeorbit, *apps), rate_filter=rate_filter, sample_store=store)
+                         key=key, apps=(timeorbit, *apps), rate_filter=rate_filter, sample_store=store,
+                         field=field, field_provider=timeorbit)
     notes = [f"mission key {key_fingerprint(key)}: commands must be signed, telemetry is signed" if key else
              "no mission key: commands that change state are refused"]
     if uplink is not link:
         notes[0] += f"; commands on {cfg.uplink or 'their own link'}"
+    if field is None:
+        notes.append("host-magnetics calibration: from the onboard TLE and UTC once both are set")
     if store.reset_reason:
         notes.append(f"sample store: {store.reset_reason}")
     notes += timeorbit.notes

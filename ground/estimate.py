@@ -18,6 +18,9 @@ smoother).
 
 The field: fixed in inertial space unless an orbit is given — `--scenario NAME|FILE` (a SITL scenario's
 orbit and field epoch; the recording's t = 0 is the scenario's) or `--tle LINE1 LINE2 --utc0 ISO`.
+
+The host's hard and soft iron: `--magcal FILE.json` applies a calibration to the samples first,
+`--estimate-magcal` estimates it from the recording along its orbit (`ground/magcal.py`).
 """
 from __future__ import annotations
 
@@ -35,7 +38,9 @@ from fsw.estimation import filter_banks as fb
 from fsw.estimation import kotelnikov as ko
 from fsw.estimation import rate_formulas as rf
 from fsw.estimation import rate_kalman as rk
+from fsw.estimation import field_motion as fm
 from fsw.estimation.tle import TleError, parse_tle
+from ground import magcal as gm
 from ground import smoother as sm
 from ground.field import scenario_field, tle_field
 from ground.recording import RateEstimates, Recording, RecordingError, read_recording, write_rate_estimates
@@ -227,6 +232,7 @@ def main(argv=None) -> int:
     ap.add_argument("--utc0", type=iso_time, help="with --tle: UTC of the recording's t = 0, ISO 8601")
     ap.add_argument("--known-inertia", metavar="I", type=inertia_tensor,
                     help="known tensor for euler/kalman-euler: 'Ixx,Iyy,Izz' or 9 values, kg·m²")
+    gm.add_arguments(ap)
     args = ap.parse_args(argv)
     if args.tle and not args.utc0:
         ap.error("--tle needs --utc0")
@@ -237,7 +243,7 @@ def main(argv=None) -> int:
             parse_tle(*args.tle)
         except TleError as e:
             ap.error(f"--tle: {e}")
-    check_paths_or_exit(ap, inputs={"input": args.input, "--scenario": args.scenario},
+    check_paths_or_exit(ap, inputs={"input": args.input, "--scenario": args.scenario, "--magcal": args.magcal},
                         outputs={"--rates": args.rates, "--plot": args.plot})
     if args.plot:
         from ground.plot import check_plot_path
@@ -252,13 +258,19 @@ def main(argv=None) -> int:
         if args.decimate_hz:
             rec = decimate(rec, args.decimate_hz)
             check_samples(rec, args.method)
+        sigma = args.sigma_uT * 1e-6 if args.sigma_uT is not None else noise_estimate_T(rec.b_T)
+        rec, calibrated = gm.calibrate(rec, args, field if field is not None or not args.estimate_magcal
+                                       else fm.field_from_metadata(rec.metadata), sigma)
+        if calibrated:
+            print(calibrated)
         warn_field(rec, args.input, field)
         inertia = args.known_inertia
-        sigma = args.sigma_uT * 1e-6 if args.sigma_uT is not None else noise_estimate_T(rec.b_T)
         w, s, notes = estimate(args.method, rec.t_s, rec.b_T, sigma, field=field, inertia_kgm2=inertia)
         meta = {"source": f"python -m ground.estimate {args.input}", "method": args.method,
                 "sigma_uT": f"{sigma * 1e6:.4g}" + ("" if args.sigma_uT is not None else " (estimated)"),
                 "field": "along the orbit" if field is not None else "fixed in inertial space"}
+        if calibrated:
+            meta["magcal"] = calibrated
         meta.update({k: str(v) for k, v in notes.items()})
         write_rate_estimates(args.rates, RateEstimates(rec.t_s, w, s, metadata=meta))
     except (RecordingError, ValueError, OSError) as e:

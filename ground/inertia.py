@@ -2,6 +2,7 @@
 
     python -m ground.inertia INPUT.csv OUT.json [--scenario NAME|FILE] [--sigma-uT S] [--diag]
                              [--guess KGM2] [--plot FILE [--running N]] [--hold centered|forward] [--quiet]
+                             [--magcal FILE.json | --estimate-magcal]
 
 (also reached as ``python -m ground.estimate INPUT.csv --inertia OUT.json``). INPUT is a recording
 in format v1 (`recording.py`): the field samples and the known applied moment ``m*_Nm`` (about the
@@ -13,6 +14,9 @@ flight copy of the field model (`ground.field`) for the orbit of ``--scenario`` 
 (``# orbit_altitude_km:``, ``# orbit_inclination_deg:``, ``# orbit_raan_deg:``,
 ``# orbit_arg_lat0_deg:``, ``# field_epoch_year:``; ``t_s`` = 0 at the orbit's epoch, the Earth rotation
 angle 0 there).
+
+The host's hard and soft iron are taken out of the samples first with ``--magcal FILE.json`` or
+``--estimate-magcal`` (`ground/magcal.py`; the JSON then says which in ``magcal``).
 
 Output: the inertia JSON of recording-format.md — tensor about the centre of mass in sensor axes,
 95 % half-widths, principal moments, method, samples — plus the 99 % half-widths, the physical
@@ -40,6 +44,7 @@ from fsw.estimation import inertia as inr
 from fsw.estimation import sampled_moment as sm
 from fsw.files import write_atomic
 
+from . import magcal as gm
 from .field import scenario_field
 from .plot import check_plot_path, save_figure
 from .recording import Recording, RecordingError, read_recording
@@ -262,13 +267,15 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--running", type=int_range(1), default=12, metavar="N",
                     help="points of the running estimate drawn by --plot (default 12)")
     ap.add_argument("--quiet", action="store_true", help="no progress lines")
+    gm.add_arguments(ap)
 
 
 def check_cli_paths(ap: argparse.ArgumentParser, input_path: str, output_path: str, args,
                     output_label: str = "output") -> None:
     """Before any work: the output JSON and plot are not an input nor each other, can be written, and
     the plot's suffix is an image format (usage error, exit 2, otherwise)."""
-    check_paths_or_exit(ap, inputs={"input": input_path, "--scenario": args.scenario},
+    check_paths_or_exit(ap, inputs={"input": input_path, "--scenario": args.scenario,
+                                    "--magcal": getattr(args, "magcal", None)},
                         outputs={output_label: output_path, "--plot": args.plot})
     if args.plot:
         try:
@@ -282,6 +289,9 @@ def run_cli(input_path: str, output_path: str, args) -> int:
         rec = read_recording(input_path)
         fc.check(rec.b_T, str(input_path))             # units first: they matter more than a missing orbit
         b_inertial, truth, where = field_model(args.scenario, rec.metadata)
+        rec, calibrated = gm.calibrate(rec, args, b_inertial, args.sigma_uT * 1e-6)
+        if calibrated:
+            print(calibrated)
         for w in fc.check_recording(rec.b_T, str(input_path), rec.t_s, field=b_inertial):
             print(f"ground.inertia: warning: {w}", file=sys.stderr)
         report = run(rec, b_inertial, sigma_b_T=args.sigma_uT * 1e-6, mode="diag" if args.diag else "full",
@@ -293,7 +303,8 @@ def run_cli(input_path: str, output_path: str, args) -> int:
     report.truth_p = truth
     report.source = where
     try:
-        write_json(output_path, report.estimate, input=str(input_path), field_model=where)
+        extra = {"magcal": calibrated} if calibrated else {}
+        write_json(output_path, report.estimate, input=str(input_path), field_model=where, **extra)
         print(summary(report))
         print(f"wrote inertia: {output_path}")
         if args.plot:

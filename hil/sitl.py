@@ -31,6 +31,7 @@ from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_
 from fsw.config import RunConfig, add_run_options, check_key_or_exit, check_loop_rate, run_config  # noqa: E402
 from fsw.drivers.mmc5983ma import Mmc5983ma  # noqa: E402
 from fsw.drivers.mmc5983ma_regs import Bandwidth, ContinuousFrequency  # noqa: E402
+from fsw.estimation import field_motion as fm  # noqa: E402
 from fsw.flight import FlightSoftware  # noqa: E402
 from fsw.runner import LoopResult, run_loop, run_program  # noqa: E402
 from fsw.runner import status_line as flight_status  # noqa: E402
@@ -106,6 +107,13 @@ def sitl_sensor(scenario_rate_hz: float, scenario_bw: Bandwidth, rate_hz: float 
     return float(rate_hz), bw, cm
 
 
+def onboard_field(scn: scenarios.Scenario) -> fm.OrbitField:
+    """The field along the orbit the flight software knows in SITL (the host-magnetics calibration's
+    |B_model|): the flight copy of the model along the scenario's orbit."""
+    orbit = fm.CircularOrbitModel(scn.altitude_m, scn.inclination_deg, scn.raan_deg, scn.arg_lat0_deg)
+    return fm.OrbitField(orbit, fm.DipoleModel(scn.epoch_year))
+
+
 def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, clock=None,
           run_id: int | None = None, ident: bool = True, ident_options: dict | None = None,
           kit_options: dict | None = None) -> Sitl:
@@ -136,7 +144,7 @@ def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, 
         from .deorbit_sim import build_kit
         onboard.append(build_kit(sim, **(kit_options or {})))
     flight = build_flight(r, driver, sigma_b_T=sigma_b, sample_rate_hz=rate_hz, truth=sim.truth, apps=onboard,
-                          link=link, uplink=uplink, key=key, clock=clock, run_id=run_id)
+                          link=link, uplink=uplink, key=key, clock=clock, run_id=run_id, field=onboard_field(scn))
     return Sitl(cfg, scn, sim, driver, flight, sigma_b, warning)
 
 

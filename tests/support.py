@@ -1,5 +1,6 @@
 """Helpers shared by the test modules (importable from tests/ and its sub-directories: tests/conftest.py
 puts this directory on the path)."""
+import functools
 import socket
 from pathlib import Path
 
@@ -144,3 +145,48 @@ def circular_tle(altitude_km=485.0, inclination_deg=97.5, epoch="26120.50000000"
     l1 = f"1 {satnum}U 26001A   {epoch}  .00000000  00000-0  00000-0 0  999"
     l2 = f"2 {satnum} {inclination_deg:8.4f} {raan_deg:8.4f} 0001000   0.0000   0.0000 {rev_per_day:11.8f}    1"
     return tuple(line + str(checksum(line + "0")) for line in (l1, l2))
+# --- the host-magnetics calibration's truth: a tumble along the simulator's orbit, a host ------------
+
+#: the orbit (altitude m, inclination °) and the field's epoch of the calibration tests
+MAGCAL_ORBIT = (485e3, 97.5)
+MAGCAL_EPOCH = 2025.5
+MAGCAL_PERIOD_S = 2 * np.pi * np.sqrt((6378137.0 + MAGCAL_ORBIT[0]) ** 3 / 3.986004418e14)
+
+
+@functools.lru_cache(maxsize=None)
+def magcal_orbit(rate_hz: float = 1.0):
+    """(t, B_ECI truth (hil.field), |B| of the flight software's model) over one orbit."""
+    from fsw.estimation import field_motion as fm
+    from hil.field import DipoleField, FieldAlongOrbit
+    from hil.orbit import CircularOrbit
+
+    t = np.arange(0.0, MAGCAL_PERIOD_S, 1.0 / rate_hz)
+    b_eci = FieldAlongOrbit(CircularOrbit(*MAGCAL_ORBIT), DipoleField(MAGCAL_EPOCH)).b_eci_T(t)
+    model = fm.OrbitField(fm.CircularOrbitModel(*MAGCAL_ORBIT), fm.DipoleModel(MAGCAL_EPOCH))
+    return t, b_eci, np.linalg.norm(model.b_eci_T(t), axis=1)
+
+
+@functools.lru_cache(maxsize=None)
+def magcal_tumble(seed: int) -> np.ndarray:
+    """B in body axes along a torque-free tumble (2–5 °/s) of an asymmetric body (hil.dynamics), one orbit
+    at 1 Hz."""
+    from hil.dynamics import RigidBody
+
+    t, b_eci, _ = magcal_orbit()
+    rng = np.random.default_rng(1000 + seed)
+    w = rng.normal(size=3)
+    body = RigidBody(np.diag([180.0, 220.0, 260.0]), rng.normal(size=4),
+                     w / np.linalg.norm(w) * np.radians(rng.uniform(2.0, 5.0)))
+    out = np.empty_like(b_eci)
+    for k, tk in enumerate(t):
+        while body.t_s < tk - 1e-9:
+            body.step(min(2.0, tk - body.t_s), np.zeros(3))
+        out[k] = body.dcm.T @ b_eci[k]
+    return out
+
+
+def magcal_host(seed: int):
+    """(S symmetric, h [T]) of B_meas = S B_true + h: hard iron to ±50 µT, soft iron to 10 %."""
+    rng = np.random.default_rng(seed)
+    A = rng.uniform(-0.1, 0.1, (3, 3))
+    return np.eye(3) + np.triu(A) + np.triu(A, 1).T, rng.uniform(-50e-6, 50e-6, 3)

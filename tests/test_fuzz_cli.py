@@ -88,6 +88,9 @@ FILES: dict[str, tuple[bytes, int]] = {  # name: (content, mode)
     "broken.toml": (b"[body\nmass_kg = [[\n", 0o644),
     "huge.toml": (ISOI.replace("mass_kg = 5.5", "mass_kg = 1" + "0" * 400).encode(), 0o644),
     "realdir/rec.csv": (_recording_csv(), 0o644),
+    "magcal.json": (b'{"hard_iron_uT": [1.5, -2, 0.5], "soft_iron": [[0.01, 0, 0], [0, -0.02, 0.003], [0, 0.003, 0]]}',
+                    0o644),
+    "badcal.json": (b'{"hard_iron_uT": [1.5, -2], "soft_iron": [[2, 0, 0], [0, 1, 0], [0, 0, 1]]}', 0o644),
 }
 DIRS = ("dir", "emptydir", "realdir")
 
@@ -177,6 +180,9 @@ SCENARIO: list[Value] = [("isoi", True), ("aist2d", True), ("{files}/copy.toml",
                          ("ISOI", False), ("", False), ("{files}/missing.toml", False), ("{files}/broken.toml", False),
                          ("{files}/huge.toml", False), ("{files}/dir", False), ("{files}/fifo", False),
                          ("{files}/rec.csv", False)]
+#: a host-magnetics calibration (JSON) to read
+MAGCAL: list[Value] = [("{files}/magcal.json", True), ("{files}/badcal.json", False), ("{files}/rec.csv", False),
+                       ("{files}/missing.json", False), ("{files}/dir", False), ("{files}/fifo", False), ("", False)]
 DEORBIT_SCENARIO: list[Value] = [("amds_deorbit", True), ("{files}/deorbit.toml", True)] + \
     [(t, False) for t, _ in SCENARIO]
 URL_OUT: list[Value] = [("udpout:127.0.0.1:9", True), ("udpout:localhost:9", True), ("udpout:127.0.0.1:0", False),
@@ -214,6 +220,10 @@ def flag() -> Opt:
     return Opt(FLAG, nargs=0)
 
 
+#: --magcal and --estimate-magcal (which needs the recording's orbit and enough of a tumble: the tool decides)
+MAGCAL_OPTIONS = {"--magcal": Opt(MAGCAL, role="in"), "--estimate-magcal": Opt([("", None)], nargs=0)}
+
+
 # --- the tools --------------------------------------------------------------------------------------
 
 TLE1 = "1 25544U 98067A   26325.50000000  .00016717  00000-0  10270-3 0  9000"
@@ -226,7 +236,14 @@ def _target_judge(v, chosen):
     return v
 
 
+def _magcal_judge(v, chosen):
+    if "--magcal" in chosen and "--estimate-magcal" in chosen:  # one or the other
+        return False
+    return v
+
+
 def _estimate_judge(v, chosen):
+    v = _magcal_judge(v, chosen)
     if "--tle" in chosen and "--utc0" not in chosen:
         return False
     if "--tle" in chosen and "--scenario" in chosen:
@@ -357,6 +374,7 @@ SPECS: list[Tool] = [
         "--known-inertia": Opt([("1,1,1", True), ("175,200,285", True), ("1,0,0,0,1,0,0,0,1", True),
                                 ("nan,1,1", False), ("1,1,3", False), ("1,2", False), ("-1,1,1", False), ("a", False),
                                 ("1,0.5,0,0,1,0,0,0,1", False), ("1e308,1e308,1e308", None), ("", False)]),
+        **MAGCAL_OPTIONS,
     }, positionals=[("input", Opt(IN_RECORDING, role="in", required=True))],
         stubs=["ground.estimate:estimate", "ground.plot:plot_rates"], judge=_estimate_judge),
     Tool("ground.estimate --inertia", ground.estimate.main, {
@@ -369,8 +387,9 @@ SPECS: list[Tool] = [
         "--plot": Opt(PNG, role="out"),
         "--running": Opt(ints(1)),
         "--quiet": flag(),
+        **MAGCAL_OPTIONS,
     }, positionals=[("input", Opt(IN_RECORDING, role="in", required=True))],
-        stubs=["ground.inertia:run"], probe=("--inertia",)),
+        stubs=["ground.inertia:run"], probe=("--inertia",), judge=_magcal_judge),
     Tool("ground.inertia", ground.inertia.main, {
         "--scenario": Opt(SCENARIO, role="in"),
         "--sigma-uT": Opt(floats(0, lo_open=True)),
@@ -380,9 +399,10 @@ SPECS: list[Tool] = [
         "--plot": Opt(PNG, role="out"),
         "--running": Opt(ints(1)),
         "--quiet": flag(),
+        **MAGCAL_OPTIONS,
     }, positionals=[("input", Opt(IN_RECORDING, role="in", required=True)),
                     ("output", Opt(OUT, role="out", required=True))],
-        stubs=["ground.inertia:run"]),
+        stubs=["ground.inertia:run"], judge=_magcal_judge),
     Tool("ground.command", ground.command.main, {
         "--key": Opt(KEY, role="in"),
         "--set-param": Opt([(("TLM_SAMPLE_HZ", "5"), True), (("TLM_SAMPLE_HZ", "nan"), None),

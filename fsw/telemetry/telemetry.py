@@ -226,3 +226,16 @@ class Telemetry:
     def statustext(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> None:
         """STATUSTEXT (at most 50 characters, cut beyond): events such as the de-orbit kit's transitions."""
         self._send(mavlink.MAVLink_statustext_message(severity, text.encode("ascii", "replace")[:50]))
+
+    def magcal(self, t_s: float, cal, *, state: int, samples: int, dropped: int, rejections: int,
+               residual: float) -> None:
+        """DEBRIS_MAGCAL: the applied calibration (`fsw.estimation.magcal.Calibration`, b in µT, D's six
+        terms), its 1-σ (NaN before any), state and counters."""
+        sig = cal.sigma
+        sig = np.where(np.isfinite(sig), sig, np.nan)
+        D = cal.D
+        terms = [D[0, 0], D[1, 1], D[2, 2], D[0, 1], D[0, 2], D[1, 2]]
+        self._send(mavlink.MAVLink_debris_magcal_message(
+            usec(t_s), min(int(samples), 0xFFFFFFFF), min(int(dropped), 0xFFFFFFFF), min(int(rejections), 65535),
+            [float(x) * 1e6 for x in cal.b_T], [float(x) for x in terms], [float(x) * 1e6 for x in sig[:3]],
+            [float(x) for x in sig[3:]], float(residual), int(state)))

@@ -1,0 +1,101 @@
+"""The flight loop's host-magnetics calibration step: every accepted sample goes through it before the
+estimators and the applications.
+
+It feeds the recursive TWOSTEP calibration (`fsw.estimation.magcal.MagCal`) with the sample and the
+field's magnitude along the orbit from a :class:`FieldProvider`: the time-and-orbit application
+(`fsw.timeorbit.TimeOrbit`: the field from the TLE and UTC on board, once both are there and usable) or
+:class:`FixedField` (a field known for the whole run: SITL's scenario, a replay), at most one sample every
+`sample_every_s` (the magnitude changes over minutes; an orbit at 1 Hz is plenty), and applies the last
+good calibration to every sample: B = (I + D)(B_meas − b). Without a field on board the step is inactive
+(DEBRIS_MAGCAL_STATE_NO_FIELD) and samples pass unchanged; a field that cannot be evaluated at a time
+(an SGP4 error) is counted and that sample not taken. A calibration that failed its checks never
+reaches the samples: the last good one stays applied and the state says REJECTED. DEBRIS_MAGCAL goes
+out every `tlm_every_s`.
+"""
+from __future__ import annotations
+
+import math
+from typing import Protocol
+
+import numpy as np
+
+from .estimation import magcal as mc
+from .telemetry.telemetry import Telemetry
+
+
+class FieldProvider(Protocol):
+    def field_now(self, now_s: float) -> tuple[object | None, str]:
+        """(the field along the orbit, with ``b_eci_T(t_s)``, and ""), or (None, why there is none now)."""
+
+
+class FixedField:
+    """The field along the orbit known for the whole run (an `fsw.estimation.field_motion.OrbitField`)."""
+
+    def __init__(self, field) -> None:
+        self.field = field
+
+    def field_now(self, now_s: float) -> tuple[object | None, str]:
+        return self.field, ""
+
+
+class HostCalibration:
+    """`provider`: the field along the orbit (None: inactive); `sigma_T`: the sensor's noise per axis."""
+
+    name = "calibration"
+
+    def __init__(self, sigma_T: float, provider: FieldProvider | None = None, *, sample_every_s: float = 1.0,
+                 tlm_every_s: float = 10.0, **magcal_options) -> None:
+        self.provider = provider
+        #: the field along the orbit in use (None: none on board now) and why not
+        self.field = None
+        self._no_field = "no orbit/field model on board: calibration inactive"
+        self.cal = mc.MagCal(sigma_T, **magcal_options)
+        self.sample_every_s = sample_every_s
+        self.tlm_every_s = tlm_every_s
+        self.field_errors = 0
+        self.applied = 0  # samples the last good calibration was applied to
+        self._t_taken: float | None = None
+        self._t_tlm: float | None = None
+
+    @property
+    def state(self) -> int:
+        return mc.NO_FIELD if self.field is None else self.cal.state
+
+    @property
+    def reason(self) -> str | None:
+        if self.field is None:
+            return self._no_field
+        return self.cal.reason
+
+    def process(self, t_s: float, b_meas_T: np.ndarray) -> np.ndarray:
+        """The sample at `t_s` taken into the calibration (when due) and returned corrected."""
+        if self.provider is None:
+            return b_meas_T
+        self.field, why = self.provider.field_now(t_s)
+        if self.field is None:
+            self._no_field = f"no orbit/field model on board ({why}): calibration inactive"
+            return b_meas_T
+        if self._t_taken is None or t_s - self._t_taken >= self.sample_every_s * (1 - 1e-9):
+            self._t_taken = t_s
+            try:
+                mag_T = float(np.linalg.norm(self.field.b_eci_T(t_s)))
+            except (ValueError, ArithmeticError):
+                self.field_errors += 1
+            else:
+                if math.isfinite(mag_T) and mag_T > 0:
+                    self.cal.update(b_meas_T, mag_T, t_s)
+                else:
+                    self.field_errors += 1
+        if not self.cal.good:
+            return b_meas_T
+        self.applied += 1
+        return self.cal.apply(b_meas_T)
+
+    def telemetry(self, now_s: float, tlm: Telemetry) -> None:
+        """DEBRIS_MAGCAL every `tlm_every_s`."""
+        if self._t_tlm is not None and now_s - self._t_tlm < self.tlm_every_s * (1 - 1e-9):
+            return
+        self._t_tlm = now_s
+        c = self.cal
+        tlm.magcal(now_s, c.calibration, state=self.state, samples=c.samples, dropped=c.dropped,
+                   rejections=c.rejections, residual=c.chi2_dof)

@@ -1,0 +1,30 @@
+"""The host-magnetics calibration benchmark, a smoke run: two seeded hosts over one orbit meet the
+residual target, the JSON has the issue's keys, the command line refuses what it cannot use. The
+20 hosts are `python -m bench.calibration`."""
+import json
+
+import numpy as np
+
+from bench import calibration
+from support import exit_status
+
+KEYS = ("hosts", "residual_uT_rms_max", "field_model_error_uT_rms", "kit_residual_uT_rms_max", "convergence_s_max",
+        "first_calibration_s_max", "coverage_1sigma_hard", "coverage_1sigma_soft")
+
+
+def test_two_hosts_meet_the_target_and_the_json_has_the_keys(tmp_path, capsys):
+    out = tmp_path / "cal.json"
+    assert calibration.main(["--hosts", "2", "--seed", "4", "--json", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert all(k in r for k in KEYS) and r["hosts"] == 2
+    assert r["residual_uT_rms_max"] <= 0.3 < r["uncalibrated_uT_rms_max"]
+    assert r["field_model_error_uT_rms"] is None  # truth = the on-board dipole today
+    assert all(h["good"] for h in r["runs"])
+    assert np.isfinite(r["first_calibration_s_max"]) and r["first_calibration_s_max"] < r["orbit_period_s"]
+    assert "residual after 1 orbit" in capsys.readouterr().out
+
+
+def test_the_command_line_refuses_what_it_cannot_use(tmp_path, capsys):
+    for argv in (["--hosts", "0"], ["--orbits", "nan"], ["--noise-uT", "-1"], ["--json", str(tmp_path / "no" / "x")]):
+        assert exit_status(calibration.main, argv) == 2
+    assert capsys.readouterr().out == ""

@@ -1,0 +1,137 @@
+"""Host-magnetics calibration (fsw.estimation.magcal) against the simulator's truth: a torque-free tumble
+(hil.dynamics) in the field along the orbit (hil.field, hil.orbit), a host B_meas = S B_true + h."""
+import numpy as np
+import pytest
+
+from fsw.estimation import magcal as mc
+from support import MAGCAL_PERIOD_S as PERIOD_S
+from support import magcal_host as host
+from support import magcal_orbit as orbit
+from support import magcal_tumble as tumble
+
+SIGMA_T = 1.5e-6
+
+def measure(b_body, S, h, seed, sigma_T=SIGMA_T):
+    clean = b_body @ S.T + h
+    return clean, clean + np.random.default_rng(seed).normal(0.0, sigma_T, clean.shape)
+
+
+def truth_theta(S, h):
+    D = np.linalg.inv(S) - np.eye(3)
+    return np.concatenate((h, [D[i, j] for i, j in mc.D_TERMS]))
+
+
+def test_noise_free_data_give_the_host_exactly():
+    _, _, b_mag = orbit()
+    S, h = host(1)
+    clean, _ = measure(tumble(0), S, h, 0)
+    cal, why, _ = mc.estimate(clean, b_mag, 1e-9)
+    assert why is None
+    assert np.allclose(cal.b_T, h, atol=1e-11)
+    assert np.allclose(cal.D, np.linalg.inv(S) - np.eye(3), atol=1e-6)
+    assert np.allclose(mc.apply(cal, clean), tumble(0), atol=1e-11)
+
+
+def test_recovers_the_host_within_sigma_and_the_field_within_target():
+    _, _, b_mag = orbit()
+    for seed in range(3):
+        S, h = host(10 + seed)
+        clean, meas = measure(tumble(seed), S, h, seed)
+        cal, why, _ = mc.estimate(meas, b_mag, SIGMA_T)
+        assert why is None
+        est = np.concatenate((cal.b_T, [cal.D[i, j] for i, j in mc.D_TERMS]))
+        assert np.all(np.abs(est - truth_theta(S, h)) <= 4 * cal.sigma)
+        resid_uT = np.sqrt(np.mean((mc.apply(cal, clean) - tumble(seed)) ** 2, axis=0)) * 1e6
+        assert np.all(resid_uT <= 0.3)  # the issue's target, per axis RMS
+
+
+def test_one_sigma_covers_the_error_at_an_honest_rate():
+    """Over 20 seeded hosts and noise draws, |error| ≤ 1σ for about 68 % of the 9 parameters."""
+    _, _, b_mag = orbit()
+    hits = []
+    for seed in range(20):
+        S, h = host(100 + seed)
+        _, meas = measure(tumble(seed % 4), S, h, 200 + seed)
+        cal, why, _ = mc.estimate(meas, b_mag, SIGMA_T)
+        assert why is None
+        est = np.concatenate((cal.b_T, [cal.D[i, j] for i, j in mc.D_TERMS]))
+        hits.extend(np.abs(est - truth_theta(S, h)) <= cal.sigma)
+    assert 0.55 <= np.mean(hits) <= 0.82  # 180 draws: 68 % ± 3.5 % (1σ), wider for their correlation
+
+
+def test_flight_form_converges_within_one_orbit():
+    t, _, b_mag = orbit()
+    S, h = host(7)
+    clean, meas = measure(tumble(1), S, h, 7)
+    cal = mc.MagCal(SIGMA_T)
+    published = 0
+    for k in range(len(t)):
+        published += cal.update(meas[k], b_mag[k], t[k])
+    assert published > 0 and cal.good
+    assert cal.state == mc.CONVERGED and cal.converged_at_s < PERIOD_S
+    assert cal.samples == len(t)
+    resid_uT = np.sqrt(np.mean((cal.apply(clean) - tumble(1)) ** 2, axis=0)) * 1e6
+    assert np.all(resid_uT <= 0.3)
+
+
+def test_a_body_that_sees_one_direction_is_refused():
+    """A body held along the field (one direction in body axes, only the magnitude changes): the Fisher
+    matrix is singular, nothing is published, the samples pass unchanged and the state says why."""
+    t, b_eci, b_mag = orbit()
+    u = np.array([0.6, 0.0, 0.8])
+    S, h = host(3)
+    _, meas = measure(np.linalg.norm(b_eci, axis=1)[:, None] * u, S, h, 3)
+    cal = mc.MagCal(SIGMA_T)
+    for k in range(len(t)):
+        assert not cal.update(meas[k], b_mag[k], t[k])
+    assert not cal.good and cal.state == mc.REJECTED and cal.solves > 50
+    assert "ill-conditioned" in cal.reason or "converge" in cal.reason
+    assert np.array_equal(cal.apply(meas[0]), meas[0])
+    _, why, _ = mc.estimate(meas, b_mag, SIGMA_T)
+    assert why is not None
+
+
+def test_a_bad_stretch_keeps_the_last_good_calibration_flagged():
+    """After convergence, samples from another host (a 40 µT jump, as a magnet left open would give): the
+    stretch is refused and left out of the sums, the last good calibration stays applied, and when the
+    host's own samples come back the calibration goes on from where it was."""
+    t, _, b_mag = orbit()
+    S, h = host(5)
+    _, meas = measure(tumble(2), S, h, 5)
+    cal = mc.MagCal(SIGMA_T)
+    half = len(t) * 3 // 4
+    for k in range(half):
+        cal.update(meas[k], b_mag[k], t[k])
+    assert cal.good
+    good = cal.calibration
+    bad = meas + np.array([40e-6, 0.0, 0.0])
+    for k in range(half, half + 400):
+        cal.update(bad[k], b_mag[k], t[k])
+        assert cal.calibration is good
+    assert cal.state == mc.REJECTED and "last good" in cal.reason
+    assert cal.dropped >= 300
+    for k in range(half + 400, len(t)):
+        cal.update(meas[k], b_mag[k], t[k])
+    assert cal.state == mc.CONVERGED and cal.calibration is not good
+    est = np.concatenate((cal.calibration.b_T, [cal.calibration.D[i, j] for i, j in mc.D_TERMS]))
+    assert np.all(np.abs(est - truth_theta(S, h)) <= 4 * cal.calibration.sigma)
+
+
+def test_calibration_file_round_trip_and_refusals():
+    cal = mc.Calibration(np.array([1e-6, -2e-6, 3e-6]), np.array([[0.01, 0.002, 0], [0.002, -0.02, 0], [0, 0, 0]]))
+    back = mc.Calibration.from_json(cal.to_json())
+    assert np.allclose(back.b_T, cal.b_T) and np.allclose(back.D, cal.D)
+    for bad in ({"hard_iron_uT": [1, 2]}, {"soft_iron": np.eye(3).tolist()}, [1, 2],
+                {"hard_iron_uT": [1, 2, "x"]},
+                {"hard_iron_uT": [1, 2, 3], "soft_iron": [[0, 1, 0], [0, 0, 0], [0, 0, 0]]},
+                {"hard_iron_uT": [1, 2, 3], "soft_iron": (-np.eye(3)).tolist()},
+                {"hard_iron_uT": [1, 2, float("nan")]}):
+        with pytest.raises(ValueError):
+            mc.Calibration.from_json(bad)
+
+
+def test_bad_samples_are_not_taken():
+    cal = mc.MagCal(SIGMA_T)
+    assert not cal.update(np.array([np.nan, 0, 0]), 40e-6, 0.0)
+    assert not cal.update(np.array([1e-5, 0, 0]), 0.0, 1.0)
+    assert cal.samples == 0
