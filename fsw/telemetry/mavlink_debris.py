@@ -538,6 +538,22 @@ enums["DEBRIS_TLE_REFUSAL"][7] = EnumEntry("DEBRIS_TLE_REFUSAL_UNSIGNED", """Not
 DEBRIS_TLE_REFUSAL_ENUM_END = 8
 enums["DEBRIS_TLE_REFUSAL"][8] = EnumEntry("DEBRIS_TLE_REFUSAL_ENUM_END", """""")
 
+# DEBRIS_MAGCAL_STATE
+enums["DEBRIS_MAGCAL_STATE"] = Enum()
+enums["DEBRIS_MAGCAL_STATE"].bitmask = False
+DEBRIS_MAGCAL_STATE_NO_FIELD = 0
+enums["DEBRIS_MAGCAL_STATE"][0] = EnumEntry("DEBRIS_MAGCAL_STATE_NO_FIELD", """No field model along the orbit on board: the calibration is inactive and samples reach the estimators uncorrected.""")
+DEBRIS_MAGCAL_STATE_COLLECTING = 1
+enums["DEBRIS_MAGCAL_STATE"][1] = EnumEntry("DEBRIS_MAGCAL_STATE_COLLECTING", """Collecting samples; no calibration yet (samples uncorrected).""")
+DEBRIS_MAGCAL_STATE_CONVERGED = 2
+enums["DEBRIS_MAGCAL_STATE"][2] = EnumEntry("DEBRIS_MAGCAL_STATE_CONVERGED", """The applied calibration passed its checks and every sigma is within its goal.""")
+DEBRIS_MAGCAL_STATE_UNCERTAIN = 3
+enums["DEBRIS_MAGCAL_STATE"][3] = EnumEntry("DEBRIS_MAGCAL_STATE_UNCERTAIN", """The applied calibration passed its checks; its sigmas are not yet within their goals.""")
+DEBRIS_MAGCAL_STATE_REJECTED = 4
+enums["DEBRIS_MAGCAL_STATE"][4] = EnumEntry("DEBRIS_MAGCAL_STATE_REJECTED", """The latest solution failed a check (ill-conditioned, residual, change too large, did not converge) or the latest samples did not fit: the last good calibration stays applied (none: samples uncorrected).""")
+DEBRIS_MAGCAL_STATE_ENUM_END = 5
+enums["DEBRIS_MAGCAL_STATE"][5] = EnumEntry("DEBRIS_MAGCAL_STATE_ENUM_END", """""")
+
 # MAV_CMD
 enums["MAV_CMD"] = Enum()
 enums["MAV_CMD"].bitmask = False
@@ -6608,6 +6624,7 @@ MAVLINK_MSG_ID_DEBRIS_SAMPLE_STORE = 54008
 MAVLINK_MSG_ID_DEBRIS_SAMPLE_REQUEST = 54009
 MAVLINK_MSG_ID_DEBRIS_TIME_ORBIT = 54020
 MAVLINK_MSG_ID_DEBRIS_TLE = 54021
+MAVLINK_MSG_ID_DEBRIS_MAGCAL = 54040
 MAVLINK_MSG_ID_SYS_STATUS = 1
 MAVLINK_MSG_ID_SYSTEM_TIME = 2
 MAVLINK_MSG_ID_PING = 4
@@ -7394,6 +7411,56 @@ class MAVLink_debris_tle_message(MAVLink_message):
 # Define name on the class for backwards compatibility (it is now msgname).
 # Done with setattr to hide the class variable from mypy.
 setattr(MAVLink_debris_tle_message, "name", mavlink_msg_deprecated_name_property())
+
+
+class MAVLink_debris_magcal_message(MAVLink_message):
+    """
+    Onboard host-magnetics calibration applied to every sample before
+    the estimators: B_true = (I + D) (B_meas - b), b the hard iron in
+    sensor axes, D the symmetric soft iron (Alonso and Shuster 2002).
+    Sent every 10 s.
+    """
+
+    id = MAVLINK_MSG_ID_DEBRIS_MAGCAL
+    msgname = "DEBRIS_MAGCAL"
+    fieldnames = ["time_usec", "samples", "dropped", "rejections", "hard_iron", "soft_iron", "hard_iron_sigma", "soft_iron_sigma", "residual", "state"]
+    ordered_fieldnames = ["time_usec", "samples", "dropped", "hard_iron", "soft_iron", "hard_iron_sigma", "soft_iron_sigma", "residual", "rejections", "state"]
+    fieldtypes = ["uint64_t", "uint32_t", "uint32_t", "uint16_t", "float", "float", "float", "float", "float", "uint8_t"]
+    fielddisplays_by_name: Dict[str, str] = {}
+    fieldenums_by_name: Dict[str, str] = {"state": "DEBRIS_MAGCAL_STATE"}
+    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "hard_iron": "uT", "hard_iron_sigma": "uT"}
+    native_format = bytearray(b"<QIIfffffHB")
+    orders = [0, 1, 2, 8, 3, 4, 5, 6, 7, 9]
+    lengths = [1, 1, 1, 3, 6, 3, 6, 1, 1, 1]
+    array_lengths = [0, 0, 0, 3, 6, 3, 6, 0, 0, 0]
+    crc_extra = 105
+    unpacker = struct.Struct("<QII3f6f3f6ffHB")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(self, time_usec: int, samples: int, dropped: int, rejections: int, hard_iron: Sequence[float], soft_iron: Sequence[float], hard_iron_sigma: Sequence[float], soft_iron_sigma: Sequence[float], residual: float, state: int):
+        MAVLink_message.__init__(self, MAVLink_debris_magcal_message.id, MAVLink_debris_magcal_message.msgname)
+        self._fieldnames = MAVLink_debris_magcal_message.fieldnames
+        self._instance_field = MAVLink_debris_magcal_message.instance_field
+        self._instance_offset = MAVLink_debris_magcal_message.instance_offset
+        self.time_usec = time_usec
+        self.samples = samples
+        self.dropped = dropped
+        self.rejections = rejections
+        self.hard_iron = hard_iron
+        self.soft_iron = soft_iron
+        self.hard_iron_sigma = hard_iron_sigma
+        self.soft_iron_sigma = soft_iron_sigma
+        self.residual = residual
+        self.state = state
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.samples, self.dropped, self.hard_iron[0], self.hard_iron[1], self.hard_iron[2], self.soft_iron[0], self.soft_iron[1], self.soft_iron[2], self.soft_iron[3], self.soft_iron[4], self.soft_iron[5], self.hard_iron_sigma[0], self.hard_iron_sigma[1], self.hard_iron_sigma[2], self.soft_iron_sigma[0], self.soft_iron_sigma[1], self.soft_iron_sigma[2], self.soft_iron_sigma[3], self.soft_iron_sigma[4], self.soft_iron_sigma[5], self.residual, self.rejections, self.state), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_debris_magcal_message, "name", mavlink_msg_deprecated_name_property())
 
 
 class MAVLink_sys_status_message(MAVLink_message):
@@ -17481,6 +17548,7 @@ mavlink_map: Dict[int, Type[MAVLink_message]] = {
     MAVLINK_MSG_ID_DEBRIS_SAMPLE_REQUEST: MAVLink_debris_sample_request_message,
     MAVLINK_MSG_ID_DEBRIS_TIME_ORBIT: MAVLink_debris_time_orbit_message,
     MAVLINK_MSG_ID_DEBRIS_TLE: MAVLink_debris_tle_message,
+    MAVLINK_MSG_ID_DEBRIS_MAGCAL: MAVLink_debris_magcal_message,
     MAVLINK_MSG_ID_SYS_STATUS: MAVLink_sys_status_message,
     MAVLINK_MSG_ID_SYSTEM_TIME: MAVLink_system_time_message,
     MAVLINK_MSG_ID_PING: MAVLink_ping_message,
@@ -18536,6 +18604,48 @@ class MAVLink(object):
 
         """
         self.send(self.debris_tle_encode(target_system, target_component, line1, line2), force_mavlink1=force_mavlink1)
+
+    def debris_magcal_encode(self, time_usec: int, samples: int, dropped: int, rejections: int, hard_iron: Sequence[float], soft_iron: Sequence[float], hard_iron_sigma: Sequence[float], soft_iron_sigma: Sequence[float], residual: float, state: int) -> MAVLink_debris_magcal_message:
+        """
+        Onboard host-magnetics calibration applied to every sample before the
+        estimators: B_true = (I + D) (B_meas - b), b the hard iron in
+        sensor axes, D the symmetric soft iron (Alonso and Shuster
+        2002). Sent every 10 s.
+
+        time_usec                 : Loop time. [us] (type:uint64_t)
+        samples                   : Samples in the calibration's sums. (type:uint32_t)
+        dropped                   : Samples left out: stretches that did not fit the last good calibration. (type:uint32_t)
+        rejections                : Solutions refused since start. (type:uint16_t)
+        hard_iron                 : Hard iron b (X, Y, Z) of the applied calibration. [uT] (type:float)
+        soft_iron                 : Soft iron D of the applied calibration: D11, D22, D33, D12, D13, D23. (type:float)
+        hard_iron_sigma           : 1-sigma of b (NaN before any calibration). [uT] (type:float)
+        soft_iron_sigma           : 1-sigma of D's six terms (NaN before any calibration). (type:float)
+        residual                  : Residual chi-square per degree of freedom of the latest solution (NaN before one). (type:float)
+        state                     : Calibration state. (type:uint8_t, values:DEBRIS_MAGCAL_STATE)
+
+        """
+        return MAVLink_debris_magcal_message(time_usec, samples, dropped, rejections, hard_iron, soft_iron, hard_iron_sigma, soft_iron_sigma, residual, state)
+
+    def debris_magcal_send(self, time_usec: int, samples: int, dropped: int, rejections: int, hard_iron: Sequence[float], soft_iron: Sequence[float], hard_iron_sigma: Sequence[float], soft_iron_sigma: Sequence[float], residual: float, state: int, force_mavlink1: bool = False) -> None:
+        """
+        Onboard host-magnetics calibration applied to every sample before the
+        estimators: B_true = (I + D) (B_meas - b), b the hard iron in
+        sensor axes, D the symmetric soft iron (Alonso and Shuster
+        2002). Sent every 10 s.
+
+        time_usec                 : Loop time. [us] (type:uint64_t)
+        samples                   : Samples in the calibration's sums. (type:uint32_t)
+        dropped                   : Samples left out: stretches that did not fit the last good calibration. (type:uint32_t)
+        rejections                : Solutions refused since start. (type:uint16_t)
+        hard_iron                 : Hard iron b (X, Y, Z) of the applied calibration. [uT] (type:float)
+        soft_iron                 : Soft iron D of the applied calibration: D11, D22, D33, D12, D13, D23. (type:float)
+        hard_iron_sigma           : 1-sigma of b (NaN before any calibration). [uT] (type:float)
+        soft_iron_sigma           : 1-sigma of D's six terms (NaN before any calibration). (type:float)
+        residual                  : Residual chi-square per degree of freedom of the latest solution (NaN before one). (type:float)
+        state                     : Calibration state. (type:uint8_t, values:DEBRIS_MAGCAL_STATE)
+
+        """
+        self.send(self.debris_magcal_encode(time_usec, samples, dropped, rejections, hard_iron, soft_iron, hard_iron_sigma, soft_iron_sigma, residual, state), force_mavlink1=force_mavlink1)
 
     def sys_status_encode(self, onboard_control_sensors_present: int, onboard_control_sensors_enabled: int, onboard_control_sensors_health: int, load: int, voltage_battery: int, current_battery: int, battery_remaining: int, drop_rate_comm: int, errors_comm: int, errors_count1: int, errors_count2: int, errors_count3: int, errors_count4: int, onboard_control_sensors_present_extended: int = 0, onboard_control_sensors_enabled_extended: int = 0, onboard_control_sensors_health_extended: int = 0) -> MAVLink_sys_status_message:
         """
