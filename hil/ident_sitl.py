@@ -28,11 +28,15 @@ class SimTug:
         self.pulses: list[TorquePulse] = []
 
     def apply(self, start_s: float, duration_s: float, moment_Nm: np.ndarray) -> None:
+        """A pulse commanded at the box's time `start_s`, scheduled at the true time it means."""
+        clock = self.sim.clock
+        start_s, duration_s = clock.true_s(start_s), duration_s / clock.rate
         p = TorquePulse(float(start_s), float(duration_s), np.array(moment_Nm, float))
         self.pulses.append(p)
         self.sim.scenario = dataclasses.replace(self.sim.scenario, torques=self.sim.scenario.torques + (p,))
 
     def stop(self, now_s: float) -> None:
+        now_s = self.sim.clock.true_s(now_s)
         if not self.pulses:
             return
         last = self.pulses[-1]
