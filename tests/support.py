@@ -131,3 +131,32 @@ def tiers(prop, *strategies, **kw_strategies):
     fast = given(*strategies, **kw_strategies)(prop)
     slow = settings(settings.get_profile("fuzz"))(given(*strategies, **kw_strategies)(prop))
     return fast, pytest.mark.slow(slow)
+
+
+# --- the flight side's assumptions, made true in the simulated world --------------------------------
+#: why a test pins them (say it where the test does)
+FLIGHT_ASSUMES = ("flight side assumes the dipole until it has the onboard IGRF, and a calibrated "
+                  "magnetometer until it calibrates the host's iron on board")
+
+
+def flight_assumptions(name_or_scenario="isoi"):
+    """The scenario with the world the flight software still assumes: the IGRF-14 dipole and no host
+    magnetism (a test of an estimator on its own terms pins these; see FLIGHT_ASSUMES)."""
+    import dataclasses
+
+    from hil import scenario
+    from hil.host_magnetics import HostMagnetics
+
+    scn = name_or_scenario if isinstance(name_or_scenario, scenario.Scenario) else scenario.load(name_or_scenario)
+    return dataclasses.replace(scn, field_model="igrf14-dipole", host=HostMagnetics())
+
+
+def flight_assumptions_file(tmp_path, name: str = "isoi") -> str:
+    """The same as a TOML file (for tests that go through a command line's --scenario)."""
+    from hil import scenario
+
+    text = scenario.resolve(name).read_text(encoding="utf-8").split("\n[host]")[0]
+    text = text.replace('model = "igrf14" ', 'model = "igrf14-dipole" ')
+    path = tmp_path / f"{name}_flight_assumptions.toml"
+    path.write_text(text, encoding="utf-8")
+    return str(path)
