@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 
 from bench import inertia as ib
-from support import flight_assumptions_file
+from support import flight_assumptions
+
+
+def pin_flight_assumptions(monkeypatch):
+    """The benchmark's scenarios loaded with the flight side's assumptions (tests/support.py)."""
+    load = ib.scenarios.load
+    monkeypatch.setattr(ib.scenarios, "load", lambda name="isoi": flight_assumptions(load(name)))
 
 
 def test_truth_record_is_the_simulators_and_noise_is_seeded():
@@ -24,14 +30,14 @@ def test_truth_record_is_the_simulators_and_noise_is_seeded():
     assert mask.sum() == 215                          # before the impulse at 215 s (the longer side here)
 
 
-def test_command_line_short_run(tmp_path, capsys):
+def test_command_line_short_run(tmp_path, capsys, monkeypatch):
     out = tmp_path / "bench.json"
     # the fits on their own terms: flight side assumes the dipole until it has the onboard IGRF
-    aist2d = flight_assumptions_file(tmp_path, "aist2d")
-    assert ib.main(["--runs", "2", "--duration", "420", "--scenarios", aist2d, "--no-linear", "--fits", "full",
+    pin_flight_assumptions(monkeypatch)
+    assert ib.main(["--runs", "2", "--duration", "420", "--scenarios", "aist2d", "--no-linear", "--fits", "full",
                     "--json", str(out)]) == 0
     text = capsys.readouterr().out
-    assert f"== {aist2d}" in text and "== targets" in text and "Aist-2D diagonal within ±1 %" in text
+    assert "== aist2d" in text and "== targets" in text and "Aist-2D diagonal within ±1 %" in text
     assert "sedelnikov2023" in text                 # the paper's numbers are printed alongside
     r = json.loads(out.read_text())["results"][0]
     f = r["full"]
@@ -57,12 +63,12 @@ def test_binomial_interval_and_shape_data():
         ib.shape_data(tr, "some")
 
 
-def test_shape_command_line_reports_the_cramer_rao_bound(tmp_path, capsys):
+def test_shape_command_line_reports_the_cramer_rao_bound(tmp_path, capsys, monkeypatch):
     """The shape fit of the whole record (pulses as unknown moments) against its Cramér–Rao bound."""
     out = tmp_path / "bench.json"
     # the fits on their own terms: flight side assumes the dipole until it has the onboard IGRF
-    aist2d = flight_assumptions_file(tmp_path, "aist2d")
-    assert ib.main(["--runs", "2", "--duration", "330", "--scenarios", aist2d, "--no-linear", "--fits", "shape",
+    pin_flight_assumptions(monkeypatch)
+    assert ib.main(["--runs", "2", "--duration", "330", "--scenarios", "aist2d", "--no-linear", "--fits", "shape",
                     "--json", str(out)]) == 0
     text = capsys.readouterr().out
     assert "fitted as unknown moments" in text and "Cramér–Rao" in text and "shape ratios within 0.5 %" in text
