@@ -48,6 +48,7 @@ interpolates (:class:`FieldTable`, error < 0.1 nT).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
@@ -175,6 +176,14 @@ class DipoleField:
         return b_eci_from_model_T(self, r_eci_m, t_s, era0_rad)
 
 
+@functools.lru_cache(maxsize=4)
+def _read_shc(path: str):
+    """ppigrf's coefficient tables (g, h) of a .shc file, read once per file (copies are handed out)."""
+    from ppigrf import ppigrf as pp
+
+    return pp.read_shc(path)
+
+
 class IgrfField:
     """IGRF-14 (``ppigrf``'s coefficient file) to ``degree`` (1..13) at a fixed decimal-year epoch.
 
@@ -189,8 +198,12 @@ class IgrfField:
 
         if isinstance(degree, bool) or not isinstance(degree, (int, np.integer)) or not 1 <= degree <= 13:
             raise ValueError(f"IGRF degree must be an integer in 1..13, got {degree!r}")
-        g, h = pp.read_shc(coeff_file or pp.shc_fn_igrf14)
+        g, h = _read_shc(coeff_file or pp.shc_fn_igrf14)
         span = (float(g.index[0].year), float(g.index[-1].year))  # the models are at 1 January
+        try:
+            epoch_year = float(epoch_year)
+        except (TypeError, ValueError, OverflowError):
+            raise ValueError(f"epoch_year must be a decimal year, got {epoch_year!r}") from None
         if not np.isfinite(epoch_year) or not span[0] <= epoch_year <= span[1]:
             raise ValueError(f"epoch_year {epoch_year!r} outside the IGRF model's validity "
                              f"[{span[0]:.1f}, {span[1]:.1f}]")

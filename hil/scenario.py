@@ -276,7 +276,7 @@ def load(name_or_path: str = DEFAULT_SCENARIO) -> Scenario:
         fail("field.degree", "must be within 1 .. 13")
     from .field import make_field
     try:  # the field model's validity (epoch)
-        make_field(sec["field"]["model"], sec["field"]["epoch_year"], sec["field"]["degree"])
+        make_field(sec["field"]["model"], float(sec["field"]["epoch_year"]), sec["field"]["degree"])
     except ValueError as e:
         fail("field.epoch_year", str(e))
     tle, utc0, box_tle = _orbit_tle(orbit, fail)
