@@ -1,4 +1,5 @@
-"""Geomagnetic main field for the simulator: a centred, tilted dipole from IGRF-14.
+"""Geomagnetic main field for the simulator: IGRF-14 to degree 13 (the default truth) and its centred,
+tilted dipole.
 
 Source of the coefficients: IGRF-14, International Association of Geomagnetism and
 Aeronomy (2024), file ``igrf14coeffs.txt``, doi:10.5281/zenodo.14012302, distributed by

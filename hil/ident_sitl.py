@@ -48,7 +48,9 @@ class SimTug:
 
 
 def field_model(scn: Scenario) -> FieldAlongOrbit:
-    """B_I(t) along the scenario's orbit (the model the simulator itself uses)."""
+    """B_I(t) along the scenario's circular orbit from the IGRF-14 dipole: the model the flight side has
+    today (it assumes the dipole until it has the onboard IGRF); the simulator's truth is the scenario's
+    field model (IGRF degree 13 by default) and orbit (a TLE when given)."""
     orbit = CircularOrbit(scn.altitude_m, scn.inclination_deg, scn.raan_deg, scn.arg_lat0_deg)
     return FieldAlongOrbit(orbit, DipoleField(epoch_year=scn.epoch_year))
 
