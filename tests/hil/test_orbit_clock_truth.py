@@ -101,3 +101,24 @@ def test_sitl_flight_software_sees_the_box_clock():
         assert "box clock: offset 2 s, drift 50 ppm" in s.header()
     finally:
         s.flight.close()
+
+
+def test_a_box_clock_off_and_drifting_does_not_change_what_is_scored():
+    """The same world with the box's clock 2 s ahead and 50 ppm fast: the loop runs on the box's time,
+    the simulator on true time, and the rate errors against the truth are those of the true clock (the
+    scoring looks the truth up at the true time of each sample's box time stamp)."""
+    from io import StringIO
+
+    from fsw.config import RunConfig
+    from hil.sitl import run
+    from support import flight_assumptions
+
+    errs = []
+    for clock in (BoxClock(), BoxClock(offset_s=2.0, drift_ppm=50.0)):
+        scn = dataclasses.replace(flight_assumptions("isoi"), clock=clock)
+        r = run(SitlConfig(run=RunConfig(speed=0.0, duration_s=30.0, quiet=True, link="udpout:127.0.0.1:9"),
+                           scenario=scn), out=StringIO())
+        assert r.sitl.sim.t_s == pytest.approx(clock.true_s(r.loop.t_s), abs=1e-9)
+        errs.append(np.degrees(r.score.rms_max(r.score.boer_err)[0]))
+    assert errs[0] < 1.2
+    assert errs[1] == pytest.approx(errs[0], abs=0.05)   # °/s
