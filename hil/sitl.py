@@ -12,7 +12,8 @@ scoring (DEBRIS_SIM_STATE on the link; the rate errors in the status line and th
 Time: the loop's time is the box's clock (the flight software's injected clock). The simulator runs in
 true time; the scenario's [clock] (`hil.box_clock`: offset, drift) maps one to the other where they
 meet: :meth:`Sitl.advance` (the loop's `before_tick`), the truth handed to the flight software and to
-scoring, the tug, the de-orbit kit's truth attitude. A run starts at box time `Sitl.t0_s` (true 0).
+scoring, the tug, the de-orbit kit's truth attitude. A run starts at box time `Sitl.t0_s` (true 0, or
+later for a clock behind true time).
 
 :func:`build` is the composition used by this command, the benchmarks and the soak.
 """
@@ -82,8 +83,10 @@ class Sitl:
 
     @property
     def t0_s(self) -> float:
-        """The box's clock when the simulated world starts (true time 0)."""
-        return self.sim.clock.box_s(0.0)
+        """The box's clock at the first tick: what it reads when the simulated world starts (true time 0),
+        or 0 for a clock behind true time (the box starts when its clock reads 0: the flight software's
+        time stamps are unsigned)."""
+        return max(0.0, self.sim.clock.box_s(0.0))
 
     def advance(self, box_t_s: float) -> None:
         """The simulator advanced to the true time at which the box's clock reads `box_t_s`."""
