@@ -242,7 +242,9 @@ class FlightSoftware:
             self.samples += 1
             self.latched.t_s = self.source.sample_time_s
             self.latched.b_T[:] = self.source.b_body_T
-            # an implausible sample (saturated, stuck, spike) is neither estimated on nor sent
+            # an implausible sample (saturated, stuck, spike) is neither estimated on nor sent; the host's
+            # magnetism moves the field the chip sees with the attitude: the gate allows for it
+            self.gate.host_bound_T = self.calibration.host_bound_T(self.sample_b_T)
             self.new_sample = self.gate.check(self.sample_t_s, self.sample_b_T)
             if self.new_sample and self.gate.gap_samples > self.gate.reset_after_gap:
                 for est in self.estimators.values():  # history too old to difference against

@@ -23,6 +23,12 @@ from .estimation import magcal as mc
 from .telemetry.telemetry import Telemetry
 
 
+#: the host's magnetism the flight software allows for before it has a calibration: hard iron up to 50 µT,
+#: soft iron up to 10 % (scale and misalignment) — what a spacecraft's bus puts at a sensor on a short boom
+HARD_IRON_MAX_T = 50e-6
+SOFT_IRON_MAX = 0.10
+
+
 class FieldProvider(Protocol):
     def field_now(self, now_s: float) -> tuple[object | None, str]:
         """(the field along the orbit, with ``b_eci_T(t_s)``, and ""), or (None, why there is none now)."""
@@ -66,6 +72,17 @@ class HostCalibration:
         if self.field is None:
             return self._no_field
         return self.cal.reason
+
+    def host_bound_T(self, b_meas_T: np.ndarray) -> float:
+        """A bound on the host's field in the sample, |h + (S − I) v| (T): the calibration's own values
+        with 3 σ when it has one, else `HARD_IRON_MAX_T` + `SOFT_IRON_MAX` |B| (the sample gate's slack)."""
+        m = float(np.linalg.norm(b_meas_T))
+        if not self.cal.good:
+            return HARD_IRON_MAX_T + SOFT_IRON_MAX * m
+        c = self.cal.calibration
+        sig = c.sigma
+        soft = float(np.linalg.norm(c.D, 2)) + 3.0 * float(np.max(sig[3:]))
+        return float(np.linalg.norm(c.b_T)) + 3.0 * float(np.linalg.norm(sig[:3])) + min(soft, 1.0) * m
 
     def process(self, t_s: float, b_meas_T: np.ndarray) -> np.ndarray:
         """The sample at `t_s` taken into the calibration (when due) and returned corrected."""

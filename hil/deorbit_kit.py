@@ -93,15 +93,18 @@ class ChannelEmulator:
             return self.switch_lies["open"]
         return self.shutter >= OPEN_ABOVE
 
+    def axis_body(self) -> np.ndarray:
+        """The magnet's axis in body axes at the rotor's angle φ: Rx(φ) a (a unit vector)."""
+        phi = 2.0 * math.pi * (self.rotor_steps % STEPS_PER_TURN) / STEPS_PER_TURN
+        c, s = math.cos(phi), math.sin(phi)
+        a = HOME_AXIS[self.index]
+        return np.array([a[0], c * a[1] - s * a[2], s * a[1] + c * a[2]])
+
     def dipole_body_Am2(self) -> np.ndarray:
         """The unscreened dipole in body axes: shutter opening × p × Rx(φ) a."""
         if self.shutter <= 0.0:
             return np.zeros(3)
-        phi = 2.0 * math.pi * (self.rotor_steps % STEPS_PER_TURN) / STEPS_PER_TURN
-        c, s = math.cos(phi), math.sin(phi)
-        a = HOME_AXIS[self.index]
-        rotated = np.array([a[0], c * a[1] - s * a[2], s * a[1] + c * a[2]])
-        return self.shutter * self.dipole_Am2 * rotated
+        return self.shutter * self.dipole_Am2 * self.axis_body()
 
     def advance(self, dt_s: float) -> None:
         if dt_s <= 0.0:

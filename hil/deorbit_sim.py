@@ -27,7 +27,7 @@ from .environment import (
     orbital_frame_dcm,
     orbital_rate_body_radps,
 )
-from .field import b_eci_from_model_T
+from .kit_field import KitFieldAtSensor
 from .scenario import DeorbitSpec, Scenario
 from .sim import Simulator, Truth
 
@@ -45,7 +45,9 @@ class DeorbitSimulator(Simulator):
         self.env = Environment(self.orbit, self.field, self.body.J_kgm2, dipole_body_Am2=self.kit.dipole_body_Am2,
                                sail_area_m2=spec.sail_area_m2, body_area_m2=spec.body_area_m2,
                                cd=spec.drag_coefficient, r_cp_body_m=np.array(spec.cp_offset_m),
-                               atmosphere=atmosphere)
+                               atmosphere=atmosphere, era0_rad=self.era0_rad, b_eci_T=self.b_eci_T)
+        self.kit_field = KitFieldAtSensor(self.kit, (spec.pitch_magnet_position_m, spec.yaw_magnet_position_m),
+                                          spec.capsule_leakage)
         self.set_attitude_orbital(dcm_from_euler_zyx(*np.radians(spec.initial_ypr_deg)),
                                   np.radians(spec.initial_rate_dps))
 
@@ -76,7 +78,7 @@ class DeorbitSimulator(Simulator):
     def _snapshot(self) -> Truth:
         """As `Simulator._snapshot`, with the environment's torque in the moment; keeps B_ECI for the
         next step's torque (one field evaluation per step instead of two)."""
-        b_eci = self.field.b_eci_T(self.orbit.position_eci_m(self.t_s), self.t_s)
+        b_eci = self.b_eci_T(self.t_s)
         self._b_eci_cache = (self.t_s, b_eci)
         q = self.body.q.copy()
         moment = self.scenario.moment_Nm(self.t_s).copy()
@@ -84,6 +86,10 @@ class DeorbitSimulator(Simulator):
         if env_moment is not None:
             moment += env_moment
         return Truth(self.t_s, self.body.omega_radps.copy(), q, quat_to_dcm(q).T @ b_eci, moment)
+
+    def extra_field_body_T(self, t_s: float) -> np.ndarray:
+        """The kit's magnets at the sensor (`hil.kit_field`), from the channels' state now."""
+        return self.kit_field.b_body_T()
 
     def attitude_orbital(self, t_s: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(R_bo, ω relative to the orbital frame in body axes, B in body axes) from the truth at `t_s`."""
@@ -97,7 +103,7 @@ class DeorbitSimulator(Simulator):
         t = np.atleast_1d(np.asarray(t_s, dtype=float))
         r = self.orbit.position_eci_m(t)
         v = self.orbit.velocity_eci_mps(t)
-        b = b_eci_from_model_T(self.field, r, t)
+        b = self.b_eci_T(t)
         z = -r / np.linalg.norm(r, axis=1, keepdims=True)
         x = v - np.einsum("ij,ij->i", v, z)[:, None] * z
         x /= np.linalg.norm(x, axis=1, keepdims=True)
@@ -116,7 +122,7 @@ class TruthAttitude:
         self.sim = sim
 
     def attitude(self, now_s: float) -> AttitudeInput:
-        R_bo, w_rel, b_body = self.sim.attitude_orbital(now_s)
+        R_bo, w_rel, b_body = self.sim.attitude_orbital(self.sim.clock.true_s(now_s))
         return AttitudeInput(R_bo, w_rel, b_body, self.sim.b_orbital_T)
 
 

@@ -154,7 +154,8 @@ class Environment:
                  dipole_body_Am2: Callable[[], np.ndarray], sail_area_m2: float = 5.0,
                  body_area_m2: float = 0.58, cd: float = 2.2,
                  r_cp_body_m: tuple[float, float, float] | np.ndarray = (-0.12, 0.0, 0.0),
-                 atmosphere: ExponentialAtmosphere = VALLADO_600KM, era0_rad: float = 0.0) -> None:
+                 atmosphere: ExponentialAtmosphere = VALLADO_600KM, era0_rad: float = 0.0,
+                 b_eci_T: Callable[[float], np.ndarray] | None = None) -> None:
         self.orbit = orbit
         self.field = field
         self.J_kgm2 = np.asarray(J_kgm2, dtype=float)
@@ -165,11 +166,14 @@ class Environment:
         self.r_cp_body_m = np.asarray(r_cp_body_m, dtype=float)
         self.atmosphere = atmosphere
         self.era0_rad = float(era0_rad)
+        self._b_eci_fn = b_eci_T
         self.rho_kgm3 = atmosphere.density_kgm3(orbit.altitude_m)  # circular orbit: constant
         self.last = Torques(np.zeros(3), np.zeros(3), np.zeros(3))
         self._sail_normal = np.array([1.0, 0.0, 0.0])
 
     def b_eci_T(self, t_s: float) -> np.ndarray:
+        if self._b_eci_fn is not None:  # the simulator's (tabulated) field along the orbit
+            return self._b_eci_fn(t_s)
         return b_eci_from_model_T(self.field, self.orbit.position_eci_m(t_s), t_s, self.era0_rad)
 
     def torque_Nm(self, t_s: float, q_body_to_eci: np.ndarray, b_eci_T: np.ndarray | None = None) -> np.ndarray:

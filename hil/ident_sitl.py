@@ -28,11 +28,15 @@ class SimTug:
         self.pulses: list[TorquePulse] = []
 
     def apply(self, start_s: float, duration_s: float, moment_Nm: np.ndarray) -> None:
+        """A pulse commanded at the box's time `start_s`, scheduled at the true time it means."""
+        clock = self.sim.clock
+        start_s, duration_s = clock.true_s(start_s), duration_s / clock.rate
         p = TorquePulse(float(start_s), float(duration_s), np.array(moment_Nm, float))
         self.pulses.append(p)
         self.sim.scenario = dataclasses.replace(self.sim.scenario, torques=self.sim.scenario.torques + (p,))
 
     def stop(self, now_s: float) -> None:
+        now_s = self.sim.clock.true_s(now_s)
         if not self.pulses:
             return
         last = self.pulses[-1]
@@ -44,7 +48,9 @@ class SimTug:
 
 
 def field_model(scn: Scenario) -> FieldAlongOrbit:
-    """B_I(t) along the scenario's orbit (the model the simulator itself uses)."""
+    """B_I(t) along the scenario's circular orbit from the IGRF-14 dipole: the model the flight side has
+    today (it assumes the dipole until it has the onboard IGRF); the simulator's truth is the scenario's
+    field model (IGRF degree 13 by default) and orbit (a TLE when given)."""
     orbit = CircularOrbit(scn.altitude_m, scn.inclination_deg, scn.raan_deg, scn.arg_lat0_deg)
     return FieldAlongOrbit(orbit, DipoleField(epoch_year=scn.epoch_year))
 

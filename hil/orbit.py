@@ -128,3 +128,54 @@ def eci_to_ecef(v_eci: np.ndarray, t_s: float | np.ndarray, era0_rad: float = 0.
 def ecef_to_eci(v_ecef: np.ndarray, t_s: float | np.ndarray, era0_rad: float = 0.0) -> np.ndarray:
     """Express ECEF vector(s) (..., 3) in ECI at time(s) t_s (scalar, or one per vector)."""
     return _rotate_z(v_ecef, earth_rotation_angle_rad(t_s, era0_rad))
+
+
+class TleOrbit:
+    """An orbit propagated by SGP4 (``sgp4``, Vallado's implementation) from a two-line element set;
+    t = 0 is the UTC instant ``utc0`` (a timezone-aware or naive-UTC ``datetime``).
+
+    Frame: positions and velocities are in TEME, the frame SGP4 produces, used as the simulator's
+    inertial frame. The Earth-fixed field is turned into it with GMST (IAU 1982, ``sgp4``'s
+    ``gstime``, UT1 taken as UTC): ``era0_rad`` is GMST at ``utc0``, and the angle then grows at
+    ``OMEGA_EARTH_RADPS`` (the difference from the GMST rate is 8.6e-12 rad/s: 0.04 arcsec a day).
+    TEME → ECEF by that one rotation about z is exact up to polar motion (< 0.5 arcsec).
+    """
+
+    def __init__(self, line1: str, line2: str, utc0) -> None:
+        from sgp4.api import SGP4_ERRORS, Satrec, jday
+        from sgp4.propagation import gstime
+
+        self.line1, self.line2 = line1, line2
+        self.sat = Satrec.twoline2rv(line1, line2)
+        self.utc0 = utc0
+        self.jd0, self.fr0 = jday(utc0.year, utc0.month, utc0.day, utc0.hour, utc0.minute,
+                                  utc0.second + utc0.microsecond * 1e-6)
+        self.era0_rad = float(gstime(self.jd0 + self.fr0))
+        self._errors = SGP4_ERRORS
+        e, r, _ = self.sat.sgp4(self.jd0, self.fr0)
+        if e:
+            raise ValueError(f"SGP4 cannot propagate this TLE to {utc0}: {SGP4_ERRORS.get(e, e)}")
+        self.mean_motion_radps = self.sat.no_kozai / 60.0
+        self.period_s = 2.0 * np.pi / self.mean_motion_radps
+        self.radius_m = float(self.sat.a * self.sat.radiusearthkm * 1e3)
+        self.altitude_m = self.radius_m - A_WGS84_M
+        self.inclination_deg = float(np.degrees(self.sat.inclo))
+        self.epoch_age_s = float((self.jd0 - self.sat.jdsatepoch + self.fr0 - self.sat.jdsatepochF) * 86400.0)
+
+    def _propagate(self, t_s) -> tuple[np.ndarray, np.ndarray]:
+        t = np.atleast_1d(np.asarray(t_s, dtype=float))
+        jd = np.full(t.shape, self.jd0)
+        err, r_km, v_kms = self.sat.sgp4_array(jd, self.fr0 + t / 86400.0)
+        if np.any(err):
+            raise ValueError(f"SGP4: {self._errors.get(int(err[err != 0][0]), 'error')}")
+        return r_km * 1e3, v_kms * 1e3
+
+    def position_eci_m(self, t_s: float | np.ndarray) -> np.ndarray:
+        """Position in TEME [m]; a scalar time gives (3,), N times (N, 3)."""
+        r, _ = self._propagate(t_s)
+        return r[0] if np.ndim(t_s) == 0 else r
+
+    def velocity_eci_mps(self, t_s: float | np.ndarray) -> np.ndarray:
+        """Velocity in TEME [m/s]."""
+        _, v = self._propagate(t_s)
+        return v[0] if np.ndim(t_s) == 0 else v

@@ -12,7 +12,13 @@ description = "..."
 [body]     mass_kg, inertia_kgm2 (3x3, symmetric, about the centre of mass, body = sensor axes)
 [initial]  omega_dps (body rate), attitude_rpy_deg (roll, pitch, yaw; body to ECI, ZYX sequence)
 [orbit]    altitude_km, inclination_deg, raan_deg, arg_lat0_deg (circular orbit)
-[field]    model = "igrf14-dipole", epoch_year
+           optional: tle = ["1 ...", "2 ..."] and utc0 = 2025-07-01T00:00:00Z (t = 0): the truth flies the
+           TLE through SGP4 (hil.orbit.TleOrbit, TEME) instead of the circular orbit, which stays the
+           nominal description; box_tle = [...]: an older TLE, what the box is given (Scenario.box_tle)
+[field]    model = "igrf14" (default: IGRF-14, `degree` 1..13, default 13) or "igrf14-dipole", epoch_year
+[host]     optional, the host's magnetism (hil.host_magnetics): hard_iron_uT, soft_iron,
+           hard_iron_drift_uT, drift_period_s, drift_phase_deg
+[clock]    optional, the box's clock against true time (hil.box_clock): offset_s, drift_ppm
 [sensor]   sample_rate_hz, bandwidth_hz (100/200/400/800), noise_uT, bridge_offset_uT
 [[torque]] start_s, duration_s, moment_Nm   (known applied moment, body axes, about the centre of mass)
 [deorbit]  optional, the de-orbit kit's closed loop (hil.deorbit_sim): see DeorbitSpec
@@ -22,9 +28,13 @@ from __future__ import annotations
 
 import tomllib
 from dataclasses import dataclass, field
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
+
+from .box_clock import BoxClock
+from .host_magnetics import HostMagnetics
 
 SCENARIO_DIR = Path(__file__).with_name("scenarios")
 DEFAULT_SCENARIO = "isoi"
@@ -67,6 +77,11 @@ class DeorbitSpec:
     dipole_Am2: float = 15.0
     duration_s: float = 10800.0
     settle_s: float = 3600.0
+    #: where the magnets sit relative to the magnetometer, body axes (hil.kit_field)
+    pitch_magnet_position_m: tuple[float, float, float] = (0.0, 0.3, 0.0)
+    yaw_magnet_position_m: tuple[float, float, float] = (0.0, 0.0, -0.3)
+    #: the fraction of a magnet's field a closed capsule lets out
+    capsule_leakage: float = 0.015
 
 
 @dataclass(frozen=True)
@@ -91,6 +106,15 @@ class Scenario:
     bridge_offset_T: np.ndarray
     torques: tuple[TorquePulse, ...] = field(default_factory=tuple)
     deorbit: DeorbitSpec | None = None
+    #: IGRF degree of the "igrf14" field model
+    field_degree: int = 13
+    #: the truth's TLE (two lines) and the UTC of t = 0 (naive, UTC); None: the circular orbit
+    tle: tuple[str, str] | None = None
+    utc0: datetime | None = None
+    #: the TLE the box is given (may be older than the truth's); None: the truth's
+    box_tle: tuple[str, str] | None = None
+    host: HostMagnetics = field(default_factory=HostMagnetics)
+    clock: BoxClock = field(default_factory=BoxClock)
 
     def moment_Nm(self, t_s: float, out: np.ndarray | None = None) -> np.ndarray:
         """Applied moment at time t (sum of the active pulses), body axes."""
@@ -106,12 +130,25 @@ _SCHEMA: dict[str, dict[str, type | tuple]] = {
     "body": {"mass_kg": float, "inertia_kgm2": list},
     "initial": {"omega_dps": list, "attitude_rpy_deg": list},
     "orbit": {"altitude_km": float, "inclination_deg": float, "raan_deg": float, "arg_lat0_deg": float},
-    "field": {"model": str, "epoch_year": float},
+    "field": {"model": str, "epoch_year": float, "degree": int},
     "sensor": {"sample_rate_hz": float, "bandwidth_hz": int, "noise_uT": float, "bridge_offset_uT": list},
 }
-_TOP = {"name", "description", "source", "torque", "deorbit", *_SCHEMA}
+_OPTIONAL = {("field", "model"): "igrf14", ("field", "degree"): 13}
+_TOP = {"name", "description", "source", "torque", "deorbit", "host", "clock", *_SCHEMA}
 _BANDWIDTHS_HZ = (100, 200, 400, 800)
-_FIELD_MODELS = ("igrf14-dipole",)
+_FIELD_MODELS = ("igrf14", "igrf14-dipole")
+_ORBIT_TLE_KEYS = ("tle", "utc0", "box_tle")
+_HOST_KEYS = {"hard_iron_uT": (3,), "soft_iron": (3, 3), "hard_iron_drift_uT": (3,), "drift_period_s": (),
+              "drift_phase_deg": ()}
+_CLOCK_KEYS = ("offset_s", "drift_ppm")
+
+
+def tle_checksum_ok(line: str) -> bool:
+    """The TLE line's last digit is the sum of its digits, with 1 per minus sign, modulo 10."""
+    if len(line) != 69 or not line[68].isdigit():
+        return False
+    total = sum(int(c) if c.isdigit() else (1 if c == "-" else 0) for c in line[:68])
+    return total % 10 == int(line[68])
 
 
 def scenario_names() -> list[str]:
@@ -186,18 +223,21 @@ def load(name_or_path: str = DEFAULT_SCENARIO) -> Scenario:
         if not isinstance(table, dict):
             fail(f"[{name}]", f"must be a table, got {type(table).__name__}")
         for k in table:
-            if k not in keys:
+            if k not in keys and not (name == "orbit" and k in _ORBIT_TLE_KEYS):
                 fail(f"{name}.{k}", f"unknown key (expected {sorted(keys)})")
+        table = dict(table)
         for k, typ in keys.items():
             if k not in table:
-                fail(f"{name}.{k}", "missing")
+                if (name, k) not in _OPTIONAL:
+                    fail(f"{name}.{k}", "missing")
+                table[k] = _OPTIONAL[name, k]
             v = table[k]
             if typ is float and isinstance(v, int) and not isinstance(v, bool):
                 try:
                     v = float(v)
                 except OverflowError:
                     fail(f"{name}.{k}", f"must be finite (an integer of {len(str(abs(v)))} digits)")
-            if not isinstance(v, typ):
+            if not isinstance(v, typ) or (typ is int and isinstance(v, bool)):
                 fail(f"{name}.{k}", f"expected {typ.__name__}, got {type(v).__name__}")
             if typ is float and not np.isfinite(v):
                 fail(f"{name}.{k}", "must be finite")
@@ -232,6 +272,16 @@ def load(name_or_path: str = DEFAULT_SCENARIO) -> Scenario:
         fail("sensor.noise_uT", "must be >= 0")
     if sec["field"]["model"] not in _FIELD_MODELS:
         fail("field.model", f"must be one of {_FIELD_MODELS}")
+    if not 1 <= sec["field"]["degree"] <= 13:
+        fail("field.degree", "must be within 1 .. 13")
+    from .field import make_field
+    try:  # the field model's validity (epoch)
+        make_field(sec["field"]["model"], float(sec["field"]["epoch_year"]), sec["field"]["degree"])
+    except ValueError as e:
+        fail("field.epoch_year", str(e))
+    tle, utc0, box_tle = _orbit_tle(orbit, fail)
+    host = _host(doc.get("host"), fail)
+    clock = _clock(doc.get("clock"), fail)
 
     pulses = []
     torques = doc.get("torque", [])
@@ -273,6 +323,11 @@ def load(name_or_path: str = DEFAULT_SCENARIO) -> Scenario:
                 fail(f"deorbit.{k}", "must be > 0")
         if not 0 <= deorbit.settle_s < deorbit.duration_s:
             fail("deorbit.settle_s", "must be in [0, duration_s)")
+        if not 0 <= deorbit.capsule_leakage <= 1:
+            fail("deorbit.capsule_leakage", "must be within [0, 1]")
+        for k in ("pitch_magnet_position_m", "yaw_magnet_position_m"):
+            if np.linalg.norm(getattr(deorbit, k)) < 0.01:
+                fail(f"deorbit.{k}", "a magnet must sit at least 1 cm from the magnetometer")
 
     return Scenario(
         name=str(doc.get("name", path.stem)), description=str(doc.get("description", "")),
@@ -284,5 +339,77 @@ def load(name_or_path: str = DEFAULT_SCENARIO) -> Scenario:
         field_model=sec["field"]["model"], epoch_year=sec["field"]["epoch_year"],
         sample_rate_hz=sensor["sample_rate_hz"], bandwidth_hz=sensor["bandwidth_hz"],
         noise_T=sensor["noise_uT"] * 1e-6, bridge_offset_T=vec("sensor", "bridge_offset_uT", (3,)) * 1e-6,
-        torques=tuple(pulses), deorbit=deorbit,
+        torques=tuple(pulses), deorbit=deorbit, field_degree=sec["field"]["degree"], tle=tle, utc0=utc0,
+        box_tle=box_tle, host=host, clock=clock,
     )
+
+
+def _orbit_tle(orbit: dict, fail) -> tuple[tuple[str, str] | None, datetime | None, tuple[str, str] | None]:
+    """[orbit] tle, utc0, box_tle: checked (two lines, checksums, SGP4 can propagate the truth's to utc0)."""
+    def lines(k):
+        v = orbit.get(k)
+        if v is None:
+            return None
+        if not (isinstance(v, list) and len(v) == 2 and all(isinstance(x, str) for x in v)):
+            fail(f"orbit.{k}", "expected two strings, the TLE's lines 1 and 2")
+        v = tuple(x.rstrip() for x in v)
+        for i, line in enumerate(v, 1):
+            if not line.startswith(f"{i} "):
+                fail(f"orbit.{k}", f"line {i} must start with '{i} '")
+            if not tle_checksum_ok(line):
+                fail(f"orbit.{k}", f"line {i}: bad checksum or not 69 characters")
+        return v
+
+    tle, box_tle = lines("tle"), lines("box_tle")
+    utc0 = orbit.get("utc0")
+    if (tle is None) != (utc0 is None):
+        fail("orbit.utc0" if tle else "orbit.tle", "tle and utc0 go together (utc0: the UTC of t = 0)")
+    if box_tle is not None and tle is None:
+        fail("orbit.box_tle", "needs the truth's tle and utc0")
+    if utc0 is None:
+        return None, None, None
+    if not isinstance(utc0, datetime):
+        fail("orbit.utc0", f"expected a TOML date-time (2025-07-01T00:00:00Z), got {utc0!r}")
+    if utc0.tzinfo is not None:
+        utc0 = utc0.astimezone(timezone.utc).replace(tzinfo=None)
+    from .orbit import TleOrbit
+    for k, v in (("tle", tle), ("box_tle", box_tle)):
+        if v is None:
+            continue
+        try:
+            TleOrbit(*v, utc0)
+        except Exception as e:  # sgp4 raises ValueError, or worse for a malformed line
+            fail(f"orbit.{k}", f"SGP4 cannot use it at utc0 {utc0}: {e}")
+    return tle, utc0, box_tle
+
+
+def _host(table, fail) -> HostMagnetics:
+    if table is None:
+        return HostMagnetics()
+    if not isinstance(table, dict):
+        fail("[host]", "must be a table")
+    for k, v in table.items():
+        if k not in _HOST_KEYS:
+            fail(f"host.{k}", f"unknown key (expected {sorted(_HOST_KEYS)})")
+        if _numbers(v, _HOST_KEYS[k]) is None:
+            fail(f"host.{k}", f"expected finite numbers (not strings) of shape {_HOST_KEYS[k]}, got {v!r}")
+    try:
+        return HostMagnetics.from_table(table)
+    except ValueError as e:
+        fail("[host]", str(e))
+
+
+def _clock(table, fail) -> BoxClock:
+    if table is None:
+        return BoxClock()
+    if not isinstance(table, dict):
+        fail("[clock]", "must be a table")
+    for k, v in table.items():
+        if k not in _CLOCK_KEYS:
+            fail(f"clock.{k}", f"unknown key (expected {list(_CLOCK_KEYS)})")
+        if _numbers(v, ()) is None:
+            fail(f"clock.{k}", f"expected a finite number (not a string), got {v!r}")
+    try:
+        return BoxClock(float(table.get("offset_s", 0.0)), float(table.get("drift_ppm", 0.0)))
+    except ValueError as e:
+        fail("[clock]", str(e))

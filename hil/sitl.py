@@ -9,6 +9,12 @@ the identification experiment's tug (the simulator's torque schedule) and field 
 scenario's orbit), the de-orbit kit's emulated lines and truth attitude, and the simulator's truth for
 scoring (DEBRIS_SIM_STATE on the link; the rate errors in the status line and the summary).
 
+Time: the loop's time is the box's clock (the flight software's injected clock). The simulator runs in
+true time; the scenario's [clock] (`hil.box_clock`: offset, drift) maps one to the other where they
+meet: :meth:`Sitl.advance` (the loop's `before_tick`), the truth handed to the flight software and to
+scoring, the tug, the de-orbit kit's truth attitude. A run starts at box time `Sitl.t0_s` (true 0, or
+later for a clock behind true time).
+
 :func:`build` is the composition used by this command, the benchmarks and the soak.
 """
 from __future__ import annotations
@@ -76,6 +82,21 @@ class Sitl:
     def fsw(self) -> FlightSoftware:
         return self.flight.fsw
 
+    @property
+    def t0_s(self) -> float:
+        """The box's clock at the first tick: what it reads when the simulated world starts (true time 0),
+        or 0 for a clock behind true time (the box starts when its clock reads 0: the flight software's
+        time stamps are unsigned)."""
+        return max(0.0, self.sim.clock.box_s(0.0))
+
+    def advance(self, box_t_s: float) -> None:
+        """The simulator advanced to the true time at which the box's clock reads `box_t_s`."""
+        self.sim.advance_to(self.sim.clock.true_s(box_t_s))
+
+    def truth(self, box_t_s: float | None = None):
+        """The simulator's truth at the box's time `box_t_s` (default: now)."""
+        return self.sim.truth(None if box_t_s is None else self.sim.clock.true_s(box_t_s))
+
     def header(self) -> str:
         r = self.cfg.run
         scn = self.scenario
@@ -85,6 +106,9 @@ class Sitl:
         kit = self.fsw.apps.get("deorbit")
         if kit is not None:
             lines.append(f"de-orbit kit: emulated; controller attitude from {kit.attitude.description}")
+        if not self.sim.clock.is_true:
+            c = self.sim.clock
+            lines.append(f"box clock: offset {c.offset_s:g} s, drift {c.drift_ppm:g} ppm against true time")
         lines += self.flight.notes
         if self.warning:
             lines.append(self.warning)
@@ -143,8 +167,11 @@ def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, 
     if scn.deorbit is not None:
         from .deorbit_sim import build_kit
         onboard.append(build_kit(sim, **(kit_options or {})))
-    flight = build_flight(r, driver, sigma_b_T=sigma_b, sample_rate_hz=rate_hz, truth=sim.truth, apps=onboard,
-                          link=link, uplink=uplink, key=key, clock=clock, run_id=run_id, field=onboard_field(scn))
+    truth = sim.truth if sim.clock.is_true else (lambda t=None: sim.truth(None if t is None
+                                                                         else sim.clock.true_s(t)))
+    flight = build_flight(r, driver, sigma_b_T=sigma_b, sample_rate_hz=rate_hz, truth=truth, apps=onboard,
+                          link=link, uplink=uplink, key=key, clock=clock, run_id=run_id,
+                          field=onboard_field(scn))
     return Sitl(cfg, scn, sim, driver, flight, sigma_b, warning)
 
 
@@ -236,15 +263,15 @@ def run(cfg: SitlConfig, out: TextIO = sys.stdout, **build_options) -> SitlRun:
     """Build (:func:`build`) and run the lockstep loop; the header first, the status line each second."""
     s = build(cfg, **build_options)
     print(s.header(), file=out, flush=True)
-    fsw, truth, score = s.fsw, s.sim.truth, Score()
+    fsw, truth, score = s.fsw, s.truth, Score()
 
     def after(t: float) -> None:
         if fsw.new_sample:
             score.add(fsw, truth(fsw.sample_t_s))
 
     try:
-        res = run_loop(fsw, duration_s=cfg.run.duration_s, speed=cfg.run.speed, lockstep=True,
-                       before_tick=s.sim.advance_to, after_tick=after,
+        res = run_loop(fsw, duration_s=cfg.run.duration_s, speed=cfg.run.speed, lockstep=True, t0_s=s.t0_s,
+                       before_tick=s.advance, after_tick=after,
                        status=None if cfg.run.quiet else (lambda t: status_line(t, fsw, score.truth)), out=out)
     finally:
         s.flight.close()

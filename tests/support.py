@@ -145,6 +145,8 @@ def circular_tle(altitude_km=485.0, inclination_deg=97.5, epoch="26120.50000000"
     l1 = f"1 {satnum}U 26001A   {epoch}  .00000000  00000-0  00000-0 0  999"
     l2 = f"2 {satnum} {inclination_deg:8.4f} {raan_deg:8.4f} 0001000   0.0000   0.0000 {rev_per_day:11.8f}    1"
     return tuple(line + str(checksum(line + "0")) for line in (l1, l2))
+
+
 # --- the host-magnetics calibration's truth: a tumble along the simulator's orbit, a host ------------
 
 #: the orbit (altitude m, inclination °) and the field's epoch of the calibration tests
@@ -190,3 +192,32 @@ def magcal_host(seed: int):
     rng = np.random.default_rng(seed)
     A = rng.uniform(-0.1, 0.1, (3, 3))
     return np.eye(3) + np.triu(A) + np.triu(A, 1).T, rng.uniform(-50e-6, 50e-6, 3)
+
+
+# --- the flight side's assumptions, made true in the simulated world --------------------------------
+#: why a test pins them (say it where the test does)
+FLIGHT_ASSUMES = ("flight side assumes the dipole until it has the onboard IGRF, and a calibrated "
+                  "magnetometer until it calibrates the host's iron on board")
+
+
+def flight_assumptions(name_or_scenario="isoi"):
+    """The scenario with the world the flight software still assumes: the IGRF-14 dipole and no host
+    magnetism (a test of an estimator on its own terms pins these; see FLIGHT_ASSUMES)."""
+    import dataclasses
+
+    from hil import scenario
+    from hil.host_magnetics import HostMagnetics
+
+    scn = name_or_scenario if isinstance(name_or_scenario, scenario.Scenario) else scenario.load(name_or_scenario)
+    return dataclasses.replace(scn, field_model="igrf14-dipole", host=HostMagnetics())
+
+
+def flight_assumptions_file(tmp_path, name: str = "isoi") -> str:
+    """The same as a TOML file (for tests that go through a command line's --scenario)."""
+    from hil import scenario
+
+    text = scenario.resolve(name).read_text(encoding="utf-8").split("\n[host]")[0]
+    text = text.replace('model = "igrf14" ', 'model = "igrf14-dipole" ')
+    path = tmp_path / f"{name}_flight_assumptions.toml"
+    path.write_text(text, encoding="utf-8")
+    return str(path)

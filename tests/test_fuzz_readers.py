@@ -414,6 +414,8 @@ SHIPPED = {name: tomllib.loads(scenarios.resolve(name).read_text(encoding="utf-8
            for name in scenarios.scenario_names()}
 #: the tables every scenario needs, each with every key (hil/scenario.py's docstring)
 REQUIRED_TABLES = ("body", "initial", "orbit", "field", "sensor")
+#: keys of the required tables that may be left out (defaults, or optional parts of hil.scenario)
+OPTIONAL_LEAVES = {("orbit", "box_tle"), ("field", "model"), ("field", "degree")}
 
 
 class Raw:
@@ -536,7 +538,7 @@ def scenario_cases(draw):
             p, _ = draw(st.sampled_from(leaves))
             parent, key = _get(doc, p)
             del parent[key]
-            invalid |= p[0] in REQUIRED_TABLES or p[0] == "torque"
+            invalid |= (p[0] in REQUIRED_TABLES and tuple(p[:2]) not in OPTIONAL_LEAVES) or p[0] == "torque"
         elif op == "unknown":
             where = draw(st.sampled_from([None, *(k for k, v in doc.items() if isinstance(v, dict))]))
             (doc if where is None else doc[where])[draw(st.sampled_from(["extra", "mass_kg_", "Name", "x"]))] = 1.0

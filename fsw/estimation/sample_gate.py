@@ -19,6 +19,13 @@ the per-axis 1-σ noise of a sample:
 - spike in direction: ∠(B_k, B_p) > ω_max Δt + n_σ √2 σ / |B_p|, for a body tumbling at most at
   ω_max = `max_rate_radps` (dB/dt = B × ω turns B by at most |ω| Δt).
 
+The host's own magnetism moves both tests: the sensor measures m = S v + h (v the Earth's field in body
+axes, h the hard iron, S the soft iron), so |m| changes with the attitude at up to |ω| |h_eff| with
+h_eff = h + (S − I) v, and m turns by up to |ω| Δt (|m| + |h_eff|)/|m|. `host_bound_T` is the bound on
+|h_eff| the flight software sets sample by sample: the largest host field it allows for before the
+calibration (`fsw.host_calibration`) has one, the calibration's own (with 3 σ) after; 0 (the default)
+for a sensor without a host.
+
 After `reseed_after` refusals in a row for spikes, the newest sample becomes the reference (the
 earlier reference may have been the bad one, or the body changed its motion).
 
@@ -76,6 +83,8 @@ class SampleGate:
         self._ref_t = math.nan
         self._ref_b = (0.0, 0.0, 0.0)
         self._prev_raw = (math.nan, math.nan, math.nan)
+        #: the host's field not removed from the samples (T), see the module's docstring
+        self.host_bound_T = 0.0
 
     @property
     def rejecting(self) -> bool:
@@ -128,13 +137,15 @@ class SampleGate:
         np_ = math.sqrt(px * px + py * py + pz * pz)
         nk = math.sqrt(bx * bx + by * by + bz * bz)
         noise = self.n_sigma * math.sqrt(2.0) * self.sigma_b_T
-        if abs(nk - np_) > noise + self.max_rel_change_per_s * np_ * dt:
+        host = self.host_bound_T
+        turn = self.max_rate_radps * dt
+        if abs(nk - np_) > noise + self.max_rel_change_per_s * np_ * dt + min(2.0 * host, turn * host):
             return True
         if np_ <= noise or nk <= noise:
             return False  # direction undefined near zero field
         cos = (bx * px + by * py + bz * pz) / (nk * np_)
         angle = math.acos(min(1.0, max(-1.0, cos)))
-        return angle > self.max_rate_radps * dt + noise / np_
+        return angle > turn * (1.0 + host / np_) + noise / np_
 
     def reset(self) -> None:
         """Forget the reference (a new sensor configuration): the next finite sample is accepted."""

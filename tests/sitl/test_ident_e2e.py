@@ -1,6 +1,7 @@
 """End to end in SITL: MAV_CMD_DEBRIS_IDENT_START → observe → the tug's torque in the simulator → observe →
 the onboard fit → DEBRIS_INERTIA_ESTIMATE over UDP → decoded on the ground → refined on the ground from
 the decoded recording; all against the simulator's truth."""
+import dataclasses
 import io
 import threading
 from types import SimpleNamespace
@@ -15,6 +16,7 @@ from fsw.telemetry.dialect import mavlink
 from ground import inertia as ground_inertia
 from ground.decode import Decoder
 from support import free_udp_port
+from support import flight_assumptions
 
 pytestmark = pytest.mark.sitl
 TRUTH = np.array([175.0, 200.0, 285.0, 0.0, 0.0, 0.0])
@@ -25,6 +27,8 @@ M = (0.2, 0.15, -0.1)
 def experiment():
     # Aist-2D with no torque of its own: the experiment's tug is the only one
     args = sitl.parse_args(["--scenario", "aist2d_ident", "--rate", "10", "--speed", "0", "--quiet"])
+    # flight side assumes the dipole until it has the onboard IGRF (and no host iron until it calibrates)
+    args = dataclasses.replace(args, scenario=flight_assumptions("aist2d_ident"))
     port = free_udp_port()
     rx = dialect.open_link(f"udpin:127.0.0.1:{port}", source_system=dialect.GCS_SYSID,
                            source_component=dialect.GCS_COMPID, input=True)
