@@ -27,6 +27,8 @@ from .telemetry.telemetry import Telemetry
 #: soft iron up to 10 % (scale and misalignment) — what a spacecraft's bus puts at a sensor on a short boom
 HARD_IRON_MAX_T = 50e-6
 SOFT_IRON_MAX = 0.10
+#: the window of |B| the host's field is bounded from before a calibration, and how often it is looked at
+SPREAD_SAMPLES, SPREAD_MIN_SAMPLES, SPREAD_EVERY = 256, 8, 4
 
 
 class FieldProvider(Protocol):
@@ -61,6 +63,10 @@ class HostCalibration:
         self.field_errors = 0
         self.applied = 0  # samples the last good calibration was applied to
         self._t_taken: float | None = None
+        # |B| of the latest accepted samples (raw), for the host's field before a calibration
+        self._mags = np.zeros(SPREAD_SAMPLES)
+        self._n_mags = 0
+        self._spread_T: float | None = None
         self._t_tlm: float | None = None
 
     @property
@@ -74,18 +80,30 @@ class HostCalibration:
         return self.cal.reason
 
     def host_bound_T(self, b_meas_T: np.ndarray) -> float:
-        """A bound on the host's field in the sample, |h + (S − I) v| (T): the calibration's own values
-        with 3 σ when it has one, else `HARD_IRON_MAX_T` + `SOFT_IRON_MAX` |B| (the sample gate's slack)."""
+        """A bound on the host's field in the sample, |h + (S − I) v| (T), the sample gate's slack: the
+        calibration's own values with 3 σ when it has one; before, what the samples have shown — twice
+        half the spread (2nd to 98th percentile) of |B| over the last `SPREAD_SAMPLES` accepted samples,
+        as the host's field adds to or takes from the Earth's as the body turns — and until there are
+        enough of them, `HARD_IRON_MAX_T` + `SOFT_IRON_MAX` |B|."""
         m = float(np.linalg.norm(b_meas_T))
         if not self.cal.good:
-            return HARD_IRON_MAX_T + SOFT_IRON_MAX * m
+            worst = HARD_IRON_MAX_T + SOFT_IRON_MAX * m
+            return worst if self._spread_T is None else min(worst, self._spread_T + 6.0 * self.cal.sigma_uT * 1e-6)
         c = self.cal.calibration
         sig = c.sigma
         soft = float(np.linalg.norm(c.D, 2)) + 3.0 * float(np.max(sig[3:]))
         return float(np.linalg.norm(c.b_T)) + 3.0 * float(np.linalg.norm(sig[:3])) + min(soft, 1.0) * m
 
+    def _track_spread(self, b_meas_T: np.ndarray) -> None:
+        self._mags[self._n_mags % SPREAD_SAMPLES] = math.sqrt(float(np.dot(b_meas_T, b_meas_T)))
+        self._n_mags += 1
+        if self._n_mags >= SPREAD_MIN_SAMPLES and self._n_mags % SPREAD_EVERY == 0:
+            lo, hi = np.percentile(self._mags[:min(self._n_mags, SPREAD_SAMPLES)], [2.0, 98.0])
+            self._spread_T = float(hi - lo)  # twice half the spread
+
     def process(self, t_s: float, b_meas_T: np.ndarray) -> np.ndarray:
         """The sample at `t_s` taken into the calibration (when due) and returned corrected."""
+        self._track_spread(b_meas_T)
         if self.provider is None:
             return b_meas_T
         self.field, why = self.provider.field_now(t_s)
