@@ -56,7 +56,10 @@ def field_model(scn: Scenario) -> FieldAlongOrbit:
 
 
 def build_ident(scn: Scenario, sim: Simulator, sigma_b_T: float, inertia_guess_kgm2: float = 100.0,
-                **config) -> IdentExperiment:
-    """The experiment for a SITL run: tug = the simulator's torque schedule, field = the scenario's orbit."""
-    return IdentExperiment(sigma_b_T=sigma_b_T, b_inertial=field_model(scn).b_eci_T, tug=SimTug(sim),
+                b_inertial=None, **config) -> IdentExperiment:
+    """The experiment for a SITL run: tug = the simulator's torque schedule; field = `b_inertial`, what
+    the box knows (`hil.sitl` hands it the onboard model), else the dipole along the scenario's circular
+    orbit (:func:`field_model`)."""
+    return IdentExperiment(sigma_b_T=sigma_b_T, b_inertial=b_inertial if b_inertial is not None
+                           else field_model(scn).b_eci_T, tug=SimTug(sim),
                            config=IdentConfig(inertia_guess_kgm2=inertia_guess_kgm2, **config))

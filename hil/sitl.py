@@ -28,6 +28,7 @@ import argparse  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
+from datetime import timezone  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import TextIO  # noqa: E402
 
@@ -38,6 +39,8 @@ from fsw.config import RunConfig, add_run_options, check_key_or_exit, check_loop
 from fsw.drivers.mmc5983ma import Mmc5983ma  # noqa: E402
 from fsw.drivers.mmc5983ma_regs import Bandwidth, ContinuousFrequency  # noqa: E402
 from fsw.estimation import field_motion as fm  # noqa: E402
+from fsw.estimation.igrf import FLIGHT_DEGREE, IgrfModel  # noqa: E402
+from fsw.timeorbit import TimeOrbit  # noqa: E402
 from fsw.flight import FlightSoftware  # noqa: E402
 from fsw.runner import LoopResult, run_loop, run_program  # noqa: E402
 from fsw.runner import status_line as flight_status  # noqa: E402
@@ -131,11 +134,29 @@ def sitl_sensor(scenario_rate_hz: float, scenario_bw: Bandwidth, rate_hz: float 
     return float(rate_hz), bw, cm
 
 
-def onboard_field(scn: scenarios.Scenario) -> fm.OrbitField:
-    """The field along the orbit the flight software knows in SITL (the host-magnetics calibration's
-    |B_model|): the flight copy of the model along the scenario's orbit."""
+def onboard_field(scn: scenarios.Scenario) -> fm.OrbitField | None:
+    """The field along a circular orbit the flight software is given in SITL (the host-magnetics
+    calibration's |B_model|, the identification's B_I): the onboard model (IGRF-14 at the flight degree)
+    along the scenario's orbit, the Earth at the same angle at t = 0 as in the simulated world. None for
+    a scenario with a TLE: the box then computes its own from the TLE and UTC it is handed
+    (:func:`hand_over_time_and_orbit`)."""
+    if scn.tle is not None:
+        return None
     orbit = fm.CircularOrbitModel(scn.altitude_m, scn.inclination_deg, scn.raan_deg, scn.arg_lat0_deg)
-    return fm.OrbitField(orbit, fm.DipoleModel(scn.epoch_year))
+    return fm.OrbitField(orbit, IgrfModel(scn.epoch_year, FLIGHT_DEGREE))
+
+
+def hand_over_time_and_orbit(scn: scenarios.Scenario, sim, r: RunConfig, t0_s: float) -> TimeOrbit:
+    """The box's time-and-orbit application, handed what the ground would upload before the run: the UTC
+    at the box's first loop time (true UTC: the ground's clock is right, the box's own may not be) and,
+    in a scenario with a TLE, the box's TLE (`box_tle`, possibly older than the truth's) — through the
+    same checks as an upload."""
+    timeorbit = TimeOrbit(tle_file=r.tle_file, max_tle_age_d=r.tle_max_age_d)
+    if scn.tle is not None:
+        utc0 = scn.utc0.replace(tzinfo=timezone.utc).timestamp()
+        line1, line2 = scn.box_tle or scn.tle
+        timeorbit.preset(t0_s, utc0 + sim.clock.true_s(t0_s), line1, line2)
+    return timeorbit
 
 
 def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, clock=None,
@@ -160,18 +181,22 @@ def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, 
     warning = check_loop_rate(r.rate_hz, rate_hz)
     driver = Mmc5983ma(sim.sensor, bandwidth=bw, sample_period_s=1.0 / rate_hz, continuous=cm)
     sigma_b = math.hypot(scn.noise_T, bw.noise_rms_T)
+    field = onboard_field(scn)
+    timeorbit = hand_over_time_and_orbit(scn, sim, r, max(0.0, sim.clock.box_s(0.0)))
     onboard = []
     if ident:
         from .ident_sitl import build_ident
-        onboard.append(build_ident(scn, sim, sigma_b, cfg.ident_inertia_guess_kgm2, **(ident_options or {})))
+        onboard.append(build_ident(scn, sim, sigma_b, cfg.ident_inertia_guess_kgm2,
+                                   b_inertial=field.b_eci_T if field is not None else timeorbit,
+                                   **(ident_options or {})))
     if scn.deorbit is not None:
         from .deorbit_sim import build_kit
         onboard.append(build_kit(sim, **(kit_options or {})))
     truth = sim.truth if sim.clock.is_true else (lambda t=None: sim.truth(None if t is None
                                                                          else sim.clock.true_s(t)))
     flight = build_flight(r, driver, sigma_b_T=sigma_b, sample_rate_hz=rate_hz, truth=truth, apps=onboard,
-                          link=link, uplink=uplink, key=key, clock=clock, run_id=run_id,
-                          field=onboard_field(scn))
+                          link=link, uplink=uplink, key=key, clock=clock, run_id=run_id, field=field,
+                          timeorbit=timeorbit)
     return Sitl(cfg, scn, sim, driver, flight, sigma_b, warning)
 
 

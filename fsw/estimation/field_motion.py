@@ -146,7 +146,7 @@ class OrbitField:
 def field_from_metadata(md: dict) -> OrbitField | None:
     """The field along the orbit of a recording's metadata (recording-format.md): a TLE
     (``tle_line1``, ``tle_line2`` with ``utc0``) or a circular orbit (``orbit_altitude_km``,
-    ``orbit_inclination_deg``, ``orbit_raan_deg``, ``orbit_arg_lat0_deg``); the dipole at
+    ``orbit_inclination_deg``, ``orbit_raan_deg``, ``orbit_arg_lat0_deg``); IGRF-14 at the flight degree at
     ``field_epoch_year`` (else the year of ``utc0``, else 2025). None when no orbit is given;
     ValueError when one is given but cannot be used."""
     from datetime import datetime
@@ -171,6 +171,7 @@ def field_from_metadata(md: dict) -> OrbitField | None:
                                        float(md["orbit_raan_deg"]), float(md["orbit_arg_lat0_deg"]))
         else:
             return None
-        return OrbitField(orbit, DipoleModel(epoch))
+        from .igrf import FLIGHT_DEGREE, IgrfModel  # the box's model (igrf imports this module)
+        return OrbitField(orbit, IgrfModel(epoch, FLIGHT_DEGREE))
     except (TypeError, KeyError) as e:
         raise ValueError(str(e)) from None
