@@ -108,6 +108,7 @@ class Commander:
         self.stats = Counter()
         self.attacks = Counter()
         self.genuine_nonces: set[int] = set()
+        self.followup_due = False
 
     def tick(self, now_s: float) -> None:
         p = self.pending
@@ -115,8 +116,18 @@ class Commander:
             if p["attempts"] >= MAX_ATTEMPTS:
                 self.stats["unanswered"] += 1
                 self.pending = None
+                # lost to the link's faults: another genuine command, until one is answered (a box locked
+                # out by the forged timestamp would answer none)
+                self.followup_due = self.followup_due or bool(p.get("after_lockout"))
             else:
                 self._send(p, now_s)
+        if self.pending is None and self.followup_due:  # the genuine command behind a lock-out attempt
+            self.followup_due = False
+            self.nonce += 1
+            self.stats["started"] += 1
+            self.pending = {"kind": "probe", "nonce": self.nonce, "attempts": 0, "sent_s": now_s,
+                            "after_lockout": True}
+            self._send(self.pending, now_s)
         if self.pending is None and now_s >= self.next_command_s:
             self.next_command_s = now_s + COMMAND_EVERY_S
             kind = ("probe", "param", "request")[self.stats["started"] % 3]
@@ -163,12 +174,9 @@ class Commander:
             raw = mavlink.MAVLink_command_long_message(FSW_SYSID, FSW_COMPID, PROBE_COMMAND, 0, *params).pack(packer)
             self.link.ground_write(sign_frame(self.rng.bytes(32), raw, self.ground.link_id, TIMESTAMP_MAX))
             self.stats["lockout_followups"] += 1
-            if self.pending is None:  # the genuine command right behind it must still be obeyed
-                self.nonce += 1
-                self.stats["started"] += 1
-                self.pending = {"kind": "probe", "nonce": self.nonce, "attempts": 0, "sent_s": now_s,
-                                "after_lockout": True}
-                self._send(self.pending, now_s)
+            # a genuine command right behind it (at the next tick, or once the one in flight is done) must be
+            # obeyed
+            self.followup_due = True
         self.attacks[kind] += 1
 
     def on_message(self, msg, verdict: Verdict | None) -> None:

@@ -12,10 +12,10 @@ import dataclasses
 
 import numpy as np
 
+from fsw.estimation import field_motion as fm
+from fsw.estimation.igrf import FLIGHT_DEGREE, IgrfModel
 from fsw.ident import IdentConfig, IdentExperiment
 
-from .field import DipoleField, FieldAlongOrbit
-from .orbit import CircularOrbit
 from .scenario import Scenario, TorquePulse
 from .sim import Simulator
 
@@ -47,12 +47,12 @@ class SimTug:
             self.pulses[-1] = cut
 
 
-def field_model(scn: Scenario) -> FieldAlongOrbit:
-    """B_I(t) along the scenario's circular orbit from the IGRF-14 dipole: the model the flight side has
-    today (it assumes the dipole until it has the onboard IGRF); the simulator's truth is the scenario's
-    field model (IGRF degree 13 by default) and orbit (a TLE when given)."""
-    orbit = CircularOrbit(scn.altitude_m, scn.inclination_deg, scn.raan_deg, scn.arg_lat0_deg)
-    return FieldAlongOrbit(orbit, DipoleField(epoch_year=scn.epoch_year))
+def field_model(scn: Scenario) -> fm.OrbitField:
+    """B_I(t) along the scenario's circular orbit as the box computes it (IGRF-14 at the flight degree;
+    hil.sitl.onboard_field); the simulator's truth is the scenario's field model (IGRF degree 13 by
+    default) and orbit (a TLE when given)."""
+    orbit = fm.CircularOrbitModel(scn.altitude_m, scn.inclination_deg, scn.raan_deg, scn.arg_lat0_deg)
+    return fm.OrbitField(orbit, IgrfModel(scn.epoch_year, FLIGHT_DEGREE))
 
 
 def build_ident(scn: Scenario, sim: Simulator, sigma_b_T: float, inertia_guess_kgm2: float = 100.0,

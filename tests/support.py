@@ -157,14 +157,16 @@ MAGCAL_PERIOD_S = 2 * np.pi * np.sqrt((6378137.0 + MAGCAL_ORBIT[0]) ** 3 / 3.986
 
 @functools.lru_cache(maxsize=None)
 def magcal_orbit(rate_hz: float = 1.0):
-    """(t, B_ECI truth (hil.field), |B| of the flight software's model) over one orbit."""
+    """(t, B_ECI truth (hil.field: IGRF-14 to degree 13), |B| of the flight software's model (degree 8))
+    over one orbit."""
     from fsw.estimation import field_motion as fm
-    from hil.field import DipoleField, FieldAlongOrbit
+    from fsw.estimation.igrf import FLIGHT_DEGREE, IgrfModel
+    from hil.field import FieldAlongOrbit, IgrfField
     from hil.orbit import CircularOrbit
 
     t = np.arange(0.0, MAGCAL_PERIOD_S, 1.0 / rate_hz)
-    b_eci = FieldAlongOrbit(CircularOrbit(*MAGCAL_ORBIT), DipoleField(MAGCAL_EPOCH)).b_eci_T(t)
-    model = fm.OrbitField(fm.CircularOrbitModel(*MAGCAL_ORBIT), fm.DipoleModel(MAGCAL_EPOCH))
+    b_eci = FieldAlongOrbit(CircularOrbit(*MAGCAL_ORBIT), IgrfField(MAGCAL_EPOCH)).b_eci_T(t)
+    model = fm.OrbitField(fm.CircularOrbitModel(*MAGCAL_ORBIT), IgrfModel(MAGCAL_EPOCH, FLIGHT_DEGREE))
     return t, b_eci, np.linalg.norm(model.b_eci_T(t), axis=1)
 
 
@@ -196,20 +198,21 @@ def magcal_host(seed: int):
 
 # --- the flight side's assumptions, made true in the simulated world --------------------------------
 #: why a test pins them (say it where the test does)
-FLIGHT_ASSUMES = ("flight side assumes the dipole until it has the onboard IGRF, and a calibrated "
-                  "magnetometer until it calibrates the host's iron on board")
+FLIGHT_ASSUMES = ("a calibrated magnetometer: the host's iron is calibrated on board over an orbit, "
+                  "longer than this test")
 
 
 def flight_assumptions(name_or_scenario="isoi"):
-    """The scenario with the world the flight software still assumes: the IGRF-14 dipole and no host
-    magnetism (a test of an estimator on its own terms pins these; see FLIGHT_ASSUMES)."""
+    """The scenario without host magnetism (the calibration on board takes an orbit to converge; a test of
+    an estimator on its own terms over a shorter run pins this; see FLIGHT_ASSUMES). The field is the
+    world's (IGRF-14 to degree 13), the box's its own (degree 8)."""
     import dataclasses
 
     from hil import scenario
     from hil.host_magnetics import HostMagnetics
 
     scn = name_or_scenario if isinstance(name_or_scenario, scenario.Scenario) else scenario.load(name_or_scenario)
-    return dataclasses.replace(scn, field_model="igrf14-dipole", host=HostMagnetics())
+    return dataclasses.replace(scn, host=HostMagnetics())
 
 
 def flight_assumptions_file(tmp_path, name: str = "isoi") -> str:
@@ -217,7 +220,6 @@ def flight_assumptions_file(tmp_path, name: str = "isoi") -> str:
     from hil import scenario
 
     text = scenario.resolve(name).read_text(encoding="utf-8").split("\n[host]")[0]
-    text = text.replace('model = "igrf14" ', 'model = "igrf14-dipole" ')
     path = tmp_path / f"{name}_flight_assumptions.toml"
     path.write_text(text, encoding="utf-8")
     return str(path)

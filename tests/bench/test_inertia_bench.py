@@ -32,7 +32,7 @@ def test_truth_record_is_the_simulators_and_noise_is_seeded():
 
 def test_command_line_short_run(tmp_path, capsys, monkeypatch):
     out = tmp_path / "bench.json"
-    # the fits on their own terms: flight side assumes the dipole until it has the onboard IGRF
+    # the fits on their own terms: a calibrated magnetometer (the calibration takes an orbit)
     pin_flight_assumptions(monkeypatch)
     assert ib.main(["--runs", "2", "--duration", "420", "--scenarios", "aist2d", "--no-linear", "--fits", "full",
                     "--json", str(out)]) == 0
@@ -66,7 +66,7 @@ def test_binomial_interval_and_shape_data():
 def test_shape_command_line_reports_the_cramer_rao_bound(tmp_path, capsys, monkeypatch):
     """The shape fit of the whole record (pulses as unknown moments) against its Cramér–Rao bound."""
     out = tmp_path / "bench.json"
-    # the fits on their own terms: flight side assumes the dipole until it has the onboard IGRF
+    # the fits on their own terms: a calibrated magnetometer (the calibration takes an orbit)
     pin_flight_assumptions(monkeypatch)
     assert ib.main(["--runs", "2", "--duration", "330", "--scenarios", "aist2d", "--no-linear", "--fits", "shape",
                     "--json", str(out)]) == 0

@@ -17,8 +17,7 @@ TRUTH = np.array([175.0, 200.0, 285.0, 0.0, 0.0, 0.0])
 @pytest.fixture(scope="module")
 def recording_csv(tmp_path_factory):
     """420 s of Aist-2D (its three 0.2 N·m pulses end at 360 s) at 1 Hz, 1.5 µT noise, orbit in the metadata."""
-    # the ground's fit on its own terms: flight side (and the ground's field model) assumes the dipole until
-    # it has the onboard IGRF, and a calibrated magnetometer
+    # the ground's fit on its own terms: a calibrated magnetometer (the calibration takes an orbit)
     tr = truth_record(flight_assumptions_file(tmp_path_factory.mktemp("scn"), "aist2d"), 420.0)
     rng = np.random.default_rng(5)
     scn = tr.scenario

@@ -18,7 +18,6 @@ from fsw.telemetry.framing import Deframer
 from fsw.telemetry.telemetry import Telemetry
 from ground.decode import Decoder
 from hil.faults import ALL_KINDS, LINK_KINDS, MAG_KINDS, Fault, FaultInjector, FaultyLink, make_schedule
-from support import flight_assumptions
 
 W_RADPS = np.radians([6.0, -5.0, 6.5])
 B_I_T = np.array([20e-6, -15e-6, 35e-6])
@@ -142,10 +141,9 @@ def sys_status_health(fsw):
 
 @pytest.mark.parametrize("kind", MAG_KINDS)
 def test_each_magnetometer_fault_is_flagged_and_survived(kind):
-    # flight side assumes the dipole until it has the onboard IGRF; its sample gate assumes a calibrated
-    # magnetometer (host iron makes |B| change with the attitude faster than its spike test allows)
+    # the shipped scenario's world: IGRF, the host's iron not yet calibrated (the gate allows for it)
     box = sitl.build(sitl.SitlConfig(RunConfig(rate_hz=50.0, buffer_frames=0), seed=2,
-                                     scenario=flight_assumptions("isoi")), link=Null(), ident=False)
+                                     scenario="isoi"), link=Null(), ident=False)
     sim, driver, fsw = box.sim, box.driver, box.fsw
     severity = {"bus_errors": 1.0, "spike": 100e-6, "saturation": 1.1e-3}.get(kind, 0.0)
     duration = 0.0 if kind in ("spike", "chip_reset") else 5.0

@@ -27,7 +27,7 @@ M = (0.2, 0.15, -0.1)
 def experiment():
     # Aist-2D with no torque of its own: the experiment's tug is the only one
     args = sitl.parse_args(["--scenario", "aist2d_ident", "--rate", "10", "--speed", "0", "--quiet"])
-    # flight side assumes the dipole until it has the onboard IGRF (and no host iron until it calibrates)
+    # a calibrated magnetometer (the calibration on board takes an orbit, longer than this experiment)
     args = dataclasses.replace(args, scenario=flight_assumptions("aist2d_ident"))
     port = free_udp_port()
     rx = dialect.open_link(f"udpin:127.0.0.1:{port}", source_system=dialect.GCS_SYSID,

@@ -52,8 +52,8 @@ def sitl_20s():
     th.start()
     args = sitl.parse_args(["--duration", "20", "--speed", "0", "--seed", "3",
                                 "--link", f"udpout:127.0.0.1:{port}", "--quiet"])
-    # the sensor chain and the estimators on their own terms: the flight side assumes the dipole until it
-    # has the onboard IGRF (and a calibrated magnetometer until it calibrates the host's iron on board)
+    # the sensor chain and the estimators on their own terms: a calibrated magnetometer (the calibration on
+    # board takes an orbit, longer than this run)
     args = dataclasses.replace(args, scenario=flight_assumptions("isoi"))
     try:
         run = sitl.run(args, out=io.StringIO())
