@@ -18,7 +18,7 @@ def test_two_hosts_meet_the_target_and_the_json_has_the_keys(tmp_path, capsys):
     r = json.loads(out.read_text())
     assert all(k in r for k in KEYS) and r["hosts"] == 2
     assert r["residual_uT_rms_max"] <= 0.3 < r["uncalibrated_uT_rms_max"]
-    assert r["field_model_error_uT_rms"] is None  # truth = the on-board dipole today
+    assert 0.0 < r["field_model_error_uT_rms"] <= 0.2  # degree 8 on board against degree 13 (the target)
     assert all(h["good"] for h in r["runs"])
     assert np.isfinite(r["first_calibration_s_max"]) and r["first_calibration_s_max"] < r["orbit_period_s"]
     assert "residual after 1 orbit" in capsys.readouterr().out
