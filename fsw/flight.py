@@ -8,9 +8,10 @@ Tasks (base rate = the loop rate), in the order they run within a tick:
 |           |              |                | reads the ground's frames, verifies, runs commands (ACK)   |
 | sensor    | loop rate    | 20 % of period | advances the magnetometer driver; latches a new sample,    |
 |           |              |                | refused if implausible (`estimation.sample_gate`)          |
-| calibration | loop rate  | 10 % of period | host hard/soft iron taken out of the sample (needs the     |
+| calibration | loop rate  | 40 % of period | host hard/soft iron taken out of the sample (needs the     |
 |           |              |                | field along the orbit: `fsw.host_calibration`), then       |
-|           |              |                | DEBRIS_MAGCAL every 10 s                                   |
+|           |              |                | DEBRIS_MAGCAL every 10 s; a solve a minute (~2 ms) and a   |
+|           |              |                | knot of the field a minute (~2 ms) are its peaks           |
 | estimator | loop rate    | 30 % of period | runs the rate estimators on a new sample                   |
 | *app*     | the app's    | the app's      | each onboard application (`fsw.app.App`): its tick with    |
 |           |              |                | the sample of this tick, then its telemetry — the inertia  |
@@ -171,7 +172,7 @@ class FlightSoftware:
         self.scheduler = Scheduler(rate_hz, [
             Task("uplink", self._uplink, rate_hz, 0.1 * period),
             Task("sensor", self._sensor, rate_hz, 0.2 * period),
-            Task("calibration", self._calibrate, rate_hz, 0.1 * period),
+            Task("calibration", self._calibrate, rate_hz, 0.4 * period),
             Task("estimator", self._estimate, rate_hz, 0.3 * period),
             *(Task(app.name, self._app_task(app), min(app.rate_hz, rate_hz), app.budget * period)
               for app in self.apps.values()),

@@ -40,6 +40,7 @@ from fsw.drivers.mmc5983ma import Mmc5983ma  # noqa: E402
 from fsw.drivers.mmc5983ma_regs import Bandwidth, ContinuousFrequency  # noqa: E402
 from fsw.estimation import field_motion as fm  # noqa: E402
 from fsw.estimation.igrf import FLIGHT_DEGREE, IgrfModel  # noqa: E402
+from fsw.estimation.onboard_field import InterpolatedOrbitField  # noqa: E402
 from fsw.timeorbit import TimeOrbit  # noqa: E402
 from fsw.flight import FlightSoftware  # noqa: E402
 from fsw.runner import LoopResult, run_loop, run_program  # noqa: E402
@@ -134,16 +135,17 @@ def sitl_sensor(scenario_rate_hz: float, scenario_bw: Bandwidth, rate_hz: float 
     return float(rate_hz), bw, cm
 
 
-def onboard_field(scn: scenarios.Scenario) -> fm.OrbitField | None:
+def onboard_field(scn: scenarios.Scenario) -> InterpolatedOrbitField | None:
     """The field along a circular orbit the flight software is given in SITL (the host-magnetics
-    calibration's |B_model|, the identification's B_I): the onboard model (IGRF-14 at the flight degree)
+    calibration's |B_model|, the identification's B_I): the onboard model (IGRF-14 at the flight degree,
+    at knots a minute apart and interpolated, as on board)
     along the scenario's orbit, the Earth at the same angle at t = 0 as in the simulated world. None for
     a scenario with a TLE: the box then computes its own from the TLE and UTC it is handed
     (:func:`hand_over_time_and_orbit`)."""
     if scn.tle is not None:
         return None
     orbit = fm.CircularOrbitModel(scn.altitude_m, scn.inclination_deg, scn.raan_deg, scn.arg_lat0_deg)
-    return fm.OrbitField(orbit, IgrfModel(scn.epoch_year, FLIGHT_DEGREE))
+    return InterpolatedOrbitField(fm.OrbitField(orbit, IgrfModel(scn.epoch_year, FLIGHT_DEGREE)))
 
 
 def hand_over_time_and_orbit(scn: scenarios.Scenario, sim, r: RunConfig, t0_s: float) -> TimeOrbit:
