@@ -27,10 +27,6 @@ from .telemetry.telemetry import Telemetry
 #: soft iron up to 10 % (scale and misalignment) — what a spacecraft's bus puts at a sensor on a short boom
 HARD_IRON_MAX_T = 50e-6
 SOFT_IRON_MAX = 0.10
-#: what a constant calibration against the onboard model cannot explain, taken as noise on |B| beside the
-#: sensor's: the model's error (IGRF-14 degree 8: 0.07 µT RMS), the hard iron's thermal drift (~1 µT over an
-#: orbit). Without it a quiet chip (0.05 µT) refuses every later minute as a misfit of a good calibration.
-MODEL_SIGMA_T = 0.3e-6
 #: the window of |B| the host's field is bounded from before a calibration, and how often it is looked at
 SPREAD_SAMPLES, SPREAD_MIN_SAMPLES, SPREAD_EVERY = 256, 8, 4
 
@@ -61,7 +57,7 @@ class HostCalibration:
         #: the field along the orbit in use (None: none on board now) and why not
         self.field = None
         self._no_field = "no orbit/field model on board: calibration inactive"
-        self.cal = mc.MagCal(sigma_T, **{"sigma_model_T": MODEL_SIGMA_T, **magcal_options})
+        self.cal = mc.MagCal(sigma_T, **{"sigma_model_T": mc.MODEL_SIGMA_T, **magcal_options})
         self.sample_every_s = sample_every_s
         self.tlm_every_s = tlm_every_s
         self.field_errors = 0

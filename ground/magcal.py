@@ -67,7 +67,7 @@ def calibrate(rec: Recording, args, field, sigma_b_T: float) -> tuple[Recording,
             raise ValueError("--estimate-magcal needs the recording's orbit (--scenario, --tle/--utc0 or the "
                              "recording's orbit metadata)")
         mag = np.linalg.norm(np.asarray(field(rec.t_s), float), axis=1)
-        cal, why, _ = mc.estimate(rec.b_T, mag, sigma_b_T)
+        cal, why, _ = mc.estimate(rec.b_T, mag, sigma_b_T, mc.MODEL_SIGMA_T)
         if cal is None:
             raise ValueError(f"--estimate-magcal: no calibration from this recording: {why}")
         how = "host-magnetics calibration estimated from the recording"

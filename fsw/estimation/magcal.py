@@ -57,6 +57,11 @@ STATE_NAMES = {NO_FIELD: "no field on board", COLLECTING: "collecting", CONVERGE
                UNCERTAIN: "uncertain", REJECTED: "rejected"}
 
 
+#: what a constant calibration against the onboard model cannot explain, taken as noise on |B| beside the
+#: sensor's: the model's error (IGRF-14 degree 8: 0.07 µT RMS), the hard iron's thermal drift (~1 µT over an
+#: orbit). Without it a quiet chip (0.05 µT) refuses every later minute as a misfit of a good calibration.
+MODEL_SIGMA_T = 0.3e-6
+
 @dataclass(frozen=True)
 class Calibration:
     """A hard/soft iron calibration: B_true = (I + D)(B_meas − b); `cov` the 9×9 covariance of
