@@ -45,6 +45,8 @@ def parse_args(argv=None) -> tuple[RunConfig, str]:
                     help="a TLE older than this is refused and no longer used once on board (0.1 to 365 days, "
                          "default 14; parameter TLE_MAX_AGE_D in flight)")
     args = ap.parse_args(argv)
+    if not args.mag_serial.strip():
+        ap.error("--mag-serial: empty: give the serial port of the magnetometer's register bridge")
     check_paths_or_exit(ap, inputs={"--key": args.key},
                         outputs={"--sample-store": args.sample_store, "--tle-file": args.tle_file})
     check_key_or_exit(ap, args.key)

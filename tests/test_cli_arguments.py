@@ -257,6 +257,11 @@ def test_the_target_refuses_a_bad_key_before_it_opens_the_device(tmp_path, capsy
                                            "--link", "udpout:127.0.0.1:9", "--quiet"], 2, "--key", *words)
 
 
+def test_the_target_refuses_an_empty_serial_port(capsys):
+    one_line_error(capsys, fsw_main.main, ["--mag-serial=", "--link", "udpout:127.0.0.1:9", "--quiet"], 2,
+                   "--mag-serial", "empty")
+
+
 # --- fsw.main --------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("option, value", [
