@@ -139,6 +139,7 @@ class FlightSoftware:
         self.latched = LatchedSample()
         #: the sensor's own sample (what is sent and stored), before the calibration
         self.raw_b_T = np.zeros(3)
+        self._gate_calibration = 0
         self.calibration = HostCalibration(sigma_b_T, FixedField(field) if field is not None else field_provider)
         # at most max_sample_tlm_hz samples (with their estimates) go out on the link
         self._tlm_every = max(1, int(np.ceil((sample_rate_hz or rate_hz) / max_sample_tlm_hz)))
@@ -244,9 +245,13 @@ class FlightSoftware:
             self.latched.t_s = self.source.sample_time_s
             self.latched.b_T[:] = self.source.b_body_T
             # an implausible sample (saturated, stuck, spike) is neither estimated on nor sent; the host's
-            # magnetism moves the field the chip sees with the attitude: the gate allows for it
-            self.gate.host_bound_T = self.calibration.host_bound_T(self.sample_b_T)
-            self.new_sample = self.gate.check(self.sample_t_s, self.sample_b_T)
+            # magnetism moves the field the chip sees with the attitude: the gate judges the calibrated
+            # sample and allows for what the calibration may have left (all of it before there is one)
+            if self.calibration.version != self._gate_calibration:  # the reference in the new calibration
+                self._gate_calibration = self.calibration.version
+                self.gate.rebase(self.calibration.for_gate(self.raw_b_T)[0])
+            judged, self.gate.host_bound_T = self.calibration.for_gate(self.sample_b_T)
+            self.new_sample = self.gate.check(self.sample_t_s, self.sample_b_T, judged)
             if self.new_sample and self.gate.gap_samples > self.gate.reset_after_gap:
                 for est in self.estimators.values():  # history too old to difference against
                     est.reset()

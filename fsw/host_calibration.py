@@ -79,20 +79,26 @@ class HostCalibration:
             return self._no_field
         return self.cal.reason
 
-    def host_bound_T(self, b_meas_T: np.ndarray) -> float:
-        """A bound on the host's field in the sample, |h + (S − I) v| (T), the sample gate's slack: the
-        calibration's own values with 3 σ when it has one; before, what the samples have shown — twice
-        half the spread (2nd to 98th percentile) of |B| over the last `SPREAD_SAMPLES` accepted samples,
-        as the host's field adds to or takes from the Earth's as the body turns — and until there are
-        enough of them, `HARD_IRON_MAX_T` + `SOFT_IRON_MAX` |B|."""
+    def for_gate(self, b_meas_T: np.ndarray) -> tuple[np.ndarray, float]:
+        """(the sample as the sample gate should judge it, a bound on the host's field left in it [T]).
+        With a calibration: the calibrated sample, and what the calibration may have left (3 σ of b and
+        D, and `mc.MODEL_SIGMA_T`'s drift). Before one: the raw sample, and what the samples have shown —
+        twice half the spread (2nd to 98th percentile) of |B| over the last `SPREAD_SAMPLES` accepted
+        samples, as the host's field adds to or takes from the Earth's as the body turns — or, until there
+        are enough of them, `HARD_IRON_MAX_T` + `SOFT_IRON_MAX` |B|."""
         m = float(np.linalg.norm(b_meas_T))
         if not self.cal.good:
             worst = HARD_IRON_MAX_T + SOFT_IRON_MAX * m
-            return worst if self._spread_T is None else min(worst, self._spread_T + 6.0 * self.cal.sigma_uT * 1e-6)
-        c = self.cal.calibration
-        sig = c.sigma
-        soft = float(np.linalg.norm(c.D, 2)) + 3.0 * float(np.max(sig[3:]))
-        return float(np.linalg.norm(c.b_T)) + 3.0 * float(np.linalg.norm(sig[:3])) + min(soft, 1.0) * m
+            return b_meas_T, (worst if self._spread_T is None
+                              else min(worst, self._spread_T + 6.0 * self.cal.sigma_uT * 1e-6))
+        sig = self.cal.calibration.sigma
+        left = 3.0 * float(np.linalg.norm(sig[:3])) + 3.0 * float(np.max(sig[3:])) * m + 3.0 * mc.MODEL_SIGMA_T
+        return self.cal.apply(b_meas_T), left
+
+    @property
+    def version(self) -> int:
+        """Changes whenever the calibration applied changes (the gate's reference must follow)."""
+        return id(self.cal.calibration)
 
     def _track_spread(self, b_meas_T: np.ndarray) -> None:
         self._mags[self._n_mags % SPREAD_SAMPLES] = math.sqrt(float(np.dot(b_meas_T, b_meas_T)))

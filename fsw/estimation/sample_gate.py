@@ -91,10 +91,14 @@ class SampleGate:
         """True while the latest sample was refused (the sensor output is not usable now)."""
         return self.flags != 0
 
-    def check(self, t_s: float, b_T: np.ndarray) -> bool:
-        """True when the sample may go to the estimators; else `flags` tells why."""
+    def check(self, t_s: float, b_T: np.ndarray, b_judged_T: np.ndarray | None = None) -> bool:
+        """True when the sample may go to the estimators; else `flags` tells why. `b_judged_T`: the sample
+        the spike test judges (the calibrated one; default `b_T`); saturation and a stuck chip are the
+        chip's own output's."""
         flags = 0
         bx, by, bz = float(b_T[0]), float(b_T[1]), float(b_T[2])
+        jx, jy, jz = (bx, by, bz) if b_judged_T is None else (float(b_judged_T[0]), float(b_judged_T[1]),
+                                                              float(b_judged_T[2]))
         if not (math.isfinite(t_s) and math.isfinite(bx) and math.isfinite(by) and math.isfinite(bz)):
             flags = self.NON_FINITE
         else:
@@ -104,7 +108,7 @@ class SampleGate:
             prev = self._prev_raw
             if bx == prev[0] and by == prev[1] and bz == prev[2]:
                 flags |= self.STUCK
-            if not flags and not math.isnan(self._ref_t) and self._is_spike(t_s, bx, by, bz):
+            if not flags and not math.isnan(self._ref_t) and self._is_spike(t_s, jx, jy, jz):
                 flags |= self.SPIKE
             self._prev_raw = (bx, by, bz)
         if flags == self.SPIKE:
@@ -128,7 +132,7 @@ class SampleGate:
         else:
             self.gap_samples = max(0, int(round((t_s - self._ref_t) / self.sample_period_s)) - 1)
         self._ref_t = float(t_s)
-        self._ref_b = (bx, by, bz)
+        self._ref_b = (jx, jy, jz)
         return True
 
     def _is_spike(self, t_s: float, bx: float, by: float, bz: float) -> bool:
@@ -146,6 +150,11 @@ class SampleGate:
         cos = (bx * px + by * py + bz * pz) / (nk * np_)
         angle = math.acos(min(1.0, max(-1.0, cos)))
         return angle > turn * (1.0 + host / np_) + noise / np_
+
+    def rebase(self, b_T: np.ndarray) -> None:
+        """The reference sample re-expressed (the same last accepted sample, calibrated anew)."""
+        if not math.isnan(self._ref_t):
+            self._ref_b = (float(b_T[0]), float(b_T[1]), float(b_T[2]))
 
     def reset(self) -> None:
         """Forget the reference (a new sensor configuration): the next finite sample is accepted."""
