@@ -19,6 +19,7 @@ if __name__ == "__main__":
     interrupt_quietly()
 
 import importlib  # noqa: E402
+import os  # noqa: E402
 import sys  # noqa: E402
 
 from .argtypes import ArgumentParser, check_paths_or_exit, finite_float  # noqa: E402
@@ -47,6 +48,9 @@ def parse_args(argv=None) -> tuple[RunConfig, str]:
     args = ap.parse_args(argv)
     if not args.mag_serial.strip():
         ap.error("--mag-serial: empty: give the serial port of the magnetometer's register bridge")
+    for option, path in (("--sample-store", args.sample_store), ("--tle-file", args.tle_file)):
+        if path and os.path.realpath(path) == os.path.realpath(args.mag_serial):
+            ap.error(f"{option} {path}: is the magnetometer's port (--mag-serial): an output never overwrites an input")
     check_paths_or_exit(ap, inputs={"--key": args.key},
                         outputs={"--sample-store": args.sample_store, "--tle-file": args.tle_file})
     check_key_or_exit(ap, args.key)

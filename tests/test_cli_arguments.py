@@ -257,6 +257,13 @@ def test_the_target_refuses_a_bad_key_before_it_opens_the_device(tmp_path, capsy
                                            "--link", "udpout:127.0.0.1:9", "--quiet"], 2, "--key", *words)
 
 
+@pytest.mark.parametrize("option", ["--sample-store", "--tle-file"])
+def test_the_target_never_writes_over_its_serial_port(tmp_path, capsys, option):
+    port = tmp_path / "tty"
+    one_line_error(capsys, fsw_main.main, ["--mag-serial", str(port), option, str(port), "--quiet"], 2,
+                   option, "--mag-serial")
+
+
 def test_the_target_refuses_an_empty_serial_port(capsys):
     one_line_error(capsys, fsw_main.main, ["--mag-serial=", "--link", "udpout:127.0.0.1:9", "--quiet"], 2,
                    "--mag-serial", "empty")
