@@ -38,7 +38,7 @@ import numpy as np
 from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range
 from fsw.estimation import field_motion as fm
 from fsw.estimation import magcal as mc
-from fsw.estimation.igrf import FLIGHT_DEGREE, IgrfModel
+from fsw.estimation.onboard_field import flight_field
 from fsw.files import write_atomic
 from hil.dynamics import RigidBody
 from hil.field import FieldAlongOrbit, IgrfField
@@ -98,7 +98,7 @@ def orbit_fields(duration_s: float, rate_hz: float):
     """(t, B_eci truth [T], |B| of the on-board model [T], the model's error RMS per axis [µT] or None)."""
     t = np.arange(0.0, duration_s, 1.0 / rate_hz)
     truth = FieldAlongOrbit(CircularOrbit(ALTITUDE_M, INCLINATION_DEG), IgrfField(EPOCH))  # degree 13
-    model = fm.OrbitField(fm.CircularOrbitModel(ALTITUDE_M, INCLINATION_DEG), IgrfModel(EPOCH, FLIGHT_DEGREE))
+    model = flight_field(fm.CircularOrbitModel(ALTITUDE_M, INCLINATION_DEG), EPOCH)
     b_true, b_model = truth.b_eci_T(t), model.b_eci_T(t)
     return t, b_true, np.linalg.norm(b_model, axis=1), float(np.sqrt(np.mean((b_true - b_model) ** 2)) * 1e6)
 

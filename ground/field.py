@@ -7,7 +7,7 @@ from __future__ import annotations
 from datetime import datetime
 
 from fsw.estimation import field_motion as fm
-from fsw.estimation.igrf import FLIGHT_DEGREE, IgrfModel
+from fsw.estimation.onboard_field import flight_field
 
 
 def scenario_field(name: str):
@@ -20,11 +20,11 @@ def scenario_field(name: str):
         line1, line2 = scn.box_tle or scn.tle
         return tle_field(line1, line2, u), scn
     orbit = fm.CircularOrbitModel(scn.altitude_m, scn.inclination_deg, scn.raan_deg, scn.arg_lat0_deg)
-    return fm.OrbitField(orbit, IgrfModel(scn.epoch_year, FLIGHT_DEGREE)), scn
+    return flight_field(orbit, scn.epoch_year), scn
 
 
 def tle_field(line1: str, line2: str, utc0: datetime) -> fm.OrbitField:
     """The field along a TLE's orbit, t = 0 at `utc0`; IGRF-14 at the flight degree of `utc0`'s year."""
     orbit = fm.TleOrbitModel(line1, line2, (utc0.year, utc0.month, utc0.day, utc0.hour, utc0.minute,
                                             utc0.second + utc0.microsecond * 1e-6))
-    return fm.OrbitField(orbit, IgrfModel(utc0.year + (utc0.timetuple().tm_yday - 1) / 365.25, FLIGHT_DEGREE))
+    return flight_field(orbit, utc0.year + (utc0.timetuple().tm_yday - 1) / 365.25)

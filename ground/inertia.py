@@ -40,7 +40,7 @@ from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_
 from fsw.estimation import euler_fit as ef
 from fsw.estimation import field_check as fc
 from fsw.estimation import field_motion as fm
-from fsw.estimation.igrf import FLIGHT_DEGREE, IgrfModel
+from fsw.estimation.onboard_field import flight_field
 from fsw.estimation import inertia as inr
 from fsw.estimation import sampled_moment as sm
 from fsw.files import write_atomic
@@ -83,7 +83,7 @@ def field_model(scenario: str | None = None, metadata: dict | None = None) -> tu
         raise ValueError(f"orbit metadata is not a number: {e}") from None
     orbit = fm.CircularOrbitModel(v["orbit_altitude_km"] * 1e3, v["orbit_inclination_deg"], v["orbit_raan_deg"],
                                   v["orbit_arg_lat0_deg"])
-    return fm.OrbitField(orbit, IgrfModel(v["field_epoch_year"], FLIGHT_DEGREE)).b_eci_T, None, "recording metadata"
+    return flight_field(orbit, v["field_epoch_year"]).b_eci_T, None, "recording metadata"
 
 
 def known_action(rec: Recording, hold: str = "centered") -> ef.KnownAction:

@@ -13,7 +13,7 @@ import dataclasses
 import numpy as np
 
 from fsw.estimation import field_motion as fm
-from fsw.estimation.igrf import FLIGHT_DEGREE, IgrfModel
+from fsw.estimation.onboard_field import flight_field
 from fsw.ident import IdentConfig, IdentExperiment
 
 from .scenario import Scenario, TorquePulse
@@ -52,7 +52,7 @@ def field_model(scn: Scenario) -> fm.OrbitField:
     hil.sitl.onboard_field); the simulator's truth is the scenario's field model (IGRF degree 13 by
     default) and orbit (a TLE when given)."""
     orbit = fm.CircularOrbitModel(scn.altitude_m, scn.inclination_deg, scn.raan_deg, scn.arg_lat0_deg)
-    return fm.OrbitField(orbit, IgrfModel(scn.epoch_year, FLIGHT_DEGREE))
+    return flight_field(orbit, scn.epoch_year)
 
 
 def build_ident(scn: Scenario, sim: Simulator, sigma_b_T: float, inertia_guess_kgm2: float = 100.0,

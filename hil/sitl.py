@@ -38,8 +38,6 @@ from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_
 from fsw.config import RunConfig, add_run_options, check_key_or_exit, check_loop_rate, run_config  # noqa: E402
 from fsw.drivers.mmc5983ma import Mmc5983ma  # noqa: E402
 from fsw.drivers.mmc5983ma_regs import Bandwidth, ContinuousFrequency  # noqa: E402
-from fsw.estimation import field_motion as fm  # noqa: E402
-from fsw.estimation.igrf import FLIGHT_DEGREE, IgrfModel  # noqa: E402
 from fsw.estimation.onboard_field import InterpolatedOrbitField  # noqa: E402
 from fsw.timeorbit import TimeOrbit  # noqa: E402
 from fsw.flight import FlightSoftware  # noqa: E402
@@ -50,6 +48,7 @@ from fsw.system import Flight, build_flight  # noqa: E402
 
 from . import scenario as scenarios  # noqa: E402
 from .sim import Simulator  # noqa: E402
+from .ident_sitl import build_ident, field_model  # noqa: E402
 
 #: the chip's bandwidth settings by their nominal bandwidth (scenario key `bandwidth_hz`)
 BANDWIDTH = {100: Bandwidth.BW_100HZ, 200: Bandwidth.BW_200HZ, 400: Bandwidth.BW_400HZ, 800: Bandwidth.BW_800HZ}
@@ -144,8 +143,7 @@ def onboard_field(scn: scenarios.Scenario) -> InterpolatedOrbitField | None:
     (:func:`hand_over_time_and_orbit`)."""
     if scn.tle is not None:
         return None
-    orbit = fm.CircularOrbitModel(scn.altitude_m, scn.inclination_deg, scn.raan_deg, scn.arg_lat0_deg)
-    return InterpolatedOrbitField(fm.OrbitField(orbit, IgrfModel(scn.epoch_year, FLIGHT_DEGREE)))
+    return InterpolatedOrbitField(field_model(scn))
 
 
 def hand_over_time_and_orbit(scn: scenarios.Scenario, sim, r: RunConfig, t0_s: float) -> TimeOrbit:
@@ -187,7 +185,6 @@ def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, 
     timeorbit = hand_over_time_and_orbit(scn, sim, r, max(0.0, sim.clock.box_s(0.0)))
     onboard = []
     if ident:
-        from .ident_sitl import build_ident
         onboard.append(build_ident(scn, sim, sigma_b, cfg.ident_inertia_guess_kgm2,
                                    b_inertial=field.b_eci_T if field is not None else timeorbit,
                                    **(ident_options or {})))

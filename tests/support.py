@@ -160,13 +160,13 @@ def magcal_orbit(rate_hz: float = 1.0):
     """(t, B_ECI truth (hil.field: IGRF-14 to degree 13), |B| of the flight software's model (degree 8))
     over one orbit."""
     from fsw.estimation import field_motion as fm
-    from fsw.estimation.igrf import FLIGHT_DEGREE, IgrfModel
+    from fsw.estimation.onboard_field import flight_field
     from hil.field import FieldAlongOrbit, IgrfField
     from hil.orbit import CircularOrbit
 
     t = np.arange(0.0, MAGCAL_PERIOD_S, 1.0 / rate_hz)
     b_eci = FieldAlongOrbit(CircularOrbit(*MAGCAL_ORBIT), IgrfField(MAGCAL_EPOCH)).b_eci_T(t)
-    model = fm.OrbitField(fm.CircularOrbitModel(*MAGCAL_ORBIT), IgrfModel(MAGCAL_EPOCH, FLIGHT_DEGREE))
+    model = flight_field(fm.CircularOrbitModel(*MAGCAL_ORBIT), MAGCAL_EPOCH)
     return t, b_eci, np.linalg.norm(model.b_eci_T(t), axis=1)
 
 

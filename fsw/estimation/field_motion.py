@@ -171,7 +171,7 @@ def field_from_metadata(md: dict) -> OrbitField | None:
                                        float(md["orbit_raan_deg"]), float(md["orbit_arg_lat0_deg"]))
         else:
             return None
-        from .igrf import FLIGHT_DEGREE, IgrfModel  # the box's model (igrf imports this module)
-        return OrbitField(orbit, IgrfModel(epoch, FLIGHT_DEGREE))
+        from .onboard_field import flight_field  # the box's model (it imports this module)
+        return flight_field(orbit, epoch)
     except (TypeError, KeyError) as e:
         raise ValueError(str(e)) from None

@@ -30,6 +30,12 @@ _JD_UNIX_EPOCH = 2440587.5
 KNOT_STEP_S = 60.0
 
 
+def flight_field(orbit, epoch_year: float) -> OrbitField:
+    """The box's field model along `orbit` (``position_eci_m(t)``): IGRF-14 at the flight degree at the
+    decimal year `epoch_year` (ValueError outside IGRF-14's span)."""
+    return OrbitField(orbit, IgrfModel(epoch_year, FLIGHT_DEGREE))
+
+
 class KnotField:
     """Knots of a field along the orbit (`direct_b_eci_T`, a subclass's) every `knot_step_s`, cubic
     Lagrange interpolation in between (the interface of `field_motion.OrbitField`)."""

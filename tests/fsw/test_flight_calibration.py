@@ -6,7 +6,7 @@ import numpy as np
 from fsw.estimation import field_motion as fm
 from fsw.estimation import magcal as mc
 from fsw.flight import FlightSoftware
-from fsw.estimation.igrf import FLIGHT_DEGREE, IgrfModel
+from fsw.estimation.onboard_field import flight_field
 from fsw.host_calibration import FixedField, HostCalibration
 from fsw.telemetry.dialect import mavlink
 from fsw.telemetry.telemetry import Telemetry
@@ -56,7 +56,7 @@ class SeenByEstimator:
 
 
 def onboard_field():
-    return fm.OrbitField(fm.CircularOrbitModel(*MAGCAL_ORBIT), IgrfModel(MAGCAL_EPOCH, FLIGHT_DEGREE))
+    return flight_field(fm.CircularOrbitModel(*MAGCAL_ORBIT), MAGCAL_EPOCH)
 
 
 def fly(field, n_s):
