@@ -67,6 +67,9 @@ class HostCalibration:
         self._mags = np.zeros(SPREAD_SAMPLES)
         self._n_mags = 0
         self._spread_T: float | None = None
+        # what the applied calibration may have left in a sample (for_gate), and for which calibration
+        self._left_for = -1
+        self._left_T = self._left_per_T = 0.0
         self._t_tlm: float | None = None
 
     @property
@@ -91,14 +94,17 @@ class HostCalibration:
             worst = HARD_IRON_MAX_T + SOFT_IRON_MAX * m
             return b_meas_T, (worst if self._spread_T is None
                               else min(worst, self._spread_T + 6.0 * self.cal.sigma_uT * 1e-6))
-        sig = self.cal.calibration.sigma
-        left = 3.0 * float(np.linalg.norm(sig[:3])) + 3.0 * float(np.max(sig[3:])) * m + 3.0 * mc.MODEL_SIGMA_T
-        return self.cal.apply(b_meas_T), left
+        if self._left_for != self.cal.published:  # 3 σ of b, of D per |B|: once per calibration
+            sig = self.cal.calibration.sigma
+            self._left_for = self.cal.published
+            self._left_T = 3.0 * float(np.linalg.norm(sig[:3])) + 3.0 * mc.MODEL_SIGMA_T
+            self._left_per_T = 3.0 * float(np.max(sig[3:]))
+        return self.cal.apply(b_meas_T), self._left_T + self._left_per_T * m
 
     @property
     def version(self) -> int:
         """Changes whenever the calibration applied changes (the gate's reference must follow)."""
-        return id(self.cal.calibration)
+        return self.cal.published
 
     def _track_spread(self, b_meas_T: np.ndarray) -> None:
         self._mags[self._n_mags % SPREAD_SAMPLES] = math.sqrt(float(np.dot(b_meas_T, b_meas_T)))

@@ -487,6 +487,8 @@ class MagCal:
         self.reason: str | None = None
         self.chi2_dof = math.nan
         self.solves = 0
+        #: calibrations published (applied) since the start: changes exactly when `calibration` does
+        self.published = 0
         self.rejections = 0
         #: samples of refused stretches taken out of the sums; such stretches in a row; restarts
         self.dropped = 0
@@ -558,6 +560,7 @@ class MagCal:
             return False
         self.reason = None
         self.calibration = cal
+        self.published += 1
         self._good = sol.theta
         sig = cal.sigma
         ok = (np.max(sig[:3]) * UT_PER_T <= self.limits.goal_sigma_uT

@@ -74,6 +74,22 @@ def test_gate_moves_its_reference_after_repeated_spikes():
     assert ok[:5] == [True] * 5 and ok[5:8] == [False] * 3 and all(ok[8:])
 
 
+def test_gate_reference_follows_a_new_calibration():
+    """A calibration moves every sample by its hard iron: re-expressed in it, the reference does not make
+    the first calibrated sample a spike; the chip's own output still decides saturation."""
+    t, b = tumbling(12)
+    hard_T = np.array([30e-6, -20e-6, 25e-6])
+    for rebase, want in ((False, [False] * 3), (True, [True] * 3)):
+        g = SampleGate(SIGMA_T, 1.0, reseed_after=3)
+        assert all(g.check(tk, bk + hard_T) for tk, bk in zip(t[:5], b[:5]))  # raw: the iron in it
+        if rebase:
+            g.rebase(b[4])                                    # the same sample, calibrated
+        assert [g.check(tk, bk + hard_T, bk) for tk, bk in zip(t[5:8], b[5:8])] == want
+    g = SampleGate(SIGMA_T, 1.0)
+    assert g.check(0.0, np.array([FULL_SCALE_T, 0, 0]), np.array([20e-6, 0, 0])) is False
+    assert g.counts["saturated"] == 1
+
+
 def test_estimates_across_a_refused_sample_are_flagged_and_widened():
     class Replay:
         def __init__(self, t, b):
