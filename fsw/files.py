@@ -99,8 +99,9 @@ def check_paths(inputs: Mapping[str, PathLike | None] | Iterable[tuple[str, Path
     """Refuse (PathError) outputs that are an input or another output, or cannot be written.
 
     `inputs` and `outputs` map a label (the option, e.g. ``"--csv"``, or ``"input"``) to a path;
-    None entries are left out. Inputs that do not exist are left to the tool that reads them."""
-    ins = [(label, p, _identity(p)) for label, p in _pairs(inputs) if os.path.exists(p)]
+    None entries are left out. Inputs that do not exist are left to the tool that reads them, but no
+    output may take their name (a serial port not plugged in yet, an input file mistyped)."""
+    ins = [(label, p, _identity(p)) for label, p in _pairs(inputs)]
     outs = _pairs(outputs)
     seen: list[tuple[str, str, tuple]] = []
     for label, p in outs:

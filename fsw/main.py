@@ -19,7 +19,6 @@ if __name__ == "__main__":
     interrupt_quietly()
 
 import importlib  # noqa: E402
-import os  # noqa: E402
 import sys  # noqa: E402
 
 from .argtypes import ArgumentParser, check_paths_or_exit, finite_float  # noqa: E402
@@ -46,12 +45,7 @@ def parse_args(argv=None) -> tuple[RunConfig, str]:
                     help="a TLE older than this is refused and no longer used once on board (0.1 to 365 days, "
                          "default 14; parameter TLE_MAX_AGE_D in flight)")
     args = ap.parse_args(argv)
-    if not args.mag_serial.strip():
-        ap.error("--mag-serial: empty: give the serial port of the magnetometer's register bridge")
-    for option, path in (("--sample-store", args.sample_store), ("--tle-file", args.tle_file)):
-        if path and os.path.realpath(path) == os.path.realpath(args.mag_serial):
-            ap.error(f"{option} {path}: is the magnetometer's port (--mag-serial): an output never overwrites an input")
-    check_paths_or_exit(ap, inputs={"--key": args.key},
+    check_paths_or_exit(ap, inputs={"--key": args.key, "--mag-serial": args.mag_serial},
                         outputs={"--sample-store": args.sample_store, "--tle-file": args.tle_file})
     check_key_or_exit(ap, args.key)
     return run_config(args, sample_rate_hz=args.sample_rate or 1.0, tle_file=args.tle_file,
