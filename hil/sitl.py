@@ -87,10 +87,8 @@ class Sitl:
 
     @property
     def t0_s(self) -> float:
-        """The box's clock at the first tick: what it reads when the simulated world starts (true time 0),
-        or 0 for a clock behind true time (the box starts when its clock reads 0: the flight software's
-        time stamps are unsigned)."""
-        return max(0.0, self.sim.clock.box_s(0.0))
+        """The box's clock at the first tick (:func:`box_t0_s`)."""
+        return box_t0_s(self.sim)
 
     def advance(self, box_t_s: float) -> None:
         """The simulator advanced to the true time at which the box's clock reads `box_t_s`."""
@@ -98,7 +96,7 @@ class Sitl:
 
     def truth(self, box_t_s: float | None = None):
         """The simulator's truth at the box's time `box_t_s` (default: now)."""
-        return self.sim.truth(None if box_t_s is None else self.sim.clock.true_s(box_t_s))
+        return box_truth(self.sim)(box_t_s)
 
     def header(self) -> str:
         r = self.cfg.run
@@ -132,6 +130,19 @@ def sitl_sensor(scenario_rate_hz: float, scenario_bw: Bandwidth, rate_hz: float 
     bw = fits[0] if fits else Bandwidth.BW_800HZ
     cm = next((f for f in ContinuousFrequency if f.rate_hz == rate_hz and f.fits(bw)), ContinuousFrequency.OFF)
     return float(rate_hz), bw, cm
+
+
+def box_t0_s(sim: Simulator) -> float:
+    """The box's clock at the first tick: what it reads when the simulated world starts (true time 0), or 0
+    for a clock behind true time (the box starts when its clock reads 0: its time stamps are unsigned)."""
+    return max(0.0, sim.clock.box_s(0.0))
+
+
+def box_truth(sim: Simulator):
+    """The simulator's truth looked up at the box's time (default: now)."""
+    if sim.clock.is_true:
+        return sim.truth
+    return lambda box_t_s=None: sim.truth(None if box_t_s is None else sim.clock.true_s(box_t_s))
 
 
 def onboard_field(scn: scenarios.Scenario) -> InterpolatedOrbitField | None:
@@ -182,7 +193,7 @@ def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, 
     driver = Mmc5983ma(sim.sensor, bandwidth=bw, sample_period_s=1.0 / rate_hz, continuous=cm)
     sigma_b = math.hypot(scn.noise_T, bw.noise_rms_T)
     field = onboard_field(scn)
-    timeorbit = hand_over_time_and_orbit(scn, sim, r, max(0.0, sim.clock.box_s(0.0)))
+    timeorbit = hand_over_time_and_orbit(scn, sim, r, box_t0_s(sim))
     onboard = []
     if ident:
         onboard.append(build_ident(scn, sim, sigma_b, cfg.ident_inertia_guess_kgm2,
@@ -191,9 +202,7 @@ def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, 
     if scn.deorbit is not None:
         from .deorbit_sim import build_kit
         onboard.append(build_kit(sim, **(kit_options or {})))
-    truth = sim.truth if sim.clock.is_true else (lambda t=None: sim.truth(None if t is None
-                                                                         else sim.clock.true_s(t)))
-    flight = build_flight(r, driver, sigma_b_T=sigma_b, sample_rate_hz=rate_hz, truth=truth, apps=onboard,
+    flight = build_flight(r, driver, sigma_b_T=sigma_b, sample_rate_hz=rate_hz, truth=box_truth(sim), apps=onboard,
                           link=link, uplink=uplink, key=key, clock=clock, run_id=run_id, field=field,
                           timeorbit=timeorbit)
     return Sitl(cfg, scn, sim, driver, flight, sigma_b, warning)
