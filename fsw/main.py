@@ -94,4 +94,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from fsw.startup import exit_with
+
+    exit_with(main)

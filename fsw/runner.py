@@ -75,6 +75,8 @@ class LoopResult:
     max_late_s: float = 0.0
     #: stopped by SIGINT / SIGTERM
     interrupted: bool = False
+    #: the status lines' reader went away during the run (the loop went on without them)
+    status_lost: bool = False
 
 
 def run_loop(fsw: FlightSoftware, *, duration_s: float | None = None, speed: float = 1.0, lockstep: bool = True,
@@ -119,7 +121,11 @@ def run_loop(fsw: FlightSoftware, *, duration_s: float | None = None, speed: flo
                 after_tick(t)
             if status is not None and t - t0_s >= next_status - 1e-9:
                 next_status += 1.0
-                print(status(t), file=out, flush=True)
+                try:
+                    print(status(t), file=out, flush=True)
+                except (BrokenPipeError, ValueError):  # the reader has gone (`| head`, a closed journal)
+                    status = None                       # the loop flies on; the lines stop
+                    res.status_lost = True
             k += 1
             if pace > 0:
                 wait = wall0 + (k * period) / pace - time.monotonic()
@@ -215,6 +221,8 @@ def run_program(body: Callable[[], str]) -> int:
         except ValueError as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
+        except BrokenPipeError:  # stdout's reader has gone: `fsw.startup.exit_with` ends quietly
+            raise
         except OSError as e:
             print(f"error: {e}", file=sys.stderr)
             return 1

@@ -470,4 +470,6 @@ def _iso(utc_s: float) -> str:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from fsw.startup import exit_with
+
+    exit_with(main)

@@ -318,4 +318,6 @@ def run_cli(input_path: str, output_path: str, args) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from fsw.startup import exit_with
+
+    exit_with(main)

@@ -231,6 +231,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    import sys
+    from fsw.startup import exit_with
 
-    sys.exit(main())
+    exit_with(main)
