@@ -1,7 +1,9 @@
-"""Run the flight software on target: `python -m fsw.main --mag-serial PORT [options]`.
+"""Run the flight software on target: `python -m fsw.main --mag-i2c|--mag-spi|--mag-serial DEVICE [options]`.
 
-The MMC5983MA driver talks to the chip through a serial register bridge (the emulator can stand behind
-a pty: `python -m hil.pty_link`), on the monotonic clock. `--sitl` (against the simulator) and
+The MMC5983MA driver talks to the chip on a Linux I2C adapter (`--mag-i2c /dev/i2c-1`, smbus2), a Linux
+SPI device (`--mag-spi /dev/spidev0.0`, spidev: the `target` extra) or through a serial register bridge
+(`--mag-serial PORT`; the emulator can stand behind a pty: `python -m hil.pty_link`), on the monotonic
+clock (`fsw.drivers.mag_bus`). `--sitl` (against the simulator) and
 `--replay` (a recording as the magnetometer) are compositions of their own that live with what they
 compose: this command hands over to `python -m hil.sitl` and `python -m ground.replay`, with the other
 arguments.
@@ -21,22 +23,32 @@ if __name__ == "__main__":
 import importlib  # noqa: E402
 import sys  # noqa: E402
 
+from argparse import ArgumentTypeError  # noqa: E402
+
 from .argtypes import ArgumentParser, check_paths_or_exit, finite_float  # noqa: E402
 from .config import RunConfig, add_run_options, check_key_or_exit, check_loop_rate, run_config  # noqa: E402
+from .drivers.mag_bus import KINDS, MagBus, bus_counters_line, open_register_bus  # noqa: E402
+from .drivers.spi_bus import MissingLibrary, require_spidev, spidev_numbers  # noqa: E402
 from .runner import run_loop, run_program, status_line, summary  # noqa: E402
 
 #: compositions that live outside the flight software, by the option that selects them
 HAND_OVER = {"--sitl": "hil.sitl", "--replay": "ground.replay"}
 
 
-def parse_args(argv=None) -> tuple[RunConfig, str]:
-    """(configuration, serial port of the magnetometer's register bridge)."""
+def parse_args(argv=None) -> tuple[RunConfig, MagBus]:
+    """(configuration, the magnetometer's bus)."""
     ap = ArgumentParser(
         prog="python -m fsw.main", description=__doc__.splitlines()[0],
         epilog="--sitl ...: the same options and the simulator's (python -m hil.sitl --help); "
                "--replay INPUT.csv ...: a recording as the magnetometer (python -m ground.replay --help)")
-    ap.add_argument("--mag-serial", metavar="PORT", required=True,
-                    help="the MMC5983MA behind a serial register bridge (e.g. the pty of python -m hil.pty_link)")
+    mag = ap.add_mutually_exclusive_group(required=True)
+    mag.add_argument("--mag-i2c", metavar="DEVICE",
+                     help="the MMC5983MA on this Linux I2C adapter at address 0x30 (e.g. /dev/i2c-1)")
+    mag.add_argument("--mag-spi", metavar="DEVICE", type=spi_device,
+                     help="the MMC5983MA on this Linux SPI device, mode 3 at 4 MHz (e.g. /dev/spidev0.0; needs "
+                          "the spidev package: pip install '.[target]')")
+    mag.add_argument("--mag-serial", metavar="PORT",
+                     help="the MMC5983MA behind a serial register bridge (e.g. the pty of python -m hil.pty_link)")
     add_run_options(ap)
     ap.add_argument("--tle-file", metavar="FILE", default=None,
                     help="keep the TLE in force in this file (written atomically at each upload, read at start) so "
@@ -45,38 +57,58 @@ def parse_args(argv=None) -> tuple[RunConfig, str]:
                     help="a TLE older than this is refused and no longer used once on board (0.1 to 365 days, "
                          "default 14; parameter TLE_MAX_AGE_D in flight)")
     args = ap.parse_args(argv)
-    check_paths_or_exit(ap, inputs={"--key": args.key, "--mag-serial": args.mag_serial},
+    kind, device = next((k, d) for k in KINDS if (d := getattr(args, f"mag_{k}")) is not None)
+    if kind == "spi":
+        try:
+            require_spidev()
+        except MissingLibrary as e:
+            ap.error(f"--mag-spi: {e}")
+    check_paths_or_exit(ap, inputs={"--key": args.key, f"--mag-{kind}": device},
                         outputs={"--sample-store": args.sample_store, "--tle-file": args.tle_file})
     check_key_or_exit(ap, args.key)
     return run_config(args, sample_rate_hz=args.sample_rate or 1.0, tle_file=args.tle_file,
-                      tle_max_age_d=args.tle_max_age), args.mag_serial
+                      tle_max_age_d=args.tle_max_age), MagBus(kind, device)
 
 
-def run(cfg: RunConfig, port: str, out=sys.stdout):
-    """Build the flight software on the chip behind `port` and run the loop on the monotonic clock."""
+def spi_device(text: str) -> str:
+    """argparse type of --mag-spi: a path /dev/spidevB.D."""
+    try:
+        spidev_numbers(text)
+    except ValueError as e:
+        raise ArgumentTypeError(str(e)) from None
+    return text
+
+
+def run(cfg: RunConfig, mag: MagBus, out=sys.stdout):
+    """Build the flight software on the chip on `mag` and run the loop on the monotonic clock; (flight
+    software, loop result, the bus's failures by kind for the summary)."""
     from .drivers.mmc5983ma import Mmc5983ma
-    from .drivers.serial_bus import SerialBus
     from .ident import AnnouncedTug, IdentExperiment
     from .system import build_flight
     from .timeorbit import TimeOrbit
 
     warning = check_loop_rate(cfg.rate_hz, cfg.sample_rate_hz)
-    source = Mmc5983ma(SerialBus(port), sample_period_s=1.0 / cfg.sample_rate_hz)
-    timeorbit = TimeOrbit(tle_file=cfg.tle_file, max_tle_age_d=cfg.tle_max_age_d)
-    # the identification experiment: its field along the orbit from the TLE and UTC on board (refused without
-    # them), the tug commanded on its own (the START command announces its moment)
-    ident = IdentExperiment(sigma_b_T=cfg.sigma_T, b_inertial=timeorbit, tug=AnnouncedTug())
-    flight = build_flight(cfg, source, sigma_b_T=cfg.sigma_T, sample_rate_hz=cfg.sample_rate_hz, apps=[ident],
-                          timeorbit=timeorbit)
-    fsw = flight.fsw
-    print("\n".join([f"target: MMC5983MA on {port}, loop {cfg.rate_hz:g} Hz, link {cfg.link}", *flight.notes,
-                     *([warning] if warning else [])]), file=out, flush=True)
+    bus = open_register_bus(mag)
     try:
-        res = run_loop(fsw, duration_s=cfg.duration_s, lockstep=False,
-                       status=None if cfg.quiet else (lambda t: status_line(t, fsw)), out=out)
+        source = Mmc5983ma(bus, sample_period_s=1.0 / cfg.sample_rate_hz)
+        timeorbit = TimeOrbit(tle_file=cfg.tle_file, max_tle_age_d=cfg.tle_max_age_d)
+        # the identification experiment: its field along the orbit from the TLE and UTC on board (refused
+        # without them), the tug commanded on its own (the START command announces its moment)
+        ident = IdentExperiment(sigma_b_T=cfg.sigma_T, b_inertial=timeorbit, tug=AnnouncedTug())
+        flight = build_flight(cfg, source, sigma_b_T=cfg.sigma_T, sample_rate_hz=cfg.sample_rate_hz, apps=[ident],
+                              timeorbit=timeorbit)
+        fsw = flight.fsw
+        print("\n".join([f"target: MMC5983MA on {mag.describe()}, loop {cfg.rate_hz:g} Hz, link {cfg.link}",
+                         *flight.notes, *([warning] if warning else [])]), file=out, flush=True)
+        try:
+            res = run_loop(fsw, duration_s=cfg.duration_s, lockstep=False,
+                           status=None if cfg.quiet else (lambda t: status_line(t, fsw)), out=out)
+        finally:
+            flight.close()
     finally:
-        flight.close()
-    return fsw, res
+        bus.close()
+    line = bus_counters_line(bus)
+    return fsw, res, [line] if line else []
 
 
 def main(argv=None) -> int:
@@ -87,8 +119,8 @@ def main(argv=None) -> int:
                 + argv[:argv.index(option)]
             return importlib.import_module(module).main(rest)
     def body() -> str:
-        cfg, port = parse_args(argv)
-        return summary(*run(cfg, port))
+        cfg, mag = parse_args(argv)
+        return summary(*run(cfg, mag))
 
     return run_program(body)
 
