@@ -12,6 +12,7 @@ import argparse
 from dataclasses import dataclass, replace
 
 from .argtypes import finite_float, int_range, link_url
+from .telemetry.dialect import FSW_SYSID
 from .telemetry.signing import KeyFileError, load_key
 from .telemetry.store_forward import DEFAULT_CAPACITY
 
@@ -50,6 +51,8 @@ class RunConfig:
     tle_file: str | None = None
     #: a TLE older than this is refused and, once on board, no longer used (parameter TLE_MAX_AGE_D)
     tle_max_age_d: float = 14.0
+    #: the box's MAVLink system id (fsw.telemetry.dialect.FSW_SYSID unless the box's configuration says)
+    system_id: int = FSW_SYSID
 
 
 def add_run_options(ap: argparse.ArgumentParser) -> None:

@@ -21,27 +21,38 @@ if __name__ == "__main__":
     interrupt_quietly()
 
 import importlib  # noqa: E402
+import os  # noqa: E402
 import sys  # noqa: E402
 
 from argparse import ArgumentTypeError  # noqa: E402
 
-from .argtypes import ArgumentParser, check_paths_or_exit, finite_float  # noqa: E402
-from .config import RunConfig, add_run_options, check_key_or_exit, check_loop_rate, run_config  # noqa: E402
+from .argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range  # noqa: E402
+from .box_config import BoxConfigError, KitLines, load_box_config  # noqa: E402
+from .config import RunConfig, add_run_options, check_loop_rate, run_config  # noqa: E402
+from .drivers.gpio import GpioError  # noqa: E402
+from .drivers.gpiod_lines import require_gpiod  # noqa: E402
 from .drivers.mag_bus import KINDS, MagBus, bus_counters_line, open_register_bus  # noqa: E402
 from .drivers.spi_bus import MissingLibrary, require_spidev, spidev_numbers  # noqa: E402
 from .runner import run_loop, run_program, status_line, summary  # noqa: E402
+from .telemetry.dialect import FSW_SYSID  # noqa: E402
+from .telemetry.signing import KeyFileError, load_key  # noqa: E402
 
 #: compositions that live outside the flight software, by the option that selects them
 HAND_OVER = {"--sitl": "hil.sitl", "--replay": "ground.replay"}
 
 
-def parse_args(argv=None) -> tuple[RunConfig, MagBus]:
-    """(configuration, the magnetometer's bus)."""
+def parse_args(argv=None) -> tuple[RunConfig, MagBus, KitLines | None]:
+    """(configuration, the magnetometer's bus, the de-orbit kit's lines or None): the box's configuration
+    file (--config) first, the command line over it."""
+    argv = sys.argv[1:] if argv is None else list(argv)
     ap = ArgumentParser(
         prog="python -m fsw.main", description=__doc__.splitlines()[0],
         epilog="--sitl ...: the same options and the simulator's (python -m hil.sitl --help); "
                "--replay INPUT.csv ...: a recording as the magnetometer (python -m ground.replay --help)")
-    mag = ap.add_mutually_exclusive_group(required=True)
+    ap.add_argument("--config", metavar="BOX.toml",
+                    help="the box's configuration file (fsw/box_config.py, deploy/box.toml): system id, key, "
+                         "state directory, buses, kit lines, radio, rates; options given here override it")
+    mag = ap.add_mutually_exclusive_group()
     mag.add_argument("--mag-i2c", metavar="DEVICE",
                      help="the MMC5983MA on this Linux I2C adapter at address 0x30 (e.g. /dev/i2c-1)")
     mag.add_argument("--mag-spi", metavar="DEVICE", type=spi_device,
@@ -52,22 +63,64 @@ def parse_args(argv=None) -> tuple[RunConfig, MagBus]:
     add_run_options(ap)
     ap.add_argument("--tle-file", metavar="FILE", default=None,
                     help="keep the TLE in force in this file (written atomically at each upload, read at start) so "
-                         "that it survives a restart (default: in memory only)")
+                         "that it survives a restart (default: in memory only; STATE_DIR/tle.txt with --state-dir)")
     ap.add_argument("--tle-max-age", type=finite_float(0.1, 365.0), default=14.0, metavar="DAYS",
                     help="a TLE older than this is refused and no longer used once on board (0.1 to 365 days, "
                          "default 14; parameter TLE_MAX_AGE_D in flight)")
+    ap.add_argument("--system-id", type=int_range(1, 255), default=FSW_SYSID, metavar="ID",
+                    help=f"the box's MAVLink system id, 1 to 255 (default {FSW_SYSID})")
+    ap.add_argument("--state-dir", metavar="DIR", default=None,
+                    help="keep what survives a restart in this directory: the TLE (tle.txt) and the numbered "
+                         "samples (samples.store) unless --tle-file / --sample-store say otherwise")
+    box = None
+    pre = ArgumentParser(add_help=False)
+    pre.add_argument("--config")
+    known, _ = pre.parse_known_args(argv)
+    if known.config is not None:
+        try:
+            box = load_box_config(known.config)
+        except BoxConfigError as e:
+            ap.error(str(e))
+        ap.set_defaults(**box.defaults())
     args = ap.parse_args(argv)
-    kind, device = next((k, d) for k in KINDS if (d := getattr(args, f"mag_{k}")) is not None)
-    if kind == "spi":
+    given = next(((k, d) for k in KINDS if (d := getattr(args, f"mag_{k}")) is not None), None)
+    if given is not None:
+        mag_bus = MagBus(*given)
+    elif box is not None and box.mag is not None:
+        mag_bus = box.mag
+    else:
+        ap.error("the magnetometer's bus: one of --mag-i2c, --mag-spi, --mag-serial, or [magnetometer] in --config")
+    if mag_bus.kind == "spi":
         try:
             require_spidev()
         except MissingLibrary as e:
             ap.error(f"--mag-spi: {e}")
-    check_paths_or_exit(ap, inputs={"--key": args.key, f"--mag-{kind}": device},
+    kit = box.kit if box is not None else None
+    if kit is not None:
+        try:
+            require_gpiod()
+        except GpioError as e:
+            ap.error(f"{box.path}: [kit]: {e}")
+    if args.state_dir is not None:
+        if not os.path.isdir(args.state_dir):
+            ap.error(f"--state-dir {args.state_dir}: not a directory")
+        args.tle_file = args.tle_file or os.path.join(args.state_dir, "tle.txt")
+        args.sample_store = args.sample_store or os.path.join(args.state_dir, "samples.store")
+    check_paths_or_exit(ap, inputs={"--key": args.key, f"--mag-{mag_bus.kind}": mag_bus.device},
                         outputs={"--sample-store": args.sample_store, "--tle-file": args.tle_file})
-    check_key_or_exit(ap, args.key)
+    key_from_file = box is not None and args.key == box.key_file and not any(a.startswith("--key") for a in argv)
+    try:
+        check_key(args.key)
+    except KeyFileError as e:
+        ap.error(f"{box.path}: key_file {e}" if key_from_file else f"--key {e}")
     return run_config(args, sample_rate_hz=args.sample_rate or 1.0, tle_file=args.tle_file,
-                      tle_max_age_d=args.tle_max_age), MagBus(kind, device)
+                      tle_max_age_d=args.tle_max_age, system_id=args.system_id), mag_bus, kit
+
+
+def check_key(key_file: str | None) -> None:
+    """Read the mission key at start (mode, length, not all zero; KeyFileError), before any device is opened."""
+    if key_file is not None:
+        load_key(key_file)
 
 
 def spi_device(text: str) -> str:
@@ -79,9 +132,11 @@ def spi_device(text: str) -> str:
     return text
 
 
-def run(cfg: RunConfig, mag: MagBus, out=sys.stdout):
-    """Build the flight software on the chip on `mag` and run the loop on the monotonic clock; (flight
-    software, loop result, the bus's failures by kind for the summary)."""
+def run(cfg: RunConfig, mag: MagBus, kit: KitLines | None = None, out=sys.stdout):
+    """Build the flight software on the chip on `mag` (and the de-orbit kit on the GPIO lines of `kit`) and
+    run the loop on the monotonic clock; (flight software, loop result, the bus's failures for the summary).
+    Whatever ends the run (its duration, SIGTERM or SIGINT, an exception) leaves the kit's lines at their
+    safe levels and released (`fsw.drivers.gpiod_lines`)."""
     from .drivers.mmc5983ma import Mmc5983ma
     from .ident import AnnouncedTug, IdentExperiment
     from .system import build_flight
@@ -89,23 +144,35 @@ def run(cfg: RunConfig, mag: MagBus, out=sys.stdout):
 
     warning = check_loop_rate(cfg.rate_hz, cfg.sample_rate_hz)
     bus = open_register_bus(mag)
+    lines = None
     try:
         source = Mmc5983ma(bus, sample_period_s=1.0 / cfg.sample_rate_hz)
         timeorbit = TimeOrbit(tle_file=cfg.tle_file, max_tle_age_d=cfg.tle_max_age_d)
         # the identification experiment: its field along the orbit from the TLE and UTC on board (refused
         # without them), the tug commanded on its own (the START command announces its moment)
-        ident = IdentExperiment(sigma_b_T=cfg.sigma_T, b_inertial=timeorbit, tug=AnnouncedTug())
-        flight = build_flight(cfg, source, sigma_b_T=cfg.sigma_T, sample_rate_hz=cfg.sample_rate_hz, apps=[ident],
+        apps = [IdentExperiment(sigma_b_T=cfg.sigma_T, b_inertial=timeorbit, tug=AnnouncedTug())]
+        notes = []
+        if kit is not None:
+            from .deorbit.kit import DeorbitKit
+            from .drivers.gpiod_lines import GpiodLines
+
+            lines = GpiodLines(kit.chip, kit.lines, burst_period_s=1.0 / DeorbitKit.rate_hz, debounce_s=kit.debounce_s)
+            apps.append(DeorbitKit(lines))
+            notes.append(f"de-orbit kit: {len(kit.lines)} lines on {kit.chip}; no attitude source on target "
+                         "(commands only)")
+        flight = build_flight(cfg, source, sigma_b_T=cfg.sigma_T, sample_rate_hz=cfg.sample_rate_hz, apps=apps,
                               timeorbit=timeorbit)
         fsw = flight.fsw
         print("\n".join([f"target: MMC5983MA on {mag.describe()}, loop {cfg.rate_hz:g} Hz, link {cfg.link}",
-                         *flight.notes, *([warning] if warning else [])]), file=out, flush=True)
+                         *flight.notes, *notes, *([warning] if warning else [])]), file=out, flush=True)
         try:
             res = run_loop(fsw, duration_s=cfg.duration_s, lockstep=False,
                            status=None if cfg.quiet else (lambda t: status_line(t, fsw)), out=out)
         finally:
             flight.close()
     finally:
+        if lines is not None:
+            lines.close()
         bus.close()
     line = bus_counters_line(bus)
     return fsw, res, [line] if line else []
@@ -119,8 +186,8 @@ def main(argv=None) -> int:
                 + argv[:argv.index(option)]
             return importlib.import_module(module).main(rest)
     def body() -> str:
-        cfg, mag = parse_args(argv)
-        return summary(*run(cfg, mag))
+        cfg, mag, kit = parse_args(argv)
+        return summary(*run(cfg, mag, kit))
 
     return run_program(body)
 

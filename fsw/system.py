@@ -84,10 +84,10 @@ def build_flight(cfg: RunConfig, source: FieldSource, *, sigma_b_T: float, sampl
         if key is None and cfg.key_file:
             key = load_key(cfg.key_file)  # KeyFileError is a ValueError
         if link is None:
-            link = open_box_link(cfg.link, source_system=FSW_SYSID, source_component=FSW_COMPID, baud=cfg.baud)
+            link = open_box_link(cfg.link, source_system=cfg.system_id, source_component=FSW_COMPID, baud=cfg.baud)
             opened.append(link)
             if cfg.uplink:
-                uplink = open_box_link(cfg.uplink, source_system=FSW_SYSID, source_component=FSW_COMPID,
+                uplink = open_box_link(cfg.uplink, source_system=cfg.system_id, source_component=FSW_COMPID,
                                        baud=cfg.baud, input=True)
                 opened.append(uplink)
         uplink = link if uplink is None else uplink
