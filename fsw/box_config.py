@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import stat
 import tomllib
 from dataclasses import dataclass, field
 
@@ -139,6 +140,8 @@ def _nonempty(text: str) -> str:
 def load_box_config(path: str) -> BoxConfig:
     """Read and check the box's configuration file (BoxConfigError, one line, naming the key)."""
     try:
+        if not stat.S_ISREG(os.stat(path).st_mode):  # a FIFO would block the start, a directory cannot be read
+            raise BoxConfigError(f"{path}: not a regular file")
         with open(path, "rb") as f:
             data = tomllib.load(f)
     except FileNotFoundError:

@@ -34,6 +34,7 @@ from .drivers.gpiod_lines import require_gpiod  # noqa: E402
 from .drivers.mag_bus import KINDS, MagBus, bus_counters_line, open_register_bus  # noqa: E402
 from .drivers.spi_bus import MissingLibrary, require_spidev, spidev_numbers  # noqa: E402
 from .runner import run_loop, run_program, status_line, summary  # noqa: E402
+from .sd_notify import Notifier  # noqa: E402
 from .telemetry.dialect import FSW_SYSID  # noqa: E402
 from .telemetry.signing import KeyFileError, load_key  # noqa: E402
 
@@ -73,16 +74,14 @@ def parse_args(argv=None) -> tuple[RunConfig, MagBus, KitLines | None]:
                     help="keep what survives a restart in this directory: the TLE (tle.txt) and the numbered "
                          "samples (samples.store) unless --tle-file / --sample-store say otherwise")
     box = None
-    pre = ArgumentParser(add_help=False)
-    pre.add_argument("--config")
-    known, _ = pre.parse_known_args(argv)
-    if known.config is not None:
+    args = ap.parse_args(argv)
+    if args.config is not None:  # the file's values as the options' defaults, the command line parsed again over them
         try:
-            box = load_box_config(known.config)
+            box = load_box_config(args.config)
         except BoxConfigError as e:
             ap.error(str(e))
         ap.set_defaults(**box.defaults())
-    args = ap.parse_args(argv)
+        args = ap.parse_args(argv)
     given = next(((k, d) for k in KINDS if (d := getattr(args, f"mag_{k}")) is not None), None)
     if given is not None:
         mag_bus = MagBus(*given)
@@ -165,10 +164,14 @@ def run(cfg: RunConfig, mag: MagBus, kit: KitLines | None = None, out=sys.stdout
         fsw = flight.fsw
         print("\n".join([f"target: MMC5983MA on {mag.describe()}, loop {cfg.rate_hz:g} Hz, link {cfg.link}",
                          *flight.notes, *notes, *([warning] if warning else [])]), file=out, flush=True)
+        notifier = Notifier()  # systemd: READY at the first tick, the watchdog fed by every tick after it
         try:
             res = run_loop(fsw, duration_s=cfg.duration_s, lockstep=False,
-                           status=None if cfg.quiet else (lambda t: status_line(t, fsw)), out=out)
+                           status=None if cfg.quiet else (lambda t: status_line(t, fsw)), out=out,
+                           after_tick=notifier.heartbeat if notifier.enabled else None)
         finally:
+            notifier.stopping()
+            notifier.close()
             flight.close()
     finally:
         if lines is not None:

@@ -231,7 +231,8 @@ TLE2 = "2 25544  51.6400 208.9163 0006317  69.9862  25.2906 15.50000000    09"
 
 
 def _target_judge(v, chosen):
-    if "--mag-serial" not in chosen:  # required on target
+    buses = [o for o in ("--mag-serial", "--mag-i2c", "--mag-spi") if o in chosen]
+    if len(buses) != 1:  # one bus, or the configuration's (every --config drawn here is refused)
         return False
     return v
 
@@ -328,10 +329,19 @@ SPECS: list[Tool] = [
     Tool("fsw.main", fsw.main.main, {
         "--mag-serial": Opt([("{files}/missing-serial", None), ("{files}/rec.csv", None), ("/dev/null", None),
                              ("{files}/fifo", None), ("", False)], role="in"),
+        "--mag-i2c": Opt([("{files}/missing-i2c", None), ("/dev/null", None), ("{files}/dir", None), ("", False)],
+                         role="in"),
+        "--mag-spi": Opt([("/dev/spidev0.0", None), ("/dev/i2c-1", False), ("{files}/rec.csv", False), ("", False)],
+                         role="in"),
+        "--config": Opt([("{files}/missing.toml", False), ("{files}/broken.toml", False), ("{files}/copy.toml", False),
+                         ("{files}/dir", False), ("{files}/fifo", False), ("{files}/rec.csv", False), ("", False)],
+                        role="in"),
+        "--system-id": Opt(ints(1, 255)),
+        "--state-dir": Opt([("{files}/dir", None), ("{files}/missing-dir", False), ("{files}/rec.csv", False)]),
         "--tle-file": Opt(OUT, role="out"),
         "--tle-max-age": Opt(floats(0.1, 365)),
         **RUN_OPTIONS,
-    }, stubs=["fsw.drivers.serial_bus:SerialBus"], judge=_target_judge),
+    }, stubs=["fsw.drivers.serial_bus:SerialBus", "fsw.drivers.i2c_bus:I2cBus"], judge=_target_judge),
     Tool("hil.sitl", hil.sitl.main, {
         "--scenario": Opt(SCENARIO + [("amds_deorbit", True)], role="in"),
         "--speed": Opt(floats(0)),
