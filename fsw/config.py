@@ -53,6 +53,8 @@ class RunConfig:
     tle_max_age_d: float = 14.0
     #: the box's MAVLink system id (fsw.telemetry.dialect.FSW_SYSID unless the box's configuration says)
     system_id: int = FSW_SYSID
+    #: what survives a restart on target (fsw.persist; None: nothing beyond --tle-file / --sample-store)
+    state_dir: str | None = None
 
 
 def add_run_options(ap: argparse.ArgumentParser) -> None:

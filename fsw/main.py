@@ -23,6 +23,7 @@ if __name__ == "__main__":
 import importlib  # noqa: E402
 import os  # noqa: E402
 import sys  # noqa: E402
+import time  # noqa: E402
 
 from argparse import ArgumentTypeError  # noqa: E402
 
@@ -34,6 +35,7 @@ from .drivers.gpiod_lines import require_gpiod  # noqa: E402
 from .drivers.mag_bus import KINDS, MagBus, bus_counters_line, open_register_bus  # noqa: E402
 from .drivers.spi_bus import MissingLibrary, require_spidev, spidev_numbers  # noqa: E402
 from .runner import run_loop, run_program, status_line, summary  # noqa: E402
+from .persist import BoxState  # noqa: E402
 from .sd_notify import Notifier  # noqa: E402
 from .telemetry.dialect import FSW_SYSID  # noqa: E402
 from .telemetry.signing import KeyFileError, load_key  # noqa: E402
@@ -71,7 +73,8 @@ def parse_args(argv=None) -> tuple[RunConfig, MagBus, KitLines | None]:
     ap.add_argument("--system-id", type=int_range(1, 255), default=FSW_SYSID, metavar="ID",
                     help=f"the box's MAVLink system id, 1 to 255 (default {FSW_SYSID})")
     ap.add_argument("--state-dir", metavar="DIR", default=None,
-                    help="keep what survives a restart in this directory: the TLE (tle.txt) and the numbered "
+                    help="keep what survives a restart in this directory: the command streams' signing "
+                         "timestamps (signing.json), the time (time.json), the TLE (tle.txt) and the numbered "
                          "samples (samples.store) unless --tle-file / --sample-store say otherwise")
     box = None
     args = ap.parse_args(argv)
@@ -113,7 +116,8 @@ def parse_args(argv=None) -> tuple[RunConfig, MagBus, KitLines | None]:
     except KeyFileError as e:
         ap.error(f"{box.path}: key_file {e}" if key_from_file else f"--key {e}")
     return run_config(args, sample_rate_hz=args.sample_rate or 1.0, tle_file=args.tle_file,
-                      tle_max_age_d=args.tle_max_age, system_id=args.system_id), mag_bus, kit
+                      tle_max_age_d=args.tle_max_age, system_id=args.system_id, state_dir=args.state_dir), \
+        mag_bus, kit
 
 
 def check_key(key_file: str | None) -> None:
@@ -144,6 +148,7 @@ def run(cfg: RunConfig, mag: MagBus, kit: KitLines | None = None, out=sys.stdout
     warning = check_loop_rate(cfg.rate_hz, cfg.sample_rate_hz)
     bus = open_register_bus(mag)
     lines = None
+    state = BoxState(cfg.state_dir, monotonic=time.monotonic, boot_id=boot_id()) if cfg.state_dir else None
     try:
         source = Mmc5983ma(bus, sample_period_s=1.0 / cfg.sample_rate_hz)
         timeorbit = TimeOrbit(tle_file=cfg.tle_file, max_tle_age_d=cfg.tle_max_age_d)
@@ -162,13 +167,21 @@ def run(cfg: RunConfig, mag: MagBus, kit: KitLines | None = None, out=sys.stdout
         flight = build_flight(cfg, source, sigma_b_T=cfg.sigma_T, sample_rate_hz=cfg.sample_rate_hz, apps=apps,
                               timeorbit=timeorbit)
         fsw = flight.fsw
+        if state is not None:
+            state.restore(fsw.uplink.verifier if fsw.uplink is not None else None, timeorbit)
+            notes += state.notes
         print("\n".join([f"target: MMC5983MA on {mag.describe()}, loop {cfg.rate_hz:g} Hz, link {cfg.link}",
                          *flight.notes, *notes, *([warning] if warning else [])]), file=out, flush=True)
         notifier = Notifier()  # systemd: READY at the first tick, the watchdog fed by every tick after it
+        after = ([notifier.heartbeat] if notifier.enabled else []) + ([state.tick] if state is not None else [])
+
+        def after_tick(t: float) -> None:
+            for f in after:
+                f(t)
         try:
             res = run_loop(fsw, duration_s=cfg.duration_s, lockstep=False,
                            status=None if cfg.quiet else (lambda t: status_line(t, fsw)), out=out,
-                           after_tick=notifier.heartbeat if notifier.enabled else None)
+                           after_tick=after_tick if after else None)
         finally:
             notifier.stopping()
             notifier.close()
@@ -176,9 +189,20 @@ def run(cfg: RunConfig, mag: MagBus, kit: KitLines | None = None, out=sys.stdout
     finally:
         if lines is not None:
             lines.close()
+        if state is not None:
+            state.close()
         bus.close()
-    line = bus_counters_line(bus)
-    return fsw, res, [line] if line else []
+    extra = [line for line in (bus_counters_line(bus), state.summary_line() if state else None) if line]
+    return fsw, res, extra
+
+
+def boot_id() -> str | None:
+    """This boot's id (Linux), which tells a restart of the service from a reboot; None elsewhere."""
+    try:
+        with open("/proc/sys/kernel/random/boot_id") as f:
+            return f.read().strip() or None
+    except OSError:
+        return None
 
 
 def main(argv=None) -> int:
