@@ -61,7 +61,7 @@ def require_gpiod():
         import gpiod  # noqa: PLC0415 - the target extra, imported only when lines are opened
     except ImportError:
         raise GpioError("GPIO lines need the gpiod package (libgpiod v2), not installed: "
-                        "pip install 'debris-box[target]' on the flight computer") from None
+                        "pip install '.[target]' in the repository on the flight computer") from None
     if not hasattr(gpiod, "request_lines"):
         raise GpioError("the gpiod package installed is libgpiod v1's; v2 (gpiod >= 2.1) is needed")
     return gpiod

@@ -45,8 +45,8 @@ def require_spidev():
     try:
         import spidev  # noqa: PLC0415 - the target extra, imported only when SPI is used
     except ImportError:
-        raise MissingLibrary("SPI needs the spidev package, not installed: pip install 'debris-box[target]' "
-                             "on the flight computer") from None
+        raise MissingLibrary("SPI needs the spidev package, not installed: pip install '.[target]' in the "
+                             "repository on the flight computer") from None
     return spidev
 
 
