@@ -159,7 +159,12 @@ class PtyBridge:
 
 class RealTimeDevice:
     """The simulator's chip in wall-clock time: before each transfer the simulation is advanced to
-    the time elapsed since `start`, so a driver on the other side of the pty sees a live sensor."""
+    the time elapsed since `start`, so a driver on the other side of the pty sees a live sensor.
+
+    The wall clock (`clock`, the machine's monotonic clock that the flight software on the other side
+    reads too) is the box's clock: with a scenario's [clock] (`hil.box_clock`) the world runs on true
+    time, the box's clock reading ``sim.clock.start_s`` when the world starts and gaining its drift, as
+    in SITL (`hil.sitl.box_t0_s`): after a wall time e the world is at ``sim.clock.true_s(start_s + e)``."""
 
     def __init__(self, sim, clock=None) -> None:
         import time
@@ -169,7 +174,8 @@ class RealTimeDevice:
         self._t0 = self._clock()
 
     def _sync(self) -> None:
-        self.sim.advance_to(max(self.sim.t_s, self._clock() - self._t0))
+        c = self.sim.clock
+        self.sim.advance_to(max(self.sim.t_s, c.true_s(c.start_s + self._clock() - self._t0)))
 
     def read_registers(self, address: int, count: int) -> bytes:
         self._sync()
