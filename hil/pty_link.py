@@ -166,12 +166,14 @@ class RealTimeDevice:
     time, the box's clock reading ``sim.clock.start_s`` when the world starts and gaining its drift, as
     in SITL (`hil.sitl.box_t0_s`): after a wall time e the world is at ``sim.clock.true_s(start_s + e)``."""
 
-    def __init__(self, sim, clock=None) -> None:
+    def __init__(self, sim, clock=None, start: float | None = None) -> None:
+        """`clock`: the wall clock (default `time.monotonic`); `start`: its reading at which the world is at
+        true time 0 (default: now)."""
         import time
 
         self.sim = sim
         self._clock = clock or time.monotonic
-        self._t0 = self._clock()
+        self._t0 = self._clock() if start is None else float(start)
 
     def _sync(self) -> None:
         c = self.sim.clock
