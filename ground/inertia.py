@@ -53,6 +53,7 @@ from fsw.estimation import euler_fit as ef
 from fsw.estimation import field_check as fc
 from fsw.estimation import inertia as inr
 from fsw.estimation import sampled_moment as sm
+from fsw.estimation.tle import TleError, parse_tle
 from fsw.files import write_atomic
 
 from . import magcal as gm
@@ -358,6 +359,12 @@ def run_cli(input_path: str, output_path: str, args) -> int:
     if tle and args.scenario:
         print("ground.inertia: give --scenario or --tle, not both", file=sys.stderr)
         return 2
+    if tle:
+        try:
+            parse_tle(*tle)
+        except TleError as e:
+            print(f"ground.inertia: --tle: {e}", file=sys.stderr)
+            return 2
     try:
         rec = read_recording(input_path)
         fc.check(rec.b_T, str(input_path))             # units first: they matter more than a missing orbit
