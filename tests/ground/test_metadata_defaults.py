@@ -96,7 +96,7 @@ def test_the_orbit_comes_from_the_metadata_unless_the_command_line_says_otherwis
 def test_without_an_orbit_the_methods_that_would_use_it_widen_their_sigma(host_record, tmp_path, capsys):
     path, t, truth, *_ = host_record
     lab = tmp_path / "lab.csv"
-    write_recording(lab, Recording(t[:120], truth[:120], metadata={"source": "lab"}))
+    write_recording(lab, Recording(t[:50], truth[:50], metadata={"source": "lab"}))
     out = tmp_path / "r.csv"
     assert ge.main([str(lab), "--rates", str(out), "--method", "smoother", "--sigma-uT", "1"]) == 0
     text = capsys.readouterr().out
