@@ -123,6 +123,18 @@ class BoxKnowledge:
                        "magcal_t_s": f"{self.magcal_t_s:.6f}"}
         return True
 
+    def summary(self) -> str:
+        """One line of what is known ("" when nothing), for the decoder's summary."""
+        parts = []
+        if self.utc0_s is not None:
+            parts.append(f"UTC of t = 0 {iso_utc(self.utc0_s)} ({self.utc0_from})")
+        if self.tle is not None:
+            parts.append(f"TLE {self.tle[0][2:7].strip()}" + (f" ({self.tle_state})" if self.tle_state else ""))
+        if self.magcal:
+            parts.append(f"calibration {self.magcal_state} at t = {self.magcal_t_s:.0f} s, hard iron "
+                         f"{self.magcal['magcal_hard_iron_uT']} µT")
+        return "; ".join(parts)
+
     def metadata(self) -> dict[str, str]:
         """The recording's ``# key: value`` entries for what is known (in `KEYS` order)."""
         out: dict[str, str] = {}

@@ -452,6 +452,9 @@ class Decoder:
                 else:
                     lost = "none missing"
                 out.append(f"magnetometer samples recorded from {who}{run}: {rep['samples']}{late}; {lost}")
+                said = seg.knowledge.summary()
+                if said:
+                    out.append(f"what the box knew ({who}{run}), in the recording's metadata: {said}")
         if self.requests_sent:
             out.append(f"requests for missing samples sent: {self.requests_sent}")
         if self.verifier is not None:

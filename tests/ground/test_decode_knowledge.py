@@ -18,7 +18,7 @@ from ground.recording import read_recording
 from support import circular_tle, free_udp_port
 from test_decode_recording import Box, feed, rows, start_decoder
 
-UTC_AT_0 = 1795780800.25          # 2026-11-27T08:00:00.25Z, POSIX s
+UTC_AT_0 = 1795780800.25          # 2026-11-27T12:00:00.25Z, POSIX s
 L1, L2 = circular_tle(epoch="26330.00000000")
 NEWER = circular_tle(epoch="26331.00000000")
 
@@ -61,6 +61,9 @@ def test_what_the_box_knew_is_in_the_metadata_and_the_field_follows_from_it(tmp_
     D = np.array(md["magcal_soft_iron"].split(","), float).reshape(3, 3)
     np.testing.assert_allclose(D, [[0.01, 0.004, 0.005], [0.004, -0.02, 0.006], [0.005, 0.006, 0.03]], atol=1e-7)
     assert "hard_iron_uT" not in md and "soft_iron" not in md      # the samples are the sensor's own
+    line = next(x for x in dec.summary_text().splitlines() if x.startswith("what the box knew"))
+    assert "UTC of t = 0 2026-11-27T12:00:00.250000Z (DEBRIS_TIME_ORBIT)" in line and "TLE 99999 (ok)" in line
+    assert "calibration converged at t = 0 s, hard iron 6.0, -9.0, 4.0 µT" in line
     field = fm.field_from_metadata(md)                               # the ground's field along that orbit
     assert field is not None and np.all(np.isfinite(field.b_eci_T(np.array([0.0, 60.0]))))
 
