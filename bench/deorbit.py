@@ -6,7 +6,9 @@ one process and in lockstep: the simulator (rigid body, orbit, field, aerodynami
 torques, the magnets' M = p × B; `hil.deorbit_sim`) and the kit emulator (steppers, shutters, switches;
 `hil.deorbit_kit`) are advanced to the loop time, then the whole flight software ticks on the same clock
 (telemetry into a null link), its de-orbit application at 10 Hz: drivers → sequencer (interlocks,
-recovery) → controller.
+recovery) → controller. With a scenario's [clock] (`hil.box_clock`) the loop runs on the box's clock
+from `hil.sitl.box_t0_s` and the simulator on the true time it means (`Sitl.advance`), as in SITL; faults
+and the trace are on true time (the world's).
 The controller is started with the ground command MAV_CMD_DEBRIS_CONTROLLER through the same handler the
 uplink uses. The controller's attitude comes from the simulation truth (the paper assumes it too).
 
@@ -203,16 +205,17 @@ def run_bench(scenario_name: str = DEFAULT_SCENARIO, *, duration_s: float | None
     every = max(1, int(round(rate_hz)))
     wall0 = time.perf_counter()
     for k in range(n + 1):
-        t = k * step
-        sim.advance_to(t)
+        t_box = box.t0_s + k * step
+        box.advance(t_box)
+        t = sim.t_s  # true time: the world's
         while pending and pending[0].t_s <= t:
             f = pending.pop(0)
             sim.kit.inject(f.channel, f.kind, f.value)
         if k == 0:
-            result = kit.handle_command(start, t)
+            result = kit.handle_command(start, t_box)
             if result != mavlink.MAV_RESULT_ACCEPTED:
                 raise RuntimeError(f"controller start refused: MAV_RESULT {result}")
-        fsw.tick(t)
+        fsw.tick(t_box)
         if k % every == 0:
             R_bo, _, b_body = sim.attitude_orbital()
             yaw, pitch, roll = euler_zyx(R_bo)

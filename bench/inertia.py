@@ -95,17 +95,24 @@ class TruthRecord:
 
 
 def truth_record(name: str, duration_s: float, phase_s: float = 0.5) -> TruthRecord:
-    """The noise-free samples of a scenario: field, rate, attitude and moment at the sample times."""
+    """The noise-free samples of a scenario: field, rate, attitude and moment at the sample times.
+
+    The sample times are the box's clock (a scenario's [clock], `hil.box_clock`: from its first reading
+    `start_s`, as in SITL), the truth is the world's at the true time each means; the known moment's
+    pulses (true time in the scenario) are put on the box's clock too, and the field model is evaluated
+    at the box's time, as the box and a ground without the clock's error would."""
     scn = scenarios.load(name)
+    clock = scn.clock
     dt = 1.0 / scn.sample_rate_hz
     sim = Simulator(scn, seed=0, max_step_s=min(0.5, dt / 2))
-    t = phase_s + dt * np.arange(int((duration_s - phase_s) / dt) + 1)
+    t = clock.start_s + phase_s + dt * np.arange(int((duration_s - phase_s) / dt) + 1)
     b, w, q, m = (np.zeros((len(t), k)) for k in (3, 3, 4, 3))
     for i, tk in enumerate(t):
-        sim.advance_to(tk)
+        sim.advance_to(clock.true_s(tk))
         tr = sim.truth()
         b[i], w[i], q[i], m[i] = tr.b_body_T, tr.omega_radps, tr.q_body_to_eci, tr.moment_Nm
-    action = ef.KnownAction.pulses([(p.start_s, p.duration_s, p.moment_Nm) for p in scn.torques])
+    action = ef.KnownAction.pulses([(clock.box_s(p.start_s), p.duration_s * clock.rate, p.moment_Nm)
+                                    for p in scn.torques])
     sigma = math.hypot(scn.noise_T, BANDWIDTH[scn.bandwidth_hz].noise_rms_T)
     return TruthRecord(scn, t, b, w, q, m, sigma, field_model(scn).b_eci_T, action)
 
@@ -132,8 +139,9 @@ def free_interval(tr: TruthRecord) -> np.ndarray:
 
 
 def pulses(tr: TruthRecord) -> list[tuple[float, float]]:
-    """(start, end) [s] of the scenario's torque pulses."""
-    return [(p.start_s, p.start_s + p.duration_s) for p in tr.scenario.torques]
+    """(start, end) [s] of the scenario's torque pulses, on the box's clock (the record's)."""
+    c = tr.scenario.clock
+    return [(c.box_s(p.start_s), c.box_s(p.start_s + p.duration_s)) for p in tr.scenario.torques]
 
 
 def shape_data(tr: TruthRecord, shape_from: str) -> tuple[np.ndarray, list[tuple[float, float]]]:
@@ -148,7 +156,7 @@ def shape_data(tr: TruthRecord, shape_from: str) -> tuple[np.ndarray, list[tuple
 
 
 def _true_moments(tr: TruthRecord, unknown) -> np.ndarray | None:
-    by = {(p.start_s, p.start_s + p.duration_s): p.moment_Nm for p in tr.scenario.torques}
+    by = dict(zip(pulses(tr), (p.moment_Nm for p in tr.scenario.torques)))
     return np.array([by[u] for u in unknown]) if unknown else None
 
 
@@ -301,8 +309,9 @@ def _kappa_paper(tr: TruthRecord, bm: np.ndarray, p_guess: np.ndarray, bs: np.nd
     """κ by eq. 17–19 of the cellular paper: shape and the rates on each side of the impulse from
     torque-free fits of each side."""
     pulse = tr.scenario.torques[0]
-    before = tr.t_s < pulse.start_s
-    after = tr.t_s >= pulse.start_s + pulse.duration_s
+    (start, end), = pulses(tr)
+    before = tr.t_s < start
+    after = tr.t_s >= end
     o = ef.FitOptions(mode="shape")
     pre = ef.identify(tr.t_s[before], bm[:, before], tr.b_inertial, ef.KnownAction.none(), tr.sigma_b_T, p_guess, o,
                       b_samples=bs[before])

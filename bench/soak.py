@@ -283,8 +283,10 @@ def run(duration_s: float = 3600.0, *, seed: int = 1, scenario: str = "isoi", ra
                 ok = decoder.verifier.counts[Verdict.OK] > before
                 commander.on_message(msg, Verdict.OK if ok else None)
 
+    # everything on the box's clock (a scenario's [clock]: from hil.sitl's first reading, the schedule and
+    # the ground's time stamps too), the simulator on the true time it means, as in SITL
     for k in range(n_ticks):
-        t = k * period
+        t = box.t0_s + k * period
         for what, f in injector.update(t):
             if what == "start":
                 rec = FaultRecord(f.kind, f.start_s, f.duration_s, f.severity, math.inf)
@@ -298,7 +300,7 @@ def run(duration_s: float = 3600.0, *, seed: int = 1, scenario: str = "isoi", ra
                 rec.marks["end"] = _fault_marks(fsw, decoder)
                 rec.deadline_s = t + 10.0 + 0.5 * f.duration_s
                 watching.append(rec)
-        sim.advance_to(t)
+        box.advance(t)
         flooder.tick(t, period, fsw.scheduler.stats.overruns)
         spoofer.tick(t, fsw.uplink)
         tlm_before = fsw.tlm_samples
@@ -323,9 +325,9 @@ def run(duration_s: float = 3600.0, *, seed: int = 1, scenario: str = "isoi", ra
             progress(f"t={t:7.0f} s  faults {len(records)}  frames {tlm.frames_sent}  "
                      f"buffered {tlm.store.buffered}")
     link.flush_held()
-    ground(duration_s)
+    ground(box.t0_s + duration_s)
     for msg in deframer.flush():
-        decoder.handle(msg, UNIX0_S + duration_s)
+        decoder.handle(msg, UNIX0_S + box.t0_s + duration_s)
         if msg.get_type() != "BAD_DATA":
             tlog_frames += 1
     for rec in watching + list(open_records.values()):
@@ -420,8 +422,11 @@ def _figures(v: dict) -> dict:
     obeyed = sum(n for nonce, n in execs.items() if nonce not in genuine) + sum(n - 1 for n in execs.values() if n > 1)
     st = fsw.scheduler.stats
     w_us = v["work"] * 1e6
+    clock = v["sim"].clock
     return {
         "sim_seconds": v["duration_s"],
+        "box_clock": {"offset_s": clock.offset_s, "drift_ppm": clock.drift_ppm, "box_end_s": v["t"],
+                      "true_end_s": v["sim"].t_s},
         "wall_seconds": round(time.perf_counter() - v["wall0"], 2),
         "seed": v["seed"], "scenario": v["scenario"], "loop_rate_hz": v["rate_hz"],
         "faults_injected": dict(sorted(injected.items())),

@@ -27,7 +27,10 @@ An onboard application (`fsw.app.App`, task "timeorbit", 1 Hz) around the pure p
   which), ts1 mirrored: the ground sees the time it set, and the round trip.
 - **Telemetry**: SYSTEM_TIME (the UTC estimate, 1 Hz) and DEBRIS_TIME_ORBIT (offset age, drift, TLE
   epoch, age and state, counters, field degree; every `status_period_s`, and at once after a time
-  set, a TLE loaded or a refusal, so that the ground sees the effect of what it sent).
+  set, a TLE loaded or a refusal, so that the ground sees the effect of what it sent); the TLE in
+  force itself as DEBRIS_TLE (target 0) every `tle_period_s` and at once when it is put in force or
+  read from the TLE file, so that the ground's recordings carry the orbit the box flies (a receiver
+  that joins late has it within a minute; 165 bytes a minute).
 
 Time is the loop's ``now_s`` (the monotonic clock on target, the simulator's in SITL); nothing reads
 the wall clock.
@@ -78,6 +81,7 @@ class TimeOrbit:
     rate_hz = 1.0
     budget = 0.5  # a batch of knots (SGP4 + IGRF): ~2–5 ms once a minute
     status_period_s = 5.0
+    tle_period_s = 60.0
 
     def __init__(self, *, tle_file: str | Path | None = None, max_tle_age_d: float = DEFAULT_TLE_MAX_AGE_D,
                  degree: int = FLIGHT_DEGREE, knot_step_s: float = KNOT_STEP_S,
@@ -100,6 +104,7 @@ class TimeOrbit:
         self._staged: tuple[str, str] | None = None
         self._field: OnboardOrbitField | None = None
         self._next_status_s = -math.inf
+        self._next_tle_s = -math.inf
         self._router = None
         load_coefficients()  # at start-up, not in the tick that first needs the field
         if self.tle_file is not None:
@@ -156,6 +161,9 @@ class TimeOrbit:
         if now_s >= self._next_status_s:
             tlm.time_orbit(now_s, **self.message_fields(now_s))
             self._next_status_s = now_s + self.status_period_s
+        if self.tle is not None and now_s >= self._next_tle_s:
+            tlm.tle(self.tle.line1, self.tle.line2)
+            self._next_tle_s = now_s + self.tle_period_s
 
     # --- time ----------------------------------------------------------------------------------------
     def on_system_time(self, msg, now_s: float, authenticated: bool) -> None:
@@ -232,7 +240,7 @@ class TimeOrbit:
         self.tle = tle
         self.tle_loaded += 1
         self._field = None
-        self._next_status_s = -math.inf
+        self._next_status_s = self._next_tle_s = -math.inf
         self.tle_persisted = False
         if self.tle_file is not None:
             try:

@@ -28,6 +28,10 @@ Outputs
   fields_updated from other systems; gauss → µT) in recording format v1, time = the flight software's
   sample time; with DEBRIS_SIM_STATE present (SITL) the reference rate w*_dps and the applied moment
   m*_Nm of the same sample (matched on time_usec; NaN for a sample whose truth frame was lost).
+  The recording's metadata carries what the box knew (`ground.box_knowledge`): the UTC of t = 0
+  (``utc0``), the TLE it flies (``tle_line1``, ``tle_line2``), its field model, and its last host
+  calibration (``magcal_*``: not applied to the samples, which are the sensor's own); what arrives after
+  the file was started is appended as ``# key: value`` lines (`ground.recorder`).
 - ``--rates-csv``: the onboard estimates of the selected method, one row per magnetometer sample, NaN
   where none arrived or the estimate is flagged DEBRIS_ESTIMATE_FLAGS_NO_ESTIMATE.
 The CSVs are written while the frames arrive, one file per run of each source's flight software
@@ -89,6 +93,8 @@ METHOD_NAMES = {value: name for name, value in METHODS.items()}
 T_PER_GAUSS = 1e-4
 #: Messages whose time_usec is the magnetometer sample time.
 SAMPLE_MESSAGES = frozenset({"DEBRIS_MAG_SAMPLE", "HIGHRES_IMU", "DEBRIS_RATE_ESTIMATE", "DEBRIS_SIM_STATE"})
+#: Messages of what the box knows: time, orbit, calibration (`ground.box_knowledge`).
+KNOWLEDGE_MESSAGES = frozenset({"DEBRIS_TIME_ORBIT", "SYSTEM_TIME", "DEBRIS_TLE", "DEBRIS_MAGCAL"})
 #: how often missing samples are asked for and settled rows written
 SERVICE_PERIOD_S = 0.5
 #: with no way to ask the box (a .tlog, no uplink), how long a missing sample is waited for
@@ -176,6 +182,8 @@ class Decoder:
                     stream.store_status(msg)
             elif kind == "DEBRIS_INERTIA_ESTIMATE":
                 self._inertia(msg)
+            elif kind in KNOWLEDGE_MESSAGES:
+                self._knowledge(kind, msg)
         self.tick(now_s)
 
     def _stream(self, msg, create: bool = True) -> Stream | None:
@@ -191,6 +199,26 @@ class Decoder:
         while stream.restarts:
             who = f"{stream.source[0]}/{stream.source[1]}: " if len(self.streams) > 1 else ""
             self._say(who + stream.restarts.pop(0))
+
+    def _knowledge(self, kind: str, msg) -> None:
+        """What the box says it knows (`ground.box_knowledge`), kept with the run it belongs to; values that
+        cannot be used are counted in ``invalid`` and left out."""
+        if kind == "DEBRIS_TLE":
+            if msg.target_system != 0:
+                return  # a station staging a TLE on a box (an uplink seen on a shared link), not the box's own
+            t_us = None
+        elif kind == "SYSTEM_TIME":
+            t_us = int(msg.time_boot_ms) * 1000
+        else:
+            t_us = int(msg.time_usec)
+        stream = self._stream(msg)
+        if stream is None:
+            return
+        k = stream.knowledge(t_us)
+        ok = (k.time_orbit(msg) if kind == "DEBRIS_TIME_ORBIT" else k.tle_lines(msg) if kind == "DEBRIS_TLE"
+              else k.calibration(msg) if kind == "DEBRIS_MAGCAL" else k.system_time(msg) or True)
+        if not ok:
+            self.invalid[kind] += 1
 
     def _inertia(self, msg) -> None:
         """DEBRIS_INERTIA_ESTIMATE (the identification experiment's running/final estimate), kept in
@@ -357,6 +385,7 @@ class Decoder:
             meta["run_id"] = f"{seg.run_id:#010x}"
         if runs > 1:
             meta["segment"] = f"run {index + 1} of {runs} runs of the flight software seen in the stream"
+        meta.update(seg.knowledge.metadata())
         return meta
 
     def rate_metadata(self, seg: Segment | None = None) -> dict[str, str]:
@@ -423,6 +452,9 @@ class Decoder:
                 else:
                     lost = "none missing"
                 out.append(f"magnetometer samples recorded from {who}{run}: {rep['samples']}{late}; {lost}")
+                said = seg.knowledge.summary()
+                if said:
+                    out.append(f"what the box knew ({who}{run}), in the recording's metadata: {said}")
         if self.requests_sent:
             out.append(f"requests for missing samples sent: {self.requests_sent}")
         if self.verifier is not None:

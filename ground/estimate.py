@@ -16,11 +16,18 @@ and Gauss–Markov, for a slow libration; need an orbit for the field's motion u
 is fixed), smoother (RTS), euler (batch torque-free fit), auto (euler when it explains the data, else
 smoother).
 
-The field: fixed in inertial space unless an orbit is given — `--scenario NAME|FILE` (a SITL scenario's
-orbit and field epoch; the recording's t = 0 is the scenario's) or `--tle LINE1 LINE2 --utc0 ISO`.
+The field along the orbit (`ground.field.recording_field`, said on the first line): `--scenario NAME|FILE` (a
+SITL scenario's orbit and field epoch; the recording's t = 0 is the scenario's) or `--tle LINE1 LINE2
+--utc0 ISO` (or `--utc0` alone: the recording's TLE at another t = 0), else the recording's metadata
+(the TLE and utc0 `ground.decode` writes, or a circular orbit). Without any, the field's direction is
+assumed fixed in inertial space — the papers' assumption; on a low orbit it turns at about twice the
+orbital rate — and the σ of the methods that would use the orbit (kalman-orbit, kalman-euler, kalman-mm,
+smoother, euler, auto) is widened per axis by that turn, `--field-turn-dps` (default 0.126 °/s, a low
+orbit; 0.0042 for a laboratory, the Earth's rotation), in quadrature. The other methods never use the orbit.
 
 The host's hard and soft iron: `--magcal FILE.json` applies a calibration to the samples first,
-`--estimate-magcal` estimates it from the recording along its orbit (`ground/magcal.py`).
+`--estimate-magcal` estimates it from the recording along its orbit, and without either the calibration in
+the recording's metadata (the box's) is applied unless `--no-magcal` (`ground/magcal.py`).
 """
 from __future__ import annotations
 
@@ -38,16 +45,17 @@ from fsw.estimation import filter_banks as fb
 from fsw.estimation import kotelnikov as ko
 from fsw.estimation import rate_formulas as rf
 from fsw.estimation import rate_kalman as rk
-from fsw.estimation import field_motion as fm
 from fsw.estimation.tle import TleError, parse_tle
 from ground import magcal as gm
 from ground import smoother as sm
-from ground.field import scenario_field, tle_field
+from ground.field import LEO_FIELD_TURN_DPS, recording_field, scenario_field, tle_field
 from ground.recording import RateEstimates, Recording, RecordingError, read_recording, write_rate_estimates
 
 METHODS = ("boer", "boer-printed", "derivative", "kotelnikov", "kotelnikov-paper", "kalman", "kalman-orbit",
            "kalman-euler", "kalman-mm", "smoother", "euler", "auto")
 PERPENDICULAR = ("boer", "boer-printed")
+#: the methods that use the field along the orbit when there is one
+ORBIT_METHODS = ("kalman-orbit", "kalman-euler", "kalman-mm", "smoother", "euler", "auto")
 #: samples a method needs for its first estimate: two for a difference, three for a second one (and for
 #: the full vector of the filters and smoothers, which ΔB of one step does not fix)
 MIN_SAMPLES = {m: 2 if m in PERPENDICULAR or m.startswith("kalman") else 3 for m in METHODS}
@@ -120,6 +128,12 @@ def estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, fie
             notes["inertia_shape"] = " ".join(f"{v:.4f}" for v in res.inertia_shape)
         return res.w_radps, res.sigma_radps, notes
     raise ValueError(f"unknown method {method!r}")
+
+
+def widen_for_field_turn(sigma_radps: np.ndarray, turn_dps: float) -> np.ndarray:
+    """σ with the field's unseen turn in inertial space added per axis in quadrature: a method that takes
+    the field as fixed sees the body's rate relative to the field's frame, off by that turn."""
+    return np.sqrt(sigma_radps ** 2 + math.radians(turn_dps) ** 2)
 
 
 def _diag_sigma(cov: np.ndarray) -> np.ndarray:
@@ -229,7 +243,11 @@ def main(argv=None) -> int:
                     help="keep one sample per 1/HZ s first (mimic a slower sensor)")
     ap.add_argument("--scenario", metavar="NAME|FILE", help="the field along this SITL scenario's orbit")
     ap.add_argument("--tle", nargs=2, metavar=("LINE1", "LINE2"), help="the field along a TLE's orbit")
-    ap.add_argument("--utc0", type=iso_time, help="with --tle: UTC of the recording's t = 0, ISO 8601")
+    ap.add_argument("--utc0", type=iso_time, help="UTC of the recording's t = 0, ISO 8601 (with --tle; alone: "
+                                                  "the recording's TLE at this t = 0)")
+    ap.add_argument("--field-turn-dps", type=finite_float(0), default=LEO_FIELD_TURN_DPS, metavar="DPS",
+                    help="without an orbit: the field's turn in inertial space allowed for in the σ of the methods "
+                         f"that would use the orbit (default {LEO_FIELD_TURN_DPS} °/s, a low orbit)")
     ap.add_argument("--known-inertia", metavar="I", type=inertia_tensor,
                     help="known tensor for euler/kalman-euler: 'Ixx,Iyy,Izz' or 9 values, kg·m²")
     gm.add_arguments(ap)
@@ -252,23 +270,27 @@ def main(argv=None) -> int:
         except ValueError as e:
             ap.error(f"--plot {e}")
     try:
-        field = field_from_args(args)
         rec = read_recording(args.input)
+        field, orbit_how = recording_field(rec.metadata, scenario=args.scenario, tle=args.tle, utc0=args.utc0)
+        print(f"field: {orbit_how}")
         check_samples(rec, args.method)
         if args.decimate_hz:
             rec = decimate(rec, args.decimate_hz)
             check_samples(rec, args.method)
         sigma = args.sigma_uT * 1e-6 if args.sigma_uT is not None else noise_estimate_T(rec.b_T)
-        rec, calibrated = gm.calibrate(rec, args, field if field is not None or not args.estimate_magcal
-                                       else fm.field_from_metadata(rec.metadata), sigma)
+        rec, calibrated = gm.calibrate(rec, args, field, sigma)
         if calibrated:
             print(calibrated)
         warn_field(rec, args.input, field)
         inertia = args.known_inertia
         w, s, notes = estimate(args.method, rec.t_s, rec.b_T, sigma, field=field, inertia_kgm2=inertia)
+        if field is None and args.method in ORBIT_METHODS and args.field_turn_dps > 0:
+            s = widen_for_field_turn(s, args.field_turn_dps)
+            notes["sigma_widened"] = (f"by {args.field_turn_dps:g} °/s per axis in quadrature: the field's turn in "
+                                      "inertial space, which no orbit gives (--field-turn-dps)")
         meta = {"source": f"python -m ground.estimate {args.input}", "method": args.method,
                 "sigma_uT": f"{sigma * 1e6:.4g}" + ("" if args.sigma_uT is not None else " (estimated)"),
-                "field": "along the orbit" if field is not None else "fixed in inertial space"}
+                "field": "along the orbit" if field is not None else "fixed in inertial space", "orbit": orbit_how}
         if calibrated:
             meta["magcal"] = calibrated
         meta.update({k: str(v) for k, v in notes.items()})

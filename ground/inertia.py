@@ -10,10 +10,22 @@ centre of mass, sensor axes; from the simulation truth in SITL, from the tug's l
 Euler's equations and the attitude kinematics are integrated with the candidate tensor and fitted to
 the samples themselves (`fsw.estimation.euler_fit`: multiple shooting, then single shooting): no rate
 is differentiated, so no errors-in-variables bias. The inertial field along the orbit comes from the
-flight copy of the field model (`ground.field`) for the orbit of ``--scenario`` or of the recording's metadata
-(``# orbit_altitude_km:``, ``# orbit_inclination_deg:``, ``# orbit_raan_deg:``,
+flight copy of the field model (`ground.field.recording_field`, said on the first line) for the orbit of
+``--scenario``, of ``--tle``/``--utc0`` (``--utc0`` alone: the recording's TLE at another t = 0), or of the
+recording's metadata (the ``tle_line1``/``tle_line2``/``utc0`` that `ground.decode` writes, or a circular
+orbit: ``# orbit_altitude_km:``, ``# orbit_inclination_deg:``, ``# orbit_raan_deg:``,
 ``# orbit_arg_lat0_deg:``, ``# field_epoch_year:``; ``t_s`` = 0 at the orbit's epoch, the Earth rotation
 angle 0 there).
+
+Without an orbit (a laboratory file, an old export) the fit still runs, as in sedelnikov2023, on the
+assumption that the field's direction is fixed in inertial space, its magnitude the recording's own
+(|B| does not depend on the attitude: a cubic in time through the samples' |B|). On a low orbit the
+direction turns at about twice the orbital rate, which that assumption ignores, so the intervals are
+widened for it: the fit is repeated with the field turning at ``--field-turn-dps`` (default 0.126 °/s,
+`ground.field.LEO_FIELD_TURN_DPS`; 0.0042 for a laboratory, the Earth's rotation; 0: no widening) about
+each inertial axis in turn, and the three shifts of the tensor are added to its covariance
+(Σ_k d_k d_kᵀ: a turn of that size about any axis). Three more fits: the run takes about four times as
+long. The JSON says so in ``field_turn``; the running estimate of ``--plot`` is not widened.
 
 The host's hard and soft iron are taken out of the samples first with ``--magcal FILE.json`` or
 ``--estimate-magcal`` (`ground/magcal.py`; the JSON then says which in ``magcal``).
@@ -39,14 +51,13 @@ import numpy as np
 from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range
 from fsw.estimation import euler_fit as ef
 from fsw.estimation import field_check as fc
-from fsw.estimation import field_motion as fm
-from fsw.estimation.onboard_field import flight_field
 from fsw.estimation import inertia as inr
 from fsw.estimation import sampled_moment as sm
+from fsw.estimation.tle import TleError, parse_tle
 from fsw.files import write_atomic
 
 from . import magcal as gm
-from .field import scenario_field
+from .field import LEO_FIELD_TURN_DPS, recording_field, scenario_field
 from .plot import check_plot_path, save_figure
 from .recording import Recording, RecordingError, read_recording
 
@@ -66,24 +77,71 @@ class InertiaReport:
     source: str = ""
 
 
-def field_model(scenario: str | None = None, metadata: dict | None = None) -> tuple[Callable, np.ndarray | None, str]:
-    """B_I(t) along the orbit of a scenario (name or TOML) or of the recording metadata; also the truth
-    tensor (scenario only) and a description."""
+def field_model(scenario: str | None = None, metadata: dict | None = None, *, tle=None, utc0=None
+                ) -> tuple[Callable | None, np.ndarray | None, str]:
+    """B_I(t) along the orbit of a scenario (name or TOML), of `tle`/`utc0` or of the recording metadata
+    (`ground.field.recording_field`), None without one; also the truth tensor (scenario only) and a
+    description."""
     if scenario:
         field, scn = scenario_field(scenario)
         return field.b_eci_T, inr.params(scn.inertia_kgm2), f"scenario {scn.name}"
-    md = metadata or {}
-    missing = [k for k in ORBIT_KEYS if k not in md]
-    if missing:
-        raise ValueError("no orbit for the field model: give --scenario, or the recording metadata "
-                         + ", ".join(f"'# {k}: ...'" for k in missing))
-    try:
-        v = {k: float(md[k]) for k in ORBIT_KEYS}
-    except ValueError as e:
-        raise ValueError(f"orbit metadata is not a number: {e}") from None
-    orbit = fm.CircularOrbitModel(v["orbit_altitude_km"] * 1e3, v["orbit_inclination_deg"], v["orbit_raan_deg"],
-                                  v["orbit_arg_lat0_deg"])
-    return flight_field(orbit, v["field_epoch_year"]).b_eci_T, None, "recording metadata"
+    field, how = recording_field(metadata or {}, tle=tle, utc0=utc0)
+    return (None if field is None else field.b_eci_T), None, how
+
+
+def fixed_field(rec: Recording) -> Callable:
+    """A field fixed in direction (inertial z) with the recording's own magnitude, a cubic in time through
+    the samples' |B| (the magnitude does not depend on the attitude): the field model of a recording
+    without an orbit."""
+    t = rec.t_s
+    t_mid, span = 0.5 * (t[0] + t[-1]), max(0.5 * (t[-1] - t[0]), 1e-9)
+    coef = np.polyfit((t - t_mid) / span, np.linalg.norm(rec.b_T, axis=1), min(3, len(t) - 1))
+
+    def b_inertial(ts):
+        ts = np.asarray(ts, float)
+        out = np.zeros(ts.shape + (3,))
+        out[..., 2] = np.polyval(coef, (ts - t_mid) / span)
+        return out
+
+    return b_inertial
+
+
+def turning(b_inertial: Callable, w_radps: np.ndarray, t_mid_s: float) -> Callable:
+    """`b_inertial` turned at the constant rate `w_radps` (inertial axes) about its value at `t_mid_s`."""
+    from scipy.spatial.transform import Rotation
+
+    def b(ts):
+        ts = np.asarray(ts, float)
+        flat = np.atleast_1d(ts)
+        out = Rotation.from_rotvec(np.outer(flat - t_mid_s, w_radps)).apply(np.asarray(b_inertial(flat)).reshape(-1, 3))
+        return out.reshape(ts.shape + (3,))
+
+    return b
+
+
+def widen_for_field_turn(rec: Recording, report: InertiaReport, b_fixed: Callable, turn_dps: float,
+                         log: Callable[[str], None] | None = None, **fit) -> None:
+    """Add to the estimate's covariance what the field's unseen turn may do to it: refits with the field
+    turning at `turn_dps` about each inertial axis, Σ_k d_k d_kᵀ of the tensor's shifts (see the module's
+    docstring); `fit`: the options of :func:`run`."""
+    w = math.radians(turn_dps)
+    t_mid = 0.5 * (rec.t_s[0] + rec.t_s[-1])
+    shifts = []
+    for k in range(3):
+        if log:
+            log(f"refit with the field turning at {turn_dps:g} °/s about inertial axis {'xyz'[k]}")
+        axis = np.zeros(3)
+        axis[k] = w
+        shifts.append(run(rec, turning(b_fixed, axis, t_mid), running_points=0, **fit).estimate.p
+                      - report.estimate.p)
+    d = np.array(shifts)
+    est = report.estimate
+    before = est.ci95.copy()
+    est.cov = est.cov + d.T @ d
+    est.extra["field_turn"] = {
+        "assumed": "no orbit: the field's direction fixed in inertial space; intervals widened for a turn of "
+                   f"{turn_dps:g} deg/s about any inertial axis",
+        "turn_dps": turn_dps, "shift_kgm2": d.tolist(), "ci95_before_kgm2": before.tolist()}
 
 
 def known_action(rec: Recording, hold: str = "centered") -> ef.KnownAction:
@@ -254,8 +312,16 @@ def main(argv: list[str] | None = None) -> int:
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
     """The options of the inertia fit (shared with ``python -m ground.estimate --inertia``)."""
+    from .estimate import iso_time
+
     ap.add_argument("--scenario", metavar="NAME|FILE",
                     help="take the orbit (field model) and the truth from a SITL scenario")
+    ap.add_argument("--tle", nargs=2, metavar=("LINE1", "LINE2"), help="the field along a TLE's orbit (with --utc0)")
+    ap.add_argument("--utc0", type=iso_time, help="UTC of the recording's t = 0, ISO 8601 (with --tle; alone: "
+                                                  "the recording's TLE at this t = 0)")
+    ap.add_argument("--field-turn-dps", type=finite_float(0), default=LEO_FIELD_TURN_DPS, metavar="DPS",
+                    help="without an orbit: the field's turn in inertial space the intervals allow for "
+                         f"(default {LEO_FIELD_TURN_DPS} °/s, a low orbit; 0: none)")
     ap.add_argument("--sigma-uT", type=finite_float(0, min_exclusive=True), default=1.5,
                     help="1-σ field noise per axis, > 0 (default 1.5 µT)")
     ap.add_argument("--diag", action="store_true",
@@ -286,18 +352,44 @@ def check_cli_paths(ap: argparse.ArgumentParser, input_path: str, output_path: s
 
 
 def run_cli(input_path: str, output_path: str, args) -> int:
+    tle = getattr(args, "tle", None)
+    if tle and not getattr(args, "utc0", None):
+        print("ground.inertia: --tle needs --utc0", file=sys.stderr)
+        return 2
+    if tle and args.scenario:
+        print("ground.inertia: give --scenario or --tle, not both", file=sys.stderr)
+        return 2
+    if tle:
+        try:
+            parse_tle(*tle)
+        except TleError as e:
+            print(f"ground.inertia: --tle: {e}", file=sys.stderr)
+            return 2
     try:
         rec = read_recording(input_path)
         fc.check(rec.b_T, str(input_path))             # units first: they matter more than a missing orbit
-        b_inertial, truth, where = field_model(args.scenario, rec.metadata)
+        b_inertial, truth, where = field_model(args.scenario, rec.metadata, tle=tle, utc0=getattr(args, "utc0", None))
+        print(f"field: {where}")
         rec, calibrated = gm.calibrate(rec, args, b_inertial, args.sigma_uT * 1e-6)
         if calibrated:
             print(calibrated)
-        for w in fc.check_recording(rec.b_T, str(input_path), rec.t_s, field=b_inertial):
-            print(f"ground.inertia: warning: {w}", file=sys.stderr)
-        report = run(rec, b_inertial, sigma_b_T=args.sigma_uT * 1e-6, mode="diag" if args.diag else "full",
-                     guess_kgm2=args.guess, hold=args.hold, running_points=args.running if args.plot else 0,
-                     log=None if args.quiet else (lambda m: print("  " + m, flush=True)))
+        no_orbit = b_inertial is None
+        if no_orbit:
+            b_inertial = fixed_field(rec)
+        else:
+            for w in fc.check_recording(rec.b_T, str(input_path), rec.t_s, field=b_inertial):
+                print(f"ground.inertia: warning: {w}", file=sys.stderr)
+        log = None if args.quiet else (lambda m: print("  " + m, flush=True))
+        fit = dict(sigma_b_T=args.sigma_uT * 1e-6, mode="diag" if args.diag else "full", guess_kgm2=args.guess,
+                   hold=args.hold)
+        report = run(rec, b_inertial, running_points=args.running if args.plot else 0, log=log, **fit)
+        turn = getattr(args, "field_turn_dps", LEO_FIELD_TURN_DPS)
+        if no_orbit and turn > 0:
+            widen_for_field_turn(rec, report, b_inertial, turn, log=log, **fit)
+            print(f"no orbit: intervals widened for the field's turn of {turn:g} °/s (--field-turn-dps): 95 % "
+                  "half-widths " + ", ".join(f"{a:.2f} → {b:.2f}" for a, b in
+                                             zip(report.estimate.extra["field_turn"]["ci95_before_kgm2"],
+                                                 report.estimate.ci95)) + " kg·m²")
     except (OSError, RecordingError, ValueError) as e:
         print(f"ground.inertia: {e}", file=sys.stderr)
         return 1

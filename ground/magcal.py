@@ -13,6 +13,10 @@ The DEBRIS_MAGCAL message carries the same numbers (hard_iron in µT; soft_iron 
 D13, D23). Estimating needs an orbit (``--scenario``, ``--tle``/``--utc0`` or the recording's metadata)
 and a record over which the body turns through many directions (an orbit of a tumble); a calibration
 that fails its checks (`magcal.check`) is an error, not applied.
+
+Without either option, a calibration in the recording's metadata (``magcal_hard_iron_uT``,
+``magcal_soft_iron``: the box's last, written by `ground.decode`; not applied to the samples) is applied;
+``--no-magcal`` leaves the samples as they are.
 """
 from __future__ import annotations
 
@@ -36,6 +40,25 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     g.add_argument("--estimate-magcal", action="store_true",
                    help="estimate the host's hard/soft iron from the recording (needs its orbit) and apply it "
                         "before fitting")
+    g.add_argument("--no-magcal", action="store_true",
+                   help="do not apply the calibration of the recording's metadata (the box's, applied by default)")
+
+
+def from_metadata(md: dict) -> mc.Calibration | None:
+    """The calibration the box applied, from a recording's ``magcal_hard_iron_uT`` and ``magcal_soft_iron``
+    (None when absent); ValueError naming the key when it is not one."""
+    if "magcal_hard_iron_uT" not in md:
+        return None
+    try:
+        b = [float(v) for v in md["magcal_hard_iron_uT"].split(",")]
+        D = [float(v) for v in md.get("magcal_soft_iron", "0, 0, 0, 0, 0, 0, 0, 0, 0").split(",")]
+        if len(D) != 9:
+            raise ValueError
+        return mc.Calibration.from_json({"hard_iron_uT": b, "soft_iron": np.reshape(D, (3, 3)).tolist()})
+    except ValueError as e:
+        why = f": {e}" if str(e) else ""
+        raise ValueError(f"the recording's magcal_hard_iron_uT / magcal_soft_iron are not a calibration "
+                         f"(3 and 9 numbers){why}") from None
 
 
 def load(path: str) -> mc.Calibration:
@@ -72,7 +95,12 @@ def calibrate(rec: Recording, args, field, sigma_b_T: float) -> tuple[Recording,
             raise ValueError(f"--estimate-magcal: no calibration from this recording: {why}")
         how = "host-magnetics calibration estimated from the recording"
     else:
-        return rec, None
+        cal = None if getattr(args, "no_magcal", False) else from_metadata(rec.metadata)
+        if cal is None:
+            return rec, None
+        md = rec.metadata
+        how = (f"host-magnetics calibration from the recording's metadata (the box's, {md.get('magcal_state', '?')} "
+               f"at t = {md.get('magcal_t_s', '?')} s; --no-magcal leaves it out)")
     s = cal.sigma
     how += (": hard iron " + ", ".join(f"{v * 1e6:.2f}" for v in cal.b_T) + " µT"
             + ("" if cal.cov is None else " (±" + ", ".join(f"{v * 1e6:.2f}" for v in s[:3]) + ")")

@@ -13,6 +13,18 @@ earlier number has arrived or been given up (`ground.gaps`). Each batch is one w
 their last complete row. At a normal end (the count or duration reached, the end of a .tlog, SIGINT or
 SIGTERM) the rest is written; a run that received samples after their place in the file had passed
 (given up, then sent again after all) is rewritten in full, in order, atomically.
+
+What the box knew (`ground.box_knowledge`: the UTC of t = 0, its TLE, its calibration) goes into the
+metadata block when the file is opened; what arrives or changes later is appended as ``# key: value``
+lines between the rows, which the reader takes as the key's new value (`ground.recording`). Appending was
+chosen over the alternatives because it never touches what is written: rewriting the header in place
+could lose the file to a kill in the middle, a sidecar file can be separated from its recording, and
+holding the rows back until the metadata is known would lose them to a kill -9 (the box sends its TLE
+once a minute and its calibration converges after a good part of an orbit). So a kill -9 leaves a file
+that reads up to its last complete line with the knowledge stated up to then; SIGTERM states the latest
+at the end. The calibration changes a little with every DEBRIS_MAGCAL (10 s): it is restated when its
+state changes, at most every `MAGCAL_RESTATE_S` of the box's time otherwise, and at the end; ``utc0``
+when it moves by `UTC0_RESTATE_S` or more (a new time set); the TLE when it changes.
 """
 from __future__ import annotations
 
@@ -21,11 +33,19 @@ from pathlib import Path
 
 import numpy as np
 
+from .box_knowledge import KEYS as KNOWLEDGE_KEYS
+from .box_knowledge import MAGCAL_KEYS
 from .recording import RateAppender, RecordingAppender, write_rate_estimates, write_recording
 from .streams import Segment
 
 #: how long a sample is held before it is written (its estimates and truth follow within a tick)
 SETTLE_S = 1.0
+#: a calibration in the same state is restated at most this often (box time), and at the end
+MAGCAL_RESTATE_S = 300.0
+#: a UTC of t = 0 that moved by less than this is not restated (SYSTEM_TIME's 1 ms steps)
+UTC0_RESTATE_S = 0.005
+#: keys restated together
+_GROUPS = (("tle_line1", "tle_line2"), MAGCAL_KEYS)
 
 
 class _Files:
@@ -38,6 +58,9 @@ class _Files:
         self.written_upto_us = -1  # rows up to this sample time are in the files
         self.pending: set[int] = set()  # sample times received and not yet written
         self.dirty = False  # rows arrived after their place had been written: rewrite at the end
+        self.stated: dict[str, str] = {}  # what the recording says of the box's knowledge
+        self.utc0_s: float | None = None  # the UTC of t = 0 stated
+        self.magcal_t_s: float | None = None  # the box time of the calibration stated
 
 
 class Recorder:
@@ -119,8 +142,41 @@ class Recorder:
 
     def _write(self, decoder, source, index: int, seg: Segment, now_s: float, final: bool) -> None:
         f = self._files.get(id(seg))
-        if f is None or not f.pending:
+        if f is None:
             return
+        if f.pending:
+            self._write_rows(decoder, source, index, seg, f, now_s, final)
+        if f.csv is not None:
+            self._restate(seg, f, final)
+
+    def _restate(self, seg: Segment, f: _Files, final: bool) -> None:
+        """Append what the box's knowledge says now and the file does not (see the module's docstring)."""
+        k = seg.knowledge
+        now = k.metadata()
+        changed = {key: v for key, v in now.items() if f.stated.get(key) != v}
+        if "utc0" in changed and f.utc0_s is not None and abs(k.utc0_s - f.utc0_s) < UTC0_RESTATE_S:
+            del changed["utc0"]
+        if any(key in changed for key in MAGCAL_KEYS) and not final and "magcal_state" in f.stated \
+                and f.stated["magcal_state"] == k.magcal_state and k.magcal_t_s - f.magcal_t_s < MAGCAL_RESTATE_S:
+            for key in MAGCAL_KEYS:
+                changed.pop(key, None)
+        for group in _GROUPS:
+            if any(key in changed for key in group):
+                changed.update({key: now[key] for key in group if key in now})
+        if not changed:
+            return
+        f.csv.comments({key: changed[key] for key in KNOWLEDGE_KEYS if key in changed})
+        self._stated(f, seg, changed)
+
+    @staticmethod
+    def _stated(f: _Files, seg: Segment, meta: dict[str, str]) -> None:
+        f.stated.update({key: v for key, v in meta.items() if key in KNOWLEDGE_KEYS})
+        if "utc0" in meta:
+            f.utc0_s = seg.knowledge.utc0_s
+        if "magcal_t_s" in meta:
+            f.magcal_t_s = seg.knowledge.magcal_t_s
+
+    def _write_rows(self, decoder, source, index: int, seg: Segment, f: _Files, now_s: float, final: bool) -> None:
         ready = []
         for t in sorted(f.pending):
             if not final:
@@ -137,6 +193,7 @@ class Recorder:
             meta = decoder.metadata(seg)
             if "csv" in f.paths:
                 f.csv = RecordingAppender(f.paths["csv"], meta, truth=bool(seg.truth))
+                self._stated(f, seg, meta)
                 self.written.append(("recording", f.paths["csv"]))
             if "rates" in f.paths:
                 f.rates = RateAppender(f.paths["rates"], decoder.rate_metadata(seg))

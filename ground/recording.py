@@ -12,7 +12,9 @@ estimator had no information: a degenerate sample, e.g. a zero field).
 
 Reading rules (spec, "Rules"):
 - a line starting with ``#`` is a comment; ``# key: value`` comments become metadata (a key given on
-  several lines is joined with newlines);
+  several lines before the header is joined with newlines; after the header, where a writer appends what
+  it learnt while recording, a key given again replaces its earlier value, consecutive lines of one key
+  being one value);
 - the first other non-blank line is the header; columns the format does not name are ignored;
 - an empty, non-numeric, NaN or infinite cell in a required column, a non-increasing or non-finite
   time, a row with the wrong number of cells, or bytes that are not UTF-8 raise `RecordingError`
@@ -212,6 +214,7 @@ def _read_table(path: PathLike, groups: Sequence[_Group]
     header: list[str] | None = None
     header_line = 0
     rows: list[tuple[int, str]] = []
+    previous_key = None
     for lineno, line in enumerate(text.split("\n"), start=1):
         if line.endswith("\r"):
             line = line[:-1]
@@ -219,8 +222,12 @@ def _read_table(path: PathLike, groups: Sequence[_Group]
             m = _META.fullmatch(line)
             if m:
                 key, value = m.group(1), m.group(2).strip()
-                metadata[key] = f"{metadata[key]}\n{value}" if key in metadata else value
-        elif line.strip():
+                join = key in metadata and (header is None or key == previous_key)
+                metadata[key] = f"{metadata[key]}\n{value}" if join else value
+                previous_key = key
+            continue
+        previous_key = None
+        if line.strip():
             if header is None:
                 header, header_line = [c.strip() for c in _split(path, lineno, line)], lineno
             else:
@@ -478,9 +485,15 @@ class _Appender:
 
     def comment(self, key: str, value: str) -> None:
         """A ``# key: value`` line after the rows (the reader takes metadata from any comment line)."""
-        lines = _metadata_lines(self.path, {key: value})
-        self._write(lines)
-        self.line += len(lines)
+        self.comments({key: value})
+
+    def comments(self, metadata: dict[str, str]) -> None:
+        """``# key: value`` lines after the rows, in one write: each replaces the key's earlier value for
+        the reader (a key learnt or changed while recording)."""
+        lines = _metadata_lines(self.path, metadata)
+        if lines:
+            self._write(lines)
+            self.line += len(lines)
 
     def close(self) -> None:
         if self._fd >= 0:

@@ -11,6 +11,11 @@ HIGHRES_IMU magnetometer samples (another MAVLink system, an older recording) ha
 restart is seen from the time line — DEBRIS_LOOP_STATUS's loop time going back, or a sample older than
 the run's first by more than `RESTART_BACKSTEP_S` — and samples older than the newest but within the run
 (sent again after an outage) are merged by time.
+
+What the box says it knows (time, TLE, calibration: `ground.box_knowledge`) goes to the run whose loop
+time its message carries: the current run, or — a loop time further back than `RESTART_BACKSTEP_S` from
+the current run's newest sample, or no run yet — the next run to start (its samples have not arrived
+yet). A message without a time (DEBRIS_TLE) goes where the latest timed one went.
 """
 from __future__ import annotations
 
@@ -19,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .box_knowledge import BoxKnowledge
 from .gaps import GapRequester, SeqGaps
 
 #: Sample time going back by more than this means the flight software restarted (plain streams).
@@ -44,6 +50,8 @@ class Segment:
     #: what the box's DEBRIS_SAMPLE_STORE said of this run: oldest number held, store kept in a file
     stored_first_seq: int | None = None
     persistent: bool = False
+    #: what the box said it knew during this run (time, TLE, calibration)
+    knowledge: BoxKnowledge = field(default_factory=BoxKnowledge)
 
     @property
     def numbered(self) -> bool:
@@ -99,14 +107,38 @@ class Stream:
         self.current: Segment | None = None  # the run whose live samples arrive now
         self.loop_time_us: int | None = None
         self.restarts: list[str] = []  # what was said at each restart
+        #: what the box said before the samples of its run arrived: adopted by the next segment
+        self.pending_knowledge: BoxKnowledge | None = None
+        self._last_knowledge: BoxKnowledge | None = None
 
     def run(self, run_id: int) -> Segment:
         seg = self._by_run.get(run_id)
         if seg is None:
-            seg = Segment(run_id=run_id)
+            seg = self._adopt(Segment(run_id=run_id))
             self._by_run[run_id] = seg
             self.segments.append(seg)
         return seg
+
+    def _adopt(self, seg: Segment) -> Segment:
+        """A new segment takes what the box said before its samples arrived."""
+        if self.pending_knowledge is not None:
+            seg.knowledge, self.pending_knowledge = self.pending_knowledge, None
+        return seg
+
+    def knowledge(self, t_us: int | None) -> BoxKnowledge:
+        """Where a message of what the box knows, at loop time `t_us` (None: a message without a time), goes."""
+        if t_us is None and self._last_knowledge is not None:
+            return self._last_knowledge
+        seg = self.current
+        if seg is None or (t_us is not None and seg.latest_us >= 0
+                           and t_us < seg.latest_us - RESTART_BACKSTEP_S * 1e6):
+            if self.pending_knowledge is None:
+                self.pending_knowledge = BoxKnowledge()
+            k = self.pending_knowledge
+        else:
+            k = seg.knowledge
+        self._last_knowledge = k
+        return k
 
     def numbered_sample(self, msg, now_s: float, b_gauss) -> Segment | None:
         """A DEBRIS_MAG_SAMPLE; the segment it went to, or None for a duplicate."""
@@ -134,7 +166,7 @@ class Stream:
         return seg
 
     def _new_plain(self) -> Segment:
-        seg = Segment()
+        seg = self._adopt(Segment())
         self.segments.append(seg)
         self.current = seg
         return seg

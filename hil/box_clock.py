@@ -35,6 +35,13 @@ class BoxClock:
     def is_true(self) -> bool:
         return self.offset_s == 0.0 and self.drift_ppm == 0.0
 
+    @property
+    def start_s(self) -> float:
+        """What the box's clock reads when the simulated world starts (true time 0), or 0 for a clock behind
+        true time (the box's time stamps are unsigned: it starts when its clock reads 0, the world then
+        already `true_s(0)` in); `hil.sitl.box_t0_s` of a simulator."""
+        return max(0.0, self.box_s(0.0))
+
     def box_s(self, true_s: float) -> float:
         """What the box's clock reads at true time `true_s`."""
         return self.offset_s + self.rate * true_s if not self.is_true else true_s

@@ -159,17 +159,25 @@ class PtyBridge:
 
 class RealTimeDevice:
     """The simulator's chip in wall-clock time: before each transfer the simulation is advanced to
-    the time elapsed since `start`, so a driver on the other side of the pty sees a live sensor."""
+    the time elapsed since `start`, so a driver on the other side of the pty sees a live sensor.
 
-    def __init__(self, sim, clock=None) -> None:
+    The wall clock (`clock`, the machine's monotonic clock that the flight software on the other side
+    reads too) is the box's clock: with a scenario's [clock] (`hil.box_clock`) the world runs on true
+    time, the box's clock reading ``sim.clock.start_s`` when the world starts and gaining its drift, as
+    in SITL (`hil.sitl.box_t0_s`): after a wall time e the world is at ``sim.clock.true_s(start_s + e)``."""
+
+    def __init__(self, sim, clock=None, start: float | None = None) -> None:
+        """`clock`: the wall clock (default `time.monotonic`); `start`: its reading at which the world is at
+        true time 0 (default: now)."""
         import time
 
         self.sim = sim
         self._clock = clock or time.monotonic
-        self._t0 = self._clock()
+        self._t0 = self._clock() if start is None else float(start)
 
     def _sync(self) -> None:
-        self.sim.advance_to(max(self.sim.t_s, self._clock() - self._t0))
+        c = self.sim.clock
+        self.sim.advance_to(max(self.sim.t_s, c.true_s(c.start_s + self._clock() - self._t0)))
 
     def read_registers(self, address: int, count: int) -> bytes:
         self._sync()

@@ -220,14 +220,23 @@ def flag() -> Opt:
     return Opt(FLAG, nargs=0)
 
 
-#: --magcal and --estimate-magcal (which needs the recording's orbit and enough of a tumble: the tool decides)
-MAGCAL_OPTIONS = {"--magcal": Opt(MAGCAL, role="in"), "--estimate-magcal": Opt([("", None)], nargs=0)}
+#: --magcal and --estimate-magcal (which needs the recording's orbit and enough of a tumble: the tool decides),
+#: --no-magcal (not the recording's calibration): one of them at most
+MAGCAL_OPTIONS = {"--magcal": Opt(MAGCAL, role="in"), "--estimate-magcal": Opt([("", None)], nargs=0),
+                  "--no-magcal": flag()}
 
 
 # --- the tools --------------------------------------------------------------------------------------
 
 TLE1 = "1 25544U 98067A   26325.50000000  .00016717  00000-0  10270-3 0  9000"
 TLE2 = "2 25544  51.6400 208.9163 0006317  69.9862  25.2906 15.50000000    09"
+#: the orbit on the command line (over the recording's metadata) and the field's turn allowed for without one
+ORBIT_OPTIONS = {
+    "--tle": Opt([((TLE1, TLE2), True), (("1", "2"), False), ((TLE2, TLE1), False), (("", ""), False)], nargs=2),
+    "--utc0": Opt([("2025-06-15T12:00:00", True), ("2025-06-15", True), ("yesterday", False), ("", False),
+                   ("2025-13-45T99:00", False)]),
+    "--field-turn-dps": Opt(floats(0)),
+}
 
 
 def _target_judge(v, chosen):
@@ -238,7 +247,7 @@ def _target_judge(v, chosen):
 
 
 def _magcal_judge(v, chosen):
-    if "--magcal" in chosen and "--estimate-magcal" in chosen:  # one or the other
+    if sum(o in chosen for o in ("--magcal", "--estimate-magcal", "--no-magcal")) > 1:  # one of them at most
         return False
     return v
 
@@ -378,9 +387,7 @@ SPECS: list[Tool] = [
         "--sigma-uT": Opt(floats(0, lo_open=True)),
         "--decimate-hz": Opt(floats(0, lo_open=True)),
         "--scenario": Opt(SCENARIO, role="in"),
-        "--tle": Opt([((TLE1, TLE2), True), (("1", "2"), False), ((TLE2, TLE1), False), (("", ""), False)], nargs=2),
-        "--utc0": Opt([("2025-06-15T12:00:00", True), ("2025-06-15", True), ("yesterday", False), ("", False),
-                       ("2025-13-45T99:00", False)]),
+        **ORBIT_OPTIONS,
         "--known-inertia": Opt([("1,1,1", True), ("175,200,285", True), ("1,0,0,0,1,0,0,0,1", True),
                                 ("nan,1,1", False), ("1,1,3", False), ("1,2", False), ("-1,1,1", False), ("a", False),
                                 ("1,0.5,0,0,1,0,0,0,1", False), ("1e308,1e308,1e308", None), ("", False)]),
@@ -398,8 +405,9 @@ SPECS: list[Tool] = [
         "--running": Opt(ints(1)),
         "--quiet": flag(),
         **MAGCAL_OPTIONS,
+        **ORBIT_OPTIONS,
     }, positionals=[("input", Opt(IN_RECORDING, role="in", required=True))],
-        stubs=["ground.inertia:run"], probe=("--inertia",), judge=_magcal_judge),
+        stubs=["ground.inertia:run"], probe=("--inertia",), judge=_estimate_judge),
     Tool("ground.inertia", ground.inertia.main, {
         "--scenario": Opt(SCENARIO, role="in"),
         "--sigma-uT": Opt(floats(0, lo_open=True)),
@@ -410,9 +418,10 @@ SPECS: list[Tool] = [
         "--running": Opt(ints(1)),
         "--quiet": flag(),
         **MAGCAL_OPTIONS,
+        **ORBIT_OPTIONS,
     }, positionals=[("input", Opt(IN_RECORDING, role="in", required=True)),
                     ("output", Opt(OUT, role="out", required=True))],
-        stubs=["ground.inertia:run"], judge=_magcal_judge),
+        stubs=["ground.inertia:run"], judge=_estimate_judge),
     Tool("ground.command", ground.command.main, {
         "--key": Opt(KEY, role="in"),
         "--set-param": Opt([(("TLM_SAMPLE_HZ", "5"), True), (("TLM_SAMPLE_HZ", "nan"), None),

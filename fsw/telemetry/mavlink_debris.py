@@ -7372,7 +7372,9 @@ class MAVLink_debris_tle_message(MAVLink_message):
     Ground to box: stage a two-line element set;
     MAV_CMD_DEBRIS_TLE_LOAD with its CRC then checks it and puts it in
     force (answered by COMMAND_ACK). With a mission key loaded it must
-    be signed.
+    be signed. Box to ground (target 0): the TLE in force, every 60 s
+    and at once when it is put in force, so that recordings carry the
+    orbit the box flies.
     """
 
     id = MAVLINK_MSG_ID_DEBRIS_TLE
@@ -18581,7 +18583,10 @@ class MAVLink(object):
         """
         Ground to box: stage a two-line element set; MAV_CMD_DEBRIS_TLE_LOAD
         with its CRC then checks it and puts it in force (answered by
-        COMMAND_ACK). With a mission key loaded it must be signed.
+        COMMAND_ACK). With a mission key loaded it must be signed. Box
+        to ground (target 0): the TLE in force, every 60 s and at once
+        when it is put in force, so that recordings carry the orbit
+        the box flies.
 
         target_system             : System ID. (type:uint8_t)
         target_component          : Component ID. (type:uint8_t)
@@ -18595,7 +18600,10 @@ class MAVLink(object):
         """
         Ground to box: stage a two-line element set; MAV_CMD_DEBRIS_TLE_LOAD
         with its CRC then checks it and puts it in force (answered by
-        COMMAND_ACK). With a mission key loaded it must be signed.
+        COMMAND_ACK). With a mission key loaded it must be signed. Box
+        to ground (target 0): the TLE in force, every 60 s and at once
+        when it is put in force, so that recordings carry the orbit
+        the box flies.
 
         target_system             : System ID. (type:uint8_t)
         target_component          : Component ID. (type:uint8_t)

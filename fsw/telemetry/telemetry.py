@@ -223,6 +223,11 @@ class Telemetry:
         """DEBRIS_TIME_ORBIT (`fsw.timeorbit.TimeOrbit.message_fields`)."""
         self._send(mavlink.MAVLink_debris_time_orbit_message(usec(t_s), **fields))
 
+    def tle(self, line1: str, line2: str) -> None:
+        """DEBRIS_TLE from the box: the TLE in force (target 0: to every ground station), so that a
+        recording carries the orbit the box flies."""
+        self._send(mavlink.MAVLink_debris_tle_message(0, 0, line1.encode("ascii"), line2.encode("ascii")))
+
     def statustext(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> None:
         """STATUSTEXT (at most 50 characters, cut beyond): events such as the de-orbit kit's transitions."""
         self._send(mavlink.MAVLink_statustext_message(severity, text.encode("ascii", "replace")[:50]))

@@ -113,3 +113,25 @@ def test_a_later_start_on_the_orbit_sees_another_field(tmp_path, capsys):
     # same orbit, a quarter of it later: the field in the orbital frame differs, the start attitude not
     assert a.trace.yaw[0] == pytest.approx(b.trace.yaw[0], abs=1e-9)
     assert not np.allclose(a.sim.attitude_orbital()[2], b.sim.attitude_orbital()[2], rtol=0.05)
+
+
+@pytest.mark.parametrize("offset_s, drift_ppm", [(2.0, 1000.0), (-2.0, -1000.0)])
+def test_the_loop_runs_on_the_box_s_clock_and_the_world_on_true_time(tmp_path, offset_s, drift_ppm):
+    """A scenario with [clock]: the flight loop ticks on the box's clock from hil.sitl's first reading,
+    the simulator (and the trace) on the true time it means; the closed loop is the same motion."""
+    from hil import scenario
+    from hil.sitl import box_t0_s
+
+    toml = tmp_path / "clocked.toml"
+    toml.write_text(scenario.SCENARIO_DIR.joinpath("amds_deorbit.toml").read_text().replace(
+        'name = "amds_deorbit"', 'name = "amds_deorbit_clocked"')
+        + f"\n[clock]\noffset_s = {offset_s}\ndrift_ppm = {drift_ppm}\n")
+    plain = run_bench(duration_s=20.0, settle_s=0.0)
+    clocked = run_bench(str(toml), duration_s=20.0, settle_s=0.0)
+    c = clocked.sim.clock
+    t0 = box_t0_s(clocked.sim)
+    assert clocked.kit.controller is not None
+    ticks = np.asarray(clocked.trace.t_s)
+    np.testing.assert_allclose(ticks, [c.true_s(t0 + k) for k in range(len(ticks))], atol=1e-9)  # 1 Hz trace
+    assert clocked.sim.t_s == pytest.approx(c.true_s(t0 + 20.0), abs=1e-9)
+    np.testing.assert_allclose(clocked.trace.yaw, plain.trace.yaw, atol=1e-3)   # rad: the same closed loop

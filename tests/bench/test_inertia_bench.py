@@ -15,6 +15,29 @@ def pin_flight_assumptions(monkeypatch):
     monkeypatch.setattr(ib.scenarios, "load", lambda name="isoi": flight_assumptions(load(name)))
 
 
+@pytest.mark.parametrize("offset_s, shift", [(2.0, 0), (-3.0, 3)])
+def test_truth_record_is_on_the_box_s_clock_with_a_clock_table(monkeypatch, offset_s, shift):
+    """[clock]: the samples are stamped with the box's clock (from its first reading, as in SITL), the truth
+    is the world's at the true time they mean, the pulses are on the box's clock."""
+    import dataclasses
+
+    from hil.box_clock import BoxClock
+
+    load = ib.scenarios.load
+    plain = ib.truth_record("aist2d", 100.0)
+    monkeypatch.setattr(ib.scenarios, "load",
+                        lambda name: dataclasses.replace(load(name), clock=BoxClock(offset_s=offset_s)))
+    tr = ib.truth_record("aist2d", 100.0)
+    start = max(0.0, offset_s)
+    np.testing.assert_allclose(tr.t_s, start + plain.t_s, atol=1e-12)
+    n = len(tr.t_s) - shift
+    np.testing.assert_allclose(tr.b_T[:n], plain.b_T[shift:shift + n], atol=1e-15)   # the world at true time
+    np.testing.assert_allclose(tr.omega_radps[:n], plain.omega_radps[shift:shift + n], atol=1e-15)
+    assert ib.pulses(tr)[0] == (60.0 + offset_s, 120.0 + offset_s)
+    np.testing.assert_allclose(tr.action.moment_at(np.array([61.0 + offset_s]))[0], [0.2, 0, 0])
+    np.testing.assert_allclose(tr.action.moment_at(np.array([59.0 + offset_s]))[0], [0, 0, 0])
+
+
 def test_truth_record_is_the_simulators_and_noise_is_seeded():
     tr = ib.truth_record("aist2d", 100.0)
     assert tr.t_s[0] == 0.5 and np.allclose(np.diff(tr.t_s), 1.0)

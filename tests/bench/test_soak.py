@@ -15,7 +15,16 @@ def figures(tmp_path_factory):
     # (an orbit) a spike smaller than the spread the host's field gives |B| (the soak draws 20–200 µT) is
     # not told from the field at 1 Hz (tests/hil/test_faults.py: a 100 µT spike with the host's iron)
     scenario = flight_assumptions_file(tmp_path_factory.mktemp("scn"), "isoi")
+    with open(scenario, "a", encoding="utf-8") as f:   # the box's clock 2 s ahead of true time, 50 ppm fast
+        f.write("\n[clock]\noffset_s = 2.0\ndrift_ppm = 50.0\n")
     return soak.run(480.0, seed=1, quiet_s=(5.0, 10.0), scenario=scenario)
+
+
+def test_the_loop_runs_on_the_box_s_clock_and_the_world_on_true_time(figures):
+    c = figures["box_clock"]
+    assert (c["offset_s"], c["drift_ppm"]) == (2.0, 50.0)
+    assert c["box_end_s"] == pytest.approx(2.0 + 480.0 - 1 / 50.0, abs=1e-9)        # from the box's first reading
+    assert c["true_end_s"] == pytest.approx((c["box_end_s"] - 2.0) / (1 + 50e-6), abs=1e-9)
 
 
 def test_every_fault_kind_is_injected_flagged_and_survived(figures):

@@ -253,3 +253,18 @@ def test_the_drift_of_the_box_clock_from_successive_sets_is_reported():
     assert f["drift_ppm"] == pytest.approx(-drift / (1 + drift) * 1e6, abs=0.01)
     assert f["utc_usec"] * 1e-6 == pytest.approx(EPOCH + 7200.0, abs=1e-3)
     assert f["time_sets"] == 6 and abs(f["last_set_residual"]) < 0.05
+
+
+def test_the_box_sends_the_tle_in_force_when_loaded_and_every_minute(tmp_path):
+    box = Box(tle_file=tmp_path / "tle.txt")
+    box.run(1.0)
+    assert not [r for r in box.received if r.msg.get_type() == "DEBRIS_TLE"]      # none on board: none sent
+    box.send_time(EPOCH + 3600.0)
+    assert box.send_tle(L1, L2) == R.MAV_RESULT_ACCEPTED
+    box.run(125.0)
+    sent = [r.msg for r in box.received if r.msg.get_type() == "DEBRIS_TLE"]
+    assert len(sent) == 3                                   # at once, then at 60 s and 120 s
+    assert all((m.line1, m.line2, m.target_system) == (L1, L2, 0) for m in sent)
+    again = Box(tle_file=tmp_path / "tle.txt")              # read back from its file after a restart: said at once
+    again.run(1.0)
+    assert [(m.msg.line1, m.msg.line2) for m in again.received if m.msg.get_type() == "DEBRIS_TLE"] == [(L1, L2)]

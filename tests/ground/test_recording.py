@@ -97,6 +97,16 @@ def test_units_metadata_extra_columns_and_order(tmp_path: Path) -> None:
     assert rec.metadata == {"source": "unit test\nsecond line", "mass_kg": "530"}
 
 
+def test_a_key_restated_after_the_header_replaces_its_value(tmp_path: Path) -> None:
+    text = ("# source: unit test\n# utc0: 2026-11-21T12:00:00Z\n# source: second line\n"
+            "t_s,bx_uT,by_uT,bz_uT\n0,1,2,3\n"
+            "# utc0: 2026-11-21T12:00:03Z\n# note: one\n# note: two\n"
+            "1,1,2,3\n# source: appended\n")
+    rec = read_recording(_write(tmp_path, text))
+    assert len(rec) == 2
+    assert rec.metadata == {"source": "appended", "utc0": "2026-11-21T12:00:03Z", "note": "one\ntwo"}
+
+
 def test_absent_optional_columns(tmp_path: Path) -> None:
     rec = read_recording(_write(tmp_path, f"{HEADER}\n0,1,2,3\n1,1,2,3\n"))
     assert rec.w_ref_radps is None

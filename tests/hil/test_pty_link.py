@@ -158,3 +158,26 @@ def test_driver_over_pty_reads_the_field_and_survives_a_corrupted_response(link)
     assert driver.bus_errors >= errors_before + 1 and driver.state is MagState.MEASURE
     np.testing.assert_allclose(driver.b_body_T, B_TRUE_T, atol=7 * sigma)
     assert emu.write_only_reads == 0
+
+
+@pytest.mark.parametrize("offset_s, drift_ppm", [(0.0, 0.0), (2.0, 1000.0), (-2.0, -500.0)])
+def test_the_real_time_device_runs_the_world_on_the_box_s_clock(offset_s, drift_ppm):
+    """Behind the pty the wall clock is the box's: with a scenario's [clock] the world is advanced to the
+    true time at which the box's clock reads what it reads (hil.sitl's mapping: the box starts reading
+    max(0, offset) when the world starts)."""
+    import dataclasses
+
+    from hil import scenario
+    from hil.box_clock import BoxClock
+    from hil.pty_link import RealTimeDevice
+    from hil.sim import Simulator
+
+    clock = BoxClock(offset_s=offset_s, drift_ppm=drift_ppm)
+    sim = Simulator(dataclasses.replace(scenario.load("isoi"), clock=clock), seed=0, max_step_s=0.05)
+    wall = [100.0]
+    dev = RealTimeDevice(sim, clock=lambda: wall[0])
+    wall[0] += 10.0
+    dev.read_registers(0x08, 1)
+    box_reads = max(0.0, offset_s) + 10.0
+    assert sim.t_s == pytest.approx((box_reads - offset_s) / (1 + drift_ppm * 1e-6), abs=1e-9)
+    assert clock.start_s == max(0.0, offset_s)

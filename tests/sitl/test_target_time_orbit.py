@@ -1,19 +1,32 @@
 """End to end on target: `fsw.main --mag-serial` against the emulated chip behind a pty receives the time
 and a TLE by signed commands from `ground.command`, keeps the TLE in its file, and then accepts the
-identification experiment it refused without them."""
+identification experiment it refused without them; and, on a simulated tumbling body flying that TLE,
+runs the experiment to its end while `ground.decode` records the telemetry: the decoded estimate against
+the simulator's truth, the recording carrying the TLE and the UTC the box flew."""
+import dataclasses
+import functools
 import threading
 import time
 from datetime import datetime, timedelta, timezone
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+import fsw.ident
 from fsw import main as fsw_main
+from fsw.telemetry import dialect
 from fsw.telemetry.signing import write_key
 from ground import command as ground_command
+from ground.decode import Decoder
+from ground.recorder import Recorder
+from ground.recording import read_recording
+from hil import scenario as scenarios
 from hil.mmc5983ma import EmulatedMmc5983ma
-from hil.pty_link import PtyBridge
-from support import circular_tle, free_udp_port
+from hil.pty_link import PtyBridge, RealTimeDevice
+from hil.scenario import TorquePulse
+from hil.sim import Simulator
+from support import circular_tle, flight_assumptions_file, free_udp_port
 
 KEY = bytes(range(90, 122))
 
@@ -57,3 +70,121 @@ def test_target_takes_time_and_tle_then_runs_the_identification(tmp_path, capsys
     summary = capsys.readouterr().out
     assert "time and orbit: UTC" in summary and "(1 sets)" in summary and "TLE 99999" in summary
     assert ": ok;" in summary
+
+
+TRUTH = np.array([175.0, 200.0, 285.0, 0.0, 0.0, 0.0])      # Aist-2D, kg·m²
+FREE, TORQUE, AFTER = 3.0, 8.0, 9.0                         # s: a short experiment
+M = (5.0, 4.0, -3.0)                                        # N·m: a strong tug, so that 20 s say enough
+
+
+def tumbling_world(tmp_path, line1, line2, utc0):
+    """Aist-2D tumbling at ~11 °/s on the orbit of the TLE the box is given, t = 0 at `utc0`, IGRF-14 of
+    that epoch; a calibrated magnetometer of 0.2 µT (the host calibration takes an orbit)."""
+    text = Path(flight_assumptions_file(tmp_path, "aist2d_ident")).read_text(encoding="utf-8")
+    year = utc0.year + (utc0 - datetime(utc0.year, 1, 1, tzinfo=timezone.utc)).total_seconds() / (365.25 * 86400)
+    text = (text.replace("epoch_year = 2025.5", f"epoch_year = {year:.4f}")
+            .replace("omega_dps = [0.8, -0.5, 1.2]", "omega_dps = [6.0, -4.0, 8.0]")
+            .replace("noise_uT = 1.5", "noise_uT = 0.2")
+            .replace("arg_lat0_deg = 0.0\n", f'arg_lat0_deg = 0.0\ntle = ["{line1}", "{line2}"]\n'
+                                              f'utc0 = {utc0.strftime("%Y-%m-%dT%H:%M:%S.%fZ")}\n', 1))
+    path = tmp_path / "tumbling.toml"
+    path.write_text(text, encoding="utf-8")
+    return scenarios.load(str(path))
+
+
+class TugAndGround:
+    """The ground station on the box's telemetry (`ground.decode`'s Decoder and Recorder, as its command
+    line runs them), and a tug that does what the box tells it: it pushes from the moment the box's
+    DEBRIS_INERTIA_ESTIMATE says TORQUE until it says OBSERVE_AFTER (a pulse in the simulator's schedule,
+    world time = the wall clock since `mono0`)."""
+
+    def __init__(self, port, sim, mono0, csv):
+        self.link = dialect.open_link(f"udpin:127.0.0.1:{port}", source_system=dialect.GCS_SYSID,
+                                      source_component=dialect.GCS_COMPID, input=True)
+        self.decoder = Decoder(key=KEY, recorder=Recorder(csv, None), origin=f"udpin:127.0.0.1:{port}")
+        self.sim, self.mono0 = sim, mono0
+        self.pulse = None
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._receive)
+        self.thread.start()
+
+    def _push(self, state):
+        sim, now = self.sim, time.monotonic() - self.mono0
+        if state == "torque" and self.pulse is None:
+            self.pulse = TorquePulse(now, 1e6, np.array(M))
+            sim.scenario = dataclasses.replace(sim.scenario, torques=sim.scenario.torques + (self.pulse,))
+        elif state != "torque" and self.pulse is not None and self.pulse.duration_s == 1e6:
+            cut = TorquePulse(self.pulse.start_s, now - self.pulse.start_s, self.pulse.moment_Nm)
+            sim.scenario = dataclasses.replace(sim.scenario, torques=tuple(cut if q is self.pulse else q
+                                                                           for q in sim.scenario.torques))
+            self.pulse = cut
+
+    def _receive(self):
+        while not self.stop.is_set():
+            msg = self.link.recv_match(blocking=True, timeout=0.1)
+            if msg is None:
+                self.decoder.tick(time.time())
+                continue
+            self.decoder.handle(msg, time.time())
+            if msg.get_type() == "DEBRIS_INERTIA_ESTIMATE" and self.decoder.inertia_estimates:
+                self._push(self.decoder.inertia_estimates[-1]["state_name"])
+
+    def close(self):
+        self.stop.set()
+        self.thread.join()
+        self.link.close()
+        self.decoder.finish()
+
+
+@pytest.mark.slow  # about 50 s of real time on target: the experiment (20 s) and the onboard fit
+def test_target_runs_the_identification_to_its_end_and_the_ground_decodes_it(tmp_path, capsys, monkeypatch):
+    # the onboard fit in larger slices than the flight default, so that it ends within seconds of the
+    # experiment on a loaded test machine (the loop's timing is the benchmarks' business, not this test's)
+    monkeypatch.setattr(fsw.ident, "IdentConfig", functools.partial(fsw.ident.IdentConfig, work_per_tick=200000))
+    key = tmp_path / "mission.key"
+    write_key(key, KEY)
+    mono0, wall0 = time.monotonic(), time.time()
+    utc0 = datetime.fromtimestamp(wall0, timezone.utc)
+    l1, l2 = circular_tle(490.0, 97.3, epoch=epoch_field(utc0 - timedelta(days=2)))
+    sim = Simulator(tumbling_world(tmp_path, l1, l2, utc0), seed=7, max_step_s=0.005)
+    device = RealTimeDevice(sim, start=mono0)               # the world's t = 0 is utc0
+    up, tel = free_udp_port(), free_udp_port()
+    url = f"udpout:127.0.0.1:{up}"
+    duration = 50.0
+    out = {}
+    ground = TugAndGround(tel, sim, mono0, tmp_path / "ident.csv")
+    try:
+        with PtyBridge(device, rng=np.random.default_rng(6)) as bridge:
+            box = threading.Thread(target=lambda: out.setdefault("status", fsw_main.main(
+                ["--mag-serial", bridge.port_name, "--key", str(key), "--link", f"udpout:127.0.0.1:{tel}",
+                 "--uplink", f"udpin:127.0.0.1:{up}", "--duration", str(duration), "--quiet", "--sample-rate", "10",
+                 "--sigma-uT", "0.2"])))
+            box.start()
+            try:
+                assert ground_command.main([url, "--key", str(key), "--retries", "10", "--timeout", "0.5",
+                                            "time"]) == 0
+                assert ground_command.main([url, "--key", str(key), "tle", l1, l2]) == 0
+                assert ground_command.main([url, "--key", str(key), "--retries", "10", "--timeout", "0.5",
+                                            "ident_start", "source=1", f"observe_free={FREE:g}",
+                                            f"torque_time={TORQUE:g}", f"observe_after={AFTER:g}",
+                                            *(f"m{a}={m:g}" for a, m in zip("xyz", M))]) == 0
+            finally:
+                box.join()
+    finally:
+        ground.close()
+    assert out["status"] == 0
+    assert ground.pulse is not None and ground.pulse.duration_s == pytest.approx(TORQUE, abs=0.5)
+    decoder = ground.decoder
+    states = [e["state_name"] for e in decoder.inertia_estimates]
+    assert {"observe_free", "torque", "observe_after", "done"} <= set(states), states
+    final = next(e for e in decoder.inertia_estimates if e["state_name"] == "done")
+    p, ci99 = np.array(final["inertia_kgm2"]), np.array(final["ci99_kgm2"])
+    assert final["samples"] >= 150 and final["flags"] & 1                       # 20 s at 10 Hz; positive definite
+    assert np.all(np.abs(p - TRUTH) <= ci99), (p, ci99)                           # the truth within its 99 %
+    assert np.all(np.abs(p[:3] - TRUTH[:3]) / TRUTH[:3] < 0.15), p
+    assert np.all(ci99[:3] < 0.5 * TRUTH[:3])                                     # and it says something
+    # the recording of the same telemetry carries what the box flew: its TLE and the UTC of its t = 0
+    md = read_recording(tmp_path / "ident.csv").metadata
+    assert (md["tle_line1"], md["tle_line2"]) == (l1, l2) and md["tle_state"] == "ok"
+    box_utc0 = datetime.fromisoformat(md["utc0"]).timestamp()
+    assert wall0 < box_utc0 < wall0 + 20.0                  # the box's loop started after the world did
