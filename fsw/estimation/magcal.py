@@ -662,6 +662,9 @@ class MagCal:
         self._t_last: float | None = None
         self._t_solve: float | None = None
         self._insisted = 0
+        #: after a restart: the new sums are not judged against the last good calibration, which stays
+        #: applied until a solution from them passes the checks
+        self._relearning = False
 
     @property
     def n_tau(self) -> int:
@@ -703,19 +706,23 @@ class MagCal:
         """Solve the statistics now; True when the result was published. First, with a good calibration,
         the samples since the last solution are tested against it: a stretch that does not fit (χ² per
         sample above `max_window_chi2`: a magnet, a fault, a jump of the hard iron) is taken out of the
-        sums and counted in `dropped`; after `restart_after` such stretches in a row the host is taken to
-        have changed and the sums start again from the latest one (the last good calibration stays
-        applied meanwhile; the new one is published once it passes the checks, its change confirmed by
-        `confirm_change_after` solutions in a row)."""
+        sums and counted in `dropped`, the state REJECTED; after `restart_after` such stretches in a row
+        the host is taken to have changed and the sums start again from the latest one. A jump is thus
+        flagged first, then re-learned: the last good calibration stays applied (state REJECTED, the
+        reason says so) until a solution from the new sums passes the checks, its change confirmed by
+        `confirm_change_after` solutions in a row (for a 20 µT jump of the hard iron on a tumbling host:
+        ~10 min flagged, then about the time a first calibration takes)."""
         self.solves += 1
         recent, self.recent = self.recent, Stats(self.n_tau)
-        if self._good is not None and recent.n and window_chi2(recent, self._good) > self.limits.max_window_chi2:
+        if (self._good is not None and not self._relearning and recent.n
+                and window_chi2(recent, self._good) > self.limits.max_window_chi2):
             self.misfits += 1
             self.dropped += recent.n
             self.stats.remove(recent)
             if self.misfits >= self.limits.restart_after:
                 self.stats, self.misfits = recent, 0
                 self.restarts += 1
+                self._relearning = True
             self.rejections += 1
             self.reason = f"{WINDOW_RESIDUAL} for the last good calibration: {recent.n} samples left out"
             self.state = REJECTED
@@ -729,9 +736,10 @@ class MagCal:
         self._insisted = self._insisted + 1 if why == CHANGE_TOO_LARGE else 0
         if cal is None:
             self.rejections += 1
-            self.reason = why
+            self.reason = why if not self._relearning else f"the host changed, re-learning: {why}"
             self.state = REJECTED
             return False
+        self._relearning = False
         self.reason = None
         self.calibration = cal
         self.published += 1
