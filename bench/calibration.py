@@ -208,7 +208,7 @@ def report(r: dict) -> str:
     fm_err = r["field_model_error_uT_rms"]
     ok = r["later_orbits_within_target"]
     later = "-" if ok is None else "met" if ok else "MISSED"
-    lines += [f"residual after {r['orbits']:g} orbit(s), worst axis of the worst host: "
+    lines += [f"residual after {min(r['orbits'], 1.0):g} orbit(s), worst axis of the worst host: "
               f"{r['residual_uT_rms_max']:.3f} uT "
               f"RMS (target <= {r['target_residual_uT_rms']} uT: {'met' if r['residual_within_target'] else 'MISSED'})",
               "in flight, worst axis of the worst host, orbit by orbit: "

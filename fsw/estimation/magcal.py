@@ -23,8 +23,30 @@ from which b and D follow (√ of I + E by its eigen-decomposition). Step two: G
 scoring) on θ = (b, D's 6 unique terms) with μ tied to them. Both steps need the data only through
 its sufficient statistics N = Σ w a aᵀ (10×10), y = Σ w a z, Σ w z² (w = 1/σ_z²): the flight form
 accumulates them sample by sample (O(100) operations, optionally with exponential forgetting of time
-constant `memory_s` to follow a slow drift) and solves from time to time; nothing grows with the number
-of samples. The Fisher information of θ is F = Gᵀ N G (G = ∂φ/∂θ); its inverse is the covariance.
+constant `memory_s`) and solves from time to time; nothing grows with the number of samples. The Fisher
+information of θ is F = Gᵀ N G (G = ∂φ/∂θ); its inverse is the covariance.
+
+The hard iron's thermal drift. The host's iron warms and cools once per orbit (sun and eclipse): b moves
+by ~1 µT. A constant b leaves that (~0.4 µT RMS) and, on a quiet chip, refuses the later minutes as
+misfits. The flight form models it as the first harmonic of the orbit's period P::
+
+    b(t) = b + β_c cos ωt + β_s sin ωt,        ω = 2π / P
+
+which stays linear in φ: c(t) = M b(t) splits into c, c_c = M β_c, c_s = M β_s (regressors 2B, 2B cos ωt,
+2B sin ωt), μ(t) = b(t)ᵀ M b(t) into μ = bᵀMb + ½ Σ β_kᵀMβ_k, μ_c = 2bᵀMβ_c, μ_s = 2bᵀMβ_s (its second
+harmonic, ~|β|² ≈ 1 µT², against σ_z of tens of µT², left out). The sums gain the products with cos ωt
+and sin ωt (exact, so the noise adjustment is unchanged); θ gains β_c, β_s, with a prior of σ `DRIFT_T`
+(1 µT) per axis — what a thermal cycle does, and what keeps the first minutes (where cos ωt ≈ 1 cannot
+be told from the constant) well posed. What is published and applied is b(t) at the solution's time
+with the covariance of b(t) (J C Jᵀ: what the drift's terms leave unknown included), and its rate
+db/dt, with which the applied hard iron follows the drift between solutions. A random walk of b
+(process noise) was the other candidate: to follow 1 µT per orbit it must forget b's information
+within minutes, so its σ of b stays at ~0.2 µT with a 1.5 µT sensor (~0.07 µT with the isoi chip) and
+never reaches the σ goal; the harmonic keeps all the information and costs three parameters per axis
+(bench.calibration, 20 hosts at 1.5 µT: the σ goals reached after a median 4,699 s instead of 3,379 s
+for a constant host, 17 of 20 hosts within the orbit either way). The cost of a real
+thermal cycle that is not a pure sine: its higher harmonics stay in the residual. A sudden jump of b is
+not drift: it is flagged, then learned again (:meth:`MagCal.solve`).
 
 Checks before a solution is published as good (:func:`check`): the Gauss–Newton iteration converged
 and I + D is positive definite; the normalised Fisher matrix is well conditioned (a body that sees one
@@ -63,9 +85,10 @@ STATE_NAMES = {NO_FIELD: "no field on board", COLLECTING: "collecting", CONVERGE
 DRIFT_PERIOD_S = 5670.0
 DRIFT_T = 1e-6
 
-#: what a constant calibration against the onboard model cannot explain, taken as noise on |B| beside the
-#: sensor's: the model's error (IGRF-14 degree 8: 0.07 µT RMS), the hard iron's thermal drift (~1 µT over an
-#: orbit). Without it a quiet chip (0.05 µT) refuses every later minute as a misfit of a good calibration.
+#: what the calibration against the onboard model cannot explain, taken as noise on |B| beside the
+#: sensor's: the model's error (IGRF-14 degree 8: 0.07 µT RMS), what the drift's first harmonic leaves of a
+#: real thermal cycle. Without it a quiet chip (0.05 µT) refuses later minutes as misfits of a good
+#: calibration; with the drift followed, it makes σ of b conservative on such a chip (errors ~0.2 σ).
 MODEL_SIGMA_T = 0.3e-6
 
 @dataclass(frozen=True)
