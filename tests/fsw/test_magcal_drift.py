@@ -142,3 +142,19 @@ def test_a_sudden_jump_is_flagged_then_learned_again():
     end = t > t[-1] - 600.0
     assert np.max(np.abs(b_T[end] - h_true[end])) < 0.2e-6
     assert np.all(rms(resid_T[end]) <= TARGET_T)
+
+
+def test_a_field_that_swings_far_beyond_a_thermal_drift_is_never_published():
+    """A hard iron that swings by 20–30 µT over the orbit (a current loop, not the iron's temperature):
+    no solution passes the checks (implausible drift, residual, conditioning), nothing is applied."""
+    from support import MAGCAL_PERIOD_S, magcal_host, magcal_orbit, magcal_tumble
+
+    t, _, b_mag = magcal_orbit()
+    S, h = magcal_host(7)
+    swing = np.sin(2 * np.pi * t / MAGCAL_PERIOD_S)[:, None] * np.array([30e-6, -20e-6, 25e-6])
+    meas = magcal_tumble(1) @ S.T + h + swing + np.random.default_rng(0).normal(0.0, 1.5e-6, (len(t), 3))
+    cal = mc.MagCal(1.5e-6, drift_period_s=MAGCAL_PERIOD_S)
+    for k in range(len(t)):
+        assert not cal.update(meas[k], b_mag[k], t[k])
+    assert not cal.good and cal.state == mc.REJECTED and cal.rejections > 50
+    np.testing.assert_array_equal(cal.apply(meas[-1], t[-1]), meas[-1])
