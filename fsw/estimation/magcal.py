@@ -353,7 +353,11 @@ def _unique(M: np.ndarray) -> np.ndarray:
     return np.array([M[i, j] for i, j in D_TERMS])
 
 
-def phi_of_theta(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+_E_UNIT = tuple(np.array([[1.0 if {(r, c), (c, r)} & {(i, j)} else 0.0 for c in range(3)] for r in range(3)])
+                for i, j in D_TERMS)
+
+
+def phi_of_theta(theta: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
     """φ(θ) and G = ∂φ/∂θ; θ = (b [µT], D's unique terms, β_k [µT] for each harmonic term); with the
     hard iron b(t) = b + Σ_k τ_k(t) β_k and M = (I + D)²: c = M b, E = M − I, μ = bᵀM b + ½ Σ β_kᵀ M β_k
     (the mean over the orbit of b(t)ᵀ M b(t); its second harmonic, ~|β|², is left out), c_k = M β_k,
@@ -368,12 +372,12 @@ def phi_of_theta(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     for be in betas:
         phi += [M @ be, [2.0 * Mb @ be]]
     phi = np.concatenate(phi)
+    if not jacobian:
+        return phi, None
     G = np.zeros((len(phi), len(theta)))
     G[:3, :3] = M
     G[9, :3] = 2 * Mb
-    for k, (i, j) in enumerate(D_TERMS):
-        Ek = np.zeros((3, 3))
-        Ek[i, j] = Ek[j, i] = 1.0
+    for k, Ek in enumerate(_E_UNIT):
         dM = Ek @ ID + ID @ Ek
         G[:3, 3 + k] = dM @ b
         G[3:9, 3 + k] = _unique(dM)
@@ -461,14 +465,15 @@ def refine(st: Stats, theta0: np.ndarray, max_iter: int = 20, tol: float = 1e-6,
             break
         for _ in range(30):
             cand = theta + step
-            phi_c, G_c = phi_of_theta(cand)
+            phi_c, _ = phi_of_theta(cand, jacobian=False)
             c_c = total(phi_c, cand)
             if c_c <= c or not np.isfinite(c):
                 break
             step = 0.5 * step
         else:
             break
-        theta, phi, G, c = cand, phi_c, G_c, c_c
+        theta, c = cand, c_c
+        phi, G = phi_of_theta(theta)
         # converged when the step is small against its own σ
         if float(step @ F @ step) < tol:
             done = True
@@ -535,7 +540,7 @@ WINDOW_RESIDUAL = "residual of the latest samples too large"
 
 def window_chi2(recent: Stats, theta: np.ndarray) -> float:
     """χ² per sample of `recent`'s samples under θ."""
-    return cost(*normal_equations(recent, raw=True), phi_of_theta(theta)[0]) / max(recent.weight, 1e-12)
+    return cost(*normal_equations(recent, raw=True), phi_of_theta(theta, jacobian=False)[0]) / max(recent.weight, 1e-12)
 
 
 def normalised_condition(F: np.ndarray) -> float:

@@ -122,7 +122,6 @@ def test_three_orbits_of_drift_tracked_with_an_honest_sigma_and_published():
     assert msg.drift_period == pytest.approx(P, rel=1e-6)
 
 
-@pytest.mark.slow
 def test_a_sudden_jump_is_flagged_then_learned_again():
     """A 20 µT jump of the hard iron (a part magnetised, a latch-up's current): the minutes after it are
     refused as misfits and left out, the last good calibration stays applied and the state says REJECTED;
