@@ -19,6 +19,7 @@ from typing import Protocol
 
 import numpy as np
 
+from .estimation import field_motion as fm
 from .estimation import magcal as mc
 from .telemetry.telemetry import Telemetry
 
@@ -29,6 +30,20 @@ HARD_IRON_MAX_T = 50e-6
 SOFT_IRON_MAX = 0.10
 #: the window of |B| the host's field is bounded from before a calibration, and how often it is looked at
 SPREAD_SAMPLES, SPREAD_MIN_SAMPLES, SPREAD_EVERY = 256, 8, 4
+
+
+def orbit_period_s(field) -> float | None:
+    """The period of the orbit a field is along [s] (an SGP4 element set's mean motion, a circular orbit's
+    altitude), None when it does not say: the hard iron's thermal drift is a cycle per orbit."""
+    for obj in (field, getattr(field, "orbit_field", None)):
+        orbit = getattr(obj, "orbit", obj)
+        n_rad_per_min = getattr(getattr(orbit, "sat", None), "no_kozai", None)
+        if n_rad_per_min:
+            return 2.0 * math.pi * 60.0 / float(n_rad_per_min)
+        alt = getattr(orbit, "altitude_m", None)
+        if alt is not None:
+            return 2.0 * math.pi * math.sqrt((fm.A_WGS84_M + alt) ** 3 / fm.MU_EARTH_M3S2)
+    return None
 
 
 class FieldProvider(Protocol):
@@ -122,6 +137,9 @@ class HostCalibration:
         if self.field is None:
             self._no_field = f"no orbit/field model on board ({why}): calibration inactive"
             return b_meas_T
+        if self.cal.samples == 0 and self.cal.drift_period_s is not None:
+            # the drift's cycle is the orbit's: set before the first sample (the sums depend on it)
+            self.cal.drift_period_s = orbit_period_s(self.field) or self.cal.drift_period_s
         if self._t_taken is None or t_s - self._t_taken >= self.sample_every_s * (1 - 1e-9):
             self._t_taken = t_s
             try:
@@ -136,7 +154,7 @@ class HostCalibration:
         if not self.cal.good:
             return b_meas_T
         self.applied += 1
-        return self.cal.apply(b_meas_T)
+        return self.cal.apply(b_meas_T, t_s)
 
     def telemetry(self, now_s: float, tlm: Telemetry) -> None:
         """DEBRIS_MAGCAL every `tlm_every_s`."""
@@ -145,4 +163,5 @@ class HostCalibration:
         self._t_tlm = now_s
         c = self.cal
         tlm.magcal(now_s, c.calibration, state=self.state, samples=c.samples, dropped=c.dropped,
-                   rejections=c.rejections, residual=c.chi2_dof)
+                   rejections=c.rejections, residual=c.chi2_dof, rate_T_per_s=c.rate_T_per_s,
+                   drift_period_s=c.drift_period_s)

@@ -23,8 +23,30 @@ from which b and D follow (√ of I + E by its eigen-decomposition). Step two: G
 scoring) on θ = (b, D's 6 unique terms) with μ tied to them. Both steps need the data only through
 its sufficient statistics N = Σ w a aᵀ (10×10), y = Σ w a z, Σ w z² (w = 1/σ_z²): the flight form
 accumulates them sample by sample (O(100) operations, optionally with exponential forgetting of time
-constant `memory_s` to follow a slow drift) and solves from time to time; nothing grows with the number
-of samples. The Fisher information of θ is F = Gᵀ N G (G = ∂φ/∂θ); its inverse is the covariance.
+constant `memory_s`) and solves from time to time; nothing grows with the number of samples. The Fisher
+information of θ is F = Gᵀ N G (G = ∂φ/∂θ); its inverse is the covariance.
+
+The hard iron's thermal drift. The host's iron warms and cools once per orbit (sun and eclipse): b moves
+by ~1 µT. A constant b leaves that (~0.4 µT RMS) and, on a quiet chip, refuses the later minutes as
+misfits. The flight form models it as the first harmonic of the orbit's period P::
+
+    b(t) = b + β_c cos ωt + β_s sin ωt,        ω = 2π / P
+
+which stays linear in φ: c(t) = M b(t) splits into c, c_c = M β_c, c_s = M β_s (regressors 2B, 2B cos ωt,
+2B sin ωt), μ(t) = b(t)ᵀ M b(t) into μ = bᵀMb + ½ Σ β_kᵀMβ_k, μ_c = 2bᵀMβ_c, μ_s = 2bᵀMβ_s (its second
+harmonic, ~|β|² ≈ 1 µT², against σ_z of tens of µT², left out). The sums gain the products with cos ωt
+and sin ωt (exact, so the noise adjustment is unchanged); θ gains β_c, β_s, with a prior of σ `DRIFT_T`
+(1 µT) per axis — what a thermal cycle does, and what keeps the first minutes (where cos ωt ≈ 1 cannot
+be told from the constant) well posed. What is published and applied is b(t) at the solution's time
+with the covariance of b(t) (J C Jᵀ: what the drift's terms leave unknown included), and its rate
+db/dt, with which the applied hard iron follows the drift between solutions. A random walk of b
+(process noise) was the other candidate: to follow 1 µT per orbit it must forget b's information
+within minutes, so its σ of b stays at ~0.2 µT with a 1.5 µT sensor (~0.07 µT with the isoi chip) and
+never reaches the σ goal; the harmonic keeps all the information and costs three parameters per axis
+(bench.calibration, 20 hosts at 1.5 µT: the σ goals reached after a median 4,699 s instead of 3,379 s
+for a constant host, 17 of 20 hosts within the orbit either way). The cost of a real
+thermal cycle that is not a pure sine: its higher harmonics stay in the residual. A sudden jump of b is
+not drift: it is flagged, then learned again (:meth:`MagCal.solve`).
 
 Checks before a solution is published as good (:func:`check`): the Gauss–Newton iteration converged
 and I + D is positive definite; the normalised Fisher matrix is well conditioned (a body that sees one
@@ -57,9 +79,16 @@ STATE_NAMES = {NO_FIELD: "no field on board", COLLECTING: "collecting", CONVERGE
                UNCERTAIN: "uncertain", REJECTED: "rejected"}
 
 
-#: what a constant calibration against the onboard model cannot explain, taken as noise on |B| beside the
-#: sensor's: the model's error (IGRF-14 degree 8: 0.07 µT RMS), the hard iron's thermal drift (~1 µT over an
-#: orbit). Without it a quiet chip (0.05 µT) refuses every later minute as a misfit of a good calibration.
+#: the hard iron's thermal drift the flight form follows: a cycle per orbit (the period of a low orbit,
+#: 480–550 km; the loop's calibration step gives the orbit's own when it knows it), its amplitude per axis
+#: the prior's σ of its terms
+DRIFT_PERIOD_S = 5670.0
+DRIFT_T = 1e-6
+
+#: what the calibration against the onboard model cannot explain, taken as noise on |B| beside the
+#: sensor's: the model's error (IGRF-14 degree 8: 0.07 µT RMS), what the drift's first harmonic leaves of a
+#: real thermal cycle. Without it a quiet chip (0.05 µT) refuses later minutes as misfits of a good
+#: calibration; with the drift followed, it makes σ of b conservative on such a chip (errors ~0.2 σ).
 MODEL_SIGMA_T = 0.3e-6
 
 @dataclass(frozen=True)
@@ -120,13 +149,15 @@ def apply(cal: Calibration, b_meas_T: np.ndarray) -> np.ndarray:
 
 # --- the sufficient statistics ------------------------------------------------------------------------
 #
-# Per sample, the residual is e = z − aᵀφ = ãᵀ(φ, 1) with ã = (−a, z) = P m(B) − |B_model|² e₁₀, m(B) the
-# ten monomials of B of degree ≤ 2. So Σ w e² needs only Σ w m mᵀ (monomials of degree ≤ 4: 35 sums),
-# Σ w |B_model|² m and Σ w |B_model|⁴. With noise in B these are biased (the regressors are noisy:
-# an errors-in-variables problem, which shrinks the scale by ~σ²/|B|², several σ of D after an orbit).
-# The adjusted least squares (Kukush, Markovsky & Van Huffel 2004, consistent ellipsoid fitting) replaces
-# each monomial by its Hermite polynomial in the noise — E[Heₚ(x + ε)] = xᵖ for Gaussian ε — so the
-# sums estimate the noise-free ones; the raw sums are kept for the residual test.
+# Per sample, the residual is e = z − aᵀφ = ãᵀ(φ, 1) with ã = (−a, z) = P (m(B) ⊗ τ(t)) − |B_model|² e_z,
+# m(B) the ten monomials of B of degree ≤ 2 and τ(t) = (1) for a constant host, (1, cos ωt, sin ωt) with
+# the hard iron's drift (ω = 2π / its period). So Σ w e² needs only Σ w τ_k τ_l m mᵀ (monomials of degree
+# ≤ 4: 35 sums per pair k, l), Σ w |B_model|² τ_k m and Σ w |B_model|⁴. With noise in B these are biased
+# (the regressors are noisy: an errors-in-variables problem, which shrinks the scale by ~σ²/|B|², several
+# σ of D after an orbit). The adjusted least squares (Kukush, Markovsky & Van Huffel 2004, consistent
+# ellipsoid fitting) replaces each monomial by its Hermite polynomial in the noise — E[Heₚ(x + ε)] = xᵖ
+# for Gaussian ε; τ(t) is exact — so the sums estimate the noise-free ones; the raw sums are kept for the
+# residual test.
 
 _M2 = ((0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (2, 0, 0), (0, 2, 0), (0, 0, 2), (1, 1, 0), (1, 0, 1), (0, 1, 1))
 _M4 = tuple(sorted({tuple(p + q for p, q in zip(a, b)) for a in _M2 for b in _M2}, key=lambda e: (sum(e), e)))
@@ -134,11 +165,48 @@ _M4_INDEX = {e: k for k, e in enumerate(_M4)}
 _PROD = np.array([[_M4_INDEX[tuple(p + q for p, q in zip(a, b))] for b in _M2] for a in _M2])
 _M2_IN_M4 = np.array([_M4_INDEX[e] for e in _M2])
 _EXP = np.array(_M4)
-# ã = P m(B) − |B_model|² e₁₀
+# ã = P m(B) − |B_model|² e₁₀ for a constant host
 _P = np.zeros((N_PHI + 1, len(_M2)))
 for _row, _col, _v in ((0, 1, -2.0), (1, 2, -2.0), (2, 3, -2.0), (3, 4, 1.0), (4, 5, 1.0), (5, 6, 1.0), (6, 7, 2.0),
                        (7, 8, 2.0), (8, 9, 2.0), (9, 0, 1.0), (10, 4, 1.0), (10, 5, 1.0), (10, 6, 1.0)):
     _P[_row, _col] = _v
+
+
+def n_phi(n_tau: int) -> int:
+    """Linear parameters: c, E, μ, and (c_k, μ_k) for each harmonic term k ≥ 1."""
+    return N_PHI + 4 * (n_tau - 1)
+
+
+def n_theta(n_tau: int) -> int:
+    """Parameters: b, D's unique terms, and β_k (3) for each harmonic term k ≥ 1."""
+    return N_THETA + 3 * (n_tau - 1)
+
+
+def _p_matrix(n_tau: int) -> np.ndarray:
+    """ã = P (m ⊗ τ) − |B_model|² e_z; columns in np.kron order (monomial i, term k) → i·n_tau + k."""
+    nphi, nm = n_phi(n_tau), len(_M2)
+    P = np.zeros((nphi + 1, nm * n_tau))
+    cols = np.arange(nm) * n_tau
+    P[:N_PHI, cols] = _P[:N_PHI]
+    P[nphi, cols] = _P[N_PHI]
+    for k in range(1, n_tau):
+        r = N_PHI + 4 * (k - 1)
+        P[r:r + 3, cols + k] = _P[0:3]      # c_k: the regressor 2B τ_k
+        P[r + 3, cols + k] = _P[9]          # μ_k: the regressor −τ_k
+    return P
+
+
+_P_BY_TAU = {1: _p_matrix(1), 3: _p_matrix(3)}
+
+
+def trig(t_s: float | np.ndarray, period_s: float | None) -> np.ndarray:
+    """τ(t): (1) for a constant host, (1, cos ωt, sin ωt) with the drift of period `period_s`; (n_tau,) or
+    (n, n_tau)."""
+    t = np.asarray(t_s, float)
+    if period_s is None:
+        return np.ones(t.shape + (1,))
+    a = 2.0 * math.pi * t / period_s
+    return np.stack((np.ones_like(a), np.cos(a), np.sin(a)), axis=-1)
 
 
 def _hermite(x: np.ndarray, s2: float) -> np.ndarray:
@@ -160,18 +228,30 @@ def weights(b_model_uT: np.ndarray, sigma_uT: float, sigma_model_uT: float = 0.0
     return 1.0 / (4.0 * h * h * (sigma_uT ** 2 + sigma_model_uT ** 2))
 
 
+def _zeros(*shape):
+    return lambda: np.zeros(shape)
+
+
 @dataclass
 class Stats:
-    """Weighted sums of the samples' monomials, adjusted for the noise (`m`, `hm`, `h4`) and raw (`raw_*`),
-    `n` samples, `weight` the effective number after forgetting."""
+    """Weighted sums of the samples' monomials times τ_k τ_l, adjusted for the noise (`m` (n_tau, n_tau,
+    35), `hm` (n_tau, 10), `h4`) and raw (`raw_*`), `n` samples, `weight` the effective number after
+    forgetting. `n_tau`: 1 for a constant host, 3 with the hard iron's drift over the orbit."""
 
-    m: np.ndarray = field(default_factory=lambda: np.zeros(len(_M4)))
-    hm: np.ndarray = field(default_factory=lambda: np.zeros(len(_M2)))
+    n_tau: int = 1
+    m: np.ndarray | None = None
+    hm: np.ndarray | None = None
     h4: float = 0.0
-    raw_m: np.ndarray = field(default_factory=lambda: np.zeros(len(_M4)))
-    raw_hm: np.ndarray = field(default_factory=lambda: np.zeros(len(_M2)))
+    raw_m: np.ndarray | None = None
+    raw_hm: np.ndarray | None = None
     n: int = 0
     weight: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name, shape in (("m", (self.n_tau, self.n_tau, len(_M4))), ("hm", (self.n_tau, len(_M2))),
+                            ("raw_m", (self.n_tau, self.n_tau, len(_M4))), ("raw_hm", (self.n_tau, len(_M2)))):
+            if getattr(self, name) is None:
+                setattr(self, name, np.zeros(shape))
 
     def add(self, other: "Stats", forget: float = 1.0) -> None:
         """Add `other`'s samples, after multiplying what is here by `forget`."""
@@ -193,31 +273,45 @@ class Stats:
         self.weight -= other.weight
 
     def matrix(self, raw: bool = False) -> np.ndarray:
-        """Σ w ã ãᵀ (11×11)."""
+        """Σ w ã ãᵀ ((n_phi + 1)²)."""
         m, hm = (self.raw_m, self.raw_hm) if raw else (self.m, self.hm)
-        S = _P @ m[_PROD] @ _P.T
-        cross = _P @ hm
-        S[:, N_PHI] -= cross
-        S[N_PHI, :] -= cross
-        S[N_PHI, N_PHI] += self.h4
+        k, nm = self.n_tau, len(_M2)
+        mm = m[:, :, _PROD].transpose(2, 0, 3, 1).reshape(nm * k, nm * k)  # (i, k, j, l): kron order
+        P = _P_BY_TAU[k]
+        S = P @ mm @ P.T
+        cross = P @ hm.T.reshape(-1)
+        z = S.shape[0] - 1
+        S[:, z] -= cross
+        S[z, :] -= cross
+        S[z, z] += self.h4
         return S
 
 
 def contribution(b_meas_uT: np.ndarray, b_model_uT: np.ndarray, sigma_uT: float,
-                 sigma_model_uT: float = 0.0) -> Stats:
-    """The statistics of samples (n, 3) with the model's magnitudes (n,)."""
+                 sigma_model_uT: float = 0.0, tau: np.ndarray | None = None) -> Stats:
+    """The statistics of samples (n, 3) with the model's magnitudes (n,) and their τ(t) (n, n_tau) (None:
+    a constant host)."""
     h = np.atleast_1d(np.asarray(b_model_uT, float))
     w = weights(h, sigma_uT, sigma_model_uT)
+    tau = np.ones((len(h), 1)) if tau is None else np.atleast_2d(np.asarray(tau, float))
+    k = tau.shape[1]
     if len(h) == 1:  # one sample: the monomials on floats (numpy's per-call overhead dominates here)
         x, y, z = (float(v) for v in np.ravel(b_meas_uT))
         adj = np.array(_monomials_1(x, y, z, sigma_uT ** 2))
         raw = np.array(_monomials_1(x, y, z, 0.0))
         w0, h2 = float(w[0]), float(h[0]) ** 2
-        return Stats(w0 * adj, w0 * h2 * adj[_M2_IN_M4], w0 * h2 * h2, w0 * raw, w0 * h2 * raw[_M2_IN_M4], 1, 1.0)
+        if k == 1:
+            return Stats(1, (w0 * adj)[None, None], (w0 * h2 * adj[_M2_IN_M4])[None], w0 * h2 * h2,
+                         (w0 * raw)[None, None], (w0 * h2 * raw[_M2_IN_M4])[None], 1, 1.0)
+        tt = w0 * np.outer(tau[0], tau[0])[:, :, None]
+        th = (w0 * h2 * tau[0])[:, None]
+        return Stats(k, tt * adj, th * adj[_M2_IN_M4], w0 * h2 * h2, tt * raw, th * raw[_M2_IN_M4], 1, 1.0)
     adj, raw = monomials(b_meas_uT, sigma_uT), monomials(b_meas_uT)
     wh = w * h * h
-    return Stats(w @ adj, wh @ adj[:, _M2_IN_M4], float(np.sum(wh * h * h)), w @ raw, wh @ raw[:, _M2_IN_M4],
-                 len(h), float(len(h)))
+    wtt = w[:, None, None] * tau[:, :, None] * tau[:, None, :]  # (n, k, k)
+    wht = wh[:, None] * tau
+    return Stats(k, np.einsum("nkl,nm->klm", wtt, adj), wht.T @ adj[:, _M2_IN_M4], float(np.sum(wh * h * h)),
+                 np.einsum("nkl,nm->klm", wtt, raw), wht.T @ raw[:, _M2_IN_M4], len(h), float(len(h)))
 
 
 _EXP_ROWS = tuple(tuple(int(v) for v in e) for e in _M4)
@@ -232,17 +326,18 @@ def _monomials_1(x: float, y: float, z: float, s2: float) -> list:
 
 
 def accumulate(st: Stats, b_meas_uT: np.ndarray, b_model_uT: np.ndarray, sigma_uT: float,
-               sigma_model_uT: float = 0.0, forget: float = 1.0) -> Stats:
+               sigma_model_uT: float = 0.0, forget: float = 1.0, tau: np.ndarray | None = None) -> Stats:
     """The statistics with samples (n, 3) and the model's magnitudes (n,) added (in place); `forget`
-    multiplies what was there first."""
-    st.add(contribution(b_meas_uT, b_model_uT, sigma_uT, sigma_model_uT), forget)
+    multiplies what was there first; `tau`: the samples' τ(t) (None: a constant host)."""
+    st.add(contribution(b_meas_uT, b_model_uT, sigma_uT, sigma_model_uT, tau), forget)
     return st
 
 
 def normal_equations(st: Stats, raw: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
     """(N = Σ w a aᵀ, y = Σ w a z, Σ w z²)."""
     S = st.matrix(raw)
-    return S[:N_PHI, :N_PHI], -S[:N_PHI, N_PHI], float(S[N_PHI, N_PHI])
+    z = S.shape[0] - 1
+    return S[:z, :z], -S[:z, z], float(S[z, z])
 
 
 # --- the two steps --------------------------------------------------------------------------------------
@@ -258,22 +353,45 @@ def _unique(M: np.ndarray) -> np.ndarray:
     return np.array([M[i, j] for i, j in D_TERMS])
 
 
-def phi_of_theta(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """φ(θ) (10) and G = ∂φ/∂θ (10×9); θ = (b [µT], D's unique terms); μ = bᵀ(I + E)b (the noise's
-    mean square is taken out of the adjusted statistics)."""
-    b, ID = theta[:3], np.eye(3) + _sym(theta[3:])
+_E_UNIT = tuple(np.array([[1.0 if {(r, c), (c, r)} & {(i, j)} else 0.0 for c in range(3)] for r in range(3)])
+                for i, j in D_TERMS)
+
+
+def phi_of_theta(theta: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """φ(θ) and G = ∂φ/∂θ; θ = (b [µT], D's unique terms, β_k [µT] for each harmonic term); with the
+    hard iron b(t) = b + Σ_k τ_k(t) β_k and M = (I + D)²: c = M b, E = M − I, μ = bᵀM b + ½ Σ β_kᵀ M β_k
+    (the mean over the orbit of b(t)ᵀ M b(t); its second harmonic, ~|β|², is left out), c_k = M β_k,
+    μ_k = 2 bᵀ M β_k (the noise's mean square is taken out of the adjusted statistics)."""
+    theta = np.asarray(theta, float)
+    nb = (len(theta) - N_THETA) // 3
+    b, ID = theta[:3], np.eye(3) + _sym(theta[3:9])
+    betas = [theta[N_THETA + 3 * k:N_THETA + 3 * k + 3] for k in range(nb)]
     M = ID @ ID
-    phi = np.concatenate((M @ b, _unique(M - np.eye(3)), [b @ M @ b]))
-    G = np.zeros((N_PHI, N_THETA))
+    Mb = M @ b
+    phi = [Mb, _unique(M - np.eye(3)), [b @ Mb + 0.5 * sum(be @ M @ be for be in betas)]]
+    for be in betas:
+        phi += [M @ be, [2.0 * Mb @ be]]
+    phi = np.concatenate(phi)
+    if not jacobian:
+        return phi, None
+    G = np.zeros((len(phi), len(theta)))
     G[:3, :3] = M
-    G[9, :3] = 2 * M @ b
-    for k, (i, j) in enumerate(D_TERMS):
-        Ek = np.zeros((3, 3))
-        Ek[i, j] = Ek[j, i] = 1.0
+    G[9, :3] = 2 * Mb
+    for k, Ek in enumerate(_E_UNIT):
         dM = Ek @ ID + ID @ Ek
         G[:3, 3 + k] = dM @ b
         G[3:9, 3 + k] = _unique(dM)
-        G[9, 3 + k] = b @ dM @ b
+        G[9, 3 + k] = b @ dM @ b + 0.5 * sum(be @ dM @ be for be in betas)
+        for q, be in enumerate(betas):
+            r = N_PHI + 4 * q
+            G[r:r + 3, 3 + k] = dM @ be
+            G[r + 3, 3 + k] = 2.0 * b @ dM @ be
+    for q, be in enumerate(betas):
+        r, c = N_PHI + 4 * q, N_THETA + 3 * q
+        G[9, c:c + 3] = M @ be
+        G[r:r + 3, c:c + 3] = M
+        G[r + 3, c:c + 3] = 2 * Mb
+        G[r + 3, :3] = 2 * M @ be
     return phi, G
 
 
@@ -282,12 +400,24 @@ def cost(N: np.ndarray, y: np.ndarray, zz: float, phi: np.ndarray) -> float:
     return float(zz - 2 * phi @ y + phi @ N @ phi)
 
 
-def centred_estimate(st: Stats) -> np.ndarray | None:
-    """Step one: θ from the unconstrained linear fit (μ free), or None when it has no valid solution
-    (singular, or I + E not positive definite)."""
+def _prior(n: int, drift_uT: float | None) -> np.ndarray:
+    """The prior information (diagonal) on θ: none on b and D, 1/drift² on each β_k's terms."""
+    p = np.zeros(n)
+    if n > N_THETA and drift_uT:
+        p[N_THETA:] = 1.0 / drift_uT ** 2
+    return p
+
+
+def centred_estimate(st: Stats, drift_uT: float | None = None) -> np.ndarray | None:
+    """Step one: θ from the unconstrained linear fit (μ free; the drift's terms c_k held near 0 by the
+    prior), or None when it has no valid solution (singular, or I + E not positive definite)."""
     N, y, _ = normal_equations(st)
+    nph = len(y)
+    ridge = np.zeros(nph)
+    for q in range((nph - N_PHI) // 4):
+        ridge[N_PHI + 4 * q:N_PHI + 4 * q + 3] = _prior(N_THETA + 3, drift_uT)[N_THETA:]
     try:
-        phi = np.linalg.solve(N, y)
+        phi = np.linalg.solve(N + np.diag(ridge), y)
     except np.linalg.LinAlgError:
         return None
     M = np.eye(3) + _sym(phi[3:9])
@@ -295,54 +425,83 @@ def centred_estimate(st: Stats) -> np.ndarray | None:
     if not np.all(np.isfinite(ev)) or ev.min() <= 0.0:
         return None
     ID = (V * np.sqrt(ev)) @ V.T
-    b = np.linalg.solve(M, phi[:3])
-    return np.concatenate((b, _unique(ID - np.eye(3))))
+    out = [np.linalg.solve(M, phi[:3]), _unique(ID - np.eye(3))]
+    for q in range((nph - N_PHI) // 4):
+        out.append(np.linalg.solve(M, phi[N_PHI + 4 * q:N_PHI + 4 * q + 3]))
+    return np.concatenate(out)
 
 
 @dataclass(frozen=True)
 class Solution:
-    theta: np.ndarray        #: (b [µT], D's unique terms)
-    fisher: np.ndarray       #: 9×9, in those units
+    theta: np.ndarray        #: (b [µT], D's unique terms, β_k [µT])
+    fisher: np.ndarray       #: in those units, the prior on β_k included
     chi2_dof: float          #: the raw residual's χ² per degree of freedom
     iterations: int
     converged: bool          #: the Gauss–Newton step became negligible
 
 
-def refine(st: Stats, theta0: np.ndarray, max_iter: int = 20, tol: float = 1e-6) -> Solution:
-    """Step two: Gauss–Newton (Fisher scoring) on θ from `theta0` over the adjusted statistics, the step
-    halved while it does not lower the cost."""
+def refine(st: Stats, theta0: np.ndarray, max_iter: int = 20, tol: float = 1e-6,
+           drift_uT: float | None = None) -> Solution:
+    """Step two: Gauss–Newton (Fisher scoring) on θ from `theta0` over the adjusted statistics (plus the
+    prior on the drift's terms, of σ `drift_uT`), the step halved while it does not lower the cost."""
     N, y, zz = normal_equations(st)
     theta = np.array(theta0, float)
+    lam = _prior(len(theta), drift_uT)
+
+    def total(phi, th):
+        return cost(N, y, zz, phi) + float(np.sum(lam * th * th))
+
     phi, G = phi_of_theta(theta)
-    c = cost(N, y, zz, phi)
+    c = total(phi, theta)
     done = False
     it = 0
     while it < max_iter:
         it += 1
-        F = G.T @ N @ G
-        g = G.T @ (y - N @ phi)
+        F = G.T @ N @ G + np.diag(lam)
+        g = G.T @ (y - N @ phi) - lam * theta
         try:
             step = np.linalg.solve(F, g)
         except np.linalg.LinAlgError:
             break
         for _ in range(30):
             cand = theta + step
-            phi_c, G_c = phi_of_theta(cand)
-            c_c = cost(N, y, zz, phi_c)
+            phi_c, _ = phi_of_theta(cand, jacobian=False)
+            c_c = total(phi_c, cand)
             if c_c <= c or not np.isfinite(c):
                 break
             step = 0.5 * step
         else:
             break
-        theta, phi, G, c = cand, phi_c, G_c, c_c
+        theta, c = cand, c_c
+        phi, G = phi_of_theta(theta)
         # converged when the step is small against its own σ
         if float(step @ F @ step) < tol:
             done = True
             break
-    F = G.T @ N @ G
-    dof = max(st.weight - N_THETA, 1.0)
+    F = G.T @ N @ G + np.diag(lam)
+    dof = max(st.weight - len(theta), 1.0)
     raw = cost(*normal_equations(st, raw=True), phi)
     return Solution(theta, F, max(raw, 0.0) / dof, it, done)
+
+
+def current(theta: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(p, J): what is applied at the time of `tau` — p = (b(t) = b + Σ τ_k β_k, D's terms) (9) — and
+    J = ∂p/∂θ."""
+    theta = np.asarray(theta, float)
+    J = np.zeros((N_THETA, len(theta)))
+    J[:, :N_THETA] = np.eye(N_THETA)
+    for q in range((len(theta) - N_THETA) // 3):
+        J[:3, N_THETA + 3 * q:N_THETA + 3 * q + 3] = tau[q + 1] * np.eye(3)
+    return J @ theta, J
+
+
+def rate(theta: np.ndarray, t_s: float, period_s: float | None) -> np.ndarray:
+    """db/dt [µT/s] of the hard iron at `t_s` (0 for a constant host)."""
+    if period_s is None or len(theta) <= N_THETA:
+        return np.zeros(3)
+    w = 2.0 * math.pi / period_s
+    a = w * t_s
+    return w * (-math.sin(a) * theta[9:12] + math.cos(a) * theta[12:15])
 
 
 # --- the checks ------------------------------------------------------------------------------------------
@@ -360,9 +519,10 @@ class Limits:
     max_window_chi2: float = 3.0
     max_hard_iron_uT: float = 300.0  #: plausibility of |b| per axis
     max_soft_iron: float = 0.4       #: |eigenvalue of D|
-    #: change from the last good calibration refused when above both this (b per axis, µT; D's terms:
-    #: a thermal drift's worth between two solutions) and `max_change_sigmas` of the σ of the
-    #: difference (the last good one's and this one's) ...
+    #: plausibility of the drift's amplitude per axis (a thermal cycle moves the hard iron by ~1 µT)
+    max_drift_uT: float = 10.0
+    #: change from the last good calibration refused when above both this (b per axis, µT; D's terms)
+    #: and `max_change_sigmas` of the σ of the difference (the last good one's and this one's) ...
     max_change_uT: float = 1.0
     max_change_soft: float = 0.01
     max_change_sigmas: float = 5.0
@@ -380,7 +540,7 @@ WINDOW_RESIDUAL = "residual of the latest samples too large"
 
 def window_chi2(recent: Stats, theta: np.ndarray) -> float:
     """χ² per sample of `recent`'s samples under θ."""
-    return cost(*normal_equations(recent, raw=True), phi_of_theta(theta)[0]) / max(recent.weight, 1e-12)
+    return cost(*normal_equations(recent, raw=True), phi_of_theta(theta, jacobian=False)[0]) / max(recent.weight, 1e-12)
 
 
 def normalised_condition(F: np.ndarray) -> float:
@@ -392,18 +552,26 @@ def normalised_condition(F: np.ndarray) -> float:
 
 
 def check(sol: Solution, last_good: np.ndarray | None, lim: Limits, last_sigma: np.ndarray | None = None,
-          insisted: int = 0, recent: Stats | None = None) -> tuple[str | None, np.ndarray | None]:
-    """(None, covariance) when `sol` may be published, else (why not, None). The covariance is the
-    inverse Fisher matrix scaled by the residual's χ²/dof when that is above 1 (σ_z is approximate).
-    `last_sigma`: the last good calibration's σ (µT units); `insisted`: how many solutions in a row were
-    refused for their change already; `recent`: the samples since the last solution."""
+          insisted: int = 0, recent: Stats | None = None,
+          tau: np.ndarray | None = None) -> tuple[str | None, np.ndarray | None]:
+    """(None, covariance) when `sol` may be published, else (why not, None). The covariance (9×9) is that
+    of p = (b(t), D's terms) at the time of `tau` (the latest sample's; None: a constant host), from the
+    inverse Fisher matrix scaled by the residual's χ²/dof when that is above 1 (σ_z is approximate); the
+    conditioning is judged on its inverse. `last_good`: the last published p; `last_sigma`: its σ (µT
+    units); `insisted`: how many solutions in a row were refused for their change already; `recent`: the
+    samples since the last solution."""
     th = sol.theta
     if not sol.converged or not np.all(np.isfinite(th)):
         return "did not converge", None
-    cond = normalised_condition(sol.fisher)
+    p, J = current(th, np.ones(1) if tau is None else tau)
+    try:
+        cov_all = np.linalg.inv(sol.fisher) * max(1.0, sol.chi2_dof)
+        cov = J @ cov_all @ J.T
+        cond = normalised_condition(np.linalg.inv(cov))
+    except np.linalg.LinAlgError:
+        cond = math.inf
     if cond > lim.max_condition:
         return f"ill-conditioned (Fisher condition {cond:.3g})", None
-    cov = np.linalg.inv(sol.fisher) * max(1.0, sol.chi2_dof)
     if np.any(np.diag(cov) <= 0):
         return "ill-conditioned (covariance not positive)", None
     if sol.chi2_dof > lim.max_chi2_dof:
@@ -412,15 +580,16 @@ def check(sol: Solution, last_good: np.ndarray | None, lim: Limits, last_sigma: 
         chi2 = window_chi2(recent, th)
         if chi2 > lim.max_window_chi2:
             return f"{WINDOW_RESIDUAL} (chi2/sample {chi2:.3g})", None
-    ev = np.linalg.eigvalsh(_sym(th[3:]))
-    if np.max(np.abs(th[:3])) > lim.max_hard_iron_uT or np.max(np.abs(ev)) > lim.max_soft_iron:
+    ev = np.linalg.eigvalsh(_sym(th[3:9]))
+    if (np.max(np.abs(th[:3])) > lim.max_hard_iron_uT or np.max(np.abs(ev)) > lim.max_soft_iron
+            or (len(th) > N_THETA and np.max(np.abs(th[N_THETA:])) > lim.max_drift_uT)):
         return "implausible values", None
     if last_good is not None and insisted < lim.confirm_change_after:
         bound = np.array([lim.max_change_uT] * 3 + [lim.max_change_soft] * 6)
         if last_sigma is not None:
             both = np.sqrt(last_sigma ** 2 + np.diag(cov))
             bound = np.maximum(bound, lim.max_change_sigmas * both)
-        if np.any(np.abs(th - last_good) > bound):
+        if np.any(np.abs(p - last_good) > bound):
             return CHANGE_TOO_LARGE, None
     return None, cov
 
@@ -428,36 +597,39 @@ def check(sol: Solution, last_good: np.ndarray | None, lim: Limits, last_sigma: 
 _UT_SCALE = np.array([UT_PER_T] * 3 + [1.0] * 6)
 
 
-def to_calibration(theta: np.ndarray, cov_uT: np.ndarray | None) -> Calibration:
-    """θ (µT) and its covariance to a :class:`Calibration` (T)."""
+def to_calibration(theta: np.ndarray, cov_uT: np.ndarray | None, tau: np.ndarray | None = None) -> Calibration:
+    """θ (µT) and the covariance of p (µT units, see :func:`check`) to a :class:`Calibration` (T) at the
+    time of `tau` (None: a constant host)."""
+    p, _ = current(theta, np.ones(1) if tau is None else tau)
     cov = None if cov_uT is None else cov_uT / _UT_SCALE[:, None] / _UT_SCALE[None, :]
-    return Calibration(theta[:3] / UT_PER_T, _sym(theta[3:]), cov)
+    return Calibration(p[:3] / UT_PER_T, _sym(p[3:]), cov)
 
 
 def estimate(b_meas_T: np.ndarray, b_model_T: np.ndarray, sigma_T: float, sigma_model_T: float = 0.0,
              limits: Limits = Limits()) -> tuple[Calibration | None, str | None, Solution | None]:
-    """Batch TWOSTEP on samples (n, 3) and the model's magnitudes (n,): (calibration, None, solution)
-    when it passes :func:`check`, else (None, why, solution or None)."""
+    """Batch TWOSTEP (a constant host) on samples (n, 3) and the model's magnitudes (n,): (calibration,
+    None, solution) when it passes :func:`check`, else (None, why, solution or None)."""
     st = accumulate(Stats(), np.asarray(b_meas_T) * UT_PER_T, np.asarray(b_model_T) * UT_PER_T,
                     sigma_T * UT_PER_T, sigma_model_T * UT_PER_T)
     return _solve(st, None, limits)
 
 
 def _solve(st: Stats, last_good: np.ndarray | None, lim: Limits,
-           last_sigma: np.ndarray | None = None, insisted: int = 0, recent: Stats | None = None):
-    if st.n < 2 * N_PHI:
+           last_sigma: np.ndarray | None = None, insisted: int = 0, recent: Stats | None = None,
+           tau: np.ndarray | None = None, drift_uT: float | None = None, theta_good: np.ndarray | None = None):
+    if st.n < 2 * n_phi(st.n_tau):
         return None, "too few samples", None
-    theta0 = centred_estimate(st)
-    starts = [t for t in (theta0, last_good, np.zeros(N_THETA)) if t is not None]
+    theta0 = centred_estimate(st, drift_uT)
+    starts = [t for t in (theta0, theta_good, np.zeros(n_theta(st.n_tau))) if t is not None]
     sol = None
     for t0 in starts:
-        sol = refine(st, t0)
+        sol = refine(st, t0, drift_uT=drift_uT)
         if sol.converged:
             break
-    why, cov = check(sol, last_good, lim, last_sigma, insisted, recent)
+    why, cov = check(sol, last_good, lim, last_sigma, insisted, recent, tau)
     if why:
         return None, why, sol
-    return to_calibration(sol.theta, cov), None, sol
+    return to_calibration(sol.theta, cov, tau), None, sol
 
 
 # --- the flight form ------------------------------------------------------------------------------------
@@ -465,24 +637,39 @@ def _solve(st: Stats, last_good: np.ndarray | None, lim: Limits,
 class MagCal:
     """Recursive TWOSTEP: :meth:`update` with each sample (B_meas [T], |B_model| [T], t [s]); every
     `solve_every_s` of sample time the statistics are solved and the result checked. `calibration` is
-    the last good one (identity before any), `state` says where it stands, `reason` why the latest
-    solution was refused. `memory_s`: time constant of the exponential forgetting (None: none)."""
+    the last good one (identity before any) with the hard iron at the time of that solution, `state`
+    says where it stands, `reason` why the latest solution was refused. `memory_s`: time constant of the
+    exponential forgetting (None: none).
+
+    The hard iron's drift (`drift_period_s`, default `DRIFT_PERIOD_S`; None: a constant host): b(t) = b +
+    β_c cos ωt + β_s sin ωt, ω = 2π / the period (the thermal cycle of the orbit), the β's with a prior of
+    σ `drift_T` per axis (what a thermal cycle does; it also keeps the first minutes, where cos ωt ≈ 1 is
+    confused with the constant, well posed). The published hard iron is b(t) at the solution's time, its
+    covariance that of b(t) (what the drift's terms leave unknown included); :meth:`apply` with a time
+    follows b(t) between solutions (at most two solution periods ahead)."""
 
     def __init__(self, sigma_T: float, *, sigma_model_T: float = 0.0, solve_every_s: float = 60.0,
-                 min_samples: int = 200, memory_s: float | None = None, limits: Limits = Limits()) -> None:
+                 min_samples: int = 200, memory_s: float | None = None,
+                 drift_period_s: float | None = DRIFT_PERIOD_S, drift_T: float = DRIFT_T,
+                 limits: Limits = Limits()) -> None:
         self.sigma_uT = sigma_T * UT_PER_T
         self.sigma_model_uT = sigma_model_T * UT_PER_T
         self.solve_every_s = solve_every_s
         self.min_samples = min_samples
         self.memory_s = memory_s
+        if drift_period_s is not None and not (math.isfinite(drift_period_s) and drift_period_s > 0):
+            raise ValueError(f"drift_period_s must be > 0 or None, got {drift_period_s!r}")
+        self.drift_period_s = drift_period_s
+        self.drift_uT = drift_T * UT_PER_T
         self.limits = limits
         self.reset()
 
     def reset(self) -> None:
-        self.stats = Stats()
-        self.recent = Stats()  # the samples since the last solution
+        self.stats = Stats(self.n_tau)
+        self.recent = Stats(self.n_tau)  # the samples since the last solution
         self.calibration = IDENTITY
-        self._good: np.ndarray | None = None
+        self._good: np.ndarray | None = None       # θ of the last good solution
+        self._good_p: np.ndarray | None = None     # and what it published (b(t), D)
         self.state = COLLECTING
         self.reason: str | None = None
         self.chi2_dof = math.nan
@@ -497,9 +684,19 @@ class MagCal:
         #: sample times of the first calibration published, and of the first within the σ goals
         self.first_good_at_s: float | None = None
         self.converged_at_s: float | None = None
+        #: the time of the published calibration's hard iron, and its rate there [T/s]
+        self.published_at_s: float | None = None
+        self.rate_T_per_s = np.zeros(3)
         self._t_last: float | None = None
         self._t_solve: float | None = None
         self._insisted = 0
+        #: after a restart: the new sums are not judged against the last good calibration, which stays
+        #: applied until a solution from them passes the checks
+        self._relearning = False
+
+    @property
+    def n_tau(self) -> int:
+        return 1 if self.drift_period_s is None else 3
 
     @property
     def samples(self) -> int:
@@ -510,16 +707,20 @@ class MagCal:
         """A calibration that passed the checks is being applied."""
         return self._good is not None
 
+    def _tau(self, t_s: float) -> np.ndarray:
+        return trig(t_s, self.drift_period_s)
+
     def update(self, b_meas_T: np.ndarray, b_model_mag_T: float, t_s: float) -> bool:
         """Add a sample; True when a new calibration was published."""
-        if not (np.all(np.isfinite(b_meas_T)) and math.isfinite(b_model_mag_T) and b_model_mag_T > 0):
+        if not (np.all(np.isfinite(b_meas_T)) and math.isfinite(b_model_mag_T) and b_model_mag_T > 0
+                and math.isfinite(t_s)):
             return False
         forget = 1.0
         if self.memory_s is not None and self._t_last is not None:
             forget = math.exp(-max(t_s - self._t_last, 0.0) / self.memory_s)
         self._t_last = t_s
         c = contribution(np.asarray(b_meas_T) * UT_PER_T, b_model_mag_T * UT_PER_T, self.sigma_uT,
-                         self.sigma_model_uT)
+                         self.sigma_model_uT, None if self.n_tau == 1 else self._tau(t_s)[None])
         self.stats.add(c, forget)
         self.recent.add(c, forget)
         if self._t_solve is None:
@@ -532,36 +733,48 @@ class MagCal:
     def solve(self, t_s: float) -> bool:
         """Solve the statistics now; True when the result was published. First, with a good calibration,
         the samples since the last solution are tested against it: a stretch that does not fit (χ² per
-        sample above `max_window_chi2`: a magnet, a fault) is taken out of the sums and counted in
-        `dropped`; after `restart_after` such stretches in a row the host is taken to have changed and the
-        sums start again from the latest one (the last good calibration stays applied meanwhile)."""
+        sample above `max_window_chi2`: a magnet, a fault, a jump of the hard iron) is taken out of the
+        sums and counted in `dropped`, the state REJECTED; after `restart_after` such stretches in a row
+        the host is taken to have changed and the sums start again from the latest one. A jump is thus
+        flagged first, then re-learned: the last good calibration stays applied (state REJECTED, the
+        reason says so) until a solution from the new sums passes the checks, its change confirmed by
+        `confirm_change_after` solutions in a row (for a 20 µT jump of the hard iron on a tumbling host:
+        ~10 min flagged, then about the time a first calibration takes)."""
         self.solves += 1
-        recent, self.recent = self.recent, Stats()
-        if self._good is not None and recent.n and window_chi2(recent, self._good) > self.limits.max_window_chi2:
+        recent, self.recent = self.recent, Stats(self.n_tau)
+        if (self._good is not None and not self._relearning and recent.n
+                and window_chi2(recent, self._good) > self.limits.max_window_chi2):
             self.misfits += 1
             self.dropped += recent.n
             self.stats.remove(recent)
             if self.misfits >= self.limits.restart_after:
                 self.stats, self.misfits = recent, 0
                 self.restarts += 1
+                self._relearning = True
             self.rejections += 1
             self.reason = f"{WINDOW_RESIDUAL} for the last good calibration: {recent.n} samples left out"
             self.state = REJECTED
             return False
         self.misfits = 0
         last_sigma = None if self._good is None else self.calibration.sigma * _UT_SCALE
-        cal, why, sol = _solve(self.stats, self._good, self.limits, last_sigma, self._insisted, recent)
+        tau = self._tau(t_s)
+        cal, why, sol = _solve(self.stats, self._good_p, self.limits, last_sigma, self._insisted, recent,
+                               None if self.n_tau == 1 else tau, self.drift_uT, self._good)
         self.chi2_dof = sol.chi2_dof if sol is not None else math.nan
         self._insisted = self._insisted + 1 if why == CHANGE_TOO_LARGE else 0
         if cal is None:
             self.rejections += 1
-            self.reason = why
+            self.reason = why if not self._relearning else f"the host changed, re-learning: {why}"
             self.state = REJECTED
             return False
+        self._relearning = False
         self.reason = None
         self.calibration = cal
         self.published += 1
+        self.published_at_s = t_s
+        self.rate_T_per_s = rate(sol.theta, t_s, self.drift_period_s) / UT_PER_T
         self._good = sol.theta
+        self._good_p = current(sol.theta, tau)[0]
         sig = cal.sigma
         ok = (np.max(sig[:3]) * UT_PER_T <= self.limits.goal_sigma_uT
               and np.max(sig[3:]) <= self.limits.goal_sigma_soft)
@@ -572,6 +785,27 @@ class MagCal:
             self.converged_at_s = t_s
         return True
 
-    def apply(self, b_meas_T: np.ndarray) -> np.ndarray:
-        """The sample with the last good calibration applied (unchanged before any)."""
-        return apply(self.calibration, b_meas_T)
+    def hard_iron_T(self, t_s: float | np.ndarray) -> np.ndarray:
+        """b(t) [T] of the last good solution's model, (3,) or (n, 3) (its drift's terms included; the
+        constant b before any solution)."""
+        if self._good is None:
+            return np.broadcast_to(self.calibration.b_T, np.shape(t_s) + (3,)).copy()
+        tau = trig(t_s, self.drift_period_s)
+        b = np.asarray(tau[..., :1]) * self._good[:3]
+        for q in range(self.n_tau - 1):
+            b = b + tau[..., q + 1:q + 2] * self._good[N_THETA + 3 * q:N_THETA + 3 * q + 3]
+        return b / UT_PER_T
+
+    def calibration_at(self, t_s: float | None) -> Calibration:
+        """The last good calibration with its hard iron moved along its drift to `t_s` (at most two
+        solution periods from its time; None: as published)."""
+        if t_s is None or self.published_at_s is None or not np.any(self.rate_T_per_s):
+            return self.calibration
+        dt = float(np.clip(t_s - self.published_at_s, -2 * self.solve_every_s, 2 * self.solve_every_s))
+        c = self.calibration
+        return Calibration(c.b_T + self.rate_T_per_s * dt, c.D, c.cov)
+
+    def apply(self, b_meas_T: np.ndarray, t_s: float | None = None) -> np.ndarray:
+        """The sample with the last good calibration applied (unchanged before any); with `t_s`, its
+        hard iron followed along the drift to that time."""
+        return apply(self.calibration_at(t_s), b_meas_T)

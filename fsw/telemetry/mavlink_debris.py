@@ -7425,22 +7425,22 @@ class MAVLink_debris_magcal_message(MAVLink_message):
 
     id = MAVLINK_MSG_ID_DEBRIS_MAGCAL
     msgname = "DEBRIS_MAGCAL"
-    fieldnames = ["time_usec", "samples", "dropped", "rejections", "hard_iron", "soft_iron", "hard_iron_sigma", "soft_iron_sigma", "residual", "state"]
-    ordered_fieldnames = ["time_usec", "samples", "dropped", "hard_iron", "soft_iron", "hard_iron_sigma", "soft_iron_sigma", "residual", "rejections", "state"]
-    fieldtypes = ["uint64_t", "uint32_t", "uint32_t", "uint16_t", "float", "float", "float", "float", "float", "uint8_t"]
+    fieldnames = ["time_usec", "samples", "dropped", "rejections", "hard_iron", "soft_iron", "hard_iron_sigma", "soft_iron_sigma", "residual", "state", "hard_iron_rate", "drift_period"]
+    ordered_fieldnames = ["time_usec", "samples", "dropped", "hard_iron", "soft_iron", "hard_iron_sigma", "soft_iron_sigma", "residual", "rejections", "state", "hard_iron_rate", "drift_period"]
+    fieldtypes = ["uint64_t", "uint32_t", "uint32_t", "uint16_t", "float", "float", "float", "float", "float", "uint8_t", "float", "float"]
     fielddisplays_by_name: Dict[str, str] = {}
     fieldenums_by_name: Dict[str, str] = {"state": "DEBRIS_MAGCAL_STATE"}
-    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "hard_iron": "uT", "hard_iron_sigma": "uT"}
-    native_format = bytearray(b"<QIIfffffHB")
-    orders = [0, 1, 2, 8, 3, 4, 5, 6, 7, 9]
-    lengths = [1, 1, 1, 3, 6, 3, 6, 1, 1, 1]
-    array_lengths = [0, 0, 0, 3, 6, 3, 6, 0, 0, 0]
+    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "hard_iron": "uT", "hard_iron_sigma": "uT", "hard_iron_rate": "uT/h", "drift_period": "s"}
+    native_format = bytearray(b"<QIIfffffHBff")
+    orders = [0, 1, 2, 8, 3, 4, 5, 6, 7, 9, 10, 11]
+    lengths = [1, 1, 1, 3, 6, 3, 6, 1, 1, 1, 3, 1]
+    array_lengths = [0, 0, 0, 3, 6, 3, 6, 0, 0, 0, 3, 0]
     crc_extra = 105
-    unpacker = struct.Struct("<QII3f6f3f6ffHB")
+    unpacker = struct.Struct("<QII3f6f3f6ffHB3ff")
     instance_field = None
     instance_offset = -1
 
-    def __init__(self, time_usec: int, samples: int, dropped: int, rejections: int, hard_iron: Sequence[float], soft_iron: Sequence[float], hard_iron_sigma: Sequence[float], soft_iron_sigma: Sequence[float], residual: float, state: int):
+    def __init__(self, time_usec: int, samples: int, dropped: int, rejections: int, hard_iron: Sequence[float], soft_iron: Sequence[float], hard_iron_sigma: Sequence[float], soft_iron_sigma: Sequence[float], residual: float, state: int, hard_iron_rate: Sequence[float] = (0, 0, 0), drift_period: float = 0):
         MAVLink_message.__init__(self, MAVLink_debris_magcal_message.id, MAVLink_debris_magcal_message.msgname)
         self._fieldnames = MAVLink_debris_magcal_message.fieldnames
         self._instance_field = MAVLink_debris_magcal_message.instance_field
@@ -7455,9 +7455,11 @@ class MAVLink_debris_magcal_message(MAVLink_message):
         self.soft_iron_sigma = soft_iron_sigma
         self.residual = residual
         self.state = state
+        self.hard_iron_rate = hard_iron_rate
+        self.drift_period = drift_period
 
     def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
-        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.samples, self.dropped, self.hard_iron[0], self.hard_iron[1], self.hard_iron[2], self.soft_iron[0], self.soft_iron[1], self.soft_iron[2], self.soft_iron[3], self.soft_iron[4], self.soft_iron[5], self.hard_iron_sigma[0], self.hard_iron_sigma[1], self.hard_iron_sigma[2], self.soft_iron_sigma[0], self.soft_iron_sigma[1], self.soft_iron_sigma[2], self.soft_iron_sigma[3], self.soft_iron_sigma[4], self.soft_iron_sigma[5], self.residual, self.rejections, self.state), force_mavlink1=force_mavlink1)
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.samples, self.dropped, self.hard_iron[0], self.hard_iron[1], self.hard_iron[2], self.soft_iron[0], self.soft_iron[1], self.soft_iron[2], self.soft_iron[3], self.soft_iron[4], self.soft_iron[5], self.hard_iron_sigma[0], self.hard_iron_sigma[1], self.hard_iron_sigma[2], self.soft_iron_sigma[0], self.soft_iron_sigma[1], self.soft_iron_sigma[2], self.soft_iron_sigma[3], self.soft_iron_sigma[4], self.soft_iron_sigma[5], self.residual, self.rejections, self.state, self.hard_iron_rate[0], self.hard_iron_rate[1], self.hard_iron_rate[2], self.drift_period), force_mavlink1=force_mavlink1)
 
 
 # Define name on the class for backwards compatibility (it is now msgname).
@@ -18613,7 +18615,7 @@ class MAVLink(object):
         """
         self.send(self.debris_tle_encode(target_system, target_component, line1, line2), force_mavlink1=force_mavlink1)
 
-    def debris_magcal_encode(self, time_usec: int, samples: int, dropped: int, rejections: int, hard_iron: Sequence[float], soft_iron: Sequence[float], hard_iron_sigma: Sequence[float], soft_iron_sigma: Sequence[float], residual: float, state: int) -> MAVLink_debris_magcal_message:
+    def debris_magcal_encode(self, time_usec: int, samples: int, dropped: int, rejections: int, hard_iron: Sequence[float], soft_iron: Sequence[float], hard_iron_sigma: Sequence[float], soft_iron_sigma: Sequence[float], residual: float, state: int, hard_iron_rate: Sequence[float] = (0, 0, 0), drift_period: float = 0) -> MAVLink_debris_magcal_message:
         """
         Onboard host-magnetics calibration applied to every sample before the
         estimators: B_true = (I + D) (B_meas - b), b the hard iron in
@@ -18630,11 +18632,13 @@ class MAVLink(object):
         soft_iron_sigma           : 1-sigma of D's six terms (NaN before any calibration). (type:float)
         residual                  : Residual chi-square per degree of freedom of the latest solution (NaN before one). (type:float)
         state                     : Calibration state. (type:uint8_t, values:DEBRIS_MAGCAL_STATE)
+        hard_iron_rate            : Rate of change of the applied hard iron along its thermal drift (a first harmonic per orbit); the hard iron applied between two messages follows it. [uT/h] (type:float)
+        drift_period              : Period of the hard iron's drift the calibration follows (the orbit's); 0: a constant host. [s] (type:float)
 
         """
-        return MAVLink_debris_magcal_message(time_usec, samples, dropped, rejections, hard_iron, soft_iron, hard_iron_sigma, soft_iron_sigma, residual, state)
+        return MAVLink_debris_magcal_message(time_usec, samples, dropped, rejections, hard_iron, soft_iron, hard_iron_sigma, soft_iron_sigma, residual, state, hard_iron_rate, drift_period)
 
-    def debris_magcal_send(self, time_usec: int, samples: int, dropped: int, rejections: int, hard_iron: Sequence[float], soft_iron: Sequence[float], hard_iron_sigma: Sequence[float], soft_iron_sigma: Sequence[float], residual: float, state: int, force_mavlink1: bool = False) -> None:
+    def debris_magcal_send(self, time_usec: int, samples: int, dropped: int, rejections: int, hard_iron: Sequence[float], soft_iron: Sequence[float], hard_iron_sigma: Sequence[float], soft_iron_sigma: Sequence[float], residual: float, state: int, hard_iron_rate: Sequence[float] = (0, 0, 0), drift_period: float = 0, force_mavlink1: bool = False) -> None:
         """
         Onboard host-magnetics calibration applied to every sample before the
         estimators: B_true = (I + D) (B_meas - b), b the hard iron in
@@ -18651,9 +18655,11 @@ class MAVLink(object):
         soft_iron_sigma           : 1-sigma of D's six terms (NaN before any calibration). (type:float)
         residual                  : Residual chi-square per degree of freedom of the latest solution (NaN before one). (type:float)
         state                     : Calibration state. (type:uint8_t, values:DEBRIS_MAGCAL_STATE)
+        hard_iron_rate            : Rate of change of the applied hard iron along its thermal drift (a first harmonic per orbit); the hard iron applied between two messages follows it. [uT/h] (type:float)
+        drift_period              : Period of the hard iron's drift the calibration follows (the orbit's); 0: a constant host. [s] (type:float)
 
         """
-        self.send(self.debris_magcal_encode(time_usec, samples, dropped, rejections, hard_iron, soft_iron, hard_iron_sigma, soft_iron_sigma, residual, state), force_mavlink1=force_mavlink1)
+        self.send(self.debris_magcal_encode(time_usec, samples, dropped, rejections, hard_iron, soft_iron, hard_iron_sigma, soft_iron_sigma, residual, state, hard_iron_rate, drift_period), force_mavlink1=force_mavlink1)
 
     def sys_status_encode(self, onboard_control_sensors_present: int, onboard_control_sensors_enabled: int, onboard_control_sensors_health: int, load: int, voltage_battery: int, current_battery: int, battery_remaining: int, drop_rate_comm: int, errors_comm: int, errors_count1: int, errors_count2: int, errors_count3: int, errors_count4: int, onboard_control_sensors_present_extended: int = 0, onboard_control_sensors_enabled_extended: int = 0, onboard_control_sensors_health_extended: int = 0) -> MAVLink_sys_status_message:
         """

@@ -233,9 +233,10 @@ class Telemetry:
         self._send(mavlink.MAVLink_statustext_message(severity, text.encode("ascii", "replace")[:50]))
 
     def magcal(self, t_s: float, cal, *, state: int, samples: int, dropped: int, rejections: int,
-               residual: float) -> None:
+               residual: float, rate_T_per_s=(0.0, 0.0, 0.0), drift_period_s: float | None = None) -> None:
         """DEBRIS_MAGCAL: the applied calibration (`fsw.estimation.magcal.Calibration`, b in µT, D's six
-        terms), its 1-σ (NaN before any), state and counters."""
+        terms), its 1-σ (NaN before any), state and counters; the hard iron's drift rate (µT/h) and the
+        drift's period (0: a constant host)."""
         sig = cal.sigma
         sig = np.where(np.isfinite(sig), sig, np.nan)
         D = cal.D
@@ -243,4 +244,5 @@ class Telemetry:
         self._send(mavlink.MAVLink_debris_magcal_message(
             usec(t_s), min(int(samples), 0xFFFFFFFF), min(int(dropped), 0xFFFFFFFF), min(int(rejections), 65535),
             [float(x) * 1e6 for x in cal.b_T], [float(x) for x in terms], [float(x) * 1e6 for x in sig[:3]],
-            [float(x) for x in sig[3:]], float(residual), int(state)))
+            [float(x) for x in sig[3:]], float(residual), int(state),
+            [float(x) * 1e6 * 3600.0 for x in rate_T_per_s], float(drift_period_s or 0.0)))

@@ -4,6 +4,7 @@ residual target, the JSON has the issue's keys, the command line refuses what it
 import json
 
 import numpy as np
+import pytest
 
 from bench import calibration
 from support import exit_status
@@ -28,3 +29,16 @@ def test_the_command_line_refuses_what_it_cannot_use(tmp_path, capsys):
     for argv in (["--hosts", "0"], ["--orbits", "nan"], ["--noise-uT", "-1"], ["--json", str(tmp_path / "no" / "x")]):
         assert exit_status(calibration.main, argv) == 2
     assert capsys.readouterr().out == ""
+
+
+@pytest.mark.slow
+def test_the_drift_is_followed_orbit_by_orbit(tmp_path, capsys):
+    """One host with a 1 µT thermal drift over two orbits: the field handed on in the second orbit is within
+    the target and the host never ends REJECTED (the figures of `--orbits 3 --drift-uT 1`)."""
+    out = tmp_path / "drift.json"
+    assert calibration.main(["--hosts", "1", "--orbits", "2", "--drift-uT", "1", "--json", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert r["drift_model"] and len(r["in_flight_residual_uT_rms_max_by_orbit"]) == 2
+    assert r["residual_uT_rms_max_orbit2"] <= 0.3 and r["later_orbits_within_target"]
+    assert r["rejected_hosts"] == 0 and r["residual_uT_rms_max"] <= 0.3
+    assert "orbit by orbit" in capsys.readouterr().out
