@@ -22,7 +22,8 @@ Calibration on orbit (:meth:`KitFieldModel.record` with the accepted samples): e
 channel between two rest states A → B is a known change of its field, Δ = c_a F_a + c_b F_b with
 c_a = s_B cos φ_B − s_A cos φ_A (c_b likewise with sin). The body turns meanwhile, so the step is
 estimated against the field's trend: one least-squares fit of the raw samples, compensated with the
-current model, on both sides of the motion (up to ``window_s`` each, cut at the neighbouring motions)
+current model, on both sides of the motion (up to ``window_s`` each, cut at the neighbouring steps of an
+open field before and any motion after)
 to a shared polynomial in time (``degree``) plus a step at the motion, per axis. The fitted step d is
 what the model missed; Δ_obs = Δ_model + d, and F_a is observed as (Δ_obs − c_b F_b)/c_a with the
 covariance of d (the fit's residual variance, at least the sensor's, times (XᵀX)⁻¹) over c_a².
@@ -161,8 +162,9 @@ class KitFieldModel:
     """The kit's field at the sensor from the sequencer's channels (`fsw.deorbit.sequencer.Channel`)."""
 
     def __init__(self, channels, geometry=DESIGN, *, sigma_T: float = 1.5e-6, guard_s: float = 0.1,
-                 window_s: float = 30.0, degree: int = 2, max_samples: int = 1024, prior_frac: float = 0.15,
-                 max_sigma_frac: float = 0.05, chi2_max: float = CHI2_3_999) -> None:
+                 window_s: float = 30.0, degree: int = 3, max_samples: int = 1024, prior_frac: float = 0.15,
+                 max_sigma_frac: float = 0.05, chi2_max: float = CHI2_3_999, min_window_s: float = 8.0,
+                 max_turn_rad: float = 0.6) -> None:
         if len(geometry) != len(channels):
             raise ValueError("one magnet geometry per kit channel")
         self.channels = channels
@@ -170,6 +172,8 @@ class KitFieldModel:
         self.sigma_T = float(sigma_T)
         self.guard_s = float(guard_s)
         self.window_s = float(window_s)
+        self.min_window_s = float(min_window_s)
+        self.max_turn_rad = float(max_turn_rad)
         self.degree = int(degree)
         self.max_sigma_frac = float(max_sigma_frac)
         self.chi2_max = float(chi2_max)
@@ -182,6 +186,7 @@ class KitFieldModel:
         self._open = [None] * n  # the interval of a channel's motion under way
         self.pending: list[_Pending] = []  # motions ended while another channel still moves
         self.clusters: list[_Cluster] = []  # steps waiting for their after-side samples
+        self._strong: deque[tuple[float, float]] = deque(maxlen=16)  # spans of the steps of the open field
         # the channels' F_a jointly (a step of two channels at once observes their sum): x, P
         self.x_T = np.concatenate([m.fa_T for m in self.models])
         self.P = np.zeros((3 * n, 3 * n))
@@ -247,8 +252,10 @@ class KitFieldModel:
         for i, a in first.items():
             b = last[i]
             c_a[i] = b.s * math.cos(b.phi_rad) - a.s * math.cos(a.phi_rad)
-        self.clusters.append(_Cluster(min(p.t0_s for p in self.pending), max(p.t1_s for p in self.pending), c_a,
-                                      tuple(sorted(first))))
+        c = _Cluster(min(p.t0_s for p in self.pending), max(p.t1_s for p in self.pending), c_a, tuple(sorted(first)))
+        self.clusters.append(c)
+        if float(np.max(np.abs(c_a))) >= 0.5:
+            self._strong.append((c.t0_s, c.t1_s))
         self.pending = []
 
     def moving(self, t_s: float, channel: int | None = None) -> bool:
@@ -296,8 +303,11 @@ class KitFieldModel:
             for m in involved:
                 m.weak_steps += 1
             return
-        prev_end = max((t1 for _, t1, _ in self.intervals if t1 < c.t0_s), default=-math.inf)
-        lo, hi = max(c.t0_s - self.window_s, prev_end + g), min(c.t1_s + self.window_s, t_next_s - g)
+        # the fit reaches back to the previous step of an open field (a turn while closed moves only the
+        # leakage, which the samples are compensated for)
+        prev_end = max((t1 for _, t1 in self._strong if t1 < c.t0_s), default=-math.inf)
+        w = self._window_s(c.t0_s, prev_end + g)
+        lo, hi = max(c.t0_s - w, prev_end + g), min(c.t1_s + w, t_next_s - g)
         rows = [(t, raw, st) for t, raw, st in self._samples
                 if (lo <= t < c.t0_s - g) or (c.t1_s + g < t <= hi)]
         n_pre = sum(1 for t, _, _ in rows if t < c.t0_s)
@@ -308,7 +318,7 @@ class KitFieldModel:
                 m.ill_conditioned += 1
             return
         t_m = 0.5 * (c.t0_s + c.t1_s)
-        tau = np.array([(t - t_m) / self.window_s for t, _, _ in rows])
+        tau = np.array([(t - t_m) / w for t, _, _ in rows])
         X = np.column_stack([tau ** k for k in range(self.degree + 1)] + [(tau > 0).astype(float)])
         y = np.array([raw - self._model(st) for _, raw, st in rows])
         coef, _, rank, _ = np.linalg.lstsq(X, y, rcond=None)
@@ -322,6 +332,24 @@ class KitFieldModel:
             m.last_fit_rms_T = float(np.sqrt(np.mean(var)))
         # the step the model missed: d = Σ c_a,i (F_a,i true − F_a,i) (+ noise of covariance R)
         self._update(c, coef[-1], np.diag(var * np.linalg.inv(X.T @ X)[-1, -1]))
+
+    def _window_s(self, t0_s: float, lo_s: float) -> float:
+        """The fit's half-width: `window_s`, shortened so that the field turns by at most
+        `max_turn_rad` over it (a polynomial follows a tumble's field only so far), not below
+        `min_window_s`. The turn rate is the angle between the compensated samples at the ends of the
+        before-side."""
+        lo = max(lo_s, t0_s - self.window_s)
+        pre = [(t, raw - self._model(st)) for t, raw, st in self._samples if lo <= t < t0_s]
+        if len(pre) < 6:
+            return self.window_s
+        k = max(1, len(pre) // 6)
+        a, b = np.mean([v for _, v in pre[:k]], axis=0), np.mean([v for _, v in pre[-k:]], axis=0)
+        dt = pre[-1][0] - pre[0][0]
+        cos = float(a @ b) / max(float(np.linalg.norm(a) * np.linalg.norm(b)), 1e-30)
+        rate = math.acos(min(1.0, max(-1.0, cos))) / max(dt * (1.0 - k / len(pre)), 1e-9)  # group centres
+        if rate <= 0.0:
+            return self.window_s
+        return float(min(self.window_s, max(self.min_window_s, self.max_turn_rad / rate)))
 
     def _model(self, states: tuple) -> np.ndarray:
         b = np.zeros(3)
