@@ -7,6 +7,8 @@ Tasks (base rate = the loop rate), in the order they run within a tick:
 | uplink    | loop rate    | 10 % of period | the link's service (signing time, retry, stored frames);   |
 |           |              |                | reads the ground's frames, verifies, runs commands (ACK)   |
 | sensor    | loop rate    | 20 % of period | advances the magnetometer driver; latches a new sample,    |
+|           |              |                | the de-orbit kit's field taken out (`deorbit.kit_field`;   |
+|           |              |                | skipped while a shutter or magnet moves: sent, not used),  |
 |           |              |                | refused if implausible (`estimation.sample_gate`)          |
 | calibration | loop rate  | 40 % of period | host hard/soft iron taken out of the sample (needs the     |
 |           |              |                | field along the orbit: `fsw.host_calibration`), then       |

@@ -196,3 +196,21 @@ def test_the_kit_field_message_per_channel():
     assert [m.channel for m in msgs] == [0, 1]
     assert all(m.scale == pytest.approx(1.0) and m.steps == 0 and not m.moving for m in msgs)
     assert msgs[0].field[2] == pytest.approx(-0.015 * 55.556, abs=0.01)  # pitch closed, µT
+
+
+def test_the_ground_decoder_summarises_the_kit_field():
+    from ground.decode import Decoder
+
+    b = homed()
+    b.cycle(0, 1, hold_s=40.0, rest_s=40.0)
+    cap = Capture()
+    b.kit.telemetry(b.t, Telemetry(cap))
+    dec = Decoder()
+    for m in cap.messages():
+        dec.handle(m, 1.7e9)
+    text = dec.summary_text()
+    pitch, yaw = b.model.models
+    assert pitch.steps == 2 and yaw.steps == 0  # the opening and the closing of the pitch capsule
+    assert (f"kit field on board, pitch: scale {pitch.scale:.3f} ± {pitch.scale_sigma:.3f}, 2 calibration steps "
+            f"(0 ill-conditioned, 0 outliers), {pitch.flagged} samples flagged while it moved") in text
+    assert "yaw: scale 1.000 ± 0.150, 0 calibration steps" in text
