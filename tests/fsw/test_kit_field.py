@@ -214,3 +214,15 @@ def test_the_ground_decoder_summarises_the_kit_field():
     assert (f"kit field on board, pitch: scale {pitch.scale:.3f} ± {pitch.scale_sigma:.3f}, 2 calibration steps "
             f"(0 ill-conditioned, 0 outliers), {pitch.flagged} samples flagged while it moved") in text
     assert "yaw: scale 1.000 ± 0.150, 0 calibration steps" in text
+
+
+def test_the_calibration_step_takes_a_known_field_out_and_skips_what_it_is_told_to():
+    from fsw.host_calibration import HostCalibration
+
+    hc = HostCalibration(1.5e-6)  # no field on board: the host calibration inactive, samples pass
+    b = np.array([20e-6, -30e-6, 40e-6])
+    kit = np.array([0.0, -0.8e-6, -55.6e-6])
+    assert np.allclose(hc.process(0.0, b + kit, kit), b, atol=1e-15)
+    n = hc._n_mags
+    assert np.allclose(hc.process(1.0, b + 0.5 * kit, kit, skip=True), b - 0.5 * kit, atol=1e-15)
+    assert hc.skipped == 1 and hc._n_mags == n  # not taken in

@@ -78,3 +78,37 @@ def test_the_kit_field_is_taken_out_and_the_flown_filter_runs_through_capsule_ev
     _, err0, resid0, events0, _ = closed_loop(compensate=False)
     assert np.max(np.abs(resid0)) > 50e-6
     assert max(jumps_dps(err0, events0)) > 3.0
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_samples_taken_while_a_shutter_opens_are_sent_flagged_and_not_used():
+    from support import Capture
+
+    link = Capture()
+    box = sitl.build(sitl.SitlConfig(RunConfig(rate_hz=10, buffer_frames=0), scenario=scenarios.load("amds_deorbit"),
+                                     seed=0, max_step_s=0.1), link=link, run_id=0, ident=False)
+    sim, flight = box.sim, box.fsw
+    kit = flight.apps["deorbit"]
+    start = SimpleNamespace(command=mavlink.MAV_CMD_DEBRIS_CONTROLLER, param1=1, param2=0, param3=0, param4=0,
+                            param5=0, param6=0, param7=0)
+    used, skipped = [], []
+    for k in range(111):
+        t = k * 0.1
+        sim.advance_to(t)
+        if k == 30:  # the pitch magnet is homed, then its capsule opens
+            assert kit.handle_command(start, t) == mavlink.MAV_RESULT_ACCEPTED
+        flight.tick(t)
+        if flight.new_sample:
+            (skipped if flight.kit_skip else used).append(
+                (flight.sample_t_s, any(flight.new_estimate.values()), sim.kit.channels[0].shutter))
+    assert skipped and all(not est for _, est, _ in skipped)  # no estimator took them
+    # the magnet is homed first (the capsule closed), then the shutter opens over 2 s: every sample taken
+    # while it moved skipped, every sample used at a shutter at rest, both before and after
+    assert all(s in (0.0, 1.0) for _, _, s in used)
+    assert any(s == 0.0 for _, _, s in used) and any(s == 1.0 for _, _, s in used)
+    assert sum(1 for _, _, s in skipped if 0.0 < s < 1.0) >= 1
+    assert flight.calibration.skipped == len(skipped) and flight.estimator_resets == 0
+    samples = [m for m in link.messages() if m.get_type() == "DEBRIS_MAG_SAMPLE"]
+    flagged = [m for m in samples if m.flags & mavlink.DEBRIS_SAMPLE_FLAGS_KIT_MOVING]
+    assert len(flagged) == len(skipped) and len(samples) == len(used) + len(skipped)
+    assert kit.sensor_field.models[0].flagged == len(skipped)
