@@ -23,7 +23,7 @@ channel between two rest states A → B is a known change of its field, Δ = c_a
 c_a = s_B cos φ_B − s_A cos φ_A (c_b likewise with sin). The body turns meanwhile, so the step is
 estimated against the field's trend: one least-squares fit of the raw samples, compensated with the
 current model, on both sides of the motion (up to ``window_s`` each, cut at the neighbouring steps of an
-open field before and any motion after)
+open field before and any motion after; halved while the residual exceeds ``misfit`` times the noise)
 to a shared polynomial in time (``degree``) plus a step at the motion, per axis. The fitted step d is
 what the model missed; Δ_obs = Δ_model + d, and F_a is observed as (Δ_obs − c_b F_b)/c_a with the
 covariance of d (the fit's residual variance, at least the sensor's, times (XᵀX)⁻¹) over c_a².
@@ -163,8 +163,8 @@ class KitFieldModel:
 
     def __init__(self, channels, geometry=DESIGN, *, sigma_T: float = 1.5e-6, guard_s: float = 0.1,
                  window_s: float = 30.0, degree: int = 3, max_samples: int = 1024, prior_frac: float = 0.15,
-                 max_sigma_frac: float = 0.05, chi2_max: float = CHI2_3_999, min_window_s: float = 8.0,
-                 max_turn_rad: float = 0.6) -> None:
+                 max_sigma_frac: float = 0.05, chi2_max: float = CHI2_3_999, min_window_s: float = 3.0,
+                 misfit: float = 1.3, max_fit_samples: int = 160) -> None:
         if len(geometry) != len(channels):
             raise ValueError("one magnet geometry per kit channel")
         self.channels = channels
@@ -173,7 +173,8 @@ class KitFieldModel:
         self.guard_s = float(guard_s)
         self.window_s = float(window_s)
         self.min_window_s = float(min_window_s)
-        self.max_turn_rad = float(max_turn_rad)
+        self.misfit = float(misfit)
+        self.max_fit_samples = int(max_fit_samples)
         self.degree = int(degree)
         self.max_sigma_frac = float(max_sigma_frac)
         self.chi2_max = float(chi2_max)
@@ -296,60 +297,59 @@ class KitFieldModel:
         self.clusters = keep
 
     def _evaluate(self, c: _Cluster, t_next_s: float) -> None:
-        """The step of the field across the motions of `c`, from a fit on both sides."""
-        g = self.guard_s
+        """The step of the field across the motions of `c`, from a fit on both sides: over `window_s`
+        each side, halved while the fit's residual exceeds `misfit` times the sensor's noise (a
+        polynomial follows a fast tumble's field only so far), down to `min_window_s`."""
         involved = [self.models[i] for i in c.channels]
         if float(np.max(np.abs(c.c_a))) < 0.5:  # no step of the open field (a turn while closed)
             for m in involved:
                 m.weak_steps += 1
             return
-        # the fit reaches back to the previous step of an open field (a turn while closed moves only the
-        # leakage, which the samples are compensated for)
-        prev_end = max((t1 for _, t1 in self._strong if t1 < c.t0_s), default=-math.inf)
-        w = self._window_s(c.t0_s, prev_end + g)
-        lo, hi = max(c.t0_s - w, prev_end + g), min(c.t1_s + w, t_next_s - g)
-        rows = [(t, raw, st) for t, raw, st in self._samples
-                if (lo <= t < c.t0_s - g) or (c.t1_s + g < t <= hi)]
-        n_pre = sum(1 for t, _, _ in rows if t < c.t0_s)
-        n_post = len(rows) - n_pre
-        need = self.degree + 2
-        if n_pre < need or n_post < need:
+        w, fit = self.window_s, None
+        while True:
+            trial = self._fit(c, t_next_s, w)
+            if trial is not None:
+                fit = trial
+            if trial is None or trial[2] <= self.misfit * self.sigma_T or w / 2 < self.min_window_s:
+                break
+            w /= 2
+        if fit is None:
             for m in involved:
                 m.ill_conditioned += 1
             return
+        d, R, rms = fit
+        for m in involved:
+            m.last_fit_rms_T = rms
+        self._update(c, d, R)
+
+    def _fit(self, c: _Cluster, t_next_s: float, w: float) -> tuple[np.ndarray, np.ndarray, float] | None:
+        """(the step d the model missed, its covariance, the residual RMS per axis) from the samples
+        within `w` of the motions, or None (too few samples on a side, rank-deficient).
+
+        d = Σ c_a,i (F_a,i true − F_a,i) + noise."""
+        g = self.guard_s
+        # the fit reaches back to the previous step of an open field (a turn while closed moves only the
+        # leakage, which the samples are compensated for)
+        prev_end = max((t1 for _, t1 in self._strong if t1 < c.t0_s), default=-math.inf)
+        lo, hi = max(c.t0_s - w, prev_end + g), min(c.t1_s + w, t_next_s - g)
+        rows = [(t, raw, st) for t, raw, st in self._samples
+                if (lo <= t < c.t0_s - g) or (c.t1_s + g < t <= hi)]
+        if len(rows) > self.max_fit_samples:  # fast sampling: every k-th sample is plenty (CPU budget)
+            rows = rows[::-(-len(rows) // self.max_fit_samples)]
+        n_pre = sum(1 for t, _, _ in rows if t < c.t0_s)
+        need = self.degree + 2
+        if n_pre < need or len(rows) - n_pre < need:
+            return None
         t_m = 0.5 * (c.t0_s + c.t1_s)
         tau = np.array([(t - t_m) / w for t, _, _ in rows])
         X = np.column_stack([tau ** k for k in range(self.degree + 1)] + [(tau > 0).astype(float)])
         y = np.array([raw - self._model(st) for _, raw, st in rows])
         coef, _, rank, _ = np.linalg.lstsq(X, y, rcond=None)
         if rank < X.shape[1]:
-            for m in involved:
-                m.ill_conditioned += 1
-            return
+            return None
         resid = y - X @ coef
         var = np.maximum(np.sum(resid ** 2, axis=0) / max(len(rows) - X.shape[1], 1), self.sigma_T ** 2)
-        for m in involved:
-            m.last_fit_rms_T = float(np.sqrt(np.mean(var)))
-        # the step the model missed: d = Σ c_a,i (F_a,i true − F_a,i) (+ noise of covariance R)
-        self._update(c, coef[-1], np.diag(var * np.linalg.inv(X.T @ X)[-1, -1]))
-
-    def _window_s(self, t0_s: float, lo_s: float) -> float:
-        """The fit's half-width: `window_s`, shortened so that the field turns by at most
-        `max_turn_rad` over it (a polynomial follows a tumble's field only so far), not below
-        `min_window_s`. The turn rate is the angle between the compensated samples at the ends of the
-        before-side."""
-        lo = max(lo_s, t0_s - self.window_s)
-        pre = [(t, raw - self._model(st)) for t, raw, st in self._samples if lo <= t < t0_s]
-        if len(pre) < 6:
-            return self.window_s
-        k = max(1, len(pre) // 6)
-        a, b = np.mean([v for _, v in pre[:k]], axis=0), np.mean([v for _, v in pre[-k:]], axis=0)
-        dt = pre[-1][0] - pre[0][0]
-        cos = float(a @ b) / max(float(np.linalg.norm(a) * np.linalg.norm(b)), 1e-30)
-        rate = math.acos(min(1.0, max(-1.0, cos))) / max(dt * (1.0 - k / len(pre)), 1e-9)  # group centres
-        if rate <= 0.0:
-            return self.window_s
-        return float(min(self.window_s, max(self.min_window_s, self.max_turn_rad / rate)))
+        return coef[-1], np.diag(var * np.linalg.inv(X.T @ X)[-1, -1]), float(np.sqrt(np.mean(var)))
 
     def _model(self, states: tuple) -> np.ndarray:
         b = np.zeros(3)
