@@ -25,16 +25,18 @@ estimated against the field's trend: one least-squares fit of the raw samples, c
 current model, on both sides of the motion (up to ``window_s`` each, cut at the neighbouring steps of an
 open field before and any motion after; halved while the residual exceeds ``misfit`` times the noise)
 to a shared polynomial in time (``degree``) plus a step at the motion, per axis. The fitted step d is
-what the model missed; Δ_obs = Δ_model + d, and F_a is observed as (Δ_obs − c_b F_b)/c_a with the
-covariance of d (the fit's residual variance, at least the sensor's, times (XᵀX)⁻¹) over c_a².
-An observation updates F_a (a Kalman update of a constant, prior: the design value with
-``prior_frac`` of |F_a| per axis) unless it is
+what the model missed. Motions of several channels that overlap (the controller closes one capsule
+as it opens the other) are one step, so the channels' F_a are estimated jointly: x = (F_a,pitch,
+F_a,yaw) with its covariance P, the observation d = H (x_true − x) with H = (c_a,pitch I, c_a,yaw I)
+and R the covariance of d (the fit's residual variance, at least the sensor's, times (XᵀX)⁻¹); a
+Kalman update of a constant, prior: the design value with ``prior_frac`` of |F_a| per axis. A step is
+not taken in when it is
 
-- ill-conditioned: |c_a| < 0.5 (a turn while closed moves only the 1-2 % leakage), too few samples on
-  a side, or a σ above ``max_sigma_frac`` of |F_a| — counted ``ill_conditioned``;
-- an outlier: |F_a,obs| outside [0.5, 1.5] of the design's, or a χ² of its innovation against the
-  current estimate's and its own covariance above ``chi2_max`` (3 degrees of freedom) — counted
-  ``outliers``;
+- weak: every |c_a| < 0.5 (a turn while closed moves only the 1-2 % leakage) — ``weak_steps``;
+- ill-conditioned: too few samples on a side (the next motion came too soon, the first step of a
+  run) or a σ of d over |c_a| above ``max_sigma_frac`` of |F_a| — counted ``ill_conditioned``;
+- an outlier: a χ² of d against H P Hᵀ + R above ``chi2_max`` (3 degrees of freedom, 99.9 %), or an
+  updated |F_a| outside [0.5, 1.5] of the design's — counted ``outliers``;
 
 the last good calibration stays applied. The channel's scale k = F_a·F_a,design / |F_a,design|² (the
 moment as the sensor sees it, with its 1-σ) scales F_b, which the polarities the controller uses
@@ -140,7 +142,7 @@ class ChannelModel:
         self.weak_steps = 0  # motions that do not change the open field (turns while closed)
         self.outliers = 0
         self.flagged = 0  # samples skipped because this channel moved
-        self.last_innovation_T = math.nan  # |F_a,obs − F_a| of the latest observation (taken or not)
+        self.last_innovation_T = math.nan  # |the step the model missed| at the latest transition (taken or not)
         self.last_fit_rms_T = math.nan
 
     @property
