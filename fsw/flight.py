@@ -285,7 +285,11 @@ class FlightSoftware:
                 self._refused_gap = self.gate.gap_samples - self._kit_skips_in_gap
                 self._kit_skips_in_gap = 0
                 if self.kit_field is not None:
+                    version = self.kit_field.version
                     self.kit_field.record(self.sample_t_s, self.sample_b_T)
+                    if self.kit_field.version != version:  # a new calibration: this sample and the gate's
+                        self.kit_T[:] = self.kit_field.model_T()  # reference re-expressed in it
+                        self.gate.rebase(self.calibration.for_gate(self.sample_b_T - self.kit_T)[0])
             if self.new_sample and self._refused_gap > self.gate.reset_after_gap:
                 self.estimator_resets += 1
                 for est in self.estimators.values():  # history too old to difference against

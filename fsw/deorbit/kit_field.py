@@ -199,6 +199,7 @@ class KitFieldModel:
         self._samples: deque[tuple[float, np.ndarray, tuple]] = deque(maxlen=max_samples)
         self.flagged = 0
         self.polls = 0
+        self.version = 0  # calibrations taken in (the flight loop re-expresses its gate's reference)
 
     # --- state ------------------------------------------------------------------------------------
     def _rest(self, i: int) -> Rest | None:
@@ -265,6 +266,11 @@ class KitFieldModel:
         """Whether a sample at `t_s` falls in (or within `guard_s` of) a motion of `channel` (None: any)."""
         g = self.guard_s
         return any(t0 - g <= t_s <= t1 + g for t0, t1, i in self.intervals if channel is None or i == channel)
+
+    def model_T(self) -> np.ndarray:
+        """The modelled field now, the channels at rest in their current (or last) state [T]."""
+        return self._model(tuple(r if r is not None else (f or Rest(m.leakage, 0.0))
+                                 for m, r, f in zip(self.models, self.rest, self._from)))
 
     def field_at(self, t_s: float) -> tuple[np.ndarray, bool]:
         """(the kit's modelled field at the sensor for a sample at `t_s` [T], skip it): a sample taken
@@ -389,6 +395,7 @@ class KitFieldModel:
             m.P = self.P[3 * i:3 * i + 3, 3 * i:3 * i + 3].copy()
         for m in involved:
             m.steps += 1
+        self.version += 1
 
     # --- telemetry --------------------------------------------------------------------------------
     def telemetry(self, now_s: float, tlm) -> None:
