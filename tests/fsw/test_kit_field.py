@@ -140,7 +140,7 @@ def test_samples_are_flagged_while_a_shutter_moves_and_a_magnet_turns():
     assert b.model.rest[0] == Rest(0.015, math.pi)
 
 
-@pytest.mark.parametrize("rate_dps, every_tick", [(2.0, False), (10.0, True)])
+@pytest.mark.parametrize("rate_dps, every_tick", [(2.0, False), pytest.param(10.0, True, marks=pytest.mark.slow)])
 def test_each_channels_scale_is_calibrated_from_its_steps_on_a_tumbling_body(rate_dps, every_tick):
     # the truth's magnets: pitch 10 % strong and 4 mm closer in y, yaw 7 % weak; a sample a second on a
     # body tumbling at 2 °/s, or ten on one at 10 °/s (the fit's window shrinks to follow the field)
