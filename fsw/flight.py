@@ -7,6 +7,8 @@ Tasks (base rate = the loop rate), in the order they run within a tick:
 | uplink    | loop rate    | 10 % of period | the link's service (signing time, retry, stored frames);   |
 |           |              |                | reads the ground's frames, verifies, runs commands (ACK)   |
 | sensor    | loop rate    | 20 % of period | advances the magnetometer driver; latches a new sample,    |
+|           |              |                | the de-orbit kit's field taken out (`deorbit.kit_field`;   |
+|           |              |                | skipped while a shutter or magnet moves: sent, not used),  |
 |           |              |                | refused if implausible (`estimation.sample_gate`)          |
 | calibration | loop rate  | 40 % of period | host hard/soft iron taken out of the sample (needs the     |
 |           |              |                | field along the orbit: `fsw.host_calibration`), then       |
@@ -139,6 +141,7 @@ class FlightSoftware:
         self.latched = LatchedSample()
         #: the sensor's own sample (what is sent and stored), before the calibration
         self.raw_b_T = np.zeros(3)
+        self._raw_kit_T = np.zeros(3)  # the kit's field taken out of raw_b_T
         self._gate_calibration = 0
         self.calibration = HostCalibration(sigma_b_T, FixedField(field) if field is not None else field_provider)
         # at most max_sample_tlm_hz samples (with their estimates) go out on the link
@@ -148,6 +151,8 @@ class FlightSoftware:
         self.sample_store = sample_store if sample_store is not None else SampleStore()
         self.resender = Resender(self.sample_store)
         self._gap, self._gap_left = 0, {}
+        #: estimator restarts after long gaps (refused or missing samples; never for kit-flagged ones)
+        self.estimator_resets = 0
         self.commands = CommandRouter()
         self.params = ParamTable()
         self._register_params(sample_rate_hz or rate_hz)
@@ -165,6 +170,18 @@ class FlightSoftware:
                     raise ValueError(f"two handlers for {kind}")
                 messages[kind] = handler
             self.apps[app.name] = app
+        # the de-orbit kit's field at the sensor (`fsw.deorbit.kit_field`): taken out of every sample before
+        # the gate, the calibration and the estimators; samples taken while it moves are skipped by them
+        self.kit_field = next((a.sensor_field for a in self.apps.values()
+                               if getattr(a, "sensor_field", None) is not None), None)
+        if self.kit_field is not None:
+            self.kit_field.sigma_T = sigma_b_T
+            self.kit_field.guard_s = max(self.kit_field.guard_s, 1.0 / rate_hz)
+        self.kit_T = np.zeros(3)
+        self.kit_skip = False  # the latest sample was taken while the kit moved
+        self.kit_skipped = 0
+        self._kit_skips_in_gap = 0
+        self._refused_gap = 0
         self.uplink = None if uplink is None else Uplink(
             uplink, self.commands, sysid=telemetry.mav.srcSystem, compid=telemetry.mav.srcComponent, key=key,
             clock=telemetry.clock, reply=telemetry.send_now if uplink is telemetry.conn else None,
@@ -191,7 +208,7 @@ class FlightSoftware:
 
     def _app_task(self, app: App) -> Callable[[float], None]:
         def run(now_s: float) -> None:
-            app.tick(now_s, self.latched if self.new_sample else None)
+            app.tick(now_s, self.latched if self.new_sample and not self.kit_skip else None)
             app.telemetry(now_s, self.tlm)
         return run
 
@@ -239,32 +256,58 @@ class FlightSoftware:
             self.uplink.poll(now_s)
 
     def _sensor(self, now_s: float) -> None:
+        if self.kit_field is not None:
+            self.kit_field.poll(now_s)
         self.new_sample = self.source.update(now_s)
+        self.kit_skip = False
         if self.new_sample:
             self.samples += 1
             self.latched.t_s = self.source.sample_time_s
             self.latched.b_T[:] = self.source.b_body_T
+            if self.kit_field is not None:
+                kit_T, self.kit_skip = self.kit_field.field_at(self.sample_t_s)
+                self.kit_T[:] = kit_T
+                if self.kit_skip:  # a shutter or a magnet moves: sent and stored, neither judged nor used
+                    self.kit_skipped += 1
+                    self._kit_skips_in_gap += 1
+                    return
             # an implausible sample (saturated, stuck, spike) is neither estimated on nor sent; the host's
             # magnetism moves the field the chip sees with the attitude: the gate judges the calibrated
             # sample and allows for what the calibration may have left (all of it before there is one)
             if self.calibration.version != self._gate_calibration:  # the reference in the new calibration
                 self._gate_calibration = self.calibration.version
-                self.gate.rebase(self.calibration.for_gate(self.raw_b_T)[0])
-            judged, self.gate.host_bound_T = self.calibration.for_gate(self.sample_b_T)
+                self.gate.rebase(self.calibration.for_gate(self.raw_b_T - self._raw_kit_T)[0])
+            judged, self.gate.host_bound_T = self.calibration.for_gate(self.sample_b_T - self.kit_T)
             self.new_sample = self.gate.check(self.sample_t_s, self.sample_b_T, judged)
-            if self.new_sample and self.gate.gap_samples > self.gate.reset_after_gap:
+            if self.new_sample:
+                # samples skipped while the kit moved are no reason to restart (the filter propagates
+                # across them; the formulas' estimates across them are flagged DATA_GAP)
+                self._refused_gap = self.gate.gap_samples - self._kit_skips_in_gap
+                self._kit_skips_in_gap = 0
+                if self.kit_field is not None:
+                    version = self.kit_field.version
+                    self.kit_field.record(self.sample_t_s, self.sample_b_T)
+                    if self.kit_field.version != version:  # a new calibration: this sample and the gate's
+                        self.kit_T[:] = self.kit_field.model_T()  # reference re-expressed in it
+                        self.gate.rebase(self.calibration.for_gate(self.sample_b_T - self.kit_T)[0])
+            if self.new_sample and self._refused_gap > self.gate.reset_after_gap:
+                self.estimator_resets += 1
                 for est in self.estimators.values():  # history too old to difference against
                     est.reset()
 
     def _calibrate(self, now_s: float) -> None:
         if self.new_sample:
             self.raw_b_T[:] = self.latched.b_T
-            self.latched.b_T[:] = self.calibration.process(self.sample_t_s, self.raw_b_T)
+            kit = self.kit_T if self.kit_field is not None else None
+            self.latched.b_T[:] = self.calibration.process(self.sample_t_s, self.raw_b_T, kit, self.kit_skip)
+            if not self.kit_skip:
+                self._raw_kit_T[:] = self.kit_T
         self.calibration.telemetry(now_s, self.tlm)
 
     def _estimate(self, now_s: float) -> None:
         for name, est in self.estimators.items():
-            self.new_estimate[name] = self.new_sample and est.update(self.sample_t_s, self.sample_b_T)
+            self.new_estimate[name] = (self.new_sample and not self.kit_skip
+                                       and est.update(self.sample_t_s, self.sample_b_T))
         self._flag_gaps()
 
     def _flag_gaps(self) -> None:
@@ -272,10 +315,10 @@ class FlightSoftware:
         samples span the gap are flagged DATA_GAP with σ widened (`sample_gate.mark_gap`): one for a
         two-sample formula, two for a three-sample one (history length − 1); after a long gap the
         estimators start afresh."""
-        if not self.new_sample:
+        if not self.new_sample or self.kit_skip:
             return
         gap = self.gate.gap_samples
-        if gap > self.gate.reset_after_gap:
+        if self._refused_gap > self.gate.reset_after_gap:
             self._gap_left = {}  # the estimators were reset in _sensor
             return
         if gap:
@@ -297,7 +340,8 @@ class FlightSoftware:
         t = self.sample_t_s
         self.tlm_samples += 1
         seq = self.sample_store.append(t, self.raw_b_T)
-        self.tlm.mag_sample(t, self.raw_b_T, seq, self.sample_store.run_id)
+        self.tlm.mag_sample(t, self.raw_b_T, seq, self.sample_store.run_id,
+                            mavlink.DEBRIS_SAMPLE_FLAGS_KIT_MOVING if self.kit_skip else 0)
         for name, est in self.estimators.items():
             if self.new_estimate[name]:
                 self.tlm.rate_estimate(t, est.omega_radps, est.sigma_radps, METHODS[name], est.flags)

@@ -77,6 +77,7 @@ class HostCalibration:
         self.tlm_every_s = tlm_every_s
         self.field_errors = 0
         self.applied = 0  # samples the last good calibration was applied to
+        self.skipped = 0  # samples not taken in: the kit's field at the sensor unknown (process's skip)
         self._t_taken: float | None = None
         # |B| of the latest accepted samples (raw), for the host's field before a calibration
         self._mags = np.zeros(SPREAD_SAMPLES)
@@ -128,8 +129,17 @@ class HostCalibration:
             lo, hi = np.percentile(self._mags[:min(self._n_mags, SPREAD_SAMPLES)], [2.0, 98.0])
             self._spread_T = float(hi - lo)  # twice half the spread
 
-    def process(self, t_s: float, b_meas_T: np.ndarray) -> np.ndarray:
-        """The sample at `t_s` taken into the calibration (when due) and returned corrected."""
+    def process(self, t_s: float, b_meas_T: np.ndarray, extra_T: np.ndarray | None = None,
+                skip: bool = False) -> np.ndarray:
+        """The sample at `t_s` taken into the calibration (when due) and returned corrected. `extra_T`: a
+        field at the sensor known on board, taken out first (the de-orbit kit's magnets,
+        `fsw.deorbit.kit_field`); `skip`: that field is not known now (a shutter moves): the sample is
+        not taken into the calibration (counted in `skipped`), only corrected."""
+        if extra_T is not None:
+            b_meas_T = b_meas_T - extra_T
+        if skip:
+            self.skipped += 1
+            return self.cal.apply(b_meas_T) if self.field is not None and self.cal.good else b_meas_T
         self._track_spread(b_meas_T)
         if self.provider is None:
             return b_meas_T

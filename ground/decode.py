@@ -154,6 +154,8 @@ class Decoder:
         self.inertia_estimates: list[dict] = []
         #: DEBRIS_SAMPLE_REQUEST frames sent
         self.requests_sent = 0
+        #: the latest DEBRIS_KIT_FIELD per channel (the kit's field at the sensor as modelled on board)
+        self.kit_field: dict[int, object] = {}
 
     # --- input -------------------------------------------------------------------------------
 
@@ -184,6 +186,8 @@ class Decoder:
                 self._inertia(msg)
             elif kind in KNOWLEDGE_MESSAGES:
                 self._knowledge(kind, msg)
+            elif kind == "DEBRIS_KIT_FIELD" and msg.channel in (0, 1):
+                self.kit_field[int(msg.channel)] = msg
         self.tick(now_s)
 
     def _stream(self, msg, create: bool = True) -> Stream | None:
@@ -457,6 +461,10 @@ class Decoder:
                     out.append(f"what the box knew ({who}{run}), in the recording's metadata: {said}")
         if self.requests_sent:
             out.append(f"requests for missing samples sent: {self.requests_sent}")
+        for ch, m in sorted(self.kit_field.items()):
+            out.append(f"kit field on board, {('pitch', 'yaw')[ch]}: scale {m.scale:.3f} ± {m.scale_sigma:.3f}, "
+                       f"{m.steps} calibration steps ({m.ill_conditioned} ill-conditioned, {m.outliers} outliers), "
+                       f"{m.flagged} samples flagged while it moved")
         if self.verifier is not None:
             refused = ", ".join(f"{k} {n}" for k, n in sorted(self.unauthenticated.items())) or "none"
             out.append(f"signatures: {self.verifier.counts[Verdict.OK]} frames verified; refused: {refused}")

@@ -146,5 +146,19 @@ def build_kit(sim: DeorbitSimulator, controller=None, law: str = "mpc", **kit_op
     given."""
     from fsw.deorbit.kit import DeorbitKit
 
+    kit_options.setdefault("magnets", box_magnets(sim.spec))
     return DeorbitKit(sim.kit, TruthAttitude(sim), controller=controller or controller_config(sim, law=law),
                       **kit_options)
+
+
+def box_magnets(spec: DeorbitSpec):
+    """The magnets as the box is configured for this spacecraft (`fsw.deorbit.kit_field.MagnetGeometry`):
+    the scenario's positions, moment and leakage — the design; the truth may be changed after (a
+    benchmark's manufacturing errors)."""
+    from fsw.deorbit.kit_field import MagnetGeometry
+
+    from .deorbit_kit import HOME_AXIS
+
+    return tuple(MagnetGeometry(tuple(pos), tuple(float(x) for x in axis), spec.dipole_Am2,
+                                leakage=spec.capsule_leakage)
+                 for pos, axis in zip((spec.pitch_magnet_position_m, spec.yaw_magnet_position_m), HOME_AXIS))

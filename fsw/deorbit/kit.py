@@ -40,6 +40,7 @@ from fsw.telemetry.dialect import mavlink
 
 from .controller import AttitudeInput, ChannelCommand, ControllerConfig, DiscreteController
 from .energy import EnergyLedger
+from .kit_field import DESIGN, KitFieldModel, MagnetGeometry
 from .sequencer import Event, KitMode, Outcome, Sequencer, SequencerConfig
 
 MAV_RESULT_OF = {
@@ -124,13 +125,21 @@ class DeorbitKit:
     def __init__(self, io: DigitalLines, attitude: AttitudeSource | None = None, *,
                  controller: ControllerConfig = ControllerConfig(), limits: StepperLimits = StepperLimits(),
                  timing: CapsuleTiming = CapsuleTiming(), sequencer: SequencerConfig = SequencerConfig(),
-                 on_event: Callable[[Event], None] | None = None, keep_pulses: bool = False) -> None:
+                 on_event: Callable[[Event], None] | None = None, keep_pulses: bool = False,
+                 magnets: tuple[MagnetGeometry, ...] = DESIGN, field_tlm_every_s: float = 10.0) -> None:
+        """`magnets`: where the magnets sit relative to the magnetometer and how they are built (the kit's
+        field at the sensor, `sensor_field`, is modelled from them and the channels' states)."""
         self._on_event = on_event
         self.events: deque[Event] = deque(maxlen=self.MAX_EVENTS)  # waiting for telemetry
         self.events_dropped = 0
         self._next_status_s = -math.inf
         self.sequencer = Sequencer(io, limits=limits, timing=timing, config=sequencer, on_event=self._event)
         self.controller = DiscreteController(controller)
+        #: the kit's field at the magnetometer (`fsw.deorbit.kit_field`): the flight loop takes it out of
+        #: every sample and skips the samples taken while something moves
+        self.sensor_field = KitFieldModel(self.sequencer.channels, magnets)
+        self.field_tlm_every_s = field_tlm_every_s
+        self._next_field_tlm_s = -math.inf
         self.attitude = attitude
         self.next_decision_s = math.inf
         self.decisions_without_attitude = 0
@@ -197,8 +206,8 @@ class DeorbitKit:
 
     # --- status ---------------------------------------------------------------------------------
     def telemetry(self, now_s: float, tlm) -> None:
-        """The events since the last call as STATUSTEXT (faults and violations as errors), and
-        DEBRIS_DEORBIT_STATUS once a second."""
+        """The events since the last call as STATUSTEXT (faults and violations as errors),
+        DEBRIS_DEORBIT_STATUS once a second, DEBRIS_KIT_FIELD (per channel) every `field_tlm_every_s`."""
         while self.events:
             event = self.events.popleft()
             severity = (mavlink.MAV_SEVERITY_ERROR if event.what in ("fault", "violation") else
@@ -208,6 +217,9 @@ class DeorbitKit:
         if now_s >= self._next_status_s:
             self._next_status_s = max(self._next_status_s + self.STATUS_PERIOD_S, now_s)
             tlm.deorbit_status(now_s, self.status(now_s))
+        if now_s >= self._next_field_tlm_s:
+            self._next_field_tlm_s = max(self._next_field_tlm_s + self.field_tlm_every_s, now_s)
+            self.sensor_field.telemetry(now_s, tlm)
 
     def status(self, now_s: float) -> DeorbitStatus:
         chs = self.sequencer.channels

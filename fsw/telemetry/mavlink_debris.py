@@ -497,8 +497,10 @@ enums["DEBRIS_SAMPLE_FLAGS"] = Enum()
 enums["DEBRIS_SAMPLE_FLAGS"].bitmask = True
 DEBRIS_SAMPLE_FLAGS_RESENT = 1
 enums["DEBRIS_SAMPLE_FLAGS"][1] = EnumEntry("DEBRIS_SAMPLE_FLAGS_RESENT", """Sent again from the box's sample store at the ground's request (DEBRIS_SAMPLE_REQUEST), not live.""")
-DEBRIS_SAMPLE_FLAGS_ENUM_END = 2
-enums["DEBRIS_SAMPLE_FLAGS"][2] = EnumEntry("DEBRIS_SAMPLE_FLAGS_ENUM_END", """""")
+DEBRIS_SAMPLE_FLAGS_KIT_MOVING = 2
+enums["DEBRIS_SAMPLE_FLAGS"][2] = EnumEntry("DEBRIS_SAMPLE_FLAGS_KIT_MOVING", """Taken while a shutter or a magnet of the de-orbit kit moved: the kit's field at the sensor is not known then, so the sample is not used on board (live samples only).""")
+DEBRIS_SAMPLE_FLAGS_ENUM_END = 3
+enums["DEBRIS_SAMPLE_FLAGS"][3] = EnumEntry("DEBRIS_SAMPLE_FLAGS_ENUM_END", """""")
 
 # DEBRIS_TLE_STATE
 enums["DEBRIS_TLE_STATE"] = Enum()
@@ -6625,6 +6627,7 @@ MAVLINK_MSG_ID_DEBRIS_SAMPLE_REQUEST = 54009
 MAVLINK_MSG_ID_DEBRIS_TIME_ORBIT = 54020
 MAVLINK_MSG_ID_DEBRIS_TLE = 54021
 MAVLINK_MSG_ID_DEBRIS_MAGCAL = 54040
+MAVLINK_MSG_ID_DEBRIS_KIT_FIELD = 54050
 MAVLINK_MSG_ID_SYS_STATUS = 1
 MAVLINK_MSG_ID_SYSTEM_TIME = 2
 MAVLINK_MSG_ID_PING = 4
@@ -7465,6 +7468,60 @@ class MAVLink_debris_magcal_message(MAVLink_message):
 # Define name on the class for backwards compatibility (it is now msgname).
 # Done with setattr to hide the class variable from mypy.
 setattr(MAVLink_debris_magcal_message, "name", mavlink_msg_deprecated_name_property())
+
+
+class MAVLink_debris_kit_field_message(MAVLink_message):
+    """
+    The de-orbit kit's magnets at the magnetometer as modelled on
+    board and taken out of every sample before the host calibration
+    and the estimators (fsw.deorbit.kit_field), one message per
+    channel, sent every 10 s. F_a, the field of the magnet at home and
+    open, is calibrated from the steps at the channel's transitions;
+    scale = F_a . F_a,design / |F_a,design|^2.
+    """
+
+    id = MAVLINK_MSG_ID_DEBRIS_KIT_FIELD
+    msgname = "DEBRIS_KIT_FIELD"
+    fieldnames = ["time_usec", "channel", "moving", "scale", "scale_sigma", "field", "innovation", "fit_rms", "steps", "ill_conditioned", "outliers", "flagged"]
+    ordered_fieldnames = ["time_usec", "scale", "scale_sigma", "field", "innovation", "fit_rms", "flagged", "steps", "ill_conditioned", "outliers", "channel", "moving"]
+    fieldtypes = ["uint64_t", "uint8_t", "uint8_t", "float", "float", "float", "float", "float", "uint16_t", "uint16_t", "uint16_t", "uint32_t"]
+    fielddisplays_by_name: Dict[str, str] = {}
+    fieldenums_by_name: Dict[str, str] = {}
+    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "field": "uT", "innovation": "uT", "fit_rms": "uT"}
+    native_format = bytearray(b"<QfffffIHHHBB")
+    orders = [0, 10, 11, 1, 2, 3, 4, 5, 7, 8, 9, 6]
+    lengths = [1, 1, 1, 3, 1, 1, 1, 1, 1, 1, 1, 1]
+    array_lengths = [0, 0, 0, 3, 0, 0, 0, 0, 0, 0, 0, 0]
+    crc_extra = 252
+    unpacker = struct.Struct("<Qff3fffIHHHBB")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(self, time_usec: int, channel: int, moving: int, scale: float, scale_sigma: float, field: Sequence[float], innovation: float, fit_rms: float, steps: int, ill_conditioned: int, outliers: int, flagged: int):
+        MAVLink_message.__init__(self, MAVLink_debris_kit_field_message.id, MAVLink_debris_kit_field_message.msgname)
+        self._fieldnames = MAVLink_debris_kit_field_message.fieldnames
+        self._instance_field = MAVLink_debris_kit_field_message.instance_field
+        self._instance_offset = MAVLink_debris_kit_field_message.instance_offset
+        self.time_usec = time_usec
+        self.channel = channel
+        self.moving = moving
+        self.scale = scale
+        self.scale_sigma = scale_sigma
+        self.field = field
+        self.innovation = innovation
+        self.fit_rms = fit_rms
+        self.steps = steps
+        self.ill_conditioned = ill_conditioned
+        self.outliers = outliers
+        self.flagged = flagged
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.scale, self.scale_sigma, self.field[0], self.field[1], self.field[2], self.innovation, self.fit_rms, self.flagged, self.steps, self.ill_conditioned, self.outliers, self.channel, self.moving), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_debris_kit_field_message, "name", mavlink_msg_deprecated_name_property())
 
 
 class MAVLink_sys_status_message(MAVLink_message):
@@ -17553,6 +17610,7 @@ mavlink_map: Dict[int, Type[MAVLink_message]] = {
     MAVLINK_MSG_ID_DEBRIS_TIME_ORBIT: MAVLink_debris_time_orbit_message,
     MAVLINK_MSG_ID_DEBRIS_TLE: MAVLink_debris_tle_message,
     MAVLINK_MSG_ID_DEBRIS_MAGCAL: MAVLink_debris_magcal_message,
+    MAVLINK_MSG_ID_DEBRIS_KIT_FIELD: MAVLink_debris_kit_field_message,
     MAVLINK_MSG_ID_SYS_STATUS: MAVLink_sys_status_message,
     MAVLINK_MSG_ID_SYSTEM_TIME: MAVLink_system_time_message,
     MAVLINK_MSG_ID_PING: MAVLink_ping_message,
@@ -18660,6 +18718,56 @@ class MAVLink(object):
 
         """
         self.send(self.debris_magcal_encode(time_usec, samples, dropped, rejections, hard_iron, soft_iron, hard_iron_sigma, soft_iron_sigma, residual, state, hard_iron_rate, drift_period), force_mavlink1=force_mavlink1)
+
+    def debris_kit_field_encode(self, time_usec: int, channel: int, moving: int, scale: float, scale_sigma: float, field: Sequence[float], innovation: float, fit_rms: float, steps: int, ill_conditioned: int, outliers: int, flagged: int) -> MAVLink_debris_kit_field_message:
+        """
+        The de-orbit kit's magnets at the magnetometer as modelled on board
+        and taken out of every sample before the host calibration and
+        the estimators (fsw.deorbit.kit_field), one message per
+        channel, sent every 10 s. F_a, the field of the magnet at home
+        and open, is calibrated from the steps at the channel's
+        transitions; scale = F_a . F_a,design / |F_a,design|^2.
+
+        time_usec                 : Loop time. [us] (type:uint64_t)
+        channel                   : Channel: 0 pitch, 1 yaw. (type:uint8_t)
+        moving                    : 1 while the channel's shutter or magnet moves (its samples are flagged and skipped). (type:uint8_t)
+        scale                     : The moment as the sensor sees it, relative to the design (1: as designed). (type:float)
+        scale_sigma               : 1-sigma of scale. (type:float)
+        field                     : The channel's modelled field at the sensor now (X, Y, Z). [uT] (type:float)
+        innovation                : The step of the field the model missed at the channel's latest transition (NaN before one). [uT] (type:float)
+        fit_rms                   : Residual RMS per axis of the latest step's fit (NaN before one). [uT] (type:float)
+        steps                     : Steps taken into the calibration. (type:uint16_t)
+        ill_conditioned           : Steps refused as ill-conditioned (too few samples, sigma too large). (type:uint16_t)
+        outliers                  : Steps refused as outliers (the last good calibration stays). (type:uint16_t)
+        flagged                   : Samples flagged and skipped while this channel moved. (type:uint32_t)
+
+        """
+        return MAVLink_debris_kit_field_message(time_usec, channel, moving, scale, scale_sigma, field, innovation, fit_rms, steps, ill_conditioned, outliers, flagged)
+
+    def debris_kit_field_send(self, time_usec: int, channel: int, moving: int, scale: float, scale_sigma: float, field: Sequence[float], innovation: float, fit_rms: float, steps: int, ill_conditioned: int, outliers: int, flagged: int, force_mavlink1: bool = False) -> None:
+        """
+        The de-orbit kit's magnets at the magnetometer as modelled on board
+        and taken out of every sample before the host calibration and
+        the estimators (fsw.deorbit.kit_field), one message per
+        channel, sent every 10 s. F_a, the field of the magnet at home
+        and open, is calibrated from the steps at the channel's
+        transitions; scale = F_a . F_a,design / |F_a,design|^2.
+
+        time_usec                 : Loop time. [us] (type:uint64_t)
+        channel                   : Channel: 0 pitch, 1 yaw. (type:uint8_t)
+        moving                    : 1 while the channel's shutter or magnet moves (its samples are flagged and skipped). (type:uint8_t)
+        scale                     : The moment as the sensor sees it, relative to the design (1: as designed). (type:float)
+        scale_sigma               : 1-sigma of scale. (type:float)
+        field                     : The channel's modelled field at the sensor now (X, Y, Z). [uT] (type:float)
+        innovation                : The step of the field the model missed at the channel's latest transition (NaN before one). [uT] (type:float)
+        fit_rms                   : Residual RMS per axis of the latest step's fit (NaN before one). [uT] (type:float)
+        steps                     : Steps taken into the calibration. (type:uint16_t)
+        ill_conditioned           : Steps refused as ill-conditioned (too few samples, sigma too large). (type:uint16_t)
+        outliers                  : Steps refused as outliers (the last good calibration stays). (type:uint16_t)
+        flagged                   : Samples flagged and skipped while this channel moved. (type:uint32_t)
+
+        """
+        self.send(self.debris_kit_field_encode(time_usec, channel, moving, scale, scale_sigma, field, innovation, fit_rms, steps, ill_conditioned, outliers, flagged), force_mavlink1=force_mavlink1)
 
     def sys_status_encode(self, onboard_control_sensors_present: int, onboard_control_sensors_enabled: int, onboard_control_sensors_health: int, load: int, voltage_battery: int, current_battery: int, battery_remaining: int, drop_rate_comm: int, errors_comm: int, errors_count1: int, errors_count2: int, errors_count3: int, errors_count4: int, onboard_control_sensors_present_extended: int = 0, onboard_control_sensors_enabled_extended: int = 0, onboard_control_sensors_health_extended: int = 0) -> MAVLink_sys_status_message:
         """

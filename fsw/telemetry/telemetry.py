@@ -145,11 +145,11 @@ class Telemetry:
             *(int(x) & u32 for x in (uplink_bytes, uplink_bytes_dropped, uplink_garbage_bytes, uplink_bad_crc,
                                      uplink_foreign_datagrams, uplink_os_dropped))))
 
-    def mag_sample(self, t_s: float, b_T: np.ndarray, seq: int, run_id: int) -> None:
-        """DEBRIS_MAG_SAMPLE: the numbered sample (field in gauss), live."""
+    def mag_sample(self, t_s: float, b_T: np.ndarray, seq: int, run_id: int, flags: int = 0) -> None:
+        """DEBRIS_MAG_SAMPLE: the numbered sample (field in gauss), live; `flags`: DEBRIS_SAMPLE_FLAGS."""
         g = b_T * GAUSS_PER_TESLA
         self._send(mavlink.MAVLink_debris_mag_sample_message(
-            usec(t_s), seq & 0xFFFFFFFF, run_id, [float(g[0]), float(g[1]), float(g[2])], 0))
+            usec(t_s), seq & 0xFFFFFFFF, run_id, [float(g[0]), float(g[1]), float(g[2])], int(flags)))
 
     def resend_sample(self, seq: int, run_id: int, t_us: int, b_T: np.ndarray) -> int | None:
         """DEBRIS_MAG_SAMPLE flagged RESENT, from the sample store: the bytes written, or None while the
@@ -213,6 +213,16 @@ class Telemetry:
             [float(x) for x in st.energy_J], u16[0], u16[1], min(int(st.interlock_violations), 65535),
             [int(x) for x in st.capsule_state], [int(x) for x in st.magnet_state], [int(x) for x in st.polarity],
             [int(x) for x in st.fault], int(st.controller_state)))
+
+    def kit_field(self, t_s: float, channel: int, *, scale: float, scale_sigma: float, field_T, innovation_T: float,
+                  fit_rms_T: float, steps: int, ill_conditioned: int, outliers: int, flagged: int,
+                  moving: bool) -> None:
+        """DEBRIS_KIT_FIELD: one channel of the on-board kit-field model (`fsw.deorbit.kit_field`)."""
+        self._send(mavlink.MAVLink_debris_kit_field_message(
+            usec(t_s), int(channel), int(bool(moving)), float(scale), float(scale_sigma),
+            [float(x) * 1e6 for x in field_T], float(innovation_T) * 1e6, float(fit_rms_T) * 1e6,
+            min(int(steps), 65535), min(int(ill_conditioned), 65535), min(int(outliers), 65535),
+            min(int(flagged), 0xFFFFFFFF)))
 
     def system_time(self, t_s: float, utc_s: float) -> None:
         """SYSTEM_TIME: the onboard UTC estimate (0 when not set) and the loop time."""

@@ -1,0 +1,408 @@
+"""The de-orbit kit's magnets at the magnetometer, modelled on board and taken out of every sample.
+
+Each magnet is a point dipole at ``position_m`` (body axes, from the magnetometer to the magnet's
+centre) with the moment ``moment_Am2`` along its home axis ``a`` turned about its shaft ``u`` by the
+rotor angle φ (the stepper's counted position, 1.8° a step): m = p (cos φ a + sin φ u × a) for a ⟂ u.
+Its field at the sensor (r = −position, r̂ = r/|r|) is linear in the moment::
+
+    K(φ) = cos φ F_a + sin φ F_b,   F_a = μ0/(4π|r|³) (3 (p a·r̂) r̂ − p a),  F_b the same for p u × a
+
+and the capsule screens it: a closed capsule leaks ``leakage`` of it (1-2 %), an open one lets all of
+it out. So a channel at rest adds s (cos φ F_a + sin φ F_b) with s = leakage (CLOSED) or 1 (OPEN).
+The state comes from the kit's own drivers (`fsw.drivers.stepper`, `fsw.drivers.capsule` through the
+sequencer's channels), polled every loop tick (:meth:`KitFieldModel.poll`).
+
+Motion: while a shutter opens or closes, a capsule is in FAULT, or a magnet turns or homes, the
+screening or the angle is not known well enough: the samples taken then (with one loop period of
+margin on either side: the chip's sample time and the drivers' state are a tick apart) are *flagged*
+(:meth:`KitFieldModel.field_at` returns ``skip``) and the flight loop keeps them from the host
+calibration, the estimators and the applications; they are still sent and stored as the sensor's own.
+
+Calibration on orbit (:meth:`KitFieldModel.record` with the accepted samples): every motion of a
+channel between two rest states A → B is a known change of its field, Δ = c_a F_a + c_b F_b with
+c_a = s_B cos φ_B − s_A cos φ_A (c_b likewise with sin). The body turns meanwhile, so the step is
+estimated against the field's trend: one least-squares fit of the raw samples, compensated with the
+current model, on both sides of the motion (up to ``window_s`` each, cut at the neighbouring steps of an
+open field before and any motion after; halved while the residual exceeds ``misfit`` times the noise)
+to a shared polynomial in time (``degree``) plus a step at the motion, per axis. The fitted step d is
+what the model missed. Motions of several channels that overlap (the controller closes one capsule
+as it opens the other) are one step, so the channels' F_a are estimated jointly: x = (F_a,pitch,
+F_a,yaw) with its covariance P, the observation d = H (x_true − x) with H = (c_a,pitch I, c_a,yaw I)
+and R the covariance of d (the fit's residual variance, at least the sensor's, times (XᵀX)⁻¹); a
+Kalman update of a constant, prior: the design value with ``prior_frac`` of |F_a| per axis. A step is
+not taken in when it is
+
+- weak: every |c_a| < 0.5 (a turn while closed moves only the 1-2 % leakage) — ``weak_steps``;
+- ill-conditioned: too few samples on a side (the next motion came too soon, the first step of a
+  run) or a σ of d over |c_a| above ``max_sigma_frac`` of |F_a| — counted ``ill_conditioned``;
+- an outlier: a χ² of d against H P Hᵀ + R above ``chi2_max`` (3 degrees of freedom, 99.9 %), or an
+  updated |F_a| outside [0.5, 1.5] of the design's — counted ``outliers``;
+
+the last good calibration stays applied. The channel's scale k = F_a·F_a,design / |F_a,design|² (the
+moment as the sensor sees it, with its 1-σ) scales F_b, which the polarities the controller uses
+(φ = 0°, 180°) do not observe. The leakage stays the design's (an error of 0.5 % of it is 0.5 µT at
+0.3 m). DEBRIS_KIT_FIELD (one per channel) reports the scale, its σ, the latest step's innovation and
+fit residual and the counters.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from fsw.drivers.capsule import CapsuleState
+from fsw.drivers.stepper import STEPS_PER_TURN, MagnetState
+
+MU0_4PI = 1e-7  # μ0 / 4π [T·m/A]
+#: χ² of a 3-vector at 99.9 %
+CHI2_3_999 = 16.27
+
+
+@dataclass(frozen=True)
+class MagnetGeometry:
+    """One channel's magnet as designed: where it is (from the magnetometer, body axes), its moment,
+    its axis at home (polarity +1), the shaft it turns about, its capsule's leakage when closed."""
+
+    position_m: tuple[float, float, float]
+    home_axis: tuple[float, float, float]
+    moment_Am2: float = 15.0
+    shaft_axis: tuple[float, float, float] = (1.0, 0.0, 0.0)
+    leakage: float = 0.015
+
+    def __post_init__(self) -> None:
+        p, a, u = (np.asarray(v, dtype=float) for v in (self.position_m, self.home_axis, self.shaft_axis))
+        if not (p.shape == a.shape == u.shape == (3,) and np.all(np.isfinite(np.concatenate((p, a, u))))):
+            raise ValueError("magnet position, home axis and shaft axis must be finite 3-vectors")
+        if np.linalg.norm(p) < 0.01:
+            raise ValueError(f"a magnet must sit at least 1 cm from the sensor, got {self.position_m}")
+        if not (abs(np.linalg.norm(a) - 1) < 1e-6 and abs(np.linalg.norm(u) - 1) < 1e-6 and abs(a @ u) < 1e-6):
+            raise ValueError("home axis and shaft axis must be orthogonal unit vectors")
+        if not (math.isfinite(self.moment_Am2) and self.moment_Am2 > 0 and 0.0 <= self.leakage <= 1.0):
+            raise ValueError("moment must be > 0 A·m², leakage within [0, 1]")
+
+
+#: the kit as built (hil.deorbit_kit): pitch magnet along z at +0.3 m y, yaw magnet along y at −0.3 m z,
+#: both turned about body x
+DESIGN = (MagnetGeometry((0.0, 0.3, 0.0), (0.0, 0.0, 1.0)), MagnetGeometry((0.0, 0.0, -0.3), (0.0, 1.0, 0.0)))
+
+
+def dipole_field_T(m_Am2: np.ndarray, position_m: np.ndarray) -> np.ndarray:
+    """Field [T] at the sensor of a point dipole `m_Am2` at `position_m` from the sensor."""
+    r = -np.asarray(position_m, dtype=float)
+    d = float(np.linalg.norm(r))
+    rh = r / d
+    m = np.asarray(m_Am2, dtype=float)
+    return MU0_4PI / d**3 * (3.0 * float(m @ rh) * rh - m)
+
+
+@dataclass(frozen=True)
+class Rest:
+    """A channel at rest: screening s (leakage or 1) and rotor angle φ [rad]."""
+
+    s: float
+    phi_rad: float
+
+
+@dataclass
+class _Pending:
+    channel: int
+    t0_s: float  # last poll at rest before the motion
+    t1_s: float  # first poll at rest after it
+    a: Rest
+    b: Rest
+
+
+@dataclass
+class _Cluster:
+    """Motions of one or more channels that overlap in time: one step of the field, one observation."""
+
+    t0_s: float
+    t1_s: float
+    c_a: np.ndarray  # per channel: s_B cos φ_B − s_A cos φ_A (0: the channel did not move)
+    channels: tuple[int, ...]
+
+
+class ChannelModel:
+    """One channel's calibrated field: F_a (estimated, with covariance), F_b (design × scale)."""
+
+    def __init__(self, geometry: MagnetGeometry, prior_frac: float) -> None:
+        g = geometry
+        a, u = np.asarray(g.home_axis, float), np.asarray(g.shaft_axis, float)
+        self.geometry = g
+        self.leakage = float(g.leakage)
+        self.fa_design_T = dipole_field_T(g.moment_Am2 * a, g.position_m)
+        self.fb_design_T = dipole_field_T(g.moment_Am2 * np.cross(u, a), g.position_m)
+        self.fa_T = self.fa_design_T.copy()
+        n = float(np.linalg.norm(self.fa_design_T))
+        self.P = np.eye(3) * (prior_frac * n) ** 2
+        self.steps = 0  # observations taken into F_a
+        self.ill_conditioned = 0
+        self.weak_steps = 0  # motions that do not change the open field (turns while closed)
+        self.outliers = 0
+        self.flagged = 0  # samples skipped because this channel moved
+        self.last_innovation_T = math.nan  # |the step the model missed| at the latest transition (taken or not)
+        self.last_fit_rms_T = math.nan
+
+    @property
+    def scale(self) -> float:
+        n2 = float(self.fa_design_T @ self.fa_design_T)
+        return float(self.fa_T @ self.fa_design_T) / n2
+
+    @property
+    def scale_sigma(self) -> float:
+        d = self.fa_design_T / float(self.fa_design_T @ self.fa_design_T)
+        return math.sqrt(max(float(d @ self.P @ d), 0.0))
+
+    def field_T(self, rest: Rest) -> np.ndarray:
+        c, s = math.cos(rest.phi_rad), math.sin(rest.phi_rad)
+        return rest.s * (c * self.fa_T + s * self.scale * self.fb_design_T)
+
+
+class KitFieldModel:
+    """The kit's field at the sensor from the sequencer's channels (`fsw.deorbit.sequencer.Channel`)."""
+
+    def __init__(self, channels, geometry=DESIGN, *, sigma_T: float = 1.5e-6, guard_s: float = 0.1,
+                 window_s: float = 30.0, degree: int = 3, max_samples: int = 1024, prior_frac: float = 0.15,
+                 max_sigma_frac: float = 0.05, chi2_max: float = CHI2_3_999, min_window_s: float = 3.0,
+                 misfit: float = 1.3, max_fit_samples: int = 160) -> None:
+        if len(geometry) != len(channels):
+            raise ValueError("one magnet geometry per kit channel")
+        self.channels = channels
+        self.models = [ChannelModel(g, prior_frac) for g in geometry]
+        self.sigma_T = float(sigma_T)
+        self.guard_s = float(guard_s)
+        self.window_s = float(window_s)
+        self.min_window_s = float(min_window_s)
+        self.misfit = float(misfit)
+        self.max_fit_samples = int(max_fit_samples)
+        self.degree = int(degree)
+        self.max_sigma_frac = float(max_sigma_frac)
+        self.chi2_max = float(chi2_max)
+        n = len(channels)
+        self.rest: list[Rest | None] = [self._rest(i) for i in range(n)]
+        self._from: list[Rest | None] = list(self.rest)
+        self._t_rest = [math.nan] * n  # latest poll each channel was at rest
+        #: motions [t0, t1, channel] of the channels, t1 = inf while it lasts
+        self.intervals: deque[list] = deque(maxlen=16)
+        self._open = [None] * n  # the interval of a channel's motion under way
+        self.pending: list[_Pending] = []  # motions ended while another channel still moves
+        self.clusters: list[_Cluster] = []  # steps waiting for their after-side samples
+        self._strong: deque[tuple[float, float]] = deque(maxlen=16)  # spans of the steps of the open field
+        # the channels' F_a jointly (a step of two channels at once observes their sum): x, P
+        self.x_T = np.concatenate([m.fa_T for m in self.models])
+        self.P = np.zeros((3 * n, 3 * n))
+        for i, m in enumerate(self.models):
+            self.P[3 * i:3 * i + 3, 3 * i:3 * i + 3] = m.P
+        # accepted samples: time, raw field, the channels' rest states at that time
+        self._samples: deque[tuple[float, np.ndarray, tuple]] = deque(maxlen=max_samples)
+        self.flagged = 0
+        self.polls = 0
+        self.version = 0  # calibrations taken in (the flight loop re-expresses its gate's reference)
+
+    # --- state ------------------------------------------------------------------------------------
+    def _rest(self, i: int) -> Rest | None:
+        ch = self.channels[i]
+        cap, st = ch.capsule, ch.stepper
+        if cap.state is CapsuleState.CLOSED:
+            s = self.models[i].leakage
+        elif cap.state is CapsuleState.OPEN:
+            s = 1.0
+        else:
+            return None  # opening, closing, or a fault: the screening is not known
+        if st.moving or st.state in (MagnetState.TURNING, MagnetState.HOMING):
+            return None
+        return Rest(s, 2.0 * math.pi * (st.position_steps % STEPS_PER_TURN) / STEPS_PER_TURN)
+
+    def poll(self, now_s: float) -> None:
+        """Every loop tick: the channels' states now; a motion's start and end, a step to calibrate on."""
+        self.polls += 1
+        for i in range(len(self.channels)):
+            r = self._rest(i)
+            prev = self.rest[i]
+            if r is None and prev is not None:  # a motion starts
+                self._from[i] = prev
+                t0 = self._t_rest[i] if math.isfinite(self._t_rest[i]) else now_s
+                self._open[i] = [t0, math.inf, i]
+                self.intervals.append(self._open[i])
+            elif r is not None and prev is None:  # a motion ends
+                if self._open[i] is not None:
+                    self._open[i][1] = now_s
+                    if self._from[i] is not None:
+                        self.pending.append(_Pending(i, self._open[i][0], now_s, self._from[i], r))
+                self._open[i] = None
+            elif r is not None and prev is not None and r != prev:  # changed between two polls
+                t0 = self._t_rest[i] if math.isfinite(self._t_rest[i]) else now_s
+                self.intervals.append([t0, now_s, i])
+                self.pending.append(_Pending(i, t0, now_s, prev, r))
+            elif r is None and prev is None and self._open[i] is None:  # in motion from the start
+                self._open[i] = [now_s, math.inf, i]
+                self.intervals.append(self._open[i])
+            if r is not None:
+                self._t_rest[i] = now_s
+            self.rest[i] = r
+        if self.pending and all(r is not None for r in self.rest):
+            self._close_cluster()
+
+    def _close_cluster(self) -> None:
+        """Everything has come to rest: the motions since the last rest of all channels are one step."""
+        c_a = np.zeros(len(self.channels))
+        first: dict[int, Rest] = {}
+        last: dict[int, Rest] = {}
+        for p in self.pending:
+            first.setdefault(p.channel, p.a)
+            last[p.channel] = p.b
+        for i, a in first.items():
+            b = last[i]
+            c_a[i] = b.s * math.cos(b.phi_rad) - a.s * math.cos(a.phi_rad)
+        c = _Cluster(min(p.t0_s for p in self.pending), max(p.t1_s for p in self.pending), c_a, tuple(sorted(first)))
+        self.clusters.append(c)
+        if float(np.max(np.abs(c_a))) >= 0.5:
+            self._strong.append((c.t0_s, c.t1_s))
+        self.pending = []
+
+    def moving(self, t_s: float, channel: int | None = None) -> bool:
+        """Whether a sample at `t_s` falls in (or within `guard_s` of) a motion of `channel` (None: any)."""
+        g = self.guard_s
+        return any(t0 - g <= t_s <= t1 + g for t0, t1, i in self.intervals if channel is None or i == channel)
+
+    def model_T(self) -> np.ndarray:
+        """The modelled field now, the channels at rest in their current (or last) state [T]."""
+        return self._model(tuple(r if r is not None else (f or Rest(m.leakage, 0.0))
+                                 for m, r, f in zip(self.models, self.rest, self._from)))
+
+    def field_at(self, t_s: float) -> tuple[np.ndarray, bool]:
+        """(the kit's modelled field at the sensor for a sample at `t_s` [T], skip it): a sample taken
+        while something moved is skipped (its field is still the best guess, from the last rest)."""
+        b = np.zeros(3)
+        for m, r, f in zip(self.models, self.rest, self._from):
+            state = r if r is not None else f
+            if state is not None:
+                b += m.field_T(state)
+        skip = False
+        for i, m in enumerate(self.models):
+            if self.rest[i] is None or self.moving(t_s, i):
+                m.flagged += 1
+                skip = True
+        self.flagged += skip
+        return b, skip
+
+    # --- calibration ------------------------------------------------------------------------------
+    def record(self, t_s: float, raw_T: np.ndarray) -> None:
+        """An accepted, unflagged sample (the sensor's own): kept for the step fits; a step whose
+        after-side is complete (`window_s`, or cut by the next motion) is evaluated."""
+        if any(r is None for r in self.rest):
+            return
+        self._samples.append((float(t_s), np.array(raw_T, dtype=float), tuple(self.rest)))
+        keep = []
+        for c in self.clusters:
+            nxt = min((t0 for t0, _, _ in self.intervals if t0 > c.t1_s), default=math.inf)
+            if t_s >= min(c.t1_s + self.window_s, nxt):
+                self._evaluate(c, nxt)
+            else:
+                keep.append(c)
+        self.clusters = keep
+
+    def _evaluate(self, c: _Cluster, t_next_s: float) -> None:
+        """The step of the field across the motions of `c`, from a fit on both sides: over `window_s`
+        each side, halved while the fit's residual exceeds `misfit` times the sensor's noise (a
+        polynomial follows a fast tumble's field only so far), down to `min_window_s`."""
+        involved = [self.models[i] for i in c.channels]
+        if float(np.max(np.abs(c.c_a))) < 0.5:  # no step of the open field (a turn while closed)
+            for m in involved:
+                m.weak_steps += 1
+            return
+        w, fit = self.window_s, None
+        while True:
+            trial = self._fit(c, t_next_s, w)
+            if trial is not None:
+                fit = trial
+            if trial is None or trial[2] <= self.misfit * self.sigma_T or w / 2 < self.min_window_s:
+                break
+            w /= 2
+        if fit is None:
+            for m in involved:
+                m.ill_conditioned += 1
+            return
+        d, R, rms = fit
+        for m in involved:
+            m.last_fit_rms_T = rms
+        self._update(c, d, R)
+
+    def _fit(self, c: _Cluster, t_next_s: float, w: float) -> tuple[np.ndarray, np.ndarray, float] | None:
+        """(the step d the model missed, its covariance, the residual RMS per axis) from the samples
+        within `w` of the motions, or None (too few samples on a side, rank-deficient).
+
+        d = Σ c_a,i (F_a,i true − F_a,i) + noise."""
+        g = self.guard_s
+        # the fit reaches back to the previous step of an open field (a turn while closed moves only the
+        # leakage, which the samples are compensated for)
+        prev_end = max((t1 for _, t1 in self._strong if t1 < c.t0_s), default=-math.inf)
+        lo, hi = max(c.t0_s - w, prev_end + g), min(c.t1_s + w, t_next_s - g)
+        rows = [(t, raw, st) for t, raw, st in self._samples
+                if (lo <= t < c.t0_s - g) or (c.t1_s + g < t <= hi)]
+        if len(rows) > self.max_fit_samples:  # fast sampling: every k-th sample is plenty (CPU budget)
+            rows = rows[::-(-len(rows) // self.max_fit_samples)]
+        n_pre = sum(1 for t, _, _ in rows if t < c.t0_s)
+        need = self.degree + 2
+        if n_pre < need or len(rows) - n_pre < need:
+            return None
+        t_m = 0.5 * (c.t0_s + c.t1_s)
+        tau = np.array([(t - t_m) / w for t, _, _ in rows])
+        X = np.column_stack([tau ** k for k in range(self.degree + 1)] + [(tau > 0).astype(float)])
+        y = np.array([raw - self._model(st) for _, raw, st in rows])
+        coef, _, rank, _ = np.linalg.lstsq(X, y, rcond=None)
+        if rank < X.shape[1]:
+            return None
+        resid = y - X @ coef
+        var = np.maximum(np.sum(resid ** 2, axis=0) / max(len(rows) - X.shape[1], 1), self.sigma_T ** 2)
+        return coef[-1], np.diag(var * np.linalg.inv(X.T @ X)[-1, -1]), float(np.sqrt(np.mean(var)))
+
+    def _model(self, states: tuple) -> np.ndarray:
+        b = np.zeros(3)
+        for m, r in zip(self.models, states):
+            b += m.field_T(r)
+        return b
+
+    def _update(self, c: _Cluster, d: np.ndarray, R: np.ndarray) -> None:
+        """A Kalman update of the channels' F_a (constants) with the missed step `d`, unless the
+        observation is ill-conditioned or an outlier (then the last good calibration stays)."""
+        involved = [self.models[i] for i in c.channels]
+        for m in involved:
+            m.last_innovation_T = float(np.linalg.norm(d))
+        c_max = float(np.max(np.abs(c.c_a)))
+        n_design = min(float(np.linalg.norm(m.fa_design_T)) for m in involved)
+        if float(np.sqrt(np.max(np.diag(R)))) / c_max > self.max_sigma_frac * n_design:
+            for m in involved:
+                m.ill_conditioned += 1
+            return
+        H = np.kron(c.c_a[None, :], np.eye(3))
+        S = H @ self.P @ H.T + R
+        chi2 = float(d @ np.linalg.solve(S, d))
+        K = self.P @ H.T @ np.linalg.inv(S)
+        x = self.x_T + K @ d
+        ratios = [float(np.linalg.norm(x[3 * i:3 * i + 3]) / np.linalg.norm(self.models[i].fa_design_T))
+                  for i in c.channels]
+        if chi2 > self.chi2_max or not all(0.5 <= q <= 1.5 for q in ratios):
+            for m in involved:
+                m.outliers += 1
+            return
+        P = (np.eye(len(x)) - K @ H) @ self.P
+        self.x_T, self.P = x, 0.5 * (P + P.T)
+        for i, m in enumerate(self.models):
+            m.fa_T = self.x_T[3 * i:3 * i + 3].copy()
+            m.P = self.P[3 * i:3 * i + 3, 3 * i:3 * i + 3].copy()
+        for m in involved:
+            m.steps += 1
+        self.version += 1
+
+    # --- telemetry --------------------------------------------------------------------------------
+    def telemetry(self, now_s: float, tlm) -> None:
+        """DEBRIS_KIT_FIELD, one per channel."""
+        for i, (m, r) in enumerate(zip(self.models, self.rest)):
+            b = m.field_T(r if r is not None else (self._from[i] or Rest(m.leakage, 0.0)))
+            tlm.kit_field(now_s, i, scale=m.scale, scale_sigma=m.scale_sigma, field_T=b,
+                          innovation_T=m.last_innovation_T, fit_rms_T=m.last_fit_rms_T, steps=m.steps,
+                          ill_conditioned=m.ill_conditioned, outliers=m.outliers, flagged=m.flagged,
+                          moving=r is None)

@@ -1,0 +1,232 @@
+"""The de-orbit kit's field at the sensor modelled on board (`fsw.deorbit.kit_field`): against the
+simulator's truth (`hil.kit_field`) and a hand calculation, the samples flagged while something moves,
+the calibration from the steps at the transitions (scale and field against the truth's magnets, with a
+tumbling body's field underneath), ill-conditioned and outlier steps refused."""
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from fsw.deorbit.kit import DeorbitKit
+from fsw.deorbit.kit_field import DESIGN, MagnetGeometry, Rest
+from fsw.telemetry.dialect import mavlink
+from fsw.telemetry.telemetry import Telemetry
+from hil.deorbit_kit import DeorbitKitEmulator
+from hil.kit_field import KitFieldAtSensor
+from support import Capture
+
+CAPSULE, POLARITY, HOME = (mavlink.MAV_CMD_DEBRIS_CAPSULE, mavlink.MAV_CMD_DEBRIS_MAGNET_POLARITY,
+                           mavlink.MAV_CMD_DEBRIS_MAGNET_HOME)
+DT = 0.1
+SIGMA_T = 1.5e-6
+
+
+def cmd(command, *params):
+    p = list(params) + [0.0] * (7 - len(params))
+    return SimpleNamespace(command=command, **{f"param{i + 1}": float(v) for i, v in enumerate(p)})
+
+
+class Box:
+    """The kit on the emulator; the truth's magnets (`moments`, `leakage`, `positions`) may differ from
+    the design the box knows; a sample a second of a rotating Earth field plus the truth's kit field."""
+
+    def __init__(self, moments=(15.0, 15.0), leakage=0.015, shift_m=(0.0, 0.0, 0.0), seed=0, rate_dps=2.0,
+                 every_tick=False):
+        self.every_tick = every_tick
+        self.emu = DeorbitKitEmulator()
+        for ch, p in zip(self.emu.channels, moments):
+            ch.dipole_Am2 = p
+        positions = [np.array(g.position_m) + (np.array(shift_m) if i == 0 else 0.0) for i, g in enumerate(DESIGN)]
+        self.truth = KitFieldAtSensor(self.emu, positions, leakage)
+        self.kit = DeorbitKit(self.emu)
+        self.model = self.kit.sensor_field
+        self.model.sigma_T = SIGMA_T
+        self.t = 0.0
+        self.rng = np.random.default_rng(seed)
+        axis = np.array([0.3, -0.5, 0.8])
+        self.axis = axis / np.linalg.norm(axis)
+        self.w = math.radians(rate_dps)
+        self.b0 = np.array([22e-6, -31e-6, 15e-6])
+        self.flagged, self.errors = 0, []
+
+    def earth(self, t):
+        """A body tumbling at `rate_dps` about a fixed axis: the field turns in body axes (Rodrigues)."""
+        k, v, a = self.axis, self.b0, -self.w * t
+        return v * math.cos(a) + np.cross(k, v) * math.sin(a) + k * (k @ v) * (1 - math.cos(a))
+
+    def send(self, command, *params):
+        assert self.kit.handle_command(cmd(command, *params), self.t) == mavlink.MAV_RESULT_ACCEPTED
+
+    def run(self, seconds):
+        for _ in range(int(round(seconds / DT))):
+            self.t = round(self.t + DT, 9)
+            self.emu.advance_to(self.t)
+            self.model.poll(self.t)
+            if self.every_tick or abs(self.t - round(self.t)) < 1e-6:  # a sample a second (or every tick)
+                truth_kit = self.truth.b_body_T()
+                raw = self.earth(self.t) + truth_kit + self.rng.normal(0.0, SIGMA_T, 3)
+                kit_T, skip = self.model.field_at(self.t)
+                if skip:
+                    self.flagged += 1
+                else:
+                    self.errors.append(truth_kit - kit_T)
+                    self.model.record(self.t, raw)
+            self.kit.tick(self.t)
+
+    def cycle(self, channel, polarity, hold_s=60.0, rest_s=60.0):
+        self.send(POLARITY, channel, polarity)
+        self.run(3.0)
+        self.send(CAPSULE, channel, 1)
+        self.run(hold_s)
+        self.send(CAPSULE, channel, 0)
+        self.run(rest_s)
+
+
+def homed(**kw):
+    b = Box(**kw)
+    b.send(HOME, 0)
+    b.send(HOME, 1)
+    b.run(40.0)
+    return b
+
+
+def test_the_design_field_at_the_sensor_by_hand():
+    # 15 A·m² across its axis at 0.3 m: μ0/4π · m / r³ = 1e-7 · 15 / 0.027 = 55.6 µT, against the moment
+    b = homed()
+    b.send(CAPSULE, 0, 1)
+    b.run(4.0)
+    field, skip = b.model.field_at(b.t)
+    assert not skip
+    # the pitch magnet (z, at +0.3 m y) open: −55.6 µT z; the yaw magnet (y, at −0.3 m z) closed: 1.5 % of −55.6 µT y
+    assert field * 1e6 == pytest.approx([0.0, -0.015 * 55.556, -55.556], abs=0.01)
+
+
+@pytest.mark.parametrize("polarities", [(1, 1), (-1, 1), (1, -1), (-1, -1)])
+def test_the_model_matches_the_simulators_truth_in_every_rest_state(polarities):
+    b = homed()
+    for ch, pol in enumerate(polarities):
+        b.send(POLARITY, ch, pol)
+    b.run(3.0)
+    for opened in ((), (0,), (0, 1)):
+        for ch in opened:
+            b.send(CAPSULE, ch, 1)
+        b.run(4.0)
+        field, skip = b.model.field_at(b.t)
+        assert not skip
+        assert np.max(np.abs(field - b.truth.b_body_T())) < 1e-12  # the same physics: to rounding
+        for ch in opened:
+            b.send(CAPSULE, ch, 0)
+        b.run(2.0)
+
+
+def test_samples_are_flagged_while_a_shutter_moves_and_a_magnet_turns():
+    b = homed()
+    n = b.flagged
+    b.send(CAPSULE, 1, 1)  # 2 s opening
+    b.run(0.2)
+    assert b.model.field_at(b.t)[1] and b.model.rest[1] is None
+    b.run(4.0)
+    assert not b.model.field_at(b.t)[1]
+    assert 2 <= b.flagged - n <= 3  # the samples at 1, 2 (and the one at the open switch) s
+    b.send(CAPSULE, 1, 0)
+    b.run(3.0)
+    n = b.flagged
+    b.send(POLARITY, 0, -1)  # 1 s turn while closed
+    b.run(0.3)
+    assert b.model.field_at(b.t)[1]
+    b.run(3.0)
+    assert 1 <= b.flagged - n <= 2 and b.model.models[0].flagged >= 1
+    assert b.model.rest[0] == Rest(0.015, math.pi)
+
+
+@pytest.mark.parametrize("rate_dps, every_tick", [(2.0, False), pytest.param(10.0, True, marks=pytest.mark.slow)])
+def test_each_channels_scale_is_calibrated_from_its_steps_on_a_tumbling_body(rate_dps, every_tick):
+    # the truth's magnets: pitch 10 % strong and 4 mm closer in y, yaw 7 % weak; a sample a second on a
+    # body tumbling at 2 °/s, or ten on one at 10 °/s (the fit's window shrinks to follow the field)
+    b = homed(moments=(16.5, 13.95), shift_m=(0.0, -0.004, 0.0), seed=3, rate_dps=rate_dps, every_tick=every_tick)
+    for k in range(4):
+        b.cycle(0, 1 if k % 2 == 0 else -1)
+        b.cycle(1, -1 if k % 2 == 0 else 1)
+    pitch, yaw = b.model.models
+    true_pitch = 1.10 * (0.3 / 0.296) ** 3  # the moment as the sensor sees it
+    assert pitch.steps >= 6 and yaw.steps >= 6 and pitch.outliers == yaw.outliers == 0
+    assert abs(pitch.scale - true_pitch) < max(3 * pitch.scale_sigma, 0.01) and pitch.scale_sigma < 0.01
+    assert abs(yaw.scale - 0.93) < max(3 * yaw.scale_sigma, 0.01) and yaw.scale_sigma < 0.01
+    # the open field as calibrated against the truth's, now with both open at polarity +1
+    for ch in (0, 1):
+        b.send(POLARITY, ch, 1)
+    b.run(3.0)
+    b.send(CAPSULE, 0, 1)
+    b.send(CAPSULE, 1, 1)
+    b.run(5.0)
+    field, skip = b.model.field_at(b.t)
+    assert not skip
+    assert np.max(np.abs(field - b.truth.b_body_T())) < 1.5e-6  # of 82 µT uncompensated (the target)
+    assert np.linalg.norm(b.truth.b_body_T()) > 80e-6
+
+
+def test_without_samples_on_a_side_a_step_is_ill_conditioned_and_an_outlier_is_refused():
+    b = homed()
+    m = b.model
+    # an opening with no sample after it before the next motion: too few samples on a side
+    b.send(CAPSULE, 0, 1)
+    b.run(3.0)
+    b.send(CAPSULE, 0, 0)
+    b.run(40.0)
+    assert m.models[0].ill_conditioned >= 1 and m.models[0].steps == 0
+    # a magnet that suddenly looks 3 times stronger: refused, the last good calibration stays
+    before = m.models[1].fa_T.copy()
+    b.emu.channels[1].dipole_Am2 = 45.0
+    b.cycle(1, 1, hold_s=40.0, rest_s=40.0)
+    assert m.models[1].outliers >= 1 and m.models[1].steps == 0
+    assert np.array_equal(m.models[1].fa_T, before)
+
+
+def test_the_geometry_is_checked():
+    with pytest.raises(ValueError, match="1 cm"):
+        MagnetGeometry((0.0, 0.001, 0.0), (0.0, 0.0, 1.0))
+    with pytest.raises(ValueError, match="orthogonal"):
+        MagnetGeometry((0.0, 0.3, 0.0), (1.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match="leakage"):
+        MagnetGeometry((0.0, 0.3, 0.0), (0.0, 0.0, 1.0), leakage=1.5)
+
+
+def test_the_kit_field_message_per_channel():
+    b = homed()
+    cap = Capture()
+    b.kit.telemetry(b.t, Telemetry(cap))
+    msgs = [m for m in cap.messages() if m.get_type() == "DEBRIS_KIT_FIELD"]
+    assert [m.channel for m in msgs] == [0, 1]
+    assert all(m.scale == pytest.approx(1.0) and m.steps == 0 and not m.moving for m in msgs)
+    assert msgs[0].field[2] == pytest.approx(-0.015 * 55.556, abs=0.01)  # pitch closed, µT
+
+
+def test_the_ground_decoder_summarises_the_kit_field():
+    from ground.decode import Decoder
+
+    b = homed()
+    b.cycle(0, 1, hold_s=40.0, rest_s=40.0)
+    cap = Capture()
+    b.kit.telemetry(b.t, Telemetry(cap))
+    dec = Decoder()
+    for m in cap.messages():
+        dec.handle(m, 1.7e9)
+    text = dec.summary_text()
+    pitch, yaw = b.model.models
+    assert pitch.steps == 2 and yaw.steps == 0  # the opening and the closing of the pitch capsule
+    assert (f"kit field on board, pitch: scale {pitch.scale:.3f} ± {pitch.scale_sigma:.3f}, 2 calibration steps "
+            f"(0 ill-conditioned, 0 outliers), {pitch.flagged} samples flagged while it moved") in text
+    assert "yaw: scale 1.000 ± 0.150, 0 calibration steps" in text
+
+
+def test_the_calibration_step_takes_a_known_field_out_and_skips_what_it_is_told_to():
+    from fsw.host_calibration import HostCalibration
+
+    hc = HostCalibration(1.5e-6)  # no field on board: the host calibration inactive, samples pass
+    b = np.array([20e-6, -30e-6, 40e-6])
+    kit = np.array([0.0, -0.8e-6, -55.6e-6])
+    assert np.allclose(hc.process(0.0, b + kit, kit), b, atol=1e-15)
+    n = hc._n_mags
+    assert np.allclose(hc.process(1.0, b + 0.5 * kit, kit, skip=True), b - 0.5 * kit, atol=1e-15)
+    assert hc.skipped == 1 and hc._n_mags == n  # not taken in

@@ -1,0 +1,114 @@
+"""The de-orbit kit's magnets at the sensor in SITL (scenario amds_deorbit, the controller moving capsules
+and magnets): the flight software takes their field out of every sample (against the simulator's own kit
+field), skips the samples taken while a shutter moves, and its flown rate filter runs through the
+capsule events without a restart or a jump; the same run without the compensation jumps."""
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from fsw.config import RunConfig
+from fsw.system import NullLink
+from fsw.telemetry.dialect import mavlink
+from hil import scenario as scenarios
+from hil import sitl
+
+pytestmark = [pytest.mark.sitl, pytest.mark.slow]
+
+DURATION_S = 320.0
+WINDOW_S = 30.0
+
+
+def closed_loop(compensate: bool):
+    box = sitl.build(sitl.SitlConfig(RunConfig(rate_hz=10, buffer_frames=0), scenario=scenarios.load("amds_deorbit"),
+                                     seed=0, max_step_s=0.1), link=NullLink(), run_id=0, ident=False)
+    sim, flight = box.sim, box.fsw
+    kit = flight.apps["deorbit"]
+    if not compensate:
+        flight.kit_field = None
+    kf = flight.estimators["kalman"]
+    resets = []
+    reset = kf.reset
+    kf.reset = lambda: (resets.append(sim.t_s), reset())
+    start = SimpleNamespace(command=mavlink.MAV_CMD_DEBRIS_CONTROLLER, param1=1, param2=0, param3=0, param4=0,
+                            param5=0, param6=0, param7=0)
+    err, resid = [], []
+    for k in range(int(DURATION_S * 10) + 1):
+        t = k * 0.1
+        sim.advance_to(t)
+        b_kit_true = sim.kit_field.b_body_T()
+        if k == 0:
+            assert kit.handle_command(start, t) == mavlink.MAV_RESULT_ACCEPTED
+        flight.tick(t)
+        if flight.new_sample and not flight.kit_skip:
+            resid.append(b_kit_true - flight.kit_T)
+        if flight.new_estimate["kalman"] and not kf.flags & kf.NO_ESTIMATE:
+            tr = sim.truth(t)
+            err.append((t, np.degrees(np.linalg.norm(sitl.perpendicular(kf.omega_radps - tr.omega_radps,
+                                                                         tr.b_body_T)))))
+    events = [e.t_s for e in kit.sequencer.events if e.what == "capsule" and e.new == "OPENING"]
+    return flight, np.array(err), np.array(resid), events, resets
+
+
+def jumps_dps(err: np.ndarray, events: list[float]) -> list[float]:
+    """Per capsule opening after the first minute: the worst ⊥B error in the window after it less the
+    worst in the window before it."""
+    out = []
+    for te in events:
+        if te < 60.0:
+            continue
+        before = err[(err[:, 0] >= te - WINDOW_S) & (err[:, 0] < te), 1]
+        after = err[(err[:, 0] > te) & (err[:, 0] <= te + WINDOW_S), 1]
+        if len(before) and len(after):
+            out.append(float(after.max() - before.max()))
+    return out
+
+
+def test_the_kit_field_is_taken_out_and_the_flown_filter_runs_through_capsule_events():
+    flight, err, resid, events, resets = closed_loop(compensate=True)
+    assert len(events) >= 3  # the controller opened capsules
+    assert resets == [] and flight.estimator_resets == 0
+    assert flight.kit_skipped >= 2 * len(events)  # the samples while the shutters moved
+    assert flight.calibration.skipped == flight.kit_skipped and flight.gate.rejected == 0
+    # the field the flight software took out against the simulator's (with a kit field of ~55 µT)
+    assert np.max(np.sqrt(np.mean(resid ** 2, axis=0))) < 1.5e-6
+    jumps = jumps_dps(err, events)
+    assert jumps and max(jumps) < 0.5, jumps
+    # without the compensation the same filter jumps at the events
+    _, err0, resid0, events0, _ = closed_loop(compensate=False)
+    assert np.max(np.abs(resid0)) > 50e-6
+    assert max(jumps_dps(err0, events0)) > 3.0
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_samples_taken_while_a_shutter_opens_are_sent_flagged_and_not_used():
+    from support import Capture
+
+    link = Capture()
+    box = sitl.build(sitl.SitlConfig(RunConfig(rate_hz=10, buffer_frames=0), scenario=scenarios.load("amds_deorbit"),
+                                     seed=0, max_step_s=0.1), link=link, run_id=0, ident=False)
+    sim, flight = box.sim, box.fsw
+    kit = flight.apps["deorbit"]
+    start = SimpleNamespace(command=mavlink.MAV_CMD_DEBRIS_CONTROLLER, param1=1, param2=0, param3=0, param4=0,
+                            param5=0, param6=0, param7=0)
+    used, skipped = [], []
+    for k in range(111):
+        t = k * 0.1
+        sim.advance_to(t)
+        if k == 30:  # the pitch magnet is homed, then its capsule opens
+            assert kit.handle_command(start, t) == mavlink.MAV_RESULT_ACCEPTED
+        flight.tick(t)
+        if flight.new_sample:
+            (skipped if flight.kit_skip else used).append(
+                (flight.sample_t_s, any(flight.new_estimate.values()), sim.kit.channels[0].shutter))
+    assert skipped and all(not est for _, est, _ in skipped)  # no estimator took them
+    # the magnet is homed first (the capsule closed), then the shutter opens over 2 s: every sample taken
+    # while it moved skipped, every sample used at a shutter at rest, both before and after
+    assert all(s in (0.0, 1.0) for _, _, s in used)
+    assert any(s == 0.0 for _, _, s in used) and any(s == 1.0 for _, _, s in used)
+    assert sum(1 for _, _, s in skipped if 0.0 < s < 1.0) >= 1
+    assert flight.calibration.skipped == len(skipped) and flight.estimator_resets == 0
+    samples = [m for m in link.messages() if m.get_type() == "DEBRIS_MAG_SAMPLE"]
+    flagged = [m for m in samples if m.flags & mavlink.DEBRIS_SAMPLE_FLAGS_KIT_MOVING]
+    assert len(flagged) == len(skipped) and len(samples) == len(used) + len(skipped)
+    assert kit.sensor_field.models[0].flagged == len(skipped)
