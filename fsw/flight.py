@@ -38,6 +38,7 @@ import numpy as np
 from .app import App
 from .commands import CommandRouter, ParamTable, int_param
 from .estimation.rate_formulas import BoerStream, DerivativeStream
+from .estimation.flown_filter import FILTER_IDS
 from .estimation.rate_kalman import RateKalman
 from .estimation.sample_gate import SampleGate, mark_gap
 from .host_calibration import FixedField, HostCalibration
@@ -98,6 +99,11 @@ METHODS = {"boer": mavlink.DEBRIS_RATE_METHOD_BOER, "derivative": mavlink.DEBRIS
            "kalman": mavlink.DEBRIS_RATE_METHOD_KALMAN}
 
 
+#: filter updates of an estimator's background work per tick (`FlownFilter.work`): the Euler filter's shape
+#: trial, 34 hypotheses a sample, spread over the ticks between samples (about 1 ms each on the target)
+ESTIMATOR_WORK_PER_TICK = 2
+
+
 def load_compiled_kernels() -> None:
     """Run the estimators' compiled kernels once on throwaway instances, so that loading them from the
     on-disk cache (or compiling them, the first time) happens before the loop, not in its first ticks."""
@@ -118,7 +124,9 @@ class FlightSoftware:
         `apps`: the onboard applications (`fsw.app.App`: the identification experiment, the de-orbit
         kit), run in this order after the estimators;
         `rate_filter`: the Kalman filter sent as DEBRIS_RATE_METHOD_KALMAN (default
-        `estimation.rate_kalman.RateKalman`; e.g. an `AttitudeRateKalman` with the field along the orbit);
+        `estimation.rate_kalman.RateKalman`; `fsw.system.build_flight` gives the configured
+        `estimation.flown_filter.FlownFilter`, whose attitude goes out as ATTITUDE_QUATERNION and
+        DEBRIS_ATTITUDE_SIGMA with each of its estimates);
         `sample_store`: where the numbered samples are kept for the ground's requests (default: in
         memory, run id 0); `field`: the field along the orbit on board for the whole run (an
         `estimation.field_motion.OrbitField`), which the host-magnetics calibration needs, or
@@ -265,6 +273,8 @@ class FlightSoftware:
     def _estimate(self, now_s: float) -> None:
         for name, est in self.estimators.items():
             self.new_estimate[name] = self.new_sample and est.update(self.sample_t_s, self.sample_b_T)
+            if hasattr(est, "work"):  # work spread over the ticks (the Euler filter's shape trial)
+                est.work(ESTIMATOR_WORK_PER_TICK)
         self._flag_gaps()
 
     def _flag_gaps(self) -> None:
@@ -301,6 +311,11 @@ class FlightSoftware:
         for name, est in self.estimators.items():
             if self.new_estimate[name]:
                 self.tlm.rate_estimate(t, est.omega_radps, est.sigma_radps, METHODS[name], est.flags)
+        kf = self.estimators["kalman"]
+        if self.new_estimate["kalman"] and hasattr(kf, "attitude"):
+            att = kf.attitude()
+            self.tlm.attitude(t, None if att is None else att[0], kf.omega_radps, None if att is None else att[1],
+                              kf.sigma_radps, filter_id=FILTER_IDS[kf.name], flags=kf.flags, handovers=kf.handovers)
         if self.truth is not None:
             tr = self.truth(t)
             self.tlm.sim_state(t, tr.omega_radps, tr.q_body_to_eci, tr.b_body_T, tr.moment_Nm)
