@@ -300,7 +300,8 @@ class AttitudeRateKalman:
         self.t_s = t_s
         self._record_prediction(t_s, np.eye(n), restart=True)
         self._update(t_s, z)
-        self._publish(NO_ESTIMATE)
+        # a rate handed over with its covariance is an estimate from the first sample on
+        self._publish(NO_ESTIMATE if rate_cov is None or omega_radps is None else 0)
 
     def set_nominal(self, t_s: float, q: np.ndarray, omega_radps: np.ndarray, p: np.ndarray | None = None,
                     beta_uT: np.ndarray | None = None, euler: bool | None = None) -> None:
