@@ -99,6 +99,10 @@ METHODS = {"boer": mavlink.DEBRIS_RATE_METHOD_BOER, "derivative": mavlink.DEBRIS
            "kalman": mavlink.DEBRIS_RATE_METHOD_KALMAN}
 
 
+#: the flown filter's attitude (ATTITUDE_QUATERNION, DEBRIS_ATTITUDE_SIGMA) goes out with its estimate at
+#: most this often (s): every sample at the default 1 Hz, not 20 times a second at the link's sample cap
+ATTITUDE_TLM_PERIOD_S = 1.0
+
 #: filter updates of an estimator's background work per tick (`FlownFilter.work`): the Euler filter's shape
 #: trial, 34 hypotheses a sample, spread over the ticks between samples (about 1 ms each on the target)
 ESTIMATOR_WORK_PER_TICK = 2
@@ -153,6 +157,7 @@ class FlightSoftware:
         self._tlm_every = max(1, int(np.ceil((sample_rate_hz or rate_hz) / max_sample_tlm_hz)))
         self.gate = SampleGate(sigma_b_T, 1.0 / (sample_rate_hz or rate_hz))
         self.tlm_samples = 0  # samples handed to telemetry
+        self._next_attitude_s = -np.inf
         self.sample_store = sample_store if sample_store is not None else SampleStore()
         self.resender = Resender(self.sample_store)
         self._gap, self._gap_left = 0, {}
@@ -312,7 +317,8 @@ class FlightSoftware:
             if self.new_estimate[name]:
                 self.tlm.rate_estimate(t, est.omega_radps, est.sigma_radps, METHODS[name], est.flags)
         kf = self.estimators["kalman"]
-        if self.new_estimate["kalman"] and hasattr(kf, "attitude"):
+        if self.new_estimate["kalman"] and hasattr(kf, "attitude") and t >= self._next_attitude_s:
+            self._next_attitude_s = t + ATTITUDE_TLM_PERIOD_S * (1 - 1e-9)
             att = kf.attitude()
             self.tlm.attitude(t, None if att is None else att[0], kf.omega_radps, None if att is None else att[1],
                               kf.sigma_radps, filter_id=FILTER_IDS[kf.name], flags=kf.flags, handovers=kf.handovers)

@@ -64,9 +64,10 @@ class EulerAcquisitionKalman(_Bank):
     Here the random-walk filter (`main`) runs until it has found the rate (:meth:`AttitudeRateKalman.
     rate_found`); then one Euler hypothesis per shape of `shapes` (default :func:`shape_grid`, 1-σ
     `sigma_shape` about each) is started from a copy of it, all run in parallel with the random-walk
-    filter for `trial_samples` samples (30: with 15 the trial on a fast, noisy tumble of an elongated body
-    sometimes kept a shape that fitted the random-walk phase's lagging rate, and the filter then took
-    a minute to walk to the right one), and the one with the least negative log-likelihood of its
+    filter for `trial_samples` samples and at least `trial_s` seconds (at a 0.5 s step 30 samples: with
+    15 the trial on a fast, noisy tumble of an elongated body sometimes kept a shape that fitted the
+    random-walk phase's lagging rate, and the filter then took a minute to walk to the right one), and
+    the one with the least negative log-likelihood of its
     innovations over the trial (Σ ½(NIS + ln det S), Bar-Shalom et al. 2001 §11.6) becomes `main`.
     A hypothesis that restarts or leaves the physical region is dropped. When the random-walk filter
     wins, the trial is repeated after `retry_samples`. An Euler filter that is lost (its own NIS test,
@@ -77,7 +78,8 @@ class EulerAcquisitionKalman(_Bank):
 
     def __init__(self, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
                  tuning: AttitudeKalmanTuning | None = None, shapes=None, sigma_shape: float = 0.2,
-                 trial_samples: int = 30, retry_samples: int = 15, angle_about_b_rad: float = 0.0,
+                 trial_samples: int = 15, trial_s: float = 15.0, retry_samples: int = 15,
+                 angle_about_b_rad: float = 0.0,
                  deferred: bool = False) -> None:
         # the bank decides when Euler's equations start: the filters' own innovation test is off
         tun = replace(tuning or AttitudeKalmanTuning(euler_adapt_max=EULER_ADAPT_MAX), euler_nis_max=-math.inf)
@@ -86,6 +88,8 @@ class EulerAcquisitionKalman(_Bank):
         self.shapes = tuple(tuple(map(float, p)) for p in (shape_grid() if shapes is None else shapes))
         self.sigma_shape = float(sigma_shape)
         self.trial_samples = int(trial_samples)
+        self.trial_s = float(trial_s)
+        self._window = self.trial_samples  # the running trial's length in samples
         self.retry_samples = int(retry_samples)
         #: the hypotheses' updates wait for :meth:`work` (the flight loop's ticks between samples) instead of
         #: running with each sample: a trial's ~30 filter updates a sample then never land in one tick
@@ -124,9 +128,9 @@ class EulerAcquisitionKalman(_Bank):
                 self._trial, self._samples = [], []
             else:
                 self._samples.append((t_s, np.array(b_T, float)))
-                if len(self._samples) == self.trial_samples:
+                if len(self._samples) == self._window:
                     self._main_nll = main.nll - self._nll0
-                if not self.deferred or len(self._samples) > 2 * self.trial_samples:
+                if not self.deferred or len(self._samples) > 2 * self._window:
                     self.work()  # (deferred, but left too far behind: a loop that never calls work)
         elif self._wait > 0:
             self._wait -= 1
@@ -151,18 +155,20 @@ class EulerAcquisitionKalman(_Bank):
             with np.errstate(all="ignore"):  # a wrong hypothesis may diverge: it is dropped below
                 kf.update(t, b)
             h[3] += 1
-            if h[3] == self.trial_samples:
+            if h[3] == self._window:
                 h[4] = kf.nll - h[1]
             done += 1
             if kf.resets != h[2] or not kf.euler:
                 self._trial.remove(h)
-        if n >= self.trial_samples and all(h[3] >= n for h in self._trial):
+        if n >= self._window and all(h[3] >= n for h in self._trial):
             self._decide()
         return done
 
     def _start_trial(self) -> None:
         self.trials += 1
         self._trial, self._samples = [], []
+        dt = self.main._dt_nominal  # the sample step seen so far
+        self._window = max(self.trial_samples, int(math.ceil(self.trial_s / dt - 1e-9)) if dt > 0 else 0)
         for p in self.shapes:
             kf = self.main.clone()
             kf.start_euler(np.array(p), self.sigma_shape)
