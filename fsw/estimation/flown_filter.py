@@ -155,9 +155,13 @@ class FlownFilter:
 
     def update(self, t_s: float, b_T) -> bool:
         """Add a field sample (tesla, body axes) at `t_s`; True when an estimate was published."""
-        out = self.fixed.update(t_s, b_T)
         if self.kind == "fixed":
-            return out
+            return self.fixed.update(t_s, b_T)
+        # the seed of a hand-over: the fixed filter's estimate before this sample (the sample that brings
+        # the field may also be the first the host calibration corrects: a step the fixed filter takes
+        # as a rotation, and the orbit filter, which expects the Earth's field, does not)
+        seed = None if self.fixed.flags & NO_ESTIMATE else (self.fixed.omega_radps.copy(), self.fixed.P[3:6, 3:6])
+        out = self.fixed.update(t_s, b_T)
         field = self._field_now(t_s)
         if field is None:
             if self.orbit is not None:  # the field went away: the fixed filter (running all along) takes over
@@ -166,13 +170,13 @@ class FlownFilter:
             return out
         self._field = field
         if self.orbit is None:
-            if self.fixed.flags & NO_ESTIMATE:
+            if seed is None:
                 return out  # nothing to seed from yet: the fixed filter's first sample
             self.orbit = make_orbit_filter(self.kind, self.sigma_b_T, self._b_eci_T)
             self.handovers += 1
             self.why = ""
             try:
-                self.seed(t_s, b_T)
+                self.seed(t_s, b_T, *seed)
             except (ValueError, ArithmeticError) as e:
                 return self._field_failed(e, out)
             return True
@@ -193,11 +197,9 @@ class FlownFilter:
             self._field_failed(e, False)
             return 0
 
-    def seed(self, t_s: float, b_T) -> None:
-        """Start the orbit filter with the sample (t_s, b_T), its rate and the rate's covariance from the
-        fixed-field filter (the attitude about B unknown, as at any start)."""
-        P = self.fixed.P[3:6, 3:6]
-        w = self.fixed.omega_radps.copy()
+    def seed(self, t_s: float, b_T, w: np.ndarray, P: np.ndarray) -> None:
+        """Start the orbit filter with the sample (t_s, b_T), the rate `w` and its covariance `P` (the fixed
+        filter's), the attitude about B unknown, as at any start."""
         for kf in members(self.orbit):
             kf.start(t_s, b_T, omega_radps=w, rate_cov=P)
 

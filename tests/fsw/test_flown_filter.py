@@ -10,6 +10,7 @@ import pytest
 
 from fsw.estimation import filter_banks as fb
 from fsw.estimation import rate_formulas as rf
+from fsw.estimation import rate_kalman as rk
 from fsw.estimation.flown_filter import DEFAULT_FILTER, FILTER_IDS, FILTERS, CalibratedField, FlownFilter
 from fsw.estimation.onboard_field import InterpolatedOrbitField
 from fsw.estimation.rotations import quat_to_dcm
@@ -196,3 +197,23 @@ def test_deferred_trial_decides_as_the_immediate_one():
     assert now.trials >= 1 and now.euler and later.euler and most > 2
     np.testing.assert_allclose(later.omega_radps, now.omega_radps, rtol=0, atol=1e-9)
     np.testing.assert_allclose(later.inertia_shape, now.inertia_shape, rtol=1e-9)
+
+
+def test_the_hand_over_at_the_first_calibrated_sample_starts_from_the_rate_before_it():
+    """On board the field arrives for the orbit filter with the host calibration's first solution: that
+    sample is the first without the host's iron (here 12 µT of hard iron until 100 s), a step the
+    fixed-field filter takes as a rotation. The orbit filter starts from the fixed filter's rate before
+    that sample: the published rate moves by no more than the fixed filter's 3-σ, and a minute on the
+    orbit filter, still acquiring the shape, is better than the fixed filter."""
+    sigma = math.hypot(0.5e-6, CHIP_NOISE_T)
+    scn, t, b, bt, w, q = tumble(5, 10.0, 1.0, 0.5e-6, 220.0)
+    raw = b + np.where(t[:, None] < 100.0, np.array([12e-6, -9e-6, 4e-6]), 0.0)
+    kf = FlownFilter(sigma, "euler", Switch(InterpolatedOrbitField(field_model(scn)), lambda ts: ts >= 100.0))
+    w_est, s_est, names = fly(kf, t, raw, ticks_between=5)
+    k0 = int(np.searchsorted(t, 100.0))
+    assert names[k0 - 1] == "fixed" and names[k0] == "euler"
+    assert np.all(np.abs(w_est[k0] - w_est[k0 - 1]) <= 3.0 * s_est[k0 - 1] + math.radians(0.5))
+    late = slice(int(np.searchsorted(t, 160.0)), None)
+    fixed = rk.kalman_rate(t, raw, sigma)[0]
+    rms = math.degrees(np.sqrt(np.mean(np.sum((w_est[late] - w[late]) ** 2, axis=1))))
+    assert rms < 1.0 and rms < math.degrees(np.sqrt(np.mean(np.sum((fixed[late] - w[late]) ** 2, axis=1))))
