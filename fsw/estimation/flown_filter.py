@@ -21,12 +21,17 @@ the whole run), and the host-magnetics calibration applied to the samples. Until
 field goes away again (a stale TLE), the fixed-field filter publishes and :attr:`FlownFilter.why` says
 why. The fixed-field filter runs on every sample (it is cheap, compiled), so that a fall-back has an
 estimate at once. When the field arrives the orbit filter starts from the fixed filter's ω and its
-covariance (:meth:`FlownFilter.seed`), so the published rate does not jump; the attitude about B, which
+covariance before that sample (:meth:`FlownFilter.seed`; on board the sample that brings the field is
+the host calibration's first corrected one, a step the fixed filter takes as a rotation), so the
+published rate does not jump; the attitude about B, which
 the fixed filter does not know, starts wide. A new TLE or UTC (a new field object) is taken at the next
-sample without a restart.
+sample without a restart. The attitude (:meth:`FlownFilter.attitude`) carries the field along the orbit
+onto the measured one; its angle about the field shows only as the field turns along the orbit, and a
+filter can settle in a minimum of its own there with a σ that does not cover it (docs/rate-estimation.md).
 
-The Euler filter's shape trial (34 hypotheses a sample for 30 samples) runs in the loop's ticks between
-samples (:meth:`FlownFilter.work`, a few filter updates a tick), not all in the tick of the sample.
+The Euler filter's shape trial (34 hypotheses a sample for 15 samples and at least 15 s) runs in the
+loop's ticks between samples (:meth:`FlownFilter.work`, a few filter updates a tick), not all in the tick
+of the sample.
 """
 from __future__ import annotations
 
