@@ -12,6 +12,7 @@ import argparse
 from dataclasses import dataclass, replace
 
 from .argtypes import finite_float, int_range, link_url
+from .estimation.flown_filter import DEFAULT_FILTER, FILTERS
 from .telemetry.dialect import FSW_SYSID
 from .telemetry.signing import KeyFileError, load_key
 from .telemetry.store_forward import DEFAULT_CAPACITY
@@ -55,6 +56,9 @@ class RunConfig:
     system_id: int = FSW_SYSID
     #: what survives a restart on target (fsw.persist; None: nothing beyond --tle-file / --sample-store)
     state_dir: str | None = None
+    #: the rate filter flown (`fsw.estimation.flown_filter`): fixed, orbit, euler (default) or mm; the orbit
+    #: filters fly once the field along the orbit is on board, the fixed-field filter until then
+    rate_filter: str = DEFAULT_FILTER
 
 
 def add_run_options(ap: argparse.ArgumentParser) -> None:
@@ -86,6 +90,12 @@ def add_run_options(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--max-sample-tlm-hz", type=finite_float(0.01, MAX_RATE_HZ), default=20.0,
                     help="at most this many magnetometer samples per second go out on the link "
                          "(0.01 to 1000, default 20)")
+    ap.add_argument("--rate-filter", choices=tuple(FILTERS), default=DEFAULT_FILTER,
+                    help="the rate filter flown: euler (default: attitude, rate and the inertia shape with the field "
+                         "along the orbit, the best onboard method of the accuracy table's tumbling rows), mm (a bank "
+                         "of rate models: a slow libration), orbit (attitude and a random-walk rate), fixed (the "
+                         "fixed-field filter, no orbit needed); until the box has a UTC and a TLE (or a known "
+                         "field) the fixed-field filter flies and the status line says so")
     ap.add_argument("--quiet", action="store_true", help="no status line each second, only the summary")
 
 
@@ -95,7 +105,8 @@ def run_config(args: argparse.Namespace, **overrides) -> RunConfig:
                     link=args.link, baud=args.baud, key_file=args.key, uplink=args.uplink,
                     buffer_frames=args.buffer_frames, sample_store=args.sample_store,
                     sample_rate_hz=args.sample_rate, sigma_T=args.sigma_uT * 1e-6,
-                    max_sample_tlm_hz=args.max_sample_tlm_hz, quiet=args.quiet)
+                    max_sample_tlm_hz=args.max_sample_tlm_hz, quiet=args.quiet,
+                    rate_filter=getattr(args, "rate_filter", DEFAULT_FILTER))
     return replace(cfg, **overrides)
 
 

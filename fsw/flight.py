@@ -40,6 +40,7 @@ import numpy as np
 from .app import App
 from .commands import CommandRouter, ParamTable, int_param
 from .estimation.rate_formulas import BoerStream, DerivativeStream
+from .estimation.flown_filter import FILTER_IDS
 from .estimation.rate_kalman import RateKalman
 from .estimation.sample_gate import SampleGate, mark_gap
 from .host_calibration import FixedField, HostCalibration
@@ -100,6 +101,15 @@ METHODS = {"boer": mavlink.DEBRIS_RATE_METHOD_BOER, "derivative": mavlink.DEBRIS
            "kalman": mavlink.DEBRIS_RATE_METHOD_KALMAN}
 
 
+#: the flown filter's attitude (ATTITUDE_QUATERNION, DEBRIS_ATTITUDE_SIGMA) goes out with its estimate at
+#: most this often (s): every sample at the default 1 Hz, not 20 times a second at the link's sample cap
+ATTITUDE_TLM_PERIOD_S = 1.0
+
+#: filter updates of an estimator's background work per tick (`FlownFilter.work`): the Euler filter's shape
+#: trial, 34 hypotheses a sample, spread over the ticks between samples (about 1 ms each on the target)
+ESTIMATOR_WORK_PER_TICK = 2
+
+
 def load_compiled_kernels() -> None:
     """Run the estimators' compiled kernels once on throwaway instances, so that loading them from the
     on-disk cache (or compiling them, the first time) happens before the loop, not in its first ticks."""
@@ -120,7 +130,9 @@ class FlightSoftware:
         `apps`: the onboard applications (`fsw.app.App`: the identification experiment, the de-orbit
         kit), run in this order after the estimators;
         `rate_filter`: the Kalman filter sent as DEBRIS_RATE_METHOD_KALMAN (default
-        `estimation.rate_kalman.RateKalman`; e.g. an `AttitudeRateKalman` with the field along the orbit);
+        `estimation.rate_kalman.RateKalman`; `fsw.system.build_flight` gives the configured
+        `estimation.flown_filter.FlownFilter`, whose attitude goes out as ATTITUDE_QUATERNION and
+        DEBRIS_ATTITUDE_SIGMA with each of its estimates);
         `sample_store`: where the numbered samples are kept for the ground's requests (default: in
         memory, run id 0); `field`: the field along the orbit on board for the whole run (an
         `estimation.field_motion.OrbitField`), which the host-magnetics calibration needs, or
@@ -148,6 +160,7 @@ class FlightSoftware:
         self._tlm_every = max(1, int(np.ceil((sample_rate_hz or rate_hz) / max_sample_tlm_hz)))
         self.gate = SampleGate(sigma_b_T, 1.0 / (sample_rate_hz or rate_hz))
         self.tlm_samples = 0  # samples handed to telemetry
+        self._next_attitude_s = -np.inf
         self.sample_store = sample_store if sample_store is not None else SampleStore()
         self.resender = Resender(self.sample_store)
         self._gap, self._gap_left = 0, {}
@@ -308,6 +321,8 @@ class FlightSoftware:
         for name, est in self.estimators.items():
             self.new_estimate[name] = (self.new_sample and not self.kit_skip
                                        and est.update(self.sample_t_s, self.sample_b_T))
+            if hasattr(est, "work"):  # work spread over the ticks (the Euler filter's shape trial)
+                est.work(ESTIMATOR_WORK_PER_TICK)
         self._flag_gaps()
 
     def _flag_gaps(self) -> None:
@@ -345,6 +360,12 @@ class FlightSoftware:
         for name, est in self.estimators.items():
             if self.new_estimate[name]:
                 self.tlm.rate_estimate(t, est.omega_radps, est.sigma_radps, METHODS[name], est.flags)
+        kf = self.estimators["kalman"]
+        if self.new_estimate["kalman"] and hasattr(kf, "attitude") and t >= self._next_attitude_s:
+            self._next_attitude_s = t + ATTITUDE_TLM_PERIOD_S * (1 - 1e-9)
+            att = kf.attitude()
+            self.tlm.attitude(t, None if att is None else att[0], kf.omega_radps, None if att is None else att[1],
+                              kf.sigma_radps, filter_id=FILTER_IDS[kf.name], flags=kf.flags, handovers=kf.handovers)
         if self.truth is not None:
             tr = self.truth(t)
             self.tlm.sim_state(t, tr.omega_radps, tr.q_body_to_eci, tr.b_body_T, tr.moment_Nm)

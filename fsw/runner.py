@@ -145,9 +145,11 @@ def run_loop(fsw: FlightSoftware, *, duration_s: float | None = None, speed: flo
 
 
 def status_line(t_s: float, fsw: FlightSoftware) -> str:
-    """Time, |B| and the flown Kalman filter's estimate with its 1-σ (body axes, °/s)."""
+    """Time, |B|, the flown filter (which one) and its estimate with its 1-σ (body axes, °/s)."""
     d = fsw.estimators["kalman"]
     line = f"t={t_s:7.1f} s  |B|={np.linalg.norm(fsw.sample_b_T) * 1e6:6.2f} uT"
+    if hasattr(d, "name"):  # the flown filter (fsw.estimation.flown_filter): which one publishes
+        line += f"  {d.name}"
     if d.flags & d.NO_ESTIMATE:
         return line + "  (waiting for samples)"
     w, sg = np.degrees(d.omega_radps), np.degrees(d.sigma_radps)

@@ -15,6 +15,7 @@ from typing import Callable, Iterable
 
 from .app import App
 from .config import RunConfig
+from .estimation.flown_filter import CalibratedField, FlownFilter
 from .flight import FieldSource, FlightSoftware
 from .telemetry.dialect import FSW_COMPID, FSW_SYSID, mavlink
 from .telemetry.sample_store import SampleStore
@@ -77,8 +78,9 @@ def build_flight(cfg: RunConfig, source: FieldSource, *, sigma_b_T: float, sampl
     sample store's run id (default: random, a new one at every start, so that the ground tells runs
     apart); `timeorbit`: the time/orbit application (default: one from `cfg.tle_file` and
     `cfg.tle_max_age_d`), always the first application; `field`: a field along the orbit known for the
-    whole run, for the host-magnetics calibration (None: the calibration takes the time/orbit
-    application's, once time and a usable TLE are on board)."""
+    whole run, for the host-magnetics calibration and the flown rate filter (None: both take the
+    time/orbit application's, once time and a usable TLE are on board); `rate_filter`: the filter sent
+    as DEBRIS_RATE_METHOD_KALMAN instead of `cfg.rate_filter`'s (`fsw.estimation.flown_filter`)."""
     opened = []
     try:
         if key is None and cfg.key_file:
@@ -103,16 +105,25 @@ def build_flight(cfg: RunConfig, source: FieldSource, *, sigma_b_T: float, sampl
         raise
     if timeorbit is None:
         timeorbit = TimeOrbit(tle_file=cfg.tle_file, max_tle_age_d=cfg.tle_max_age_d)
+    flown = None
+    if rate_filter is None:
+        rate_filter = flown = FlownFilter(sigma_b_T, cfg.rate_filter)
     fsw = FlightSoftware(source, tlm, rate_hz=cfg.rate_hz, sigma_b_T=sigma_b_T, truth=truth,
                          max_sample_tlm_hz=cfg.max_sample_tlm_hz, sample_rate_hz=sample_rate_hz, uplink=uplink,
                          key=key, apps=(timeorbit, *apps), rate_filter=rate_filter, sample_store=store,
                          field=field, field_provider=timeorbit)
+    if flown is not None:  # the orbit filters fly on the calibration's field, once it calibrates the samples
+        flown.provider = CalibratedField(fsw.calibration.provider, fsw.calibration)
     notes = [f"mission key {key_fingerprint(key)}: commands must be signed, telemetry is signed" if key else
              "no mission key: commands that change state are refused"]
     if uplink is not link:
         notes[0] += f"; commands on {cfg.uplink or 'their own link'}"
     if field is None:
         notes.append("host-magnetics calibration: from the onboard TLE and UTC once both are set")
+    if flown is not None:
+        notes.append(f"rate filter: {cfg.rate_filter}" + (
+            "" if cfg.rate_filter == "fixed" else "; the fixed-field filter flies until the field along the "
+            "orbit is on board and the host-magnetics calibration applied"))
     if store.reset_reason:
         notes.append(f"sample store: {store.reset_reason}")
     notes += timeorbit.notes

@@ -89,6 +89,9 @@ METHODS: dict[str, int] = {
     for value, entry in mavlink.enums["DEBRIS_RATE_METHOD"].items()
     if not entry.name.endswith("_ENUM_END")}
 METHOD_NAMES = {value: name for name, value in METHODS.items()}
+#: DEBRIS_RATE_FILTER names (the flown filter, DEBRIS_ATTITUDE_SIGMA.filter)
+FILTER_NAMES = {value: entry.name.removeprefix("DEBRIS_RATE_FILTER_").lower()
+                for value, entry in mavlink.enums["DEBRIS_RATE_FILTER"].items() if not entry.name.endswith("_ENUM_END")}
 
 T_PER_GAUSS = 1e-4
 #: Messages whose time_usec is the magnetometer sample time.
@@ -156,6 +159,8 @@ class Decoder:
         self.requests_sent = 0
         #: the latest DEBRIS_KIT_FIELD per channel (the kit's field at the sensor as modelled on board)
         self.kit_field: dict[int, object] = {}
+        #: the flown filter's latest attitude and 1-σ (see `_attitude`)
+        self.attitude: dict = {}
 
     # --- input -------------------------------------------------------------------------------
 
@@ -188,7 +193,25 @@ class Decoder:
                 self._knowledge(kind, msg)
             elif kind == "DEBRIS_KIT_FIELD" and msg.channel in (0, 1):
                 self.kit_field[int(msg.channel)] = msg
+            elif kind in ("ATTITUDE_QUATERNION", "DEBRIS_ATTITUDE_SIGMA"):
+                self._attitude(kind, msg)
         self.tick(now_s)
+
+    def _attitude(self, kind: str, msg) -> None:
+        """The flown filter's attitude (ATTITUDE_QUATERNION: q body → ECI) and its 1-σ with the rate's and
+        which filter publishes (DEBRIS_ATTITUDE_SIGMA): the latest kept in ``attitude`` (SI)."""
+        a = self.attitude
+        if kind == "ATTITUDE_QUATERNION":
+            q = f32(msg.q1, msg.q2, msg.q3, msg.q4)
+            if not all(map(math.isfinite, q)):
+                self.invalid[kind] += 1
+                return
+            a["t_s"], a["q_body_to_eci"] = msg.time_boot_ms * 1e-3, q
+        else:
+            a["sigma_att_rad"], a["sigma_rate_radps"] = f32(*msg.attitude_sigma), f32(*msg.rate_sigma)
+            a["filter"] = FILTER_NAMES.get(msg.filter, str(msg.filter))
+            a["handovers"] = msg.handovers
+        a[kind] = a.get(kind, 0) + 1
 
     def _stream(self, msg, create: bool = True) -> Stream | None:
         src = (msg.get_srcSystem(), msg.get_srcComponent())
@@ -465,6 +488,15 @@ class Decoder:
             out.append(f"kit field on board, {('pitch', 'yaw')[ch]}: scale {m.scale:.3f} ± {m.scale_sigma:.3f}, "
                        f"{m.steps} calibration steps ({m.ill_conditioned} ill-conditioned, {m.outliers} outliers), "
                        f"{m.flagged} samples flagged while it moved")
+        a = self.attitude
+        if "filter" in a:
+            sa, sr = np.degrees(a["sigma_att_rad"]), np.degrees(a["sigma_rate_radps"])
+            att = (f"attitude q(body→ECI) ({', '.join(f'{x:+.4f}' for x in a['q_body_to_eci'])}) at "
+                   f"{a['t_s']:.3f} s, 1-σ ({sa[0]:.2f} {sa[1]:.2f} {sa[2]:.2f}) deg"
+                   if "q_body_to_eci" in a and np.all(np.isfinite(sa)) else "no attitude")
+            out.append(f"flown rate filter: {a['filter']} ({a['handovers']} hand-overs from the fixed-field filter), "
+                       f"{a.get('ATTITUDE_QUATERNION', 0)} ATTITUDE_QUATERNION; last {att}; "
+                       f"rate 1-σ ({sr[0]:.2f} {sr[1]:.2f} {sr[2]:.2f}) deg/s")
         if self.verifier is not None:
             refused = ", ".join(f"{k} {n}" for k, n in sorted(self.unauthenticated.items())) or "none"
             out.append(f"signatures: {self.verifier.counts[Verdict.OK]} frames verified; refused: {refused}")

@@ -225,6 +225,8 @@ class Score:
     kalman_err: list = field(default_factory=list)
     #: the truth at the latest sample's time
     truth: object = None
+    #: the flown filters that published, in order (" euler", " fixed→euler")
+    filter: str = ""
 
     def add(self, fsw: FlightSoftware, tr) -> None:
         self.truth = tr
@@ -237,6 +239,9 @@ class Score:
         kf = fsw.estimators["kalman"]
         if fsw.new_estimate["kalman"] and not kf.flags & kf.NO_ESTIMATE:
             self.kalman_err.append(np.linalg.norm(kf.omega_radps - tr.omega_radps))
+            name = getattr(kf, "name", "")
+            if name and not self.filter.endswith(name):
+                self.filter += ("→" if self.filter else " ") + name
 
     @staticmethod
     def rms_max(errs) -> tuple[float, float, int]:
@@ -251,15 +256,21 @@ class Score:
         out = ["rate error vs truth (deg/s)         RMS      max     n"]
         for name, errs in (("Boer (perpendicular part)", self.boer_err),
                            ("derivative (full vector)", self.deriv_err),
-                           ("Kalman filter (full vector)", self.kalman_err)):
+                           (f"Kalman filter (full vector){self.filter}", self.kalman_err)):
             rms, mx, n = self.rms_max(errs)
             out.append(f"  {name:<30s} {np.degrees(rms):7.3f}  {np.degrees(mx):7.3f}  {n:4d}")
         return out
 
 
+def attitude_error_rad(q_est: np.ndarray, q_true: np.ndarray) -> float:
+    """The angle of the rotation between two attitudes (quaternions body → ECI, w first), rad."""
+    return 2.0 * math.acos(min(1.0, abs(float(np.dot(q_est, q_true)))))
+
+
 def status_line(t_s: float, fsw: FlightSoftware, tr) -> str:
-    """The flight software's status line; with `tr` (truth at the sample time) the true rate, the
-    Kalman filter's error and the Boer formula's."""
+    """The flight software's status line (the flown filter, its rate and 1-σ); with `tr` (truth at the
+    sample time) the true rate, the flown filter's error, its attitude's error when it has an attitude,
+    and the Boer formula's error."""
     line = flight_status(t_s, fsw)
     kf = fsw.estimators["kalman"]
     if tr is None or kf.flags & kf.NO_ESTIMATE:
@@ -267,8 +278,11 @@ def status_line(t_s: float, fsw: FlightSoftware, tr) -> str:
     w, wt = np.degrees(kf.omega_radps), np.degrees(tr.omega_radps)
     boer_err = np.degrees(np.linalg.norm(fsw.estimators["boer"].omega_radps
                                          - perpendicular(tr.omega_radps, tr.b_body_T)))
+    att = kf.attitude() if hasattr(kf, "attitude") else None
+    att_err = "" if att is None else (f"  att_err={math.degrees(attitude_error_rad(att[0], tr.q_body_to_eci)):6.1f}"
+                                      f" deg (1-sigma {math.degrees(float(np.linalg.norm(att[1]))):5.1f})")
     return line + (f"  w_true=[{wt[0]:7.2f} {wt[1]:7.2f} {wt[2]:7.2f}] dps"
-                   f"  err={np.linalg.norm(w - wt):6.2f} dps  boer_perp_err={boer_err:5.2f} dps")
+                   f"  err={np.linalg.norm(w - wt):6.2f} dps{att_err}  boer_perp_err={boer_err:5.2f} dps")
 
 
 @dataclass

@@ -260,9 +260,11 @@ class AttitudeRateKalman:
         self.flags = NO_ESTIMATE
 
     def start(self, t_s: float, b_T, *, q: np.ndarray | None = None, omega_radps: np.ndarray | None = None,
-              p: np.ndarray | None = None, beta_uT: np.ndarray | None = None, P: np.ndarray | None = None) -> None:
+              p: np.ndarray | None = None, beta_uT: np.ndarray | None = None, P: np.ndarray | None = None,
+              rate_cov: np.ndarray | None = None) -> None:
         """Start from the sample (t_s, b_T) with optional initial values (a smoother's restart);
-        missing ones take the defaults. Updates with the sample."""
+        missing ones take the defaults. `rate_cov`: the 3×3 covariance of `omega_radps` instead of the
+        default σ (another filter's estimate handed over; ignored with `P`). Updates with the sample."""
         tun = self.tuning
         z = np.asarray(b_T, float) * UT_PER_T
         if self.field is not None and np.linalg.norm(z) <= FIELD_MIN_SIGMAS * math.sqrt(self.R[0, 0]):
@@ -286,7 +288,7 @@ class AttitudeRateKalman:
             self.beta = np.zeros(0)
             bh = z / np.linalg.norm(z)
             P0[:3, :3] = (sb / np.linalg.norm(z)) ** 2 * np.eye(3) + (math.pi ** 2 / 3) * np.outer(bh, bh)
-        P0[3:6, 3:6] = tun.sigma_rate0_radps ** 2 * np.eye(3)
+        P0[3:6, 3:6] = tun.sigma_rate0_radps ** 2 * np.eye(3) if rate_cov is None else np.asarray(rate_cov, float)
         P0[6:6 + self.n_p, 6:6 + self.n_p] = tun.sigma_log_inertia0 ** 2 * np.eye(self.n_p)
         self.P = P0 if P is None else np.array(P, float)
         self.euler = self.euler_model and omega_radps is not None and P is not None
@@ -298,7 +300,8 @@ class AttitudeRateKalman:
         self.t_s = t_s
         self._record_prediction(t_s, np.eye(n), restart=True)
         self._update(t_s, z)
-        self._publish(NO_ESTIMATE)
+        # a rate handed over with its covariance is an estimate from the first sample on
+        self._publish(NO_ESTIMATE if rate_cov is None or omega_radps is None else 0)
 
     def set_nominal(self, t_s: float, q: np.ndarray, omega_radps: np.ndarray, p: np.ndarray | None = None,
                     beta_uT: np.ndarray | None = None, euler: bool | None = None) -> None:

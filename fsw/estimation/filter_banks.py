@@ -13,7 +13,14 @@ from .attitude_kalman import AttitudeKalmanTuning, AttitudeRateKalman, FieldFn, 
 from .rate_kalman import run_stream
 
 
-def shape_grid(step: float = 0.35, half_width: int = 2) -> tuple[tuple[float, float], ...]:
+#: half-width of the default shape grid, in steps of 0.35: ln J ratios to ±1.75, principal moments up to
+#: 5.8 times apart — an elongated body as a 3U cubesat (J₃/J₁ = 0.19, ln = −1.66) is on the grid. With ±0.7
+#: (2 steps) such a body's hypotheses started 1 in ln J off and the filter settled on a wrong shape: on
+#: a 27 °/s, 0.5 s, 1.5 µT cubesat tumble it stayed at 0.2–0.6 of Boer's error after 30 s.
+SHAPE_GRID_HALF_WIDTH = 5
+
+
+def shape_grid(step: float = 0.35, half_width: int = SHAPE_GRID_HALF_WIDTH) -> tuple[tuple[float, float], ...]:
     """Inertia shapes (ln J₂/J₁, ln J₃/J₁) on a square grid of `step` (2·`half_width` + 1 values per
     axis, centred on the sphere), those a body can have (:func:`physical_shape`)."""
     v = [step * i for i in range(-half_width, half_width + 1)]
@@ -57,7 +64,10 @@ class EulerAcquisitionKalman(_Bank):
     Here the random-walk filter (`main`) runs until it has found the rate (:meth:`AttitudeRateKalman.
     rate_found`); then one Euler hypothesis per shape of `shapes` (default :func:`shape_grid`, 1-σ
     `sigma_shape` about each) is started from a copy of it, all run in parallel with the random-walk
-    filter for `trial_samples` samples, and the one with the least negative log-likelihood of its
+    filter for `trial_samples` samples and at least `trial_s` seconds (at a 0.5 s step 30 samples: with
+    15 the trial on a fast, noisy tumble of an elongated body sometimes kept a shape that fitted the
+    random-walk phase's lagging rate, and the filter then took a minute to walk to the right one), and
+    the one with the least negative log-likelihood of its
     innovations over the trial (Σ ½(NIS + ln det S), Bar-Shalom et al. 2001 §11.6) becomes `main`.
     A hypothesis that restarts or leaves the physical region is dropped. When the random-walk filter
     wins, the trial is repeated after `retry_samples`. An Euler filter that is lost (its own NIS test,
@@ -68,7 +78,9 @@ class EulerAcquisitionKalman(_Bank):
 
     def __init__(self, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
                  tuning: AttitudeKalmanTuning | None = None, shapes=None, sigma_shape: float = 0.2,
-                 trial_samples: int = 15, retry_samples: int = 15, angle_about_b_rad: float = 0.0) -> None:
+                 trial_samples: int = 15, trial_s: float = 15.0, retry_samples: int = 15,
+                 angle_about_b_rad: float = 0.0,
+                 deferred: bool = False) -> None:
         # the bank decides when Euler's equations start: the filters' own innovation test is off
         tun = replace(tuning or AttitudeKalmanTuning(euler_adapt_max=EULER_ADAPT_MAX), euler_nis_max=-math.inf)
         self.main = AttitudeRateKalman(sigma_b_T, field_eci_T=field_eci_T, estimate_inertia=True, tuning=tun,
@@ -76,10 +88,19 @@ class EulerAcquisitionKalman(_Bank):
         self.shapes = tuple(tuple(map(float, p)) for p in (shape_grid() if shapes is None else shapes))
         self.sigma_shape = float(sigma_shape)
         self.trial_samples = int(trial_samples)
+        self.trial_s = float(trial_s)
+        self._window = self.trial_samples  # the running trial's length in samples
         self.retry_samples = int(retry_samples)
+        #: the hypotheses' updates wait for :meth:`work` (the flight loop's ticks between samples) instead of
+        #: running with each sample: a trial's ~30 filter updates a sample then never land in one tick
+        self.deferred = bool(deferred)
         self.trials = 0
-        self._trial: list[tuple[AttitudeRateKalman, float, int]] = []
-        self._trial_left = 0
+        #: the trial: [filter, its nll at the start, its resets at the start, samples taken, nll at the
+        #: end of the trial window] per hypothesis, and the samples since the trial started
+        self._trial: list[list] = []
+        self._samples: list[tuple[float, np.ndarray]] = []
+        self._main_nll = math.nan
+        self._next = 0
         self._wait = 0
 
     @property
@@ -90,46 +111,77 @@ class EulerAcquisitionKalman(_Bank):
     def inertia_shape(self) -> np.ndarray:
         return self.main.inertia_shape
 
+    @property
+    def pending(self) -> int:
+        """Hypothesis updates still to do (0 outside a trial)."""
+        n = len(self._samples)
+        return sum(n - h[3] for h in self._trial)
+
     def update(self, t_s: float, b_T) -> bool:
-        """Add a field sample (tesla, body axes) at `t_s` to every running hypothesis; True when an
-        estimate was published."""
+        """Add a field sample (tesla, body axes) at `t_s` to the publishing filter and to the trial's
+        hypotheses (at once, or with `deferred` in :meth:`work`); True when an estimate was published."""
         main = self.main
         resets = main.resets
         out = main.update(t_s, b_T)
         if self._trial:
             if main.resets != resets:  # the random-walk filter restarted: the trial's start is void
-                self._trial = []
+                self._trial, self._samples = [], []
             else:
-                with np.errstate(all="ignore"):  # a wrong hypothesis may diverge: it is dropped below
-                    for kf, _, _ in self._trial:
-                        kf.update(t_s, b_T)
-                self._trial = [h for h in self._trial if h[0].resets == h[2] and h[0].euler]
-                self._trial_left -= 1
-                if self._trial_left <= 0:
-                    self._decide()
+                self._samples.append((t_s, np.array(b_T, float)))
+                if len(self._samples) == self._window:
+                    self._main_nll = main.nll - self._nll0
+                if not self.deferred or len(self._samples) > 2 * self._window:
+                    self.work()  # (deferred, but left too far behind: a loop that never calls work)
         elif self._wait > 0:
             self._wait -= 1
         elif not main.euler and main.rate_found():
             self._start_trial()
         return out
 
+    def work(self, max_updates: int | None = None) -> int:
+        """Advance the trial's hypotheses through the samples taken since it started, at most `max_updates`
+        filter updates (None: all), round robin; decide once every hypothesis has taken every sample and
+        the trial window is full. Returns the updates done."""
+        done = 0
+        n = len(self._samples)
+        while self._trial and (max_updates is None or done < max_updates):
+            behind = [h for h in self._trial if h[3] < n]
+            if not behind:
+                break
+            h = behind[self._next % len(behind)]
+            self._next += 1
+            kf = h[0]
+            t, b = self._samples[h[3]]
+            with np.errstate(all="ignore"):  # a wrong hypothesis may diverge: it is dropped below
+                kf.update(t, b)
+            h[3] += 1
+            if h[3] == self._window:
+                h[4] = kf.nll - h[1]
+            done += 1
+            if kf.resets != h[2] or not kf.euler:
+                self._trial.remove(h)
+        if n >= self._window and all(h[3] >= n for h in self._trial):
+            self._decide()
+        return done
+
     def _start_trial(self) -> None:
         self.trials += 1
-        self._trial = []
+        self._trial, self._samples = [], []
+        dt = self.main._dt_nominal  # the sample step seen so far
+        self._window = max(self.trial_samples, int(math.ceil(self.trial_s / dt - 1e-9)) if dt > 0 else 0)
         for p in self.shapes:
             kf = self.main.clone()
             kf.start_euler(np.array(p), self.sigma_shape)
-            self._trial.append((kf, kf.nll, kf.resets))
-        self._trial_left = self.trial_samples
+            self._trial.append([kf, kf.nll, kf.resets, 0, math.nan])
         self._nll0 = self.main.nll
+        self._main_nll = math.nan
 
     def _decide(self) -> None:
-        best, best_nll = None, self.main.nll - self._nll0
-        for kf, nll0, _ in self._trial:
-            d = kf.nll - nll0
+        best, best_nll = None, self._main_nll
+        for kf, _, _, _, d in self._trial:
             if d < best_nll:
                 best, best_nll = kf, d
-        self._trial = []
+        self._trial, self._samples = [], []
         if best is None:
             self._wait = self.retry_samples
         else:

@@ -556,6 +556,20 @@ enums["DEBRIS_MAGCAL_STATE"][4] = EnumEntry("DEBRIS_MAGCAL_STATE_REJECTED", """T
 DEBRIS_MAGCAL_STATE_ENUM_END = 5
 enums["DEBRIS_MAGCAL_STATE"][5] = EnumEntry("DEBRIS_MAGCAL_STATE_ENUM_END", """""")
 
+# DEBRIS_RATE_FILTER
+enums["DEBRIS_RATE_FILTER"] = Enum()
+enums["DEBRIS_RATE_FILTER"].bitmask = False
+DEBRIS_RATE_FILTER_FIXED = 0
+enums["DEBRIS_RATE_FILTER"][0] = EnumEntry("DEBRIS_RATE_FILTER_FIXED", """Fixed-field filter: no orbit/field model on board (or chosen); no attitude.""")
+DEBRIS_RATE_FILTER_ORBIT = 1
+enums["DEBRIS_RATE_FILTER"][1] = EnumEntry("DEBRIS_RATE_FILTER_ORBIT", """Attitude and rate with the field along the orbit, the rate a random walk.""")
+DEBRIS_RATE_FILTER_EULER = 2
+enums["DEBRIS_RATE_FILTER"][2] = EnumEntry("DEBRIS_RATE_FILTER_EULER", """Attitude, rate and inertia shape with the field along the orbit and Euler's equations (parallel shape hypotheses).""")
+DEBRIS_RATE_FILTER_MM = 3
+enums["DEBRIS_RATE_FILTER"][3] = EnumEntry("DEBRIS_RATE_FILTER_MM", """Attitude and rate with the field along the orbit, a bank of rate models (random walk, Gauss-Markov).""")
+DEBRIS_RATE_FILTER_ENUM_END = 4
+enums["DEBRIS_RATE_FILTER"][4] = EnumEntry("DEBRIS_RATE_FILTER_ENUM_END", """""")
+
 # MAV_CMD
 enums["MAV_CMD"] = Enum()
 enums["MAV_CMD"].bitmask = False
@@ -6628,6 +6642,7 @@ MAVLINK_MSG_ID_DEBRIS_TIME_ORBIT = 54020
 MAVLINK_MSG_ID_DEBRIS_TLE = 54021
 MAVLINK_MSG_ID_DEBRIS_MAGCAL = 54040
 MAVLINK_MSG_ID_DEBRIS_KIT_FIELD = 54050
+MAVLINK_MSG_ID_DEBRIS_ATTITUDE_SIGMA = 54055
 MAVLINK_MSG_ID_SYS_STATUS = 1
 MAVLINK_MSG_ID_SYSTEM_TIME = 2
 MAVLINK_MSG_ID_PING = 4
@@ -7522,6 +7537,51 @@ class MAVLink_debris_kit_field_message(MAVLink_message):
 # Define name on the class for backwards compatibility (it is now msgname).
 # Done with setattr to hide the class variable from mypy.
 setattr(MAVLink_debris_kit_field_message, "name", mavlink_msg_deprecated_name_property())
+
+
+class MAVLink_debris_attitude_sigma_message(MAVLink_message):
+    """
+    The flown filter's 1-sigma of the attitude and the rate, with each
+    DEBRIS_RATE_ESTIMATE of method KALMAN; the attitude itself goes
+    out as ATTITUDE_QUATERNION (body to ECI) when the filter has one.
+    """
+
+    id = MAVLINK_MSG_ID_DEBRIS_ATTITUDE_SIGMA
+    msgname = "DEBRIS_ATTITUDE_SIGMA"
+    fieldnames = ["time_usec", "attitude_sigma", "rate_sigma", "filter", "flags", "handovers"]
+    ordered_fieldnames = ["time_usec", "attitude_sigma", "rate_sigma", "handovers", "filter", "flags"]
+    fieldtypes = ["uint64_t", "float", "float", "uint8_t", "uint8_t", "uint16_t"]
+    fielddisplays_by_name: Dict[str, str] = {"flags": "bitmask"}
+    fieldenums_by_name: Dict[str, str] = {"filter": "DEBRIS_RATE_FILTER", "flags": "DEBRIS_ESTIMATE_FLAGS"}
+    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "attitude_sigma": "rad", "rate_sigma": "rad/s"}
+    native_format = bytearray(b"<QffHBB")
+    orders = [0, 1, 2, 4, 5, 3]
+    lengths = [1, 3, 3, 1, 1, 1]
+    array_lengths = [0, 3, 3, 0, 0, 0]
+    crc_extra = 172
+    unpacker = struct.Struct("<Q3f3fHBB")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(self, time_usec: int, attitude_sigma: Sequence[float], rate_sigma: Sequence[float], filter: int, flags: int, handovers: int):
+        MAVLink_message.__init__(self, MAVLink_debris_attitude_sigma_message.id, MAVLink_debris_attitude_sigma_message.msgname)
+        self._fieldnames = MAVLink_debris_attitude_sigma_message.fieldnames
+        self._instance_field = MAVLink_debris_attitude_sigma_message.instance_field
+        self._instance_offset = MAVLink_debris_attitude_sigma_message.instance_offset
+        self.time_usec = time_usec
+        self.attitude_sigma = attitude_sigma
+        self.rate_sigma = rate_sigma
+        self.filter = filter
+        self.flags = flags
+        self.handovers = handovers
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.attitude_sigma[0], self.attitude_sigma[1], self.attitude_sigma[2], self.rate_sigma[0], self.rate_sigma[1], self.rate_sigma[2], self.handovers, self.filter, self.flags), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_debris_attitude_sigma_message, "name", mavlink_msg_deprecated_name_property())
 
 
 class MAVLink_sys_status_message(MAVLink_message):
@@ -17611,6 +17671,7 @@ mavlink_map: Dict[int, Type[MAVLink_message]] = {
     MAVLINK_MSG_ID_DEBRIS_TLE: MAVLink_debris_tle_message,
     MAVLINK_MSG_ID_DEBRIS_MAGCAL: MAVLink_debris_magcal_message,
     MAVLINK_MSG_ID_DEBRIS_KIT_FIELD: MAVLink_debris_kit_field_message,
+    MAVLINK_MSG_ID_DEBRIS_ATTITUDE_SIGMA: MAVLink_debris_attitude_sigma_message,
     MAVLINK_MSG_ID_SYS_STATUS: MAVLink_sys_status_message,
     MAVLINK_MSG_ID_SYSTEM_TIME: MAVLink_system_time_message,
     MAVLINK_MSG_ID_PING: MAVLink_ping_message,
@@ -18768,6 +18829,40 @@ class MAVLink(object):
 
         """
         self.send(self.debris_kit_field_encode(time_usec, channel, moving, scale, scale_sigma, field, innovation, fit_rms, steps, ill_conditioned, outliers, flagged), force_mavlink1=force_mavlink1)
+
+    def debris_attitude_sigma_encode(self, time_usec: int, attitude_sigma: Sequence[float], rate_sigma: Sequence[float], filter: int, flags: int, handovers: int) -> MAVLink_debris_attitude_sigma_message:
+        """
+        The flown filter's 1-sigma of the attitude and the rate, with each
+        DEBRIS_RATE_ESTIMATE of method KALMAN; the attitude itself
+        goes out as ATTITUDE_QUATERNION (body to ECI) when the filter
+        has one.
+
+        time_usec                 : Sample time (loop time), as the rate estimate's. [us] (type:uint64_t)
+        attitude_sigma            : 1-sigma of the attitude error about the body X, Y, Z axes (NaN: no attitude, the fixed-field filter). [rad] (type:float)
+        rate_sigma                : 1-sigma of the body rate, X, Y, Z. [rad/s] (type:float)
+        filter                    : The filter publishing. (type:uint8_t, values:DEBRIS_RATE_FILTER)
+        flags                     : Quality flags of the estimate. (type:uint8_t, values:DEBRIS_ESTIMATE_FLAGS)
+        handovers                 : Hand-overs from the fixed-field filter to the orbit filter since start. (type:uint16_t)
+
+        """
+        return MAVLink_debris_attitude_sigma_message(time_usec, attitude_sigma, rate_sigma, filter, flags, handovers)
+
+    def debris_attitude_sigma_send(self, time_usec: int, attitude_sigma: Sequence[float], rate_sigma: Sequence[float], filter: int, flags: int, handovers: int, force_mavlink1: bool = False) -> None:
+        """
+        The flown filter's 1-sigma of the attitude and the rate, with each
+        DEBRIS_RATE_ESTIMATE of method KALMAN; the attitude itself
+        goes out as ATTITUDE_QUATERNION (body to ECI) when the filter
+        has one.
+
+        time_usec                 : Sample time (loop time), as the rate estimate's. [us] (type:uint64_t)
+        attitude_sigma            : 1-sigma of the attitude error about the body X, Y, Z axes (NaN: no attitude, the fixed-field filter). [rad] (type:float)
+        rate_sigma                : 1-sigma of the body rate, X, Y, Z. [rad/s] (type:float)
+        filter                    : The filter publishing. (type:uint8_t, values:DEBRIS_RATE_FILTER)
+        flags                     : Quality flags of the estimate. (type:uint8_t, values:DEBRIS_ESTIMATE_FLAGS)
+        handovers                 : Hand-overs from the fixed-field filter to the orbit filter since start. (type:uint16_t)
+
+        """
+        self.send(self.debris_attitude_sigma_encode(time_usec, attitude_sigma, rate_sigma, filter, flags, handovers), force_mavlink1=force_mavlink1)
 
     def sys_status_encode(self, onboard_control_sensors_present: int, onboard_control_sensors_enabled: int, onboard_control_sensors_health: int, load: int, voltage_battery: int, current_battery: int, battery_remaining: int, drop_rate_comm: int, errors_comm: int, errors_count1: int, errors_count2: int, errors_count3: int, errors_count4: int, onboard_control_sensors_present_extended: int = 0, onboard_control_sensors_enabled_extended: int = 0, onboard_control_sensors_health_extended: int = 0) -> MAVLink_sys_status_message:
         """

@@ -8,6 +8,8 @@ Rates and link budget (57,600 baud radio, 8N1 = 5,760 B/s): see docs/telemetry.m
 """
 from __future__ import annotations
 
+import math
+
 import struct
 
 import numpy as np
@@ -179,6 +181,21 @@ class Telemetry:
         self._send(mavlink.MAVLink_debris_rate_estimate_message(
             usec(t_s), float(w[0]), float(w[1]), float(w[2]), float(s[0]), float(s[1]), float(s[2]),
             method, flags))
+
+    def attitude(self, t_s: float, q, omega_radps, sigma_att_rad, sigma_radps, *, filter_id: int, flags: int,
+                 handovers: int) -> None:
+        """The flown filter's attitude: ATTITUDE_QUATERNION (q body → ECI, w first, and the body rates;
+        only when the filter has an attitude, `q` not None) and DEBRIS_ATTITUDE_SIGMA (1-σ of the attitude
+        about the body axes, NaN without one, and of the rate)."""
+        if q is not None:
+            w = omega_radps
+            self._send(mavlink.MAVLink_attitude_quaternion_message(
+                int(round(t_s * 1e3)) & 0xFFFFFFFF, *(float(x) for x in q), float(w[0]), float(w[1]), float(w[2]),
+                [0.0, 0.0, 0.0, 0.0]))
+        sa = [math.nan] * 3 if sigma_att_rad is None else [float(x) for x in sigma_att_rad]
+        self._send(mavlink.MAVLink_debris_attitude_sigma_message(
+            usec(t_s), sa, [float(x) for x in sigma_radps], int(filter_id), int(flags) & 0xFF,
+            min(int(handovers), 0xFFFF)))
 
     def sim_state(self, t_s: float, omega_radps, q, b_T, moment_Nm) -> None:
         """SIMULATION ONLY truth (DEBRIS_SIM_STATE); sent by SITL, never on target."""

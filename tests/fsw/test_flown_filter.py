@@ -1,0 +1,219 @@
+"""The flown rate filter (fsw.estimation.flown_filter): the fixed-field filter until the field along the
+orbit is on board, the hand-over without a jump, the fall-back, the attitude it sends, and the lock-on on a
+fast, noisy cubesat tumble — against the simulator's truth (IGRF-14 degree 13 along the orbit; the filter
+has the box's own model, degree 8 at knots a minute apart)."""
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from fsw.estimation import filter_banks as fb
+from fsw.estimation import rate_formulas as rf
+from fsw.estimation import rate_kalman as rk
+from fsw.estimation.flown_filter import DEFAULT_FILTER, FILTER_IDS, FILTERS, CalibratedField, FlownFilter
+from fsw.estimation.onboard_field import InterpolatedOrbitField
+from fsw.estimation.rotations import quat_to_dcm
+from fsw.flight import ESTIMATOR_WORK_PER_TICK
+from fsw.telemetry.dialect import mavlink
+from hil import scenario
+from hil.host_magnetics import HostMagnetics
+from hil.ident_sitl import field_model
+from hil.sim import Simulator
+
+pytestmark = pytest.mark.fsw
+
+CHIP_NOISE_T = 0.04e-6
+
+
+def tumble(seed: int, rate_dps: float, dt_s: float, sigma_T: float, duration_s: float):
+    """The shipped 3U cubesat (isoi: diag(0.058, 0.058, 0.011) kg·m², no host iron) tumbling at `rate_dps`
+    about a random axis from a random attitude and orbit position, sampled every `dt_s` with white noise
+    `sigma_T` per axis: (scenario, t, measured B, true B, true ω, true q body → ECI)."""
+    rng = np.random.default_rng(seed)
+    u = rng.normal(size=3)
+    scn = dataclasses.replace(scenario.load("isoi"), host=HostMagnetics(),
+                              omega0_radps=math.radians(rate_dps) * u / np.linalg.norm(u),
+                              attitude_rpy_deg=rng.uniform(-180.0, 180.0, 3), arg_lat0_deg=float(rng.uniform(0, 360)))
+    sim = Simulator(scn, seed=seed)
+    t = np.arange(0.0, duration_s + 1e-9, dt_s)
+    n = len(t)
+    b, bt, w, q = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 4))
+    for k, tk in enumerate(t):
+        sim.advance_to(tk)
+        tr = sim.truth()
+        bt[k], w[k], q[k] = tr.b_body_T, tr.omega_radps, tr.q_body_to_eci
+        b[k] = tr.b_body_T + rng.normal(scale=sigma_T, size=3)
+    return scn, t, b, bt, w, q
+
+
+class Switch:
+    """A field provider that has the field only while `on(t)`."""
+
+    def __init__(self, field, on):
+        self.field, self.on = field, on
+
+    def field_now(self, now_s):
+        return (self.field, "") if self.on(now_s) else (None, "no TLE")
+
+
+def fly(kf, t, b, ticks_between=49):
+    """The flown filter as the loop runs it: a sample, then the ticks until the next one, each with its
+    background work. Returns (ω, σ) published per sample and the filter's name per sample."""
+    w, s, names = np.full((len(t), 3), np.nan), np.full((len(t), 3), np.nan), []
+    for k in range(len(t)):
+        if kf.update(t[k], b[k]) and not kf.flags & kf.NO_ESTIMATE:
+            w[k], s[k] = kf.omega_radps, kf.sigma_radps
+        names.append(kf.name)
+        for _ in range(ticks_between):
+            kf.work(ESTIMATOR_WORK_PER_TICK)
+    return w, s, names
+
+
+def test_fixed_field_until_the_field_arrives_then_the_orbit_filter_from_its_rate_and_back():
+    """10 °/s, 1 s steps, 0.5 µT: no field for 120 s (the fixed-field filter flies and says why), then the
+    field along the orbit (the Euler filter, seeded with the fixed filter's rate and covariance: the
+    published rate moves at the hand-over by no more than the fixed filter's own 3-σ, where a cold start
+    would begin from zero, 10 °/s off), then without it again after 900 s (back to the fixed filter)."""
+    sigma = math.hypot(0.5e-6, CHIP_NOISE_T)
+    scn, t, b, bt, w, q = tumble(1, 10.0, 1.0, 0.5e-6, 1000.0)
+    field = InterpolatedOrbitField(field_model(scn))
+    kf = FlownFilter(sigma, "euler", Switch(field, lambda ts: 120.0 <= ts < 900.0))
+    assert kf.kind == DEFAULT_FILTER == "euler"
+    w_est, s_est, names = fly(kf, t, b)
+    k0 = int(np.searchsorted(t, 120.0))
+    assert set(names[:k0]) == {"fixed"} and names[k0] == "euler" and kf.handovers == 1
+    # the hand-over: the first orbit estimate against the last fixed one, in units of the fixed filter's σ
+    jump = np.abs(w_est[k0] - w_est[k0 - 1])
+    assert np.all(jump <= 3.0 * s_est[k0 - 1] + math.radians(0.5)), (np.degrees(jump), np.degrees(s_est[k0 - 1]))
+    assert np.linalg.norm(w_est[k0] - w[k0]) <= np.linalg.norm(w_est[k0 - 1] - w[k0 - 1]) + math.radians(1.0)
+    # flying the orbit filter: the rate and the attitude against the truth, the rate within its σ
+    k1 = int(np.searchsorted(t, 600.0))
+    err = np.linalg.norm(w_est[k1:int(np.searchsorted(t, 899.0))] - w[k1:int(np.searchsorted(t, 899.0))], axis=1)
+    assert math.degrees(math.sqrt(np.mean(err ** 2))) < 0.3
+    fixed_err = np.linalg.norm(w_est[60:k0] - w[60:k0], axis=1)
+    assert math.sqrt(np.mean(err ** 2)) < 0.2 * math.sqrt(np.mean(fixed_err ** 2))
+    # back to the fixed filter once the field is gone: at once, from its own running estimate
+    k2 = int(np.searchsorted(t, 900.0))
+    assert set(names[k2:]) == {"fixed"} and kf.fallbacks == 1 and "no TLE" in kf.why
+    np.testing.assert_array_equal(w_est[-1], kf.fixed.omega_radps)
+    assert kf.attitude() is None
+
+
+@pytest.mark.slow
+def test_attitude_of_the_orbit_filter_points_the_field_right():
+    """The attitude the flown filter sends (q body → ECI): after 10 minutes of a 10 °/s tumble at 1 s,
+    0.5 µT it carries the field along the orbit onto the true field in body axes within a degree, on
+    five seeds. (The rotation about the field is another matter: it shows only as the field turns along
+    the orbit, and a filter may settle in a minimum of its own there — see the module's docstring.)"""
+    sigma = math.hypot(0.5e-6, CHIP_NOISE_T)
+    for seed in range(5):
+        scn, t, b, bt, w, q = tumble(seed, 10.0, 1.0, 0.5e-6, 600.0)
+        field = InterpolatedOrbitField(field_model(scn))
+        kf = FlownFilter(sigma, "euler", Switch(field, lambda ts: True))
+        fly(kf, t, b, ticks_between=5)
+        q_est, s_att = kf.attitude()
+        predicted = quat_to_dcm(q_est).T @ field.b_eci_T(t[-1])
+        cos = float(predicted @ bt[-1]) / (np.linalg.norm(predicted) * np.linalg.norm(bt[-1]))
+        assert math.degrees(math.acos(min(1.0, cos))) < 1.0, seed
+        assert np.all(s_att > 0) and np.all(np.isfinite(s_att))
+
+
+def lock_on(seed: int, kind: str = DEFAULT_FILTER):
+    """The issue's fast, noisy tumble: a cubesat at 27 °/s, 0.5 s steps, 1.5 µT; the flown filter has the
+    field from the first sample. Returns (RMS of the flown filter's full-vector error, RMS of Boer's error
+    perpendicular to B), both over the samples from 30 s to 90 s, °/s."""
+    scn, t, b, bt, w, q = tumble(seed, 27.0, 0.5, 1.5e-6, 90.0)
+    sigma = math.hypot(1.5e-6, CHIP_NOISE_T)
+    kf = FlownFilter(sigma, kind, Switch(InterpolatedOrbitField(field_model(scn)), lambda ts: True))
+    w_est, _, _ = fly(kf, t, b, ticks_between=24)  # a 50 Hz loop, a sample every 0.5 s
+    boer = rf.boer_rate(t, b)
+    bh = bt / np.linalg.norm(bt, axis=1, keepdims=True)
+    w_perp = w - np.sum(w * bh, axis=1, keepdims=True) * bh
+    m = t >= 30.0
+    rms = math.degrees(math.sqrt(np.mean(np.sum((w_est[m] - w[m]) ** 2, axis=1))))
+    boer_rms = math.degrees(math.sqrt(np.nanmean(np.sum((boer[m] - w_perp[m]) ** 2, axis=1))))
+    return rms, boer_rms
+
+
+@pytest.mark.slow
+def test_lock_on_within_30_s_on_a_fast_noisy_cubesat_tumble():
+    """Within 30 s the flown filter is at most a third of Boer's error, on each of six seeded tumbles
+    (random axis, attitude, place in orbit): the RMS of its full-vector error over the samples from 30 s
+    to 90 s against the RMS of Boer's ⊥B error over the same samples. Measured: 0.04–0.13 of Boer (Boer
+    7.7–13.5 °/s); before, the filter flown (fixed field) was at 0.31–1.43 of Boer, the random-walk
+    orbit filter at 0.31–1.49, and this Euler filter with the shape grid to ±0.7 in ln J and a 15-sample
+    trial at 0.10–0.57."""
+    ratios = []
+    for seed in range(6):
+        rms, boer = lock_on(seed)
+        ratios.append(rms / boer)
+        assert rms <= boer / 3.0, (seed, rms, boer)
+    assert np.median(ratios) < 0.2
+
+
+def test_filter_ids_are_the_dialect_enum_and_every_filter_runs():
+    assert FILTER_IDS == {name: getattr(mavlink, f"DEBRIS_RATE_FILTER_{name.upper()}") for name in FILTERS}
+    scn, t, b, bt, w, q = tumble(3, 10.0, 1.0, 0.5e-6, 12.0)
+    field = InterpolatedOrbitField(field_model(scn))
+    for kind in FILTERS:
+        kf = FlownFilter(0.5e-6, kind, Switch(field, lambda ts: True))
+        w_est, _, names = fly(kf, t, b, ticks_between=1)
+        assert names[-1] == kind and np.all(np.isfinite(w_est[2:]))
+        assert (kf.attitude() is None) == (kind == "fixed")
+    with pytest.raises(ValueError, match="unknown rate filter"):
+        FlownFilter(0.5e-6, "best")
+
+
+def test_calibrated_field_waits_for_the_host_calibration():
+    class Cal:
+        class cal:
+            good = False
+
+    field = object()
+    gate = CalibratedField(Switch(field, lambda ts: True), Cal)
+    got, why = gate.field_now(0.0)
+    assert got is None and "calibration" in why
+    Cal.cal.good = True
+    assert gate.field_now(0.0) == (field, "")
+    assert CalibratedField(Switch(field, lambda ts: False), Cal).field_now(0.0) == (None, "no TLE")
+    assert CalibratedField(None, Cal).field_now(0.0)[0] is None
+
+
+def test_deferred_trial_decides_as_the_immediate_one():
+    """The shape trial's hypotheses updated in the loop's ticks (`deferred`) end on the same filter as when
+    every hypothesis takes each sample at once."""
+    scn, t, b, bt, w, q = tumble(4, 20.0, 1.0, 0.5e-6, 70.0)
+    field = InterpolatedOrbitField(field_model(scn)).b_eci_T
+    now = fb.EulerAcquisitionKalman(0.5e-6, field_eci_T=field)
+    later = fb.EulerAcquisitionKalman(0.5e-6, field_eci_T=field, deferred=True)
+    most = 0
+    for k in range(len(t)):
+        now.update(t[k], b[k])
+        later.update(t[k], b[k])
+        most = max(most, later.pending)
+        for _ in range(49):
+            assert later.work(2) <= 2
+    assert now.trials >= 1 and now.euler and later.euler and most > 2
+    np.testing.assert_allclose(later.omega_radps, now.omega_radps, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(later.inertia_shape, now.inertia_shape, rtol=1e-9)
+
+
+def test_the_hand_over_at_the_first_calibrated_sample_starts_from_the_rate_before_it():
+    """On board the field arrives for the orbit filter with the host calibration's first solution: that
+    sample is the first without the host's iron (here 12 µT of hard iron until 100 s), a step the
+    fixed-field filter takes as a rotation. The orbit filter starts from the fixed filter's rate before
+    that sample: the published rate moves by no more than the fixed filter's 3-σ, and a minute on the
+    orbit filter, still acquiring the shape, is better than the fixed filter."""
+    sigma = math.hypot(0.5e-6, CHIP_NOISE_T)
+    scn, t, b, bt, w, q = tumble(5, 10.0, 1.0, 0.5e-6, 220.0)
+    raw = b + np.where(t[:, None] < 100.0, np.array([12e-6, -9e-6, 4e-6]), 0.0)
+    kf = FlownFilter(sigma, "euler", Switch(InterpolatedOrbitField(field_model(scn)), lambda ts: ts >= 100.0))
+    w_est, s_est, names = fly(kf, t, raw, ticks_between=5)
+    k0 = int(np.searchsorted(t, 100.0))
+    assert names[k0 - 1] == "fixed" and names[k0] == "euler"
+    assert np.all(np.abs(w_est[k0] - w_est[k0 - 1]) <= 3.0 * s_est[k0 - 1] + math.radians(0.5))
+    late = slice(int(np.searchsorted(t, 160.0)), None)
+    fixed = rk.kalman_rate(t, raw, sigma)[0]
+    rms = math.degrees(np.sqrt(np.mean(np.sum((w_est[late] - w[late]) ** 2, axis=1))))
+    assert rms < 1.0 and rms < math.degrees(np.sqrt(np.mean(np.sum((fixed[late] - w[late]) ** 2, axis=1))))
