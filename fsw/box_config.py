@@ -9,6 +9,7 @@ What a box needs that does not change from run to run, in one place (an example:
     [loop]
     rate_hz = 100                          # loop rate (--rate)
     sample_rate_hz = 50                    # magnetometer sample rate (--sample-rate)
+    rate_filter = "euler"                  # the rate filter flown (--rate-filter; fsw/estimation/flown_filter.py)
 
     [magnetometer]
     bus = "i2c"                            # "i2c", "spi" or "serial"
@@ -47,6 +48,7 @@ from .config import MAX_RATE_HZ
 from .drivers.gpiod_lines import INPUTS, SAFE_LEVELS
 from .drivers.mag_bus import KINDS, MagBus
 from .drivers.spi_bus import DEFAULT_SPEED_HZ, MAX_SPEED_HZ, spidev_numbers
+from .estimation.flown_filter import FILTERS
 
 MAX_DEBOUNCE_MS = 1000.0
 
@@ -77,12 +79,13 @@ class BoxConfig:
     baud: int | None = None
     uplink: str | None = None
     kit: KitLines | None = None
+    rate_filter: str | None = None
 
     def defaults(self) -> dict:
         """argparse destinations -> values, for the options this file sets."""
         pairs = {"system_id": self.system_id, "key": self.key_file, "state_dir": self.state_dir,
                  "rate": self.rate_hz, "sample_rate": self.sample_rate_hz, "link": self.link, "baud": self.baud,
-                 "uplink": self.uplink}
+                 "uplink": self.uplink, "rate_filter": self.rate_filter}
         return {k: v for k, v in pairs.items() if v is not None}
 
 
@@ -160,6 +163,9 @@ def load_box_config(path: str) -> BoxConfig:
     rate = finite_float(0, MAX_RATE_HZ, min_exclusive=True)
     rate_hz = loop.take("rate_hz", (int, float), rate)
     sample_rate_hz = loop.take("sample_rate_hz", (int, float), rate)
+    rate_filter = loop.take("rate_filter", (str,))
+    if rate_filter is not None and rate_filter not in FILTERS:
+        raise loop.error("rate_filter", f"must be one of {', '.join(FILTERS)}, got {rate_filter!r}")
     loop.finish()
 
     mag = None
@@ -213,4 +219,5 @@ def load_box_config(path: str) -> BoxConfig:
         k.finish()
         kit = KitLines(chip, lines, 5e-3 if debounce_ms is None else debounce_ms * 1e-3)
     top.finish()
-    return BoxConfig(path, system_id, key_file, state_dir, rate_hz, sample_rate_hz, mag, link, baud, uplink, kit)
+    return BoxConfig(path, system_id, key_file, state_dir, rate_hz, sample_rate_hz, mag, link, baud, uplink, kit,
+                     rate_filter)

@@ -26,7 +26,7 @@ def test_the_shipped_example_is_a_whole_box():
         "step", "dir", "enable", "home", "shutter_drive", "shutter_release", "closed", "open"))
     assert box.defaults() == {"system_id": 1, "key": "/etc/debris-box/mission.key",
                               "state_dir": "/var/lib/debris-box", "rate": 100, "sample_rate": 50,
-                              "link": "/dev/serial0", "baud": 57600}
+                              "link": "/dev/serial0", "baud": 57600, "rate_filter": "euler"}
 
 
 def test_relative_paths_are_the_files_directory(tmp_path):
@@ -44,6 +44,7 @@ def test_relative_paths_are_the_files_directory(tmp_path):
     ("[loop]\nrate_hz = \"fast\"", ["[loop] rate_hz", "number"]),
     ("[loop]\nsample_rate_hz = nan", ["[loop] sample_rate_hz", "finite"]),
     ("[loop]\nrat_hz = 10", ["[loop] rat_hz", "unknown key"]),
+    ("[loop]\nrate_filter = \"best\"", ["[loop] rate_filter", "euler"]),
     ("[magnetometer]\ndevice = \"/dev/i2c-1\"", ["[magnetometer] bus", "missing"]),
     ("[magnetometer]\nbus = \"can\"\ndevice = \"x\"", ["[magnetometer] bus", "serial, i2c, spi"]),
     ("[magnetometer]\nbus = \"i2c\"\ndevice = \"\"", ["[magnetometer] device", "empty"]),

@@ -24,9 +24,9 @@ pytestmark = pytest.mark.sitl
 def test_the_target_flies_the_configured_filter_on_its_onboard_field(tmp_path):
     """fsw.main's options: --rate-filter (default euler) reaches the RunConfig; build_flight flies it on the
     time-and-orbit application's field behind the host calibration."""
-    cfg, _ = fsw_main.parse_args(["--mag-serial", "/dev/null", "--quiet"])
+    cfg, *_ = fsw_main.parse_args(["--mag-serial", "/dev/null", "--quiet"])
     assert cfg.rate_filter == "euler"
-    cfg, _ = fsw_main.parse_args(["--mag-serial", "/dev/null", "--rate-filter", "mm", "--quiet"])
+    cfg, *_ = fsw_main.parse_args(["--mag-serial", "/dev/null", "--rate-filter", "mm", "--quiet"])
     assert cfg.rate_filter == "mm"
     timeorbit = TimeOrbit()
     flight = build_flight(cfg, StubSource(1.0), sigma_b_T=1e-6, sample_rate_hz=1.0, link=NullLink(),
