@@ -39,6 +39,9 @@ MAGCAL_KEYS = ("magcal_hard_iron_uT", "magcal_soft_iron", "magcal_hard_iron_sigm
 KEYS = TIME_KEYS + ORBIT_KEYS + MAGCAL_KEYS
 
 _EPOCH = datetime(1970, 1, 1, tzinfo=timezone.utc)
+#: a UTC of t = 0 outside these years is not a time the box could have had (a damaged or hostile frame)
+UTC0_RANGE_S = ((datetime(2000, 1, 1, tzinfo=timezone.utc) - _EPOCH).total_seconds(),
+                (datetime(2200, 1, 1, tzinfo=timezone.utc) - _EPOCH).total_seconds())
 #: DEBRIS_MAGCAL states in which a calibration is applied (with finite σ)
 _CALIBRATED = {mavlink.DEBRIS_MAGCAL_STATE_CONVERGED, mavlink.DEBRIS_MAGCAL_STATE_UNCERTAIN,
                mavlink.DEBRIS_MAGCAL_STATE_REJECTED}
@@ -84,7 +87,7 @@ class BoxKnowledge:
         if msg.utc_usec:
             drift = drift_ppm * 1e-6 if math.isfinite(drift_ppm) else 0.0
             utc0 = msg.utc_usec * 1e-6 - (1.0 + drift) * msg.time_usec * 1e-6
-            if not math.isfinite(utc0) or utc0 <= 0:
+            if not UTC0_RANGE_S[0] <= utc0 < UTC0_RANGE_S[1]:  # also NaN
                 return False
             self.utc0_s, self.utc0_from = utc0, "DEBRIS_TIME_ORBIT"
         self.tle_state = _enum_name("DEBRIS_TLE_STATE", msg.tle_state, "DEBRIS_TLE_STATE_") if msg.tle_epoch_usec \
@@ -92,10 +95,15 @@ class BoxKnowledge:
         self.field_degree = int(msg.field_degree) or None
         return True
 
-    def system_time(self, msg) -> None:
-        """SYSTEM_TIME: the UTC of t = 0 to 1 ms, unless DEBRIS_TIME_ORBIT has given it."""
+    def system_time(self, msg) -> bool:
+        """SYSTEM_TIME: the UTC of t = 0 to 1 ms, unless DEBRIS_TIME_ORBIT has given it; False when it is
+        not a time the box could have had."""
         if msg.time_unix_usec and self.utc0_from != "DEBRIS_TIME_ORBIT":
-            self.utc0_s, self.utc0_from = msg.time_unix_usec * 1e-6 - msg.time_boot_ms * 1e-3, "SYSTEM_TIME"
+            utc0 = msg.time_unix_usec * 1e-6 - msg.time_boot_ms * 1e-3
+            if not UTC0_RANGE_S[0] <= utc0 < UTC0_RANGE_S[1]:
+                return False
+            self.utc0_s, self.utc0_from = utc0, "SYSTEM_TIME"
+        return True
 
     def tle_lines(self, msg) -> bool:
         """DEBRIS_TLE from the box; False (not kept) when the lines are not a valid TLE."""

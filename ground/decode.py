@@ -243,7 +243,7 @@ class Decoder:
             return
         k = stream.knowledge(t_us)
         ok = (k.time_orbit(msg) if kind == "DEBRIS_TIME_ORBIT" else k.tle_lines(msg) if kind == "DEBRIS_TLE"
-              else k.calibration(msg) if kind == "DEBRIS_MAGCAL" else k.system_time(msg) or True)
+              else k.calibration(msg) if kind == "DEBRIS_MAGCAL" else k.system_time(msg))
         if not ok:
             self.invalid[kind] += 1
 

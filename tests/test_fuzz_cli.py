@@ -330,6 +330,7 @@ RUN_OPTIONS = {
     "--sample-rate": Opt(floats(0, 1000, lo_open=True)),
     "--sigma-uT": Opt(floats(0, lo_open=True)),
     "--max-sample-tlm-hz": Opt(floats(0.01, 1000)),
+    "--rate-filter": Opt(choices(("euler", "mm", "orbit", "fixed"))),
     "--quiet": flag(),
 }
 

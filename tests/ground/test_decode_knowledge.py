@@ -87,6 +87,26 @@ def test_system_time_gives_utc0_to_a_millisecond_unless_the_box_said_more():
     assert k.utc0_s == pytest.approx(UTC_AT_0 + 0.5, abs=1e-6)      # the box's own, SYSTEM_TIME no longer
 
 
+@pytest.mark.parametrize("utc0_s, drift_ppm", [(1.8e13, math.nan), (UTC_AT_0, -3e22), (946684800.0 - 1.0, math.nan),
+                                               (7258118400.0, math.nan)])
+def test_a_time_the_box_could_not_have_had_is_counted_not_kept(utc0_s, drift_ppm):
+    """A damaged or hostile frame's UTC (years 2000-2200 are the box's) is refused and counted; the summary,
+    which prints the UTC of t = 0, never meets it."""
+    dec = Decoder()
+    box = Box()
+    frame = time_orbit(box, 5.0, utc0_s=utc0_s)
+    if not math.isnan(drift_ppm):  # the UTC as the box would send it, with a drift no clock has
+        frame = box.pack(mavlink.MAVLink_debris_time_orbit_message(
+            5_000_000, int(round((utc0_s + 5.0) * 1e6)), 1.0, drift_ppm, math.nan, 1, 0, 1795600000000000, 2e5,
+            mavlink.DEBRIS_TLE_STATE_OK, 1, 0, 0, 8, 1))
+    feed(dec, [box.sample(0.0), frame], 1.0)
+    if math.isnan(drift_ppm):
+        feed(dec, [system_time(box, 6.0, utc0_s=utc0_s)], 2.0)
+    assert dec.streams[(box.p.srcSystem, box.p.srcComponent)].current.knowledge.utc0_s is None
+    assert dec.invalid["DEBRIS_TIME_ORBIT"] == 1 and dec.invalid["SYSTEM_TIME"] == int(math.isnan(drift_ppm))
+    assert "UTC of t = 0" not in dec.summary_text()
+
+
 def test_knowledge_arriving_later_is_appended_and_replaces_the_header(tmp_path):
     dec = Decoder(recorder=Recorder(tmp_path / "run.csv", None))
     box = Box()
