@@ -45,9 +45,9 @@ shape estimated, acquired by parallel shape hypotheses: filter_banks.EulerAcquis
 (the attitude filter as a bank of rate models, random walk and Gauss–Markov, the likeliest
 publishing: filter_banks.RateModelBank); ground:
 ``smoother`` (RTS with the field model), ``euler`` (batch torque-free fit with the field model),
-``euler_rts`` (RTS over the Euler filter), ``auto`` (ground.smoother.auto_choice: the Euler fit when
+``euler_rts`` (RTS over the Euler filter), ``auto`` (ground.smoother.auto_result: the Euler fit when
 χ²/dof ≤ 1.5 and it agrees with the Euler RTS smoother within 3 combined σ, else that smoother, else
-the random-walk RTS smoother).
+the random-walk RTS smoother; never one that another's σ excludes, σ widened where all disagree).
 """
 from __future__ import annotations
 
@@ -299,12 +299,13 @@ def estimate(run: Run, sigma_b_T: float, methods=METHODS) -> dict[str, tuple[np.
             out["euler_rts"] = (er.w_radps, er.sigma_radps)
         except (RuntimeError, ValueError, np.linalg.LinAlgError):
             pass
-        # "auto" as ground.smoother.smooth chooses
-        choice = sm.auto_choice(eu, er)
-        out["auto"] = out[{"euler": "euler", "euler_rts": "euler_rts", "random_walk": "smoother"}[choice]]
+        # "auto" as ground.smoother.smooth returns it (its choice, σ widened where the solutions disagree)
+        auto = sm.auto_result(rw, eu, er)
+        out["auto"] = (auto.w_radps, auto.sigma_radps)
         run.meta["euler_chi2_dof"] = None if eu is None else float(eu.chi2_dof)
         run.meta["euler_vs_rts_z"] = None if eu is None or er is None else sm.disagreement(eu, er)
-        run.meta["auto_model"] = choice
+        run.meta["auto_model"] = auto.info["auto_choice"]
+        run.meta["auto_widened"] = "widened_to_cover" in auto.info
     return {k: v for k, v in out.items() if k in methods}
 
 

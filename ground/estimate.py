@@ -77,8 +77,22 @@ def decimate(rec: Recording, hz: float) -> Recording:
 
 
 def estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, field=None,
-             inertia_kgm2=None) -> tuple[np.ndarray, np.ndarray, dict]:
-    """ω (N, 3) and 1-σ (N, 3) in rad/s of `method`, NaN where it has none; and notes."""
+             inertia_kgm2=None,
+             field_turn_radps: float = rf.LEO_FIELD_TURN_RADPS) -> tuple[np.ndarray, np.ndarray, dict]:
+    """ω (N, 3) and 1-σ (N, 3) in rad/s of `method`, NaN where it has none; and notes.
+
+    Without a field model (`field` None) every method takes the field as fixed in inertial space and
+    its σ is widened by the field's own turning, `field_turn_radps` (default: low Earth orbit's, 0.13 °/s;
+    0 for a laboratory's fixed field): `fsw.estimation.rate_formulas.widen_for_field_turn`."""
+    w, s, notes = _estimate(method, t, b, sigma_b_T, field=field, inertia_kgm2=inertia_kgm2)
+    if field is None and field_turn_radps > 0:
+        s = rf.widen_for_field_turn(s, b, field_turn_radps)
+        notes["sigma_widened"] = f"field taken as fixed: +{math.degrees(field_turn_radps):.3g} °/s field turn ⊥B"
+    return w, s, notes
+
+
+def _estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, field=None,
+              inertia_kgm2=None) -> tuple[np.ndarray, np.ndarray, dict]:
     notes: dict = {}
     if method == "boer":
         return rf.boer_rate(t, b), _diag_sigma(rf.boer_covariance(t, b, sigma_b_T)), notes
@@ -115,6 +129,8 @@ def estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, fie
         model = {"smoother": "random_walk", "euler": "euler", "auto": "auto"}[method]
         res = sm.smooth(t, b, sigma_b_T, field_eci_T=field, model=model, inertia_kgm2=inertia_kgm2)
         notes["model"] = res.method
+        if "widened_to_cover" in res.info:
+            notes["sigma_covers"] = "solutions that disagree beyond their σ (ground.smoother.auto_result)"
         notes["chi2_per_dof"] = f"{res.chi2_dof:.3f}"
         if res.inertia_shape is not None:
             notes["inertia_shape"] = " ".join(f"{v:.4f}" for v in res.inertia_shape)
@@ -126,14 +142,19 @@ def _diag_sigma(cov: np.ndarray) -> np.ndarray:
     return np.sqrt(np.clip(np.einsum("kii->ki", cov), 0.0, None))
 
 
-def score(rec: Recording, w: np.ndarray, perpendicular_only: bool) -> dict:
-    """RMS / max error (°/s) against the recording's reference: full vector and ⊥ B (measured B)."""
+def score(rec: Recording, w: np.ndarray, perpendicular_only: bool, sigma: np.ndarray | None = None) -> dict:
+    """RMS / max error (°/s) against the recording's reference: full vector and ⊥ B (measured B); with
+    `sigma`, the share of components whose error is within 1-σ (`coverage_1sigma`)."""
     ref = rec.w_ref_radps
     ok = np.all(np.isfinite(w), axis=1) & np.all(np.isfinite(ref), axis=1)
     e = w[ok] - ref[ok]
     bh = rec.b_T[ok] / np.linalg.norm(rec.b_T[ok], axis=1, keepdims=True)
     e_perp = e - np.sum(e * bh, axis=1, keepdims=True) * bh
-    out = {"n": int(ok.sum()),
+    cov = math.nan
+    if sigma is not None and ok.any():  # share of components with |error| ≤ 1σ (Boer: its ⊥ part, per axis)
+        ref_c = ref[ok] - (np.sum(ref[ok] * bh, axis=1, keepdims=True) * bh if perpendicular_only else 0.0)
+        cov = float(np.mean(np.abs(w[ok] - ref_c) <= sigma[ok]))
+    out = {"n": int(ok.sum()), "coverage_1sigma": cov,
            "perp_rms_dps": math.degrees(float(np.sqrt(np.mean(np.sum(e_perp ** 2, 1))))) if ok.any() else math.nan,
            "perp_max_dps": math.degrees(float(np.max(np.linalg.norm(e_perp, axis=1)))) if ok.any() else math.nan}
     if not perpendicular_only and ok.any():
@@ -230,6 +251,9 @@ def main(argv=None) -> int:
     ap.add_argument("--scenario", metavar="NAME|FILE", help="the field along this SITL scenario's orbit")
     ap.add_argument("--tle", nargs=2, metavar=("LINE1", "LINE2"), help="the field along a TLE's orbit")
     ap.add_argument("--utc0", type=iso_time, help="with --tle: UTC of the recording's t = 0, ISO 8601")
+    ap.add_argument("--field-turn-dps", type=finite_float(0), default=math.degrees(rf.LEO_FIELD_TURN_RADPS),
+                    metavar="DPS", help="without an orbit: how fast the field may turn in inertial space, added "
+                                        "to σ ⊥B (default %(default).3g, low Earth orbit; 0: a laboratory)")
     ap.add_argument("--known-inertia", metavar="I", type=inertia_tensor,
                     help="known tensor for euler/kalman-euler: 'Ixx,Iyy,Izz' or 9 values, kg·m²")
     gm.add_arguments(ap)
@@ -265,7 +289,8 @@ def main(argv=None) -> int:
             print(calibrated)
         warn_field(rec, args.input, field)
         inertia = args.known_inertia
-        w, s, notes = estimate(args.method, rec.t_s, rec.b_T, sigma, field=field, inertia_kgm2=inertia)
+        w, s, notes = estimate(args.method, rec.t_s, rec.b_T, sigma, field=field, inertia_kgm2=inertia,
+                               field_turn_radps=math.radians(args.field_turn_dps))
         meta = {"source": f"python -m ground.estimate {args.input}", "method": args.method,
                 "sigma_uT": f"{sigma * 1e6:.4g}" + ("" if args.sigma_uT is not None else " (estimated)"),
                 "field": "along the orbit" if field is not None else "fixed in inertial space"}
@@ -279,8 +304,9 @@ def main(argv=None) -> int:
     print(f"{args.method}: {int(np.all(np.isfinite(w), axis=1).sum())} estimates of {len(rec)} samples, "
           f"σ_B {sigma * 1e6:.3g} µT" + "".join(f", {k} {v}" for k, v in notes.items()))
     if rec.w_ref_radps is not None:
-        sc = score(rec, w, args.method in PERPENDICULAR)
-        parts = [f"⊥B RMS {sc['perp_rms_dps']:.3f} max {sc['perp_max_dps']:.2f}"]
+        sc = score(rec, w, args.method in PERPENDICULAR, s)
+        parts = [f"⊥B RMS {sc['perp_rms_dps']:.3f} max {sc['perp_max_dps']:.2f}",
+                 f"1-σ covers {100 * sc['coverage_1sigma']:.0f} %"]
         if "full_rms_dps" in sc:
             parts.insert(0, f"full RMS {sc['full_rms_dps']:.3f} max {sc['full_max_dps']:.2f}")
         print(f"error vs reference (°/s, {sc['n']} samples): " + ", ".join(parts))
