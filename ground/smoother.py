@@ -665,13 +665,14 @@ def auto_choice(eu: Smoothed | None, er: Smoothed | None, chi2_accept: float = 1
 
 
 def covering(chosen: Smoothed, others: list[Smoothed]) -> Smoothed:
-    """`chosen` with its 1-σ widened so that each of `others` that excludes it, or that it excludes, lies
-    within 1-σ: σ² + max over them of (ω_other − ω_chosen)², per sample and axis (the spread between
-    solutions that the data do not tell apart is part of the uncertainty)."""
+    """`chosen` with its 1-σ widened so that each of `others` whose σ excludes it lies within 1-σ:
+    σ² + max over them of (ω_other − ω_chosen)², per sample and axis (the spread between solutions that
+    the data do not tell apart is part of the uncertainty). A coarser solution that `chosen` excludes
+    but whose own σ admits `chosen` widens nothing."""
     var = chosen.sigma_radps ** 2
     extra = np.zeros_like(var)
     for o in others:
-        if excludes(o, chosen) or excludes(chosen, o):
+        if excludes(o, chosen):
             d2 = (o.w_radps - chosen.w_radps) ** 2
             extra = np.fmax(extra, np.where(np.isfinite(d2), d2, 0.0))
     if not np.any(extra):
