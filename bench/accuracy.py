@@ -79,16 +79,15 @@ from fsw.estimation import rate_kalman as rk
 from fsw.estimation import rotations as rot
 from fsw.files import write_atomic
 from ground import smoother as sm
+from bench.realistic import BoxField, HostResidual
 from hil import dynamics
 from hil.field import DipoleField, FieldAlongOrbit
 from hil.orbit import CircularOrbit
 
 ALTITUDE_M, INCLINATION_DEG, EPOCH = 485e3, 97.5, 2025.5
 #: the IGRF rows' world: the shipped scenario with a TLE, the box's older TLE and the host's iron; the box's
-#: clock this far ahead; the box's calibration off by the calibration benchmark's residual (0.14 µT worst
-#: axis after one orbit: 0.15 µT per axis hard iron, 0.2 % per element of the soft iron)
+#: clock this far ahead (the box's calibration residual: bench.realistic.HostResidual)
 IGRF_SCENARIO, IGRF_CLOCK_OFFSET_S = "isoi_sgp4", 2.0
-HOST_RESIDUAL_T, SOFT_RESIDUAL = 0.15e-6, 0.002
 WORLDS = ("dipole", "igrf")
 CHIP_NOISE_T = 0.04e-6
 LSB_T = 1e-4 / 16384.0
@@ -126,33 +125,6 @@ def _measure(b_true: np.ndarray, sigma_T: float, rng) -> np.ndarray:
     return np.round((b_true + noise) / LSB_T) * LSB_T
 
 
-class _BoxField:
-    """The field the box computes (its TLE, its onboard model) at its own clock: B(t + offset)."""
-
-    def __init__(self, field, offset_s: float) -> None:
-        self.field, self.offset_s = field, float(offset_s)
-
-    def b_eci_T(self, t_s):
-        return self.field.b_eci_T(np.asarray(t_s, float) + self.offset_s)
-
-    __call__ = b_eci_T
-
-
-class _HostResidual:
-    """The host's iron (`hil.host_magnetics`) in the measurement, taken out again by the box's calibration,
-    which is off by what the calibration benchmark leaves: the samples the estimators get."""
-
-    def __init__(self, host, rng) -> None:
-        self.host = host
-        self.h_est_T = host.hard_iron_T + rng.normal(scale=HOST_RESIDUAL_T, size=3)
-        s_est = host.soft_iron + rng.normal(scale=SOFT_RESIDUAL, size=(3, 3))
-        self.s_est_inv = np.linalg.inv(s_est)
-
-    def __call__(self, b_T: np.ndarray, t_s) -> np.ndarray:
-        meas = self.host.measured_T(b_T, t_s)
-        return (meas - self.h_est_T) @ self.s_est_inv.T
-
-
 def _igrf_world(rng, dt_s: float, n: int):
     """Truth and the box's view for the IGRF rows (module docstring): (truth field, the box's field,
     the host's residual after the box's calibration)."""
@@ -168,9 +140,9 @@ def _igrf_world(rng, dt_s: float, n: int):
     truth = FieldAlongOrbit(orbit, IgrfField(EPOCH, 13), orbit.era0_rad)
     table = FieldTable(truth.b_eci_T, step_s=1.0)
     truth_field = type("TruthField", (), {"b_eci_T": staticmethod(table), "orbit": orbit})()
-    box = _BoxField(tle_field(*(scn.box_tle or scn.tle), start), IGRF_CLOCK_OFFSET_S)
+    box = BoxField(tle_field(*(scn.box_tle or scn.tle), start), IGRF_CLOCK_OFFSET_S)
     host = scn.host.with_period(orbit.period_s)
-    return truth_field, box, _HostResidual(host, rng)
+    return truth_field, box, HostResidual(host, rng)
 
 
 def simulate(mode: str, body: str, dt_s: float, sigma_T: float, rng: np.random.Generator, *,
