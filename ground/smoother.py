@@ -637,6 +637,19 @@ def _explains(res: Smoothed | None, chi2_accept: float) -> bool:
     return res is not None and np.isfinite(res.chi2_dof) and res.chi2_dof <= chi2_accept
 
 
+def auto_order(eu: Smoothed | None, er: Smoothed | None, chi2_accept: float = 1.5,
+               z_accept: float = 3.0) -> list[str]:
+    """The candidates of "auto" in its order of preference: the batch fit when it explains the data and
+    agrees with the Euler RTS smoother, that smoother when it ran without a restart, the random walk."""
+    order = []
+    if _explains(eu, chi2_accept) and (er is None or disagreement(eu, er) <= z_accept):
+        order.append("euler")
+    if er is not None and er.info.get("resets", 1) == 0:
+        order.append("euler_rts")
+    order.append("random_walk")
+    return order
+
+
 def auto_choice(eu: Smoothed | None, er: Smoothed | None, chi2_accept: float = 1.5, z_accept: float = 3.0,
                 rw: Smoothed | None = None) -> str:
     """The model "auto" keeps: "euler" (the batch fit) when it explains the data (χ²/dof ≤ `chi2_accept`)
@@ -644,20 +657,15 @@ def auto_choice(eu: Smoothed | None, er: Smoothed | None, chi2_accept: float = 1
     a fit in a wrong minimum: χ²/dof 1.12 with 5.7 °/s of error where the RTS smoother had 0.64 °/s);
     else "euler_rts" when that smoother ran without a restart; else "random_walk".
 
-    And never a fit that another solution's σ excludes (:func:`excludes`), among the solutions that
-    explain the data (χ²/dof ≤ `chi2_accept`; the random-walk smoother `rw` always counts: it assumes
-    least): the first of that order that no other solution excludes. When every one is excluded by
+    And never a fit that another solution's σ excludes (:func:`excludes`), among the candidates of that
+    order (:func:`auto_order`) that explain the data (χ²/dof ≤ `chi2_accept`; the random-walk smoother
+    `rw` always counts: it assumes least): the first that no other candidate excludes. When every one is excluded by
     another (the solutions disagree beyond their σ and the data do not say which is right), the first
     is kept and :func:`auto_smooth` widens its σ to cover the others."""
-    order = []
-    if _explains(eu, chi2_accept) and (er is None or disagreement(eu, er) <= z_accept):
-        order.append("euler")
-    if er is not None and er.info.get("resets", 1) == 0:
-        order.append("euler_rts")
-    order.append("random_walk")
+    order = auto_order(eu, er, chi2_accept, z_accept)
     sols = {"euler": eu, "euler_rts": er, "random_walk": rw}
-    judges = [(name, res) for name, res in sols.items()
-              if res is not None and (name == "random_walk" or _explains(res, chi2_accept))]
+    judges = [(name, res) for name, res in sols.items() if res is not None and name in order
+              and (name == "random_walk" or _explains(res, chi2_accept))]
     for name in order:
         if sols[name] is None or not any(excludes(res, sols[name]) for other, res in judges if other != name):
             return name
@@ -721,7 +729,8 @@ def auto_result(rw: Smoothed, eu: Smoothed | None, er: Smoothed | None, chi2_acc
     sols = {"euler": eu, "euler_rts": er, "random_walk": rw}
     choice = auto_choice(eu, er, chi2_accept, z_accept, rw=rw)
     chosen = sols[choice]
-    others = [res for name, res in sols.items() if name != choice and res is not None
+    order = auto_order(eu, er, chi2_accept, z_accept)
+    others = [res for name, res in sols.items() if name != choice and res is not None and name in order
               and (name == "random_walk" or _explains(res, chi2_accept))]
     out = covering(chosen, others)
     out.info["auto_choice"] = choice
