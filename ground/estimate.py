@@ -45,6 +45,11 @@ from ground import smoother as sm
 from ground.field import scenario_field, tle_field
 from ground.recording import RateEstimates, Recording, RecordingError, read_recording, write_rate_estimates
 
+#: a field error (share of |B|, :func:`field_error_rel`) below this is not added to σ (noise's own spread)
+FIELD_ERROR_NOTE = 0.005
+#: methods whose σ already scales with their misfit (the ground smoothers' variance of unit weight and
+#: fitted noise factor): no field-error widening on top
+MISFIT_SCALED = ("smoother", "euler", "auto")
 METHODS = ("boer", "boer-printed", "derivative", "kotelnikov", "kotelnikov-paper", "kalman", "kalman-orbit",
            "kalman-euler", "kalman-mm", "smoother", "euler", "auto")
 PERPENDICULAR = ("boer", "boer-printed")
@@ -76,6 +81,22 @@ def decimate(rec: Recording, hz: float) -> Recording:
                      None if rec.w_ref_radps is None else rec.w_ref_radps[idx], rec.metadata)
 
 
+def field_error_rel(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float) -> float:
+    """The field's error that the noise does not explain, as a fraction of |B|: the spread of |B| about
+    a quadratic in time (the orbit changes |B| slowly; a host's iron that turns with the body, a scale
+    error, make |B| follow the attitude) beyond the noise's σ_B, over the median |B|. An uncalibrated
+    host's 14 µT on 45 µT: ~0.2; a calibrated or clean record: ~0."""
+    t = np.asarray(t_s, float)
+    mag = np.linalg.norm(np.asarray(b_T, float), axis=1)
+    ok = np.isfinite(mag) & np.isfinite(t)
+    if ok.sum() < 10:
+        return 0.0
+    x = (t[ok] - t[ok].mean()) / max(np.ptp(t[ok]), 1e-9)
+    resid = mag[ok] - np.polyval(np.polyfit(x, mag[ok], 2), x)
+    excess = float(np.mean(resid ** 2)) - sigma_b_T ** 2
+    return math.sqrt(excess) / float(np.median(mag[ok])) if excess > 0 else 0.0
+
+
 def estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, field=None,
              inertia_kgm2=None,
              field_turn_radps: float = rf.LEO_FIELD_TURN_RADPS) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -83,8 +104,16 @@ def estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, fie
 
     Without a field model (`field` None) every method takes the field as fixed in inertial space and
     its σ is widened by the field's own turning, `field_turn_radps` (default: low Earth orbit's, 0.13 °/s;
-    0 for a laboratory's fixed field): `fsw.estimation.rate_formulas.widen_for_field_turn`."""
+    0 for a laboratory's fixed field): `fsw.estimation.rate_formulas.widen_for_field_turn`. A record
+    whose |B| varies beyond the noise (:func:`field_error_rel` > 0.5 %: an uncalibrated host) has the σ
+    of every method whose σ is the noise's alone (not the smoothers', which scale with their misfit)
+    widened by that share of |ω| (`rate_formulas.widen_for_field_error`)."""
     w, s, notes = _estimate(method, t, b, sigma_b_T, field=field, inertia_kgm2=inertia_kgm2)
+    eps = field_error_rel(t, b, sigma_b_T) if method not in MISFIT_SCALED else 0.0
+    if eps > FIELD_ERROR_NOTE:
+        s = rf.widen_for_field_error(s, w, eps)
+        notes["sigma_widened_field_error"] = (f"|B| varies {100 * eps:.2g} % beyond the noise (host iron "
+                                              "uncalibrated?): σ + that share of |ω|")
     if field is None and field_turn_radps > 0:
         s = rf.widen_for_field_turn(s, b, field_turn_radps)
         notes["sigma_widened"] = f"field taken as fixed: +{math.degrees(field_turn_radps):.3g} °/s field turn ⊥B"

@@ -254,6 +254,18 @@ def widen_for_field_turn(sigma_radps: np.ndarray, b_T: np.ndarray,
     return np.sqrt(s ** 2 + 0.5 * turn_radps ** 2 * (1.0 - bh2))
 
 
+def widen_for_field_error(sigma_radps: np.ndarray, w_radps: np.ndarray, rel_error: float) -> np.ndarray:
+    """1-σ (N, 3) widened by a field error that no noise model holds (an uncalibrated host's iron, an
+    imperfect calibration): a field off by a fraction ε of |B| turns into a rate error of about ε|ω| per
+    axis (Boer's ω⊥ = ΔB × B / (Δt|B|²) with B + δB: δω ~ |ω| |δB| / |B|). σ_i² + (ε |ω̂|)² per sample,
+    |ω̂| the estimate's own; NaN and inf stay."""
+    s = np.asarray(sigma_radps, dtype=float)
+    if not rel_error > 0:
+        return s.copy()
+    mag = np.linalg.norm(np.nan_to_num(np.asarray(w_radps, dtype=float)), axis=1, keepdims=True)
+    return np.sqrt(s ** 2 + (rel_error * mag) ** 2)
+
+
 # --- streaming forms for the flight loop --------------------------------------------------------
 
 @njit(cache=True)
