@@ -14,7 +14,11 @@ kotelnikov (`kotelnikov-paper`: sedelnikov2023's discrete pairing), kalman (the 
 kalman-orbit / kalman-euler / kalman-mm (attitude filter; -mm: a bank of rate models, random walk
 and Gauss–Markov, for a slow libration; need an orbit for the field's motion unless the field
 is fixed), smoother (RTS), euler (batch torque-free fit), auto (euler when it explains the data, else
-smoother).
+smoother; never a fit that another candidate's σ excludes: `ground/smoother.py`'s docstring).
+
+σ: without a field model every σ is widened by the field's own turning (`--field-turn-dps`), and a
+record whose |B| varies beyond the noise (an uncalibrated host) widens the noise-only methods' σ
+(`estimate`); with reference columns the share of components within 1-σ is printed.
 
 The field: fixed in inertial space unless an orbit is given — `--scenario NAME|FILE` (a SITL scenario's
 orbit and field epoch; the recording's t = 0 is the scenario's) or `--tle LINE1 LINE2 --utc0 ISO`.

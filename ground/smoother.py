@@ -24,8 +24,9 @@ fixed in inertial space otherwise (laboratory recordings):
 The rule of "auto" (:func:`auto_result`): it never returns a solution that another solution's σ
 excludes. The candidates are the batch Euler fit, the Euler RTS smoother and the random-walk RTS
 smoother; one excludes another when the other lies more than 3 of its σ away on some axis at more than
-a quarter of the samples (:func:`excludes`); only solutions that explain the data (χ²/dof ≤ 1.5; the
-random-walk smoother always, it assumes least) judge. The first of the order Euler fit → Euler RTS →
+a quarter of the samples (:func:`excludes`); only the candidates that explain the data judge (χ²/dof
+≤ 1.5; the random-walk smoother always, it assumes least; a batch fit already rejected as in a wrong
+minimum does not). The first of the order Euler fit → Euler RTS →
 random walk that no judge excludes is returned; when each is excluded by another (they disagree beyond
 their σ and the data do not say which is right), the first is returned with its σ widened to cover
 the others (:func:`covering`). Without a field model the ground tool then widens every σ by the field's
