@@ -88,8 +88,6 @@ ALTITUDE_M, INCLINATION_DEG, EPOCH = 485e3, 97.5, 2025.5
 #: the IGRF rows' world: the shipped scenario with a TLE, the box's older TLE and the host's iron; the box's
 #: clock this far ahead (the box's calibration residual: bench.realistic.HostResidual)
 IGRF_SCENARIO, IGRF_CLOCK_OFFSET_S = "isoi_sgp4", 2.0
-#: whether the box's calibration follows the hard iron's thermal drift (``--host-drift tracked``)
-HOST_DRIFT_TRACKED = False
 WORLDS = ("dipole", "igrf")
 CHIP_NOISE_T = 0.04e-6
 LSB_T = 1e-4 / 16384.0
@@ -148,15 +146,17 @@ def _igrf_world(rng, drift_tracked: bool = False):
 
 
 def simulate(mode: str, body: str, dt_s: float, sigma_T: float, rng: np.random.Generator, *,
-             record_samples: int = 120, warmup_s: float = 300.0, world: str = "dipole") -> Run:
+             record_samples: int = 120, warmup_s: float = 300.0, world: str = "dipole",
+             drift_tracked: bool = False) -> Run:
     """A seeded pass of `mode` for `body` sampled every `dt_s` with noise `sigma_T` (see the module docstring);
-    `world` "dipole" (truth = the estimators' model) or "igrf" (the realistic truth of the IGRF rows)."""
+    `world` "dipole" (truth = the estimators' model) or "igrf" (the realistic truth of the IGRF rows;
+    `drift_tracked`: the box's calibration follows the hard iron's thermal drift)."""
     lo, hi = MODES[mode]
     raan, u0 = rng.uniform(0, 360), rng.uniform(0, 360)
     host = None
     if world == "igrf":  # its own draws, from the node and phase drawn: the rest as the dipole row's run
         truth_field, est_field, host = _igrf_world(np.random.default_rng([int(raan * 1e6), int(u0 * 1e6)]),
-                                                   HOST_DRIFT_TRACKED)
+                                                   drift_tracked)
     else:
         truth_field = FieldAlongOrbit(CircularOrbit(ALTITUDE_M, INCLINATION_DEG, raan, u0), DipoleField(EPOCH))
         est_field = fm.OrbitField(fm.CircularOrbitModel(ALTITUDE_M, INCLINATION_DEG, raan, u0),
@@ -385,16 +385,17 @@ class Row:
     dt_s: float
     sigma_uT: float
     world: str = "dipole"
+    drift_tracked: bool = False   # igrf: the box's calibration follows the hard iron's drift
 
     @property
     def key(self) -> str:
-        suffix = "/igrf" if self.world == "igrf" else ""
+        suffix = ("/igrf" + ("-drift-tracked" if self.drift_tracked else "")) if self.world == "igrf" else ""
         return f"{self.mode}/{self.body}/dt{self.dt_s:g}/{self.sigma_uT:g}uT{suffix}"
 
 
-def all_rows(worlds=("dipole",)) -> list[Row]:
-    return [Row(m, b, dt, s, w) for w in worlds for m in MODES for b in BODIES for dt in (1.0, 3.0)
-            for s in (0.5, 1.5)]
+def all_rows(worlds=("dipole",), drift_tracked: bool = False) -> list[Row]:
+    return [Row(m, b, dt, s, w, drift_tracked and w == "igrf") for w in worlds for m in MODES for b in BODIES
+            for dt in (1.0, 3.0) for s in (0.5, 1.5)]
 
 
 def run_row(row: Row, runs: int, seed: int, record_samples: int, warmup_s: float,
@@ -409,7 +410,7 @@ def run_row(row: Row, runs: int, seed: int, record_samples: int, warmup_s: float
     for r in range(runs):
         rng = np.random.default_rng(row_seed + [r])
         run = simulate(row.mode, row.body, row.dt_s, row.sigma_uT * 1e-6, rng, record_samples=record_samples,
-                       warmup_s=warmup_s, world=row.world)
+                       warmup_s=warmup_s, world=row.world, drift_tracked=row.drift_tracked)
         sigma_b = math.hypot(row.sigma_uT * 1e-6, CHIP_NOISE_T)
         est = estimate(run, sigma_b, methods)
         for name in methods:  # a method that gave nothing on a run is counted, not left out of the pool
@@ -667,10 +668,8 @@ def main(argv=None) -> int:
             write_atomic(args.json, json.dumps(rows, indent=1, default=float))
             print(f"wrote {args.json}")
         return 0
-    global HOST_DRIFT_TRACKED
-    HOST_DRIFT_TRACKED = args.host_drift == "tracked"  # a module setting: the worker processes fork after it
     worlds = WORLDS if args.world == "both" else (args.world,)
-    rows = [r for r in all_rows(worlds) if args.rows in r.key]
+    rows = [r for r in all_rows(worlds, args.host_drift == "tracked") if args.rows in r.key]
     runs, rec, warm = args.runs, args.record_samples, args.warmup_s
     if args.quick:
         rows = [Row("undirected", "asymmetric", 1.0, 0.5), Row("orbital", "near_symmetric", 3.0, 1.5)]
