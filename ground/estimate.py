@@ -14,16 +14,20 @@ kotelnikov (`kotelnikov-paper`: sedelnikov2023's discrete pairing), kalman (the 
 kalman-orbit / kalman-euler / kalman-mm (attitude filter; -mm: a bank of rate models, random walk
 and Gauss–Markov, for a slow libration; need an orbit for the field's motion unless the field
 is fixed), smoother (RTS), euler (batch torque-free fit), auto (euler when it explains the data, else
-smoother).
+smoother; never a fit that another candidate's σ excludes: `ground/smoother.py`'s docstring).
+
+σ: without a field model every σ is widened by the field's own turning (`--field-turn-dps`), and a
+record whose |B| varies beyond the noise (an uncalibrated host) widens the noise-only methods' σ
+(`estimate`); with reference columns the share of components within 1-σ is printed.
 
 The field along the orbit (`ground.field.recording_field`, said on the first line): `--scenario NAME|FILE` (a
 SITL scenario's orbit and field epoch; the recording's t = 0 is the scenario's) or `--tle LINE1 LINE2
 --utc0 ISO` (or `--utc0` alone: the recording's TLE at another t = 0), else the recording's metadata
 (the TLE and utc0 `ground.decode` writes, or a circular orbit). Without any, the field's direction is
 assumed fixed in inertial space — the papers' assumption; on a low orbit it turns at about twice the
-orbital rate — and the σ of the methods that would use the orbit (kalman-orbit, kalman-euler, kalman-mm,
-smoother, euler, auto) is widened per axis by that turn, `--field-turn-dps` (default 0.126 °/s, a low
-orbit; 0.0042 for a laboratory, the Earth's rotation), in quadrature. The other methods never use the orbit.
+orbital rate — and every method then measures the body's rate relative to the field's turning frame:
+its σ is widened ⊥B by that turn, `--field-turn-dps` (default 0.133 °/s, a low orbit; 0.0042 for a
+laboratory, the Earth's rotation; 0: none).
 
 The host's hard and soft iron: `--magcal FILE.json` applies a calibration to the samples first,
 `--estimate-magcal` estimates it from the recording along its orbit, and without either the calibration in
@@ -48,14 +52,17 @@ from fsw.estimation import rate_kalman as rk
 from fsw.estimation.tle import TleError, parse_tle
 from ground import magcal as gm
 from ground import smoother as sm
-from ground.field import LEO_FIELD_TURN_DPS, recording_field, scenario_field, tle_field
+from ground.field import recording_field, scenario_field, tle_field
 from ground.recording import RateEstimates, Recording, RecordingError, read_recording, write_rate_estimates
 
+#: a field error (share of |B|, :func:`field_error_rel`) below this is not added to σ (noise's own spread)
+FIELD_ERROR_NOTE = 0.005
+#: methods whose σ already scales with their misfit (the ground smoothers' variance of unit weight and
+#: fitted noise factor): no field-error widening on top
+MISFIT_SCALED = ("smoother", "euler", "auto")
 METHODS = ("boer", "boer-printed", "derivative", "kotelnikov", "kotelnikov-paper", "kalman", "kalman-orbit",
            "kalman-euler", "kalman-mm", "smoother", "euler", "auto")
 PERPENDICULAR = ("boer", "boer-printed")
-#: the methods that use the field along the orbit when there is one
-ORBIT_METHODS = ("kalman-orbit", "kalman-euler", "kalman-mm", "smoother", "euler", "auto")
 #: samples a method needs for its first estimate: two for a difference, three for a second one (and for
 #: the full vector of the filters and smoothers, which ΔB of one step does not fix)
 MIN_SAMPLES = {m: 2 if m in PERPENDICULAR or m.startswith("kalman") else 3 for m in METHODS}
@@ -84,9 +91,47 @@ def decimate(rec: Recording, hz: float) -> Recording:
                      None if rec.w_ref_radps is None else rec.w_ref_radps[idx], rec.metadata)
 
 
+def field_error_rel(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float) -> float:
+    """The field's error that the noise does not explain, as a fraction of |B|: the spread of |B| about
+    a quadratic in time (the orbit changes |B| slowly; a host's iron that turns with the body, a scale
+    error, make |B| follow the attitude) beyond the noise's σ_B, over the median |B|. An uncalibrated
+    host's 14 µT on 45 µT: ~0.2; a calibrated or clean record: ~0."""
+    t = np.asarray(t_s, float)
+    mag = np.linalg.norm(np.asarray(b_T, float), axis=1)
+    ok = np.isfinite(mag) & np.isfinite(t)
+    if ok.sum() < 10:
+        return 0.0
+    x = (t[ok] - t[ok].mean()) / max(np.ptp(t[ok]), 1e-9)
+    resid = mag[ok] - np.polyval(np.polyfit(x, mag[ok], 2), x)
+    excess = float(np.mean(resid ** 2)) - sigma_b_T ** 2
+    return math.sqrt(excess) / float(np.median(mag[ok])) if excess > 0 else 0.0
+
+
 def estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, field=None,
-             inertia_kgm2=None) -> tuple[np.ndarray, np.ndarray, dict]:
-    """ω (N, 3) and 1-σ (N, 3) in rad/s of `method`, NaN where it has none; and notes."""
+             inertia_kgm2=None,
+             field_turn_radps: float = rf.LEO_FIELD_TURN_RADPS) -> tuple[np.ndarray, np.ndarray, dict]:
+    """ω (N, 3) and 1-σ (N, 3) in rad/s of `method`, NaN where it has none; and notes.
+
+    Without a field model (`field` None) every method takes the field as fixed in inertial space and
+    its σ is widened by the field's own turning, `field_turn_radps` (default: low Earth orbit's, 0.13 °/s;
+    0 for a laboratory's fixed field): `fsw.estimation.rate_formulas.widen_for_field_turn`. A record
+    whose |B| varies beyond the noise (:func:`field_error_rel` > 0.5 %: an uncalibrated host) has the σ
+    of every method whose σ is the noise's alone (not the smoothers', which scale with their misfit)
+    widened by that share of |ω| (`rate_formulas.widen_for_field_error`)."""
+    w, s, notes = _estimate(method, t, b, sigma_b_T, field=field, inertia_kgm2=inertia_kgm2)
+    eps = field_error_rel(t, b, sigma_b_T) if method not in MISFIT_SCALED else 0.0
+    if eps > FIELD_ERROR_NOTE:
+        s = rf.widen_for_field_error(s, w, eps)
+        notes["sigma_widened_field_error"] = (f"|B| varies {100 * eps:.2g} % beyond the noise (host iron "
+                                              "uncalibrated?): σ + that share of |ω|")
+    if field is None and field_turn_radps > 0:
+        s = rf.widen_for_field_turn(s, b, field_turn_radps)
+        notes["sigma_widened"] = f"field taken as fixed: +{math.degrees(field_turn_radps):.3g} °/s field turn ⊥B"
+    return w, s, notes
+
+
+def _estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, field=None,
+              inertia_kgm2=None) -> tuple[np.ndarray, np.ndarray, dict]:
     notes: dict = {}
     if method == "boer":
         return rf.boer_rate(t, b), _diag_sigma(rf.boer_covariance(t, b, sigma_b_T)), notes
@@ -123,6 +168,8 @@ def estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, fie
         model = {"smoother": "random_walk", "euler": "euler", "auto": "auto"}[method]
         res = sm.smooth(t, b, sigma_b_T, field_eci_T=field, model=model, inertia_kgm2=inertia_kgm2)
         notes["model"] = res.method
+        if "widened_to_cover" in res.info:
+            notes["sigma_covers"] = "solutions that disagree beyond their σ (ground.smoother.auto_result)"
         notes["chi2_per_dof"] = f"{res.chi2_dof:.3f}"
         if res.inertia_shape is not None:
             notes["inertia_shape"] = " ".join(f"{v:.4f}" for v in res.inertia_shape)
@@ -130,24 +177,24 @@ def estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, fie
     raise ValueError(f"unknown method {method!r}")
 
 
-def widen_for_field_turn(sigma_radps: np.ndarray, turn_dps: float) -> np.ndarray:
-    """σ with the field's unseen turn in inertial space added per axis in quadrature: a method that takes
-    the field as fixed sees the body's rate relative to the field's frame, off by that turn."""
-    return np.sqrt(sigma_radps ** 2 + math.radians(turn_dps) ** 2)
-
 
 def _diag_sigma(cov: np.ndarray) -> np.ndarray:
     return np.sqrt(np.clip(np.einsum("kii->ki", cov), 0.0, None))
 
 
-def score(rec: Recording, w: np.ndarray, perpendicular_only: bool) -> dict:
-    """RMS / max error (°/s) against the recording's reference: full vector and ⊥ B (measured B)."""
+def score(rec: Recording, w: np.ndarray, perpendicular_only: bool, sigma: np.ndarray | None = None) -> dict:
+    """RMS / max error (°/s) against the recording's reference: full vector and ⊥ B (measured B); with
+    `sigma`, the share of components whose error is within 1-σ (`coverage_1sigma`)."""
     ref = rec.w_ref_radps
     ok = np.all(np.isfinite(w), axis=1) & np.all(np.isfinite(ref), axis=1)
     e = w[ok] - ref[ok]
     bh = rec.b_T[ok] / np.linalg.norm(rec.b_T[ok], axis=1, keepdims=True)
     e_perp = e - np.sum(e * bh, axis=1, keepdims=True) * bh
-    out = {"n": int(ok.sum()),
+    cov = math.nan
+    if sigma is not None and ok.any():  # share of components with |error| ≤ 1σ (Boer: its ⊥ part, per axis)
+        ref_c = ref[ok] - (np.sum(ref[ok] * bh, axis=1, keepdims=True) * bh if perpendicular_only else 0.0)
+        cov = float(np.mean(np.abs(w[ok] - ref_c) <= sigma[ok]))
+    out = {"n": int(ok.sum()), "coverage_1sigma": cov,
            "perp_rms_dps": math.degrees(float(np.sqrt(np.mean(np.sum(e_perp ** 2, 1))))) if ok.any() else math.nan,
            "perp_max_dps": math.degrees(float(np.max(np.linalg.norm(e_perp, axis=1)))) if ok.any() else math.nan}
     if not perpendicular_only and ok.any():
@@ -245,9 +292,9 @@ def main(argv=None) -> int:
     ap.add_argument("--tle", nargs=2, metavar=("LINE1", "LINE2"), help="the field along a TLE's orbit")
     ap.add_argument("--utc0", type=iso_time, help="UTC of the recording's t = 0, ISO 8601 (with --tle; alone: "
                                                   "the recording's TLE at this t = 0)")
-    ap.add_argument("--field-turn-dps", type=finite_float(0), default=LEO_FIELD_TURN_DPS, metavar="DPS",
-                    help="without an orbit: the field's turn in inertial space allowed for in the σ of the methods "
-                         f"that would use the orbit (default {LEO_FIELD_TURN_DPS} °/s, a low orbit)")
+    ap.add_argument("--field-turn-dps", type=finite_float(0), default=math.degrees(rf.LEO_FIELD_TURN_RADPS),
+                    metavar="DPS", help="without an orbit: how fast the field may turn in inertial space, added "
+                                        "to σ ⊥B (default %(default).3g, low Earth orbit; 0: a laboratory)")
     ap.add_argument("--known-inertia", metavar="I", type=inertia_tensor,
                     help="known tensor for euler/kalman-euler: 'Ixx,Iyy,Izz' or 9 values, kg·m²")
     gm.add_arguments(ap)
@@ -283,11 +330,8 @@ def main(argv=None) -> int:
             print(calibrated)
         warn_field(rec, args.input, field)
         inertia = args.known_inertia
-        w, s, notes = estimate(args.method, rec.t_s, rec.b_T, sigma, field=field, inertia_kgm2=inertia)
-        if field is None and args.method in ORBIT_METHODS and args.field_turn_dps > 0:
-            s = widen_for_field_turn(s, args.field_turn_dps)
-            notes["sigma_widened"] = (f"by {args.field_turn_dps:g} °/s per axis in quadrature: the field's turn in "
-                                      "inertial space, which no orbit gives (--field-turn-dps)")
+        w, s, notes = estimate(args.method, rec.t_s, rec.b_T, sigma, field=field, inertia_kgm2=inertia,
+                               field_turn_radps=math.radians(args.field_turn_dps))
         meta = {"source": f"python -m ground.estimate {args.input}", "method": args.method,
                 "sigma_uT": f"{sigma * 1e6:.4g}" + ("" if args.sigma_uT is not None else " (estimated)"),
                 "field": "along the orbit" if field is not None else "fixed in inertial space", "orbit": orbit_how}
@@ -301,8 +345,9 @@ def main(argv=None) -> int:
     print(f"{args.method}: {int(np.all(np.isfinite(w), axis=1).sum())} estimates of {len(rec)} samples, "
           f"σ_B {sigma * 1e6:.3g} µT" + "".join(f", {k} {v}" for k, v in notes.items()))
     if rec.w_ref_radps is not None:
-        sc = score(rec, w, args.method in PERPENDICULAR)
-        parts = [f"⊥B RMS {sc['perp_rms_dps']:.3f} max {sc['perp_max_dps']:.2f}"]
+        sc = score(rec, w, args.method in PERPENDICULAR, s)
+        parts = [f"⊥B RMS {sc['perp_rms_dps']:.3f} max {sc['perp_max_dps']:.2f}",
+                 f"1-σ covers {100 * sc['coverage_1sigma']:.0f} %"]
         if "full_rms_dps" in sc:
             parts.insert(0, f"full RMS {sc['full_rms_dps']:.3f} max {sc['full_max_dps']:.2f}")
         print(f"error vs reference (°/s, {sc['n']} samples): " + ", ".join(parts))

@@ -12,12 +12,15 @@ from __future__ import annotations
 
 from datetime import datetime
 
+import math
+
 from fsw.estimation import field_motion as fm
 from fsw.estimation.onboard_field import flight_field
+from fsw.estimation.rate_formulas import LEO_FIELD_TURN_RADPS
 
 #: how fast the field's direction turns in inertial space along a low orbit: about twice the orbital rate
-#: (a 95-minute orbit: 2 × 360° / 5,700 s); what a recording without an orbit is allowed for
-LEO_FIELD_TURN_DPS = 0.126
+#: (`fsw.estimation.rate_formulas.LEO_FIELD_TURN_RADPS`); what a recording without an orbit is allowed for
+LEO_FIELD_TURN_DPS = math.degrees(LEO_FIELD_TURN_RADPS)
 
 
 def scenario_field(name: str):

@@ -21,7 +21,7 @@ Without an orbit (a laboratory file, an old export) the fit still runs, as in se
 assumption that the field's direction is fixed in inertial space, its magnitude the recording's own
 (|B| does not depend on the attitude: a cubic in time through the samples' |B|). On a low orbit the
 direction turns at about twice the orbital rate, which that assumption ignores, so the intervals are
-widened for it: the fit is repeated with the field turning at ``--field-turn-dps`` (default 0.126 °/s,
+widened for it: the fit is repeated with the field turning at ``--field-turn-dps`` (default 0.133 °/s,
 `ground.field.LEO_FIELD_TURN_DPS`; 0.0042 for a laboratory, the Earth's rotation; 0: no widening) about
 each inertial axis in turn, and the three shifts of the tensor are added to its covariance
 (Σ_k d_k d_kᵀ: a turn of that size about any axis). Three more fits: the run takes about four times as

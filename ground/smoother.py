@@ -20,6 +20,17 @@ fixed in inertial space otherwise (laboratory recordings):
   An asymmetric tumbling body has ω varying in body axes; a random walk then lags, this model does not.
 - :func:`smooth` — both, and the Euler fit kept when it explains the data (χ²/dof ≤ `chi2_accept`) and
   agrees with the Euler RTS smoother within their combined σ (:func:`auto_choice`).
+
+The rule of "auto" (:func:`auto_result`): it never returns a solution that another solution's σ
+excludes. The candidates are the batch Euler fit, the Euler RTS smoother and the random-walk RTS
+smoother; one excludes another when the other lies more than 3 of its σ away on some axis at more than
+a quarter of the samples (:func:`excludes`); only the candidates that explain the data judge (χ²/dof
+≤ 1.5; the random-walk smoother always, it assumes least; a batch fit already rejected as in a wrong
+minimum does not). The first of the order Euler fit → Euler RTS →
+random walk that no judge excludes is returned; when each is excluded by another (they disagree beyond
+their σ and the data do not say which is right), the first is returned with its σ widened to cover
+the others (:func:`covering`). Without a field model the ground tool then widens every σ by the field's
+own turning (`fsw.estimation.rate_formulas.widen_for_field_turn`).
 """
 from __future__ import annotations
 
@@ -605,17 +616,79 @@ def disagreement(a: Smoothed, b: Smoothed) -> float:
     return float(np.sqrt(np.mean(d2)))
 
 
-def auto_choice(eu: Smoothed | None, er: Smoothed | None, chi2_accept: float = 1.5, z_accept: float = 3.0) -> str:
+#: one solution's σ excludes another's estimate when, at more than EXCLUDE_SHARE of the samples, the other
+#: lies more than EXCLUDE_Z of the first one's σ away on some axis
+EXCLUDE_Z, EXCLUDE_SHARE = 3.0, 0.25
+
+
+def excludes(by: Smoothed, other: Smoothed, z: float = EXCLUDE_Z, share: float = EXCLUDE_SHARE) -> bool:
+    """Whether `by`'s 1-σ excludes `other`'s estimate: |ω_other − ω_by| > z σ_by on some axis at more than
+    `share` of the samples where both have one. A precise solution excludes a coarse one that strays
+    from it (that is the precise one's claim); a coarse one excludes a precise one only when the precise
+    one lies outside the coarse one's own band."""
+    ok = (np.all(np.isfinite(by.w_radps), axis=1) & np.all(np.isfinite(other.w_radps), axis=1)
+          & np.all(np.isfinite(by.sigma_radps), axis=1))
+    if not np.any(ok):
+        return False
+    d = np.abs(other.w_radps[ok] - by.w_radps[ok]) / np.maximum(by.sigma_radps[ok], 1e-30)
+    return float(np.mean(np.max(d, axis=1) > z)) > share
+
+
+def _explains(res: Smoothed | None, chi2_accept: float) -> bool:
+    return res is not None and np.isfinite(res.chi2_dof) and res.chi2_dof <= chi2_accept
+
+
+def auto_order(eu: Smoothed | None, er: Smoothed | None, chi2_accept: float = 1.5,
+               z_accept: float = 3.0) -> list[str]:
+    """The candidates of "auto" in its order of preference: the batch fit when it explains the data and
+    agrees with the Euler RTS smoother, that smoother when it ran without a restart, the random walk."""
+    order = []
+    if _explains(eu, chi2_accept) and (er is None or disagreement(eu, er) <= z_accept):
+        order.append("euler")
+    if er is not None and er.info.get("resets", 1) == 0:
+        order.append("euler_rts")
+    order.append("random_walk")
+    return order
+
+
+def auto_choice(eu: Smoothed | None, er: Smoothed | None, chi2_accept: float = 1.5, z_accept: float = 3.0,
+                rw: Smoothed | None = None) -> str:
     """The model "auto" keeps: "euler" (the batch fit) when it explains the data (χ²/dof ≤ `chi2_accept`)
     and agrees with the Euler RTS smoother (:func:`disagreement` ≤ `z_accept`; a χ² test alone accepts
     a fit in a wrong minimum: χ²/dof 1.12 with 5.7 °/s of error where the RTS smoother had 0.64 °/s);
-    else "euler_rts" when that smoother ran without a restart; else "random_walk"."""
-    if (eu is not None and np.isfinite(eu.chi2_dof) and eu.chi2_dof <= chi2_accept
-            and (er is None or disagreement(eu, er) <= z_accept)):
-        return "euler"
-    if er is not None and er.info.get("resets", 1) == 0:
-        return "euler_rts"
-    return "random_walk"
+    else "euler_rts" when that smoother ran without a restart; else "random_walk".
+
+    And never a fit that another solution's σ excludes (:func:`excludes`), among the candidates of that
+    order (:func:`auto_order`) that explain the data (χ²/dof ≤ `chi2_accept`; the random-walk smoother
+    `rw` always counts: it assumes least): the first that no other candidate excludes. When every one is excluded by
+    another (the solutions disagree beyond their σ and the data do not say which is right), the first
+    is kept and :func:`auto_smooth` widens its σ to cover the others."""
+    order = auto_order(eu, er, chi2_accept, z_accept)
+    sols = {"euler": eu, "euler_rts": er, "random_walk": rw}
+    judges = [(name, res) for name, res in sols.items() if res is not None and name in order
+              and (name == "random_walk" or _explains(res, chi2_accept))]
+    for name in order:
+        if sols[name] is None or not any(excludes(res, sols[name]) for other, res in judges if other != name):
+            return name
+    return order[0]
+
+
+def covering(chosen: Smoothed, others: list[Smoothed]) -> Smoothed:
+    """`chosen` with its 1-σ widened so that each of `others` whose σ excludes it lies within 1-σ:
+    σ² + max over them of (ω_other − ω_chosen)², per sample and axis (the spread between solutions that
+    the data do not tell apart is part of the uncertainty). A coarser solution that `chosen` excludes
+    but whose own σ admits `chosen` widens nothing."""
+    var = chosen.sigma_radps ** 2
+    extra = np.zeros_like(var)
+    for o in others:
+        if excludes(o, chosen):
+            d2 = (o.w_radps - chosen.w_radps) ** 2
+            extra = np.fmax(extra, np.where(np.isfinite(d2), d2, 0.0))
+    if not np.any(extra):
+        return chosen
+    info = dict(chosen.info, widened_to_cover="other solutions")
+    return Smoothed(chosen.t_s, chosen.w_radps, np.sqrt(var + extra), chosen.q, chosen.method, chosen.chi2_dof,
+                    chosen.inertia_shape, info=info)
 
 
 def smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
@@ -643,7 +716,23 @@ def smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: F
         return eu
     er = euler_rts_smooth(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2, init=eu)
     z = disagreement(eu, er)
-    choice = "euler_rts" if model == "euler_rts" else auto_choice(eu, er, chi2_accept, z_accept)
     for res in (rw, eu, er):
         res.info.update(euler_chi2_dof=eu.chi2_dof, rts_chi2_dof=rw.chi2_dof, euler_vs_rts_z=z)
-    return {"euler": eu, "euler_rts": er, "random_walk": rw}[choice]
+    if model == "euler_rts":
+        return er
+    return auto_result(rw, eu, er, chi2_accept, z_accept)
+
+
+def auto_result(rw: Smoothed, eu: Smoothed | None, er: Smoothed | None, chi2_accept: float = 1.5,
+                z_accept: float = 3.0) -> Smoothed:
+    """What "auto" returns: :func:`auto_choice`'s solution; when another solution that explains the data
+    excludes it (all of them exclude each other), with its σ widened to cover them (:func:`covering`)."""
+    sols = {"euler": eu, "euler_rts": er, "random_walk": rw}
+    choice = auto_choice(eu, er, chi2_accept, z_accept, rw=rw)
+    chosen = sols[choice]
+    order = auto_order(eu, er, chi2_accept, z_accept)
+    others = [res for name, res in sols.items() if name != choice and res is not None and name in order
+              and (name == "random_walk" or _explains(res, chi2_accept))]
+    out = covering(chosen, others)
+    out.info["auto_choice"] = choice
+    return out

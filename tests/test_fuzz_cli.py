@@ -476,6 +476,8 @@ SPECS: list[Tool] = [
         "--real": Opt([("{files}/realdir", True), ("{files}/missing", False), ("{files}/emptydir", False),
                        ("{files}/rec.csv", False), ("", False), ("{files}/fifo", False)], role="in"),
         "--max-s": Opt(floats(0, lo_open=True)),
+        "--world": Opt(choices(["dipole", "igrf", "both"])),
+        "--host-drift": Opt(choices(["untracked", "tracked"])),
     }, stubs=["bench.accuracy:run_benchmark", "bench.accuracy:real_recordings"], judge=_accuracy_judge),
     Tool("bench.inertia", bench.inertia.main, {
         "--json": Opt(OUT, role="out"),
@@ -490,6 +492,7 @@ SPECS: list[Tool] = [
         "--fits": Opt([("full", True), ("shape", True), ("full,shape", True), ("", False), ("bogus", False),
                        ("full,bogus", False)]),
         "--shape-data": Opt(choices(["all", "free"])),
+        "--world": Opt(choices(["ideal", "realistic"])),
         "--crb": Opt([("900", True), ("900,1800", True), ("", False), ("nan", False), ("0", False), ("a", False),
                       ("900,", False)]),
     }, stubs=["bench.inertia:bench_scenario", "bench.inertia:truth_record", "bench.inertia:crb_table"],

@@ -27,6 +27,13 @@ there (at |B| = 0 exactly it is 0). Below :data:`FIELD_MIN_SIGMAS` σ_B (Boer) o
 where the formula divides by zero): the array forms return it, and the streaming forms publish the
 DEGENERATE flag with σ = :data:`SIGMA_UNOBSERVED_RADPS`, the finite "no information" that the link
 carries (the ground decoder refuses non-finite values as damaged frames).
+
+A field taken as fixed in inertial space: every formula above, and every estimator run without a field
+model along the orbit, reads the field's own turning as the body's. In low Earth orbit the field's
+direction turns by up to about twice the orbital rate (:data:`LEO_FIELD_TURN_RADPS`, 0.13 °/s), about an
+axis perpendicular to B: an error of that size in the part of ω perpendicular to B that no sample of
+the record can reveal. :func:`widen_for_field_turn` adds it to a 1-σ, as a variance (turn rate)²/2 on
+each of the two axes perpendicular to B (a vector of that length in a random direction of the plane).
 """
 from __future__ import annotations
 
@@ -42,6 +49,9 @@ SIGMA_UNOBSERVED_RADPS = 10.0
 DEGENERATE_SNR = 1.0
 #: A field below this many σ_B has no direction to speak of (Boer formula).
 FIELD_MIN_SIGMAS = 3.0
+#: How fast the geomagnetic field's direction turns in inertial space along a low orbit, at most: about
+#: twice the orbital rate (2 · 2π / 5,400 s; the dipole's direction turns at 1–2 n along a polar orbit).
+LEO_FIELD_TURN_RADPS = 2.0 * 2.0 * math.pi / 5400.0
 
 
 def _safe_div(num: np.ndarray, den: np.ndarray) -> np.ndarray:
@@ -227,6 +237,33 @@ def unobserved_sigma(sigma_radps: np.ndarray, b_T: np.ndarray, sigma_b_T: float)
     weak = np.linalg.norm(np.asarray(b_T, float), axis=1) <= FIELD_MIN_SIGMAS * sigma_b_T
     s[weak & ~np.isnan(s).any(axis=1)] = math.inf
     return s
+
+
+def widen_for_field_turn(sigma_radps: np.ndarray, b_T: np.ndarray,
+                         turn_radps: float = LEO_FIELD_TURN_RADPS) -> np.ndarray:
+    """1-σ (N, 3) of an estimate that took the field as fixed in inertial space, widened by the field's
+    own turning (module docstring): σ_i² + (turn²/2)(1 − b̂_i²) per axis i, b̂ = B/|B| of the sample.
+    NaN and inf stay as they are; `turn_radps` = 0 (a laboratory's fixed field) leaves σ unchanged."""
+    s = np.asarray(sigma_radps, dtype=float)
+    if not turn_radps > 0:
+        return s.copy()
+    b = np.asarray(b_T, dtype=float)
+    n = np.linalg.norm(b, axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        bh2 = np.where(n > 0, (b / np.where(n > 0, n, 1.0)) ** 2, 1.0 / 3.0)
+    return np.sqrt(s ** 2 + 0.5 * turn_radps ** 2 * (1.0 - bh2))
+
+
+def widen_for_field_error(sigma_radps: np.ndarray, w_radps: np.ndarray, rel_error: float) -> np.ndarray:
+    """1-σ (N, 3) widened by a field error that no noise model holds (an uncalibrated host's iron, an
+    imperfect calibration): a field off by a fraction ε of |B| turns into a rate error of about ε|ω| per
+    axis (Boer's ω⊥ = ΔB × B / (Δt|B|²) with B + δB: δω ~ |ω| |δB| / |B|). σ_i² + (ε |ω̂|)² per sample,
+    |ω̂| the estimate's own; NaN and inf stay."""
+    s = np.asarray(sigma_radps, dtype=float)
+    if not rel_error > 0:
+        return s.copy()
+    mag = np.linalg.norm(np.nan_to_num(np.asarray(w_radps, dtype=float)), axis=1, keepdims=True)
+    return np.sqrt(s ** 2 + (rel_error * mag) ** 2)
 
 
 # --- streaming forms for the flight loop --------------------------------------------------------
