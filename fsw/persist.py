@@ -25,9 +25,9 @@ The onboard results (:meth:`BoxState.restore_apps`), each saved when it changes 
   counted in `MagCal.restored_dropped`). The loop's time starts again at 0, so the drift's phase is
   carried by the UTC: when it is known before the restart and restored after it (same boot), the drift's
   terms are rotated to the new time base (a start-up of a fraction of a second is a phase error of ~1e-4
-  of a cycle); otherwise they are dropped and the hard iron is the constant published one, whose σ
-  covered what the drift left unknown at that time (up to the drift's amplitude, ~1 µT, until the first
-  solution from new samples, after about `MagCal.min_samples`).
+  of a cycle); otherwise they are dropped and the hard iron is the constant published one, its σ
+  grown by the drift's amplitude (the error is up to twice that, ~1 µT, until the first solution from new
+  samples, after about `MagCal.min_samples`).
 - ``kit_field.json``: the kit's magnets as the sensor sees them (`fsw.deorbit.kit_field`: F_a per channel
   and their covariance; a file of another kit design is refused).
 - ``ident.json``: the last inertia estimate with its covariance and state, sent again in

@@ -845,7 +845,8 @@ class MagCal:
         the new samples that passes the checks replaces it. The loop's time restarted at 0: `shift_s` is
         the old time base's value at the new one's 0 (from the UTC on board before and after), with which
         the drift's terms keep their phase; None: the drift's terms are dropped (a constant hard iron, b
-        as published, whose σ covers what the drift had left unknown then). Returns how it was taken;
+        as published, its σ grown by the drift's amplitude per axis: the hard iron may be anywhere on its
+        cycle). Returns how it was taken;
         ValueError when the snapshot is not one this calibration can take."""
         theta = np.asarray(snap["theta_uT"], float)
         b = np.asarray(snap["b_T"], float)
@@ -872,6 +873,11 @@ class MagCal:
         else:
             th[:3] = b * UT_PER_T
             how = "its drift's terms dropped (no UTC before and after)" if len(theta) > N_THETA else "a constant host"
+            if len(theta) > N_THETA and cov is not None:
+                # b(t) is anywhere on its cycle now: σ of b grows by the drift's amplitude per axis
+                amp_T = np.hypot(theta[9:12], theta[12:15]) / UT_PER_T
+                cov = cov.copy()
+                cov[:3, :3] += np.diag(amp_T ** 2)
         self.reset()
         self._good = th
         self.published_at_s = t_s

@@ -94,7 +94,7 @@ class Later:
 
 def second_run(record, state_dir, *, system_id=SYSID, boot="boot-a", field=True):
     """The box started again DOWN_S later: (its calibration step, BoxState's notes, per sample of the new
-    run: the old time, the hard iron applied, the state, the `restored` flag; DEBRIS_MAGCAL's `restored`
+    run: the old time, the hard iron applied, the state, the `restored` flag, σ of b; DEBRIS_MAGCAL's `restored`
     as sent)."""
     t, meas, h, orbit_field = record
     t0 = RESTART_S + DOWN_S  # the new loop's time 0, in the first run's
@@ -112,7 +112,7 @@ def second_run(record, state_dir, *, system_id=SYSID, boot="boot-a", field=True)
         step.telemetry(t_new, tlm)
         state.tick(t_new)
         rows.append((t[k], step.cal.calibration_at(t_new).b_T if step.cal.good else np.full(3, np.nan),
-                     step.state, step.cal.restored))
+                     step.state, step.cal.restored, step.cal.calibration.sigma[:3]))
     state.close()
     return step, state.notes, rows, [m.restored for m in cap.messages() if m.get_type() == "DEBRIS_MAGCAL"]
 
@@ -154,6 +154,9 @@ def test_without_the_utc_the_drift_terms_are_dropped_and_the_error_is_the_drifts
     err0 = np.abs(rows[0][1] - h[k0])
     assert np.all(err0 <= np.abs(h[k0] - before.cal.hard_iron_T(RESTART_S)) + 3 * before.cal.calibration.sigma[:3])
     assert TARGET_T < np.max(err0) < 1.5e-6  # off by what the drift did (its amplitude 0.6 µT twice, at most)
+    # and its σ says so: the drift's amplitude added
+    sigma_T = rows[0][4]
+    assert np.all(err0 < 3 * sigma_T) and np.all(sigma_T > 2 * before.cal.calibration.sigma[:3])
     assert sent[0] == mc.RESTORED
 
 
