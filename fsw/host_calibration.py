@@ -10,7 +10,9 @@ good calibration to every sample: B = (I + D)(B_meas − b). Without a field on 
 (DEBRIS_MAGCAL_STATE_NO_FIELD) and samples pass unchanged; a field that cannot be evaluated at a time
 (an SGP4 error) is counted and that sample not taken. A calibration that failed its checks never
 reaches the samples: the last good one stays applied and the state says REJECTED. DEBRIS_MAGCAL goes
-out every `tlm_every_s`.
+out every `tlm_every_s`. A calibration restored after a restart (`restore`, from `fsw.persist`) is
+applied from the first sample, with or without a field on board (the host's iron does not need one), and
+judged by the new samples once there is one (`fsw.estimation.magcal.MagCal.restore`).
 """
 from __future__ import annotations
 
