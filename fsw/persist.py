@@ -168,8 +168,8 @@ class BoxState:
             else:
                 app.restore(snap)
                 how = "applied"
-        except (KeyError, TypeError, ValueError, IndexError) as e:
-            return f"saved fields not understood ({e}): ignored"
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError, ArithmeticError) as e:
+            return f"saved fields not understood ({type(e).__name__}: {e}): ignored"
         self.restored[kind] = how
         return f"restored from before the restart ({how})"
 

@@ -290,3 +290,20 @@ def test_the_kit_field_calibration_is_restored_for_the_same_kit_only(tmp_path):
     state.restore_apps(SYSID, kit_field=other)
     state.close()
     assert "another kit's design" in state.notes[0] and other.version == 0
+
+
+@pytest.mark.parametrize("snapshot", [[1, 2], "x", 3.0, {}, {"theta_uT": "abc"}, {"fa_T": [1.0] * 6, "P": 1},
+                                      {"theta_uT": [float("nan")] * 15, "b_T": [0, 0, 0], "D": [[0] * 3] * 3},
+                                      {"inertia": [1.0] * 5, "ci95": [], "ci99": [], "cov": [], "state": 4}])
+def test_a_file_of_this_box_with_fields_not_understood_is_ignored(tmp_path, snapshot):
+    from fsw.state_files import save_state
+    for kind in ("calibration", "kit_field", "ident"):
+        save_state(tmp_path / f"{kind}.json", kind, {"system_id": SYSID, "snapshot": snapshot})
+    cal = HostCalibration(CHIP_SIGMA_T)
+    kit = DeorbitKit(DeorbitKitEmulator()).sensor_field
+    ident = IdentExperiment(sigma_b_T=1e-7, b_inertial=None)
+    state = BoxState(tmp_path, monotonic=Mono(0.0), boot_id="a")
+    state.restore_apps(SYSID, calibration=cal, kit_field=kit, ident=ident)
+    state.close()
+    assert all("not understood" in n for n in state.notes), state.notes
+    assert not cal.cal.good and kit.version == 0 and ident.restored is None
