@@ -10,7 +10,9 @@ good calibration to every sample: B = (I + D)(B_meas − b). Without a field on 
 (DEBRIS_MAGCAL_STATE_NO_FIELD) and samples pass unchanged; a field that cannot be evaluated at a time
 (an SGP4 error) is counted and that sample not taken. A calibration that failed its checks never
 reaches the samples: the last good one stays applied and the state says REJECTED. DEBRIS_MAGCAL goes
-out every `tlm_every_s`.
+out every `tlm_every_s`. A calibration restored after a restart (`restore`, from `fsw.persist`) is
+applied from the first sample, with or without a field on board (the host's iron does not need one), and
+judged by the new samples once there is one (`fsw.estimation.magcal.MagCal.restore`).
 """
 from __future__ import annotations
 
@@ -139,15 +141,15 @@ class HostCalibration:
             b_meas_T = b_meas_T - extra_T
         if skip:
             self.skipped += 1
-            return self.cal.apply(b_meas_T) if self.field is not None and self.cal.good else b_meas_T
+            return self.cal.apply(b_meas_T) if self.cal.good else b_meas_T
         self._track_spread(b_meas_T)
         if self.provider is None:
-            return b_meas_T
+            return self.cal.apply(b_meas_T, t_s) if self.cal.good else b_meas_T  # restored: applied
         self.field, why = self.provider.field_now(t_s)
         if self.field is None:
             self._no_field = f"no orbit/field model on board ({why}): calibration inactive"
-            return b_meas_T
-        if self.cal.samples == 0 and self.cal.drift_period_s is not None:
+            return self.cal.apply(b_meas_T, t_s) if self.cal.good else b_meas_T  # restored: applied
+        if self.cal.samples == 0 and self.cal.published == 0 and self.cal.drift_period_s is not None:
             # the drift's cycle is the orbit's: set before the first sample (the sums depend on it)
             self.cal.drift_period_s = orbit_period_s(self.field) or self.cal.drift_period_s
         if self._t_taken is None or t_s - self._t_taken >= self.sample_every_s * (1 - 1e-9):
@@ -174,4 +176,17 @@ class HostCalibration:
         c = self.cal
         tlm.magcal(now_s, c.calibration, state=self.state, samples=c.samples, dropped=c.dropped,
                    rejections=c.rejections, residual=c.chi2_dof, rate_T_per_s=c.rate_T_per_s,
-                   drift_period_s=c.drift_period_s)
+                   drift_period_s=c.drift_period_s, restored=c.restored)
+
+    # --- across a restart (`fsw.persist`) -------------------------------------------------------------
+    def snapshot(self) -> dict | None:
+        """The applied calibration to keep (`fsw.estimation.magcal.MagCal.snapshot`; None before one)."""
+        return self.cal.snapshot()
+
+    def restore(self, snap: dict, shift_s: float | None, t_s: float = 0.0) -> str:
+        """A snapshot from before a restart applied from the next sample and flagged (DEBRIS_MAGCAL's
+        `restored`), then judged by the new samples (`MagCal.restore`; ValueError if not one)."""
+        period = snap.get("drift_period_s")
+        if self.cal.drift_period_s is not None and isinstance(period, (int, float)) and period > 0:
+            self.cal.drift_period_s = float(period)  # the drift's terms were solved on that period
+        return self.cal.restore(snap, shift_s, t_s)

@@ -140,6 +140,8 @@ class IdentExperiment:
         self.dipoles: list[tuple[float, np.ndarray]] = []   # (time, dipole) whenever it changed (MAGNETS)
         self.result: IdentResult | None = None
         self.history: list[IdentResult] = []
+        #: the estimate restored after a restart (`restore`), sent until a new experiment's
+        self.restored: dict | None = None
         self.jobs_started = 0
         self.last_error = ""
         self._job = None
@@ -323,6 +325,7 @@ class IdentExperiment:
     def _reset(self) -> None:
         self.t, self.b, self.dipoles = [], [], []
         self.result = None
+        self.restored = None
         self.history = []
         self._job = None
         self._last_job_s = -math.inf
@@ -348,9 +351,33 @@ class IdentExperiment:
             return True
         return False
 
+    # --- across a restart (`fsw.persist`) ---------------------------------------------------------
+    def snapshot(self) -> dict | None:
+        """The latest estimate to keep (None before one): DEBRIS_INERTIA_ESTIMATE's fields, its covariance."""
+        if self.result is None:
+            return self.restored
+        return {**self.message_fields(), "cov": [[float(x) for x in row] for row in self.result.estimate.cov]}
+
+    def restore(self, snap: dict) -> None:
+        """The estimate from before a restart, sent again (DEBRIS_INERTIA_ESTIMATE at the next telemetry and
+        every period after) until a new experiment starts; an experiment the restart cut short is ABORTED.
+        ValueError when `snap` is not one."""
+        fields = {k: [float(x) for x in snap[k]] for k in ("inertia", "ci95", "ci99")}
+        cov = [[float(x) for x in row] for row in snap["cov"]]
+        if any(len(v) != 6 or not all(map(math.isfinite, v)) for v in fields.values()) or len(cov) != 6 \
+                or any(len(row) != 6 for row in cov):
+            raise ValueError("inertia estimate fields of the wrong shape or not finite")
+        state = int(snap["state"])
+        self.restored = {**fields, "samples": int(snap["samples"]), "flags": int(snap["flags"]), "cov": cov,
+                         "state": DONE if state in (DONE, IDLE) else ABORTED}
+        self._set_state(self.restored["state"])
+
     def message_fields(self) -> dict:
-        """The fields of DEBRIS_INERTIA_ESTIMATE for the current estimate (zeros before the first)."""
+        """The fields of DEBRIS_INERTIA_ESTIMATE for the current estimate (zeros before the first; the one
+        restored after a restart until a new one)."""
         r = self.result
+        if r is None and self.restored is not None:
+            return {k: v for k, v in self.restored.items() if k != "cov"} | {"state": self.state}
         if r is None:
             z = [0.0] * 6
             return {"samples": 0, "inertia": z, "ci95": z, "ci99": z, "state": self.state, "flags": 0}

@@ -169,6 +169,7 @@ def run(cfg: RunConfig, mag: MagBus, kit: KitLines | None = None, out=sys.stdout
         fsw = flight.fsw
         if state is not None:
             state.restore(fsw.uplink.verifier if fsw.uplink is not None else None, timeorbit)
+            state.restore_apps(cfg.system_id, calibration=fsw.calibration, kit_field=fsw.kit_field, ident=apps[0])
             notes += state.notes
         print("\n".join([f"target: MMC5983MA on {mag.describe()}, loop {cfg.rate_hz:g} Hz, link {cfg.link}",
                          *flight.notes, *notes, *([warning] if warning else [])]), file=out, flush=True)

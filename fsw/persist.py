@@ -13,7 +13,32 @@ and the numbered samples (`samples.store`, `fsw.telemetry.sample_store`), which 
 Files are written whole or not at all and a torn one is never loaded (`fsw.state_files`). Writes happen
 on a thread of their own (the newest snapshot of each file wins), so an fsync on a slow SD card never
 holds up the loop; `close()` writes what is pending. The monotonic clock and the boot id are injected by
-the program's edge (`fsw.main`). Not yet kept: the host calibration and the identification's result.
+the program's edge (`fsw.main`).
+
+The onboard results (:meth:`BoxState.restore_apps`), each saved when it changes with the box's system id
+(a file of another box is ignored) and restored through the application's own ``restore``:
+
+- ``calibration.json``: the host calibration last published (`fsw.estimation.magcal.MagCal.snapshot`: θ,
+  b, D, covariance, drift period, state) and the UTC at the loop's time 0 when the box had it. Applied from
+  the first sample after the restart, flagged (DEBRIS_MAGCAL's `restored` 1) and judged by the new
+  samples like any calibration: the first minute of samples it does not fit drops it (`restored` 2,
+  counted in `MagCal.restored_dropped`). The loop's time starts again at 0, so the drift's phase is
+  carried by the UTC: when it is known before the restart and restored after it (same boot), the drift's
+  terms are rotated to the new time base (a start-up of a fraction of a second is a phase error of ~1e-4
+  of a cycle); otherwise they are dropped and the hard iron is the constant published one, its σ
+  grown by the drift's amplitude (the error is up to twice that, ~1 µT, until the first solution from new
+  samples, after about `MagCal.min_samples`).
+- ``kit_field.json``: the kit's magnets as the sensor sees them (`fsw.deorbit.kit_field`: F_a per channel
+  and their covariance; a file of another kit design is refused).
+- ``ident.json``: the last inertia estimate with its covariance and state, sent again in
+  DEBRIS_INERTIA_ESTIMATE after the restart (an experiment the restart cut short is ABORTED).
+
+The store-and-forward ring of unsent frames (`fsw.telemetry.store_forward`) is not kept. Its samples
+are in the numbered sample store (`samples.store`, the ground asks for what it missed) and its latest
+inertia estimate in ``ident.json``; what is lost are the rate estimates (and SITL's truth) queued during
+an outage that a restart ends. Keeping them would mean rewriting up to `DEFAULT_CAPACITY` frames (~0.5 MB)
+while the link is down — every few seconds on an SD card for data the ground can recompute from the
+samples — and their times are the old run's loop time, which the new run starts again at 0.
 """
 from __future__ import annotations
 
@@ -27,6 +52,8 @@ from .state_files import load_state, save_state
 from .telemetry.signing import Verdict
 
 SIGNING, TIME = "signing", "time"
+#: the onboard applications' results (`restore_apps`): the host calibration, the kit's field, the inertia
+CALIBRATION, KIT_FIELD, IDENT = "calibration", "kit_field", "ident"
 CLOCK_SAVE_PERIOD_S = 60.0
 
 
@@ -43,6 +70,9 @@ class BoxState:
         self.last_error = ""
         self.restored: dict[str, str] = {}
         self._verifier = None
+        self.system_id: int | None = None
+        self._apps: dict = {}
+        self._app_seen: dict = {}
         self._timeorbit = None
         self._restore_utc: tuple[float, float] | None = None
         self._ok_seen = 0
@@ -105,9 +135,61 @@ class BoxState:
         self.restored[TIME] = "same boot"
         return "restored from before the restart (same boot)"
 
+    def restore_apps(self, system_id: int, *, calibration=None, kit_field=None, ident=None) -> None:
+        """Before the loop, after :meth:`restore`: the results of the host calibration
+        (`fsw.host_calibration.HostCalibration`), the kit's field model (`fsw.deorbit.kit_field`) and the
+        identification (`fsw.ident.IdentExperiment`) that were saved by this box (`system_id`), each
+        through its ``restore``; None: not on this box. Each is saved again whenever it changes."""
+        self.system_id = int(system_id)
+        self._apps = {k: a for k, a in ((CALIBRATION, calibration), (KIT_FIELD, kit_field), (IDENT, ident))
+                      if a is not None}
+        for kind, app in self._apps.items():
+            payload, why = load_state(self.path(kind), kind)
+            if payload is not None:
+                why = self._restore_app(kind, app, payload)
+            self.notes.append(f"{kind.replace('_', ' ')}: {why}")
+            self._app_seen[kind] = self._app_version(kind, app)
+
+    def _restore_app(self, kind: str, app, payload: dict) -> str:
+        sid = payload.get("system_id")
+        if sid != self.system_id:
+            return f"saved by system id {sid!r}, not this box's {self.system_id}: ignored"
+        snap = payload.get("snapshot")
+        if snap is None:
+            return "none kept"
+        try:
+            if kind == CALIBRATION:
+                utc0 = payload.get("utc0_s")
+                shift = None
+                if self._restore_utc is not None and isinstance(utc0, (int, float)):
+                    utc_s, mono_s = self._restore_utc  # the UTC at the new loop's 0 (the loop starts now)
+                    shift = utc_s + (self._mono() - mono_s) - float(utc0)
+                how = app.restore(snap, shift)
+            else:
+                app.restore(snap)
+                how = "applied"
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError, ArithmeticError) as e:
+            return f"saved fields not understood ({type(e).__name__}: {e}): ignored"
+        self.restored[kind] = how
+        return f"restored from before the restart ({how})"
+
+    @staticmethod
+    def _app_version(kind: str, app):
+        if kind == IDENT:
+            return (id(app.result), app.state)
+        return app.version
+
     # --- the loop -----------------------------------------------------------------------------------
     def tick(self, now_s: float) -> None:
         """After each tick: apply a restored time, queue the files whose state changed."""
+        for kind, app in self._apps.items():
+            version = self._app_version(kind, app)
+            if version != self._app_seen.get(kind):
+                self._app_seen[kind] = version
+                payload = {"system_id": self.system_id, "snapshot": app.snapshot()}
+                if kind == CALIBRATION and self._timeorbit is not None and self._timeorbit.clock.known:
+                    payload["utc0_s"] = self._timeorbit.utc_s(now_s) - now_s  # the UTC at loop time 0
+                self._queue(kind, payload)
         to = self._timeorbit
         if self._restore_utc is not None and to is not None:
             utc_s, mono_s = self._restore_utc

@@ -199,6 +199,7 @@ class KitFieldModel:
         self._samples: deque[tuple[float, np.ndarray, tuple]] = deque(maxlen=max_samples)
         self.flagged = 0
         self.polls = 0
+        self.restored = False  # the calibration is one from before a restart (`restore`)
         self.version = 0  # calibrations taken in (the flight loop re-expresses its gate's reference)
 
     # --- state ------------------------------------------------------------------------------------
@@ -395,6 +396,40 @@ class KitFieldModel:
             m.P = self.P[3 * i:3 * i + 3, 3 * i:3 * i + 3].copy()
         for m in involved:
             m.steps += 1
+        self.version += 1
+
+    # --- across a restart (`fsw.persist`) ---------------------------------------------------------
+    def snapshot(self) -> dict | None:
+        """The channels' calibrated F_a [T] and their covariance to keep, with the design's F_a (a model of
+        another kit refuses it), and the steps taken in (None before any)."""
+        if self.version == 0:
+            return None
+        return {"fa_T": [float(x) for x in self.x_T], "P": [[float(x) for x in row] for row in self.P],
+                "fa_design_T": [float(x) for m in self.models for x in m.fa_design_T],
+                "steps": [m.steps for m in self.models]}
+
+    def restore(self, snap: dict) -> None:
+        """The calibration from before a restart taken as the prior of the channels' F_a; the steps after
+        it judge it as they judge any (outliers refused). ValueError when `snap` is not of this kit."""
+        x = np.asarray(snap["fa_T"], float)
+        P = np.asarray(snap["P"], float)
+        design = np.asarray(snap["fa_design_T"], float)
+        n = 3 * len(self.models)
+        if x.shape != (n,) or P.shape != (n, n) or design.shape != (n,) or not (
+                np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
+            raise ValueError("kit-field calibration of the wrong shape or not finite")
+        mine = np.concatenate([m.fa_design_T for m in self.models])
+        if not np.allclose(design, mine, rtol=1e-9, atol=1e-15):
+            raise ValueError("kit-field calibration of another kit's design")
+        ev = np.linalg.eigvalsh(0.5 * (P + P.T)) if np.allclose(P, P.T, rtol=1e-9, atol=0.0) else np.array([-1.0])
+        if np.max(ev) <= 0 or np.min(ev) < -1e-9 * np.max(ev):
+            raise ValueError("kit-field covariance not symmetric positive")
+        self.x_T, self.P = x, P
+        for i, m in enumerate(self.models):
+            m.fa_T = x[3 * i:3 * i + 3].copy()
+            m.P = P[3 * i:3 * i + 3, 3 * i:3 * i + 3].copy()
+            m.steps = int(snap.get("steps", [0] * len(self.models))[i])
+        self.restored = True
         self.version += 1
 
     # --- telemetry --------------------------------------------------------------------------------

@@ -75,6 +75,9 @@ COLLECTING = 1      #: too few samples yet
 CONVERGED = 2       #: the published calibration is good and each σ is below its goal
 UNCERTAIN = 3       #: good but not yet within the σ goals (applied: better than none)
 REJECTED = 4        #: the latest solution failed a check: the last good one stays (if any)
+#: `MagCal.restored` (DEBRIS_MAGCAL's `restored`): the applied calibration is not one restored after a restart,
+#: is one (not yet confirmed by a solution from new samples), or one was and the new samples refused it
+NOT_RESTORED, RESTORED, RESTORED_DROPPED = 0, 1, 2
 STATE_NAMES = {NO_FIELD: "no field on board", COLLECTING: "collecting", CONVERGED: "converged",
                UNCERTAIN: "uncertain", REJECTED: "rejected"}
 
@@ -693,6 +696,8 @@ class MagCal:
         #: after a restart: the new sums are not judged against the last good calibration, which stays
         #: applied until a solution from them passes the checks
         self._relearning = False
+        self.restored = NOT_RESTORED
+        self.restored_dropped = 0
 
     @property
     def n_tau(self) -> int:
@@ -744,6 +749,15 @@ class MagCal:
         recent, self.recent = self.recent, Stats(self.n_tau)
         if (self._good is not None and not self._relearning and recent.n
                 and window_chi2(recent, self._good) > self.limits.max_window_chi2):
+            if self.restored == RESTORED:  # the calibration from before a restart does not fit: dropped
+                self.restored, self.restored_dropped = RESTORED_DROPPED, self.restored_dropped + 1
+                self._good = self._good_p = None
+                self.calibration, self.published_at_s, self.rate_T_per_s = IDENTITY, None, np.zeros(3)
+                self.published += 1
+                self.rejections += 1
+                self.reason = f"{WINDOW_RESIDUAL} for the calibration restored after a restart: dropped"
+                self.state = REJECTED
+                return False
             self.misfits += 1
             self.dropped += recent.n
             self.stats.remove(recent)
@@ -768,6 +782,7 @@ class MagCal:
             self.state = REJECTED
             return False
         self._relearning = False
+        self.restored = NOT_RESTORED
         self.reason = None
         self.calibration = cal
         self.published += 1
@@ -809,3 +824,68 @@ class MagCal:
         """The sample with the last good calibration applied (unchanged before any); with `t_s`, its
         hard iron followed along the drift to that time."""
         return apply(self.calibration_at(t_s), b_meas_T)
+
+    # --- across a restart (`fsw.persist`) -------------------------------------------------------------
+    def snapshot(self) -> dict | None:
+        """The last good calibration as JSON-able numbers (µT units; None before any): θ, what it
+        published (b(t), D, covariance), its time and drift period, its state."""
+        if self._good is None:
+            return None
+        c = self.calibration
+        return {"theta_uT": [float(x) for x in self._good], "b_T": [float(x) for x in c.b_T],
+                "D": [[float(x) for x in row] for row in c.D],
+                "cov": None if c.cov is None else [[float(x) for x in row] for row in c.cov],
+                "published_at_s": self.published_at_s, "drift_period_s": self.drift_period_s,
+                "state": int(self.state)}
+
+    def restore(self, snap: dict, shift_s: float | None, t_s: float = 0.0) -> str:
+        """Take a :meth:`snapshot` from before a restart as the last good calibration, applied from the
+        next sample (`t_s`: the loop's time now) and judged like a new one: the first stretch of new
+        samples it does not fit drops it (`restored` 2, counted in `restored_dropped`), a solution from
+        the new samples that passes the checks replaces it. The loop's time restarted at 0: `shift_s` is
+        the old time base's value at the new one's 0 (from the UTC on board before and after), with which
+        the drift's terms keep their phase; None: the drift's terms are dropped (a constant hard iron, b
+        as published, its σ grown by the drift's amplitude per axis: the hard iron may be anywhere on its
+        cycle). Returns how it was taken;
+        ValueError when the snapshot is not one this calibration can take."""
+        theta = np.asarray(snap["theta_uT"], float)
+        b = np.asarray(snap["b_T"], float)
+        D = np.asarray(snap["D"], float)
+        cov = None if snap.get("cov") is None else np.asarray(snap["cov"], float)
+        period = snap.get("drift_period_s")
+        if (b.shape != (3,) or D.shape != (3, 3) or (cov is not None and cov.shape != (N_THETA, N_THETA))
+                or theta.shape not in ((N_THETA,), (N_THETA + 6,))
+                or not all(np.all(np.isfinite(a)) for a in (theta, b, D, *(() if cov is None else (cov,))))
+                or not np.allclose(D, D.T, atol=1e-9) or not np.allclose(_sym(theta[3:N_THETA]), D, atol=1e-9)):
+            raise ValueError("calibration fields of the wrong shape, not finite or not consistent")
+        th = np.zeros(n_theta(self.n_tau))
+        th[3:N_THETA] = theta[3:N_THETA]
+        phased = (len(theta) > N_THETA and self.n_tau == 3 and shift_s is not None and math.isfinite(shift_s)
+                  and period is not None and math.isclose(float(period), self.drift_period_s, rel_tol=1e-9))
+        if phased:
+            a = 2.0 * math.pi * shift_s / self.drift_period_s  # b(t_old) = b(t_new + shift): rotate (β_c, β_s)
+            bc, bs = theta[9:12], theta[12:15]
+            ca, sa = math.cos(a), math.sin(a)
+            th[:3] = theta[:3]
+            th[9:12] = ca * bc + sa * bs
+            th[12:15] = -sa * bc + ca * bs
+            how = "its drift phased by the UTC"
+        else:
+            th[:3] = b * UT_PER_T
+            how = "its drift's terms dropped (no UTC before and after)" if len(theta) > N_THETA else "a constant host"
+            if len(theta) > N_THETA and cov is not None:
+                # b(t) is anywhere on its cycle now: σ of b grows by the drift's amplitude per axis
+                amp_T = np.hypot(theta[9:12], theta[12:15]) / UT_PER_T
+                cov = cov.copy()
+                cov[:3, :3] += np.diag(amp_T ** 2)
+        self.reset()
+        self._good = th
+        self.published_at_s = t_s
+        b_now = current(th, self._tau(t_s))[0][:3] if phased else b * UT_PER_T
+        self._good_p = np.concatenate([b_now, th[3:N_THETA]])
+        self.calibration = Calibration(b_now / UT_PER_T, D, cov)
+        self.rate_T_per_s = rate(th, t_s, self.drift_period_s) / UT_PER_T
+        self.published += 1
+        self.state = int(snap["state"]) if snap.get("state") in (CONVERGED, UNCERTAIN) else UNCERTAIN
+        self.restored = RESTORED
+        return how

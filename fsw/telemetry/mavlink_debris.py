@@ -544,7 +544,7 @@ enums["DEBRIS_TLE_REFUSAL"][8] = EnumEntry("DEBRIS_TLE_REFUSAL_ENUM_END", """"""
 enums["DEBRIS_MAGCAL_STATE"] = Enum()
 enums["DEBRIS_MAGCAL_STATE"].bitmask = False
 DEBRIS_MAGCAL_STATE_NO_FIELD = 0
-enums["DEBRIS_MAGCAL_STATE"][0] = EnumEntry("DEBRIS_MAGCAL_STATE_NO_FIELD", """No field model along the orbit on board: the calibration is inactive and samples reach the estimators uncorrected.""")
+enums["DEBRIS_MAGCAL_STATE"][0] = EnumEntry("DEBRIS_MAGCAL_STATE_NO_FIELD", """No field model along the orbit on board: the calibration is inactive and samples reach the estimators uncorrected (but for a calibration restored after a restart, DEBRIS_MAGCAL restored 1, which is applied).""")
 DEBRIS_MAGCAL_STATE_COLLECTING = 1
 enums["DEBRIS_MAGCAL_STATE"][1] = EnumEntry("DEBRIS_MAGCAL_STATE_COLLECTING", """Collecting samples; no calibration yet (samples uncorrected).""")
 DEBRIS_MAGCAL_STATE_CONVERGED = 2
@@ -7443,22 +7443,22 @@ class MAVLink_debris_magcal_message(MAVLink_message):
 
     id = MAVLINK_MSG_ID_DEBRIS_MAGCAL
     msgname = "DEBRIS_MAGCAL"
-    fieldnames = ["time_usec", "samples", "dropped", "rejections", "hard_iron", "soft_iron", "hard_iron_sigma", "soft_iron_sigma", "residual", "state", "hard_iron_rate", "drift_period"]
-    ordered_fieldnames = ["time_usec", "samples", "dropped", "hard_iron", "soft_iron", "hard_iron_sigma", "soft_iron_sigma", "residual", "rejections", "state", "hard_iron_rate", "drift_period"]
-    fieldtypes = ["uint64_t", "uint32_t", "uint32_t", "uint16_t", "float", "float", "float", "float", "float", "uint8_t", "float", "float"]
+    fieldnames = ["time_usec", "samples", "dropped", "rejections", "hard_iron", "soft_iron", "hard_iron_sigma", "soft_iron_sigma", "residual", "state", "hard_iron_rate", "drift_period", "restored"]
+    ordered_fieldnames = ["time_usec", "samples", "dropped", "hard_iron", "soft_iron", "hard_iron_sigma", "soft_iron_sigma", "residual", "rejections", "state", "hard_iron_rate", "drift_period", "restored"]
+    fieldtypes = ["uint64_t", "uint32_t", "uint32_t", "uint16_t", "float", "float", "float", "float", "float", "uint8_t", "float", "float", "uint8_t"]
     fielddisplays_by_name: Dict[str, str] = {}
     fieldenums_by_name: Dict[str, str] = {"state": "DEBRIS_MAGCAL_STATE"}
     fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "hard_iron": "uT", "hard_iron_sigma": "uT", "hard_iron_rate": "uT/h", "drift_period": "s"}
-    native_format = bytearray(b"<QIIfffffHBff")
-    orders = [0, 1, 2, 8, 3, 4, 5, 6, 7, 9, 10, 11]
-    lengths = [1, 1, 1, 3, 6, 3, 6, 1, 1, 1, 3, 1]
-    array_lengths = [0, 0, 0, 3, 6, 3, 6, 0, 0, 0, 3, 0]
+    native_format = bytearray(b"<QIIfffffHBffB")
+    orders = [0, 1, 2, 8, 3, 4, 5, 6, 7, 9, 10, 11, 12]
+    lengths = [1, 1, 1, 3, 6, 3, 6, 1, 1, 1, 3, 1, 1]
+    array_lengths = [0, 0, 0, 3, 6, 3, 6, 0, 0, 0, 3, 0, 0]
     crc_extra = 105
-    unpacker = struct.Struct("<QII3f6f3f6ffHB3ff")
+    unpacker = struct.Struct("<QII3f6f3f6ffHB3ffB")
     instance_field = None
     instance_offset = -1
 
-    def __init__(self, time_usec: int, samples: int, dropped: int, rejections: int, hard_iron: Sequence[float], soft_iron: Sequence[float], hard_iron_sigma: Sequence[float], soft_iron_sigma: Sequence[float], residual: float, state: int, hard_iron_rate: Sequence[float] = (0, 0, 0), drift_period: float = 0):
+    def __init__(self, time_usec: int, samples: int, dropped: int, rejections: int, hard_iron: Sequence[float], soft_iron: Sequence[float], hard_iron_sigma: Sequence[float], soft_iron_sigma: Sequence[float], residual: float, state: int, hard_iron_rate: Sequence[float] = (0, 0, 0), drift_period: float = 0, restored: int = 0):
         MAVLink_message.__init__(self, MAVLink_debris_magcal_message.id, MAVLink_debris_magcal_message.msgname)
         self._fieldnames = MAVLink_debris_magcal_message.fieldnames
         self._instance_field = MAVLink_debris_magcal_message.instance_field
@@ -7475,9 +7475,10 @@ class MAVLink_debris_magcal_message(MAVLink_message):
         self.state = state
         self.hard_iron_rate = hard_iron_rate
         self.drift_period = drift_period
+        self.restored = restored
 
     def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
-        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.samples, self.dropped, self.hard_iron[0], self.hard_iron[1], self.hard_iron[2], self.soft_iron[0], self.soft_iron[1], self.soft_iron[2], self.soft_iron[3], self.soft_iron[4], self.soft_iron[5], self.hard_iron_sigma[0], self.hard_iron_sigma[1], self.hard_iron_sigma[2], self.soft_iron_sigma[0], self.soft_iron_sigma[1], self.soft_iron_sigma[2], self.soft_iron_sigma[3], self.soft_iron_sigma[4], self.soft_iron_sigma[5], self.residual, self.rejections, self.state, self.hard_iron_rate[0], self.hard_iron_rate[1], self.hard_iron_rate[2], self.drift_period), force_mavlink1=force_mavlink1)
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.samples, self.dropped, self.hard_iron[0], self.hard_iron[1], self.hard_iron[2], self.soft_iron[0], self.soft_iron[1], self.soft_iron[2], self.soft_iron[3], self.soft_iron[4], self.soft_iron[5], self.hard_iron_sigma[0], self.hard_iron_sigma[1], self.hard_iron_sigma[2], self.soft_iron_sigma[0], self.soft_iron_sigma[1], self.soft_iron_sigma[2], self.soft_iron_sigma[3], self.soft_iron_sigma[4], self.soft_iron_sigma[5], self.residual, self.rejections, self.state, self.hard_iron_rate[0], self.hard_iron_rate[1], self.hard_iron_rate[2], self.drift_period, self.restored), force_mavlink1=force_mavlink1)
 
 
 # Define name on the class for backwards compatibility (it is now msgname).
@@ -18734,7 +18735,7 @@ class MAVLink(object):
         """
         self.send(self.debris_tle_encode(target_system, target_component, line1, line2), force_mavlink1=force_mavlink1)
 
-    def debris_magcal_encode(self, time_usec: int, samples: int, dropped: int, rejections: int, hard_iron: Sequence[float], soft_iron: Sequence[float], hard_iron_sigma: Sequence[float], soft_iron_sigma: Sequence[float], residual: float, state: int, hard_iron_rate: Sequence[float] = (0, 0, 0), drift_period: float = 0) -> MAVLink_debris_magcal_message:
+    def debris_magcal_encode(self, time_usec: int, samples: int, dropped: int, rejections: int, hard_iron: Sequence[float], soft_iron: Sequence[float], hard_iron_sigma: Sequence[float], soft_iron_sigma: Sequence[float], residual: float, state: int, hard_iron_rate: Sequence[float] = (0, 0, 0), drift_period: float = 0, restored: int = 0) -> MAVLink_debris_magcal_message:
         """
         Onboard host-magnetics calibration applied to every sample before the
         estimators: B_true = (I + D) (B_meas - b), b the hard iron in
@@ -18753,11 +18754,12 @@ class MAVLink(object):
         state                     : Calibration state. (type:uint8_t, values:DEBRIS_MAGCAL_STATE)
         hard_iron_rate            : Rate of change of the applied hard iron along its thermal drift (a first harmonic per orbit); the hard iron applied between two messages follows it. [uT/h] (type:float)
         drift_period              : Period of the hard iron's drift the calibration follows (the orbit's); 0: a constant host. [s] (type:float)
+        restored                  : 0: the applied calibration was solved in this run (or there is none); 1: restored from the state directory after a restart, applied, not yet confirmed by a solution from new samples; 2: one was restored and the new samples did not fit it: dropped. (type:uint8_t)
 
         """
-        return MAVLink_debris_magcal_message(time_usec, samples, dropped, rejections, hard_iron, soft_iron, hard_iron_sigma, soft_iron_sigma, residual, state, hard_iron_rate, drift_period)
+        return MAVLink_debris_magcal_message(time_usec, samples, dropped, rejections, hard_iron, soft_iron, hard_iron_sigma, soft_iron_sigma, residual, state, hard_iron_rate, drift_period, restored)
 
-    def debris_magcal_send(self, time_usec: int, samples: int, dropped: int, rejections: int, hard_iron: Sequence[float], soft_iron: Sequence[float], hard_iron_sigma: Sequence[float], soft_iron_sigma: Sequence[float], residual: float, state: int, hard_iron_rate: Sequence[float] = (0, 0, 0), drift_period: float = 0, force_mavlink1: bool = False) -> None:
+    def debris_magcal_send(self, time_usec: int, samples: int, dropped: int, rejections: int, hard_iron: Sequence[float], soft_iron: Sequence[float], hard_iron_sigma: Sequence[float], soft_iron_sigma: Sequence[float], residual: float, state: int, hard_iron_rate: Sequence[float] = (0, 0, 0), drift_period: float = 0, restored: int = 0, force_mavlink1: bool = False) -> None:
         """
         Onboard host-magnetics calibration applied to every sample before the
         estimators: B_true = (I + D) (B_meas - b), b the hard iron in
@@ -18776,9 +18778,10 @@ class MAVLink(object):
         state                     : Calibration state. (type:uint8_t, values:DEBRIS_MAGCAL_STATE)
         hard_iron_rate            : Rate of change of the applied hard iron along its thermal drift (a first harmonic per orbit); the hard iron applied between two messages follows it. [uT/h] (type:float)
         drift_period              : Period of the hard iron's drift the calibration follows (the orbit's); 0: a constant host. [s] (type:float)
+        restored                  : 0: the applied calibration was solved in this run (or there is none); 1: restored from the state directory after a restart, applied, not yet confirmed by a solution from new samples; 2: one was restored and the new samples did not fit it: dropped. (type:uint8_t)
 
         """
-        self.send(self.debris_magcal_encode(time_usec, samples, dropped, rejections, hard_iron, soft_iron, hard_iron_sigma, soft_iron_sigma, residual, state, hard_iron_rate, drift_period), force_mavlink1=force_mavlink1)
+        self.send(self.debris_magcal_encode(time_usec, samples, dropped, rejections, hard_iron, soft_iron, hard_iron_sigma, soft_iron_sigma, residual, state, hard_iron_rate, drift_period, restored), force_mavlink1=force_mavlink1)
 
     def debris_kit_field_encode(self, time_usec: int, channel: int, moving: int, scale: float, scale_sigma: float, field: Sequence[float], innovation: float, fit_rms: float, steps: int, ill_conditioned: int, outliers: int, flagged: int) -> MAVLink_debris_kit_field_message:
         """

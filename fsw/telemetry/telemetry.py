@@ -260,10 +260,12 @@ class Telemetry:
         self._send(mavlink.MAVLink_statustext_message(severity, text.encode("ascii", "replace")[:50]))
 
     def magcal(self, t_s: float, cal, *, state: int, samples: int, dropped: int, rejections: int,
-               residual: float, rate_T_per_s=(0.0, 0.0, 0.0), drift_period_s: float | None = None) -> None:
+               residual: float, rate_T_per_s=(0.0, 0.0, 0.0), drift_period_s: float | None = None,
+               restored: int = 0) -> None:
         """DEBRIS_MAGCAL: the applied calibration (`fsw.estimation.magcal.Calibration`, b in µT, D's six
         terms), its 1-σ (NaN before any), state and counters; the hard iron's drift rate (µT/h) and the
-        drift's period (0: a constant host)."""
+        drift's period (0: a constant host); `restored`: 1 the calibration is one restored after a
+        restart, 2 one was and the new samples dropped it."""
         sig = cal.sigma
         sig = np.where(np.isfinite(sig), sig, np.nan)
         D = cal.D
@@ -272,4 +274,4 @@ class Telemetry:
             usec(t_s), min(int(samples), 0xFFFFFFFF), min(int(dropped), 0xFFFFFFFF), min(int(rejections), 65535),
             [float(x) * 1e6 for x in cal.b_T], [float(x) for x in terms], [float(x) * 1e6 for x in sig[:3]],
             [float(x) for x in sig[3:]], float(residual), int(state),
-            [float(x) * 1e6 * 3600.0 for x in rate_T_per_s], float(drift_period_s or 0.0)))
+            [float(x) * 1e6 * 3600.0 for x in rate_T_per_s], float(drift_period_s or 0.0), int(restored)))

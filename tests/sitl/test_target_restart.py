@@ -1,5 +1,6 @@
 """A restart of the box on target: `fsw.main --state-dir` is killed (SIGKILL) after it accepted signed
-commands and a time set, and started again: the commands replayed are refused, the time is back."""
+commands and a time set, and started again: the commands replayed are refused, the time is back, the host
+calibration and the inertia estimate it had are applied and sent again."""
 import signal
 import socket
 import subprocess
@@ -10,7 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fsw.telemetry.dialect import mavlink
+from fsw.estimation import magcal as mc
+from fsw.state_files import save_state
+from fsw.telemetry.dialect import FSW_SYSID, mavlink
 from fsw.telemetry.signing import SigningClock, write_key
 from ground.command import GroundLink
 from hil.mmc5983ma import EmulatedMmc5983ma
@@ -57,11 +60,40 @@ def _pending(sock) -> bool:
     return True
 
 
-def start_box(bridge, key, state, up):
+def start_box(bridge, key, state, up, down=None):
     return subprocess.Popen([sys.executable, "-m", "fsw.main", "--mag-serial", bridge.port_name, "--key", str(key),
-                             "--state-dir", str(state), "--link", f"udpout:127.0.0.1:{free_udp_port()}",
+                             "--state-dir", str(state), "--link", f"udpout:127.0.0.1:{down or free_udp_port()}",
                              "--uplink", f"udpin:127.0.0.1:{up}", "--quiet"],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+HARD_IRON_UT = np.array([6.0, -9.0, 4.0])
+INERTIA = [180.0, 220.0, 260.0, 1.5, -2.0, 0.7]
+
+
+def seed_results(state: Path) -> None:
+    """What an earlier run of this box left: a host calibration (its drift's terms, no UTC then) and an
+    inertia estimate, as `fsw.persist` writes them."""
+    theta = np.concatenate([HARD_IRON_UT, [0.02, -0.01, 0.03, 0.0, 0.0, 0.0], [0.5, -0.4, 0.6, 0.1, 0.2, -0.1]])
+    D = mc._sym(theta[3:9])
+    cov = np.diag([0.05e-6 ** 2] * 3 + [1e-4 ** 2] * 6)
+    save_state(state / "calibration.json", "calibration", {"system_id": FSW_SYSID, "snapshot": {
+        "theta_uT": theta.tolist(), "b_T": (HARD_IRON_UT * 1e-6).tolist(), "D": D.tolist(), "cov": cov.tolist(),
+        "published_at_s": 3000.0, "drift_period_s": 5670.0, "state": mc.CONVERGED}})
+    save_state(state / "ident.json", "ident", {"system_id": FSW_SYSID, "snapshot": {
+        "samples": 4321, "inertia": INERTIA, "ci95": [4.0] * 6, "ci99": [5.0] * 6, "state": 4, "flags": 7,
+        "cov": np.diag([4.0] * 6).tolist()}})
+
+
+def downlinked(sock) -> list:
+    parser = mavlink.MAVLink(None)
+    out = []
+    while True:
+        try:
+            data = sock.recv(65536)
+        except socket.timeout:
+            return out
+        out += parser.parse_buffer(data) or []
 
 
 @pytest.mark.slow  # two start-ups of the flight software in their own processes
@@ -70,6 +102,10 @@ def test_killed_and_started_again(tmp_path):
     write_key(key, KEY)
     state = tmp_path / "state"
     state.mkdir()
+    seed_results(state)
+    down = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    down.bind(("127.0.0.1", 0))
+    down.settimeout(0.5)
     t0 = time.monotonic()
     emu = EmulatedMmc5983ma(lambda t: np.array([20e-6, -5e-6, 45e-6]), lambda: time.monotonic() - t0,
                             np.random.default_rng(5))
@@ -90,17 +126,29 @@ def test_killed_and_started_again(tmp_path):
         old = list(ground.sent)
         while _pending(ground.sock):  # the first box's answers
             pass
-        box = start_box(bridge, key, state, up)
+        box = start_box(bridge, key, state, up, down.getsockname()[1])
         probe = Ground(up, link_id=1)  # another signing stream: the replayed one's newest stays the saved one
         try:
             probe.command_until_acked()                # the new box is up and takes a new command
             for frame in old:                          # every frame the first box was sent, replayed
                 ground.sock.sendto(frame, ("127.0.0.1", up))
             time.sleep(1.0)
+            sent = downlinked(down)
         finally:
             box.send_signal(signal.SIGTERM)
             out, err = box.communicate(timeout=60)
+            down.close()
     assert box.returncode == 0, err
+    # the calibration and the inertia estimate survived the SIGKILL, applied and sent again
+    assert "calibration: restored from before the restart (its drift's terms dropped (no UTC before and after))" \
+        in out
+    assert "ident: restored from before the restart (applied)" in out
+    magcal = [m for m in sent if m.get_type() == "DEBRIS_MAGCAL"]
+    assert magcal and all(m.restored == mc.RESTORED for m in magcal)
+    np.testing.assert_allclose(magcal[0].hard_iron, HARD_IRON_UT, atol=1e-4)
+    ident = [m for m in sent if m.get_type() == "DEBRIS_INERTIA_ESTIMATE"]
+    assert ident and ident[0].samples == 4321 and ident[0].state == 4
+    np.testing.assert_allclose(ident[0].inertia, INERTIA, rtol=1e-6)
     assert "signing state: 1 command streams restored" in out
     assert "time: restored from before the restart (same boot)" in out
     uplink = next(line for line in out.splitlines() if line.startswith("uplink:"))
