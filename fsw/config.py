@@ -22,6 +22,8 @@ DEFAULT_LINK = "udpout:127.0.0.1:14550"
 MAX_BUFFER_FRAMES = 1_000_000
 #: the loop's ceiling (--rate) and the MMC5983MA's (--sample-rate)
 MAX_RATE_HZ = 1000.0
+#: the largest field error σ an estimator may be told, µT: the MMC5983MA's full scale is ±800 µT
+MAX_SIGMA_UT = 1000.0
 
 
 @dataclass(frozen=True)
@@ -85,8 +87,8 @@ def add_run_options(ap: argparse.ArgumentParser) -> None:
                          "their numbering survive a restart (default: in memory)")
     ap.add_argument("--sample-rate", type=finite_float(0, MAX_RATE_HZ, min_exclusive=True), default=None,
                     metavar="HZ", help="magnetometer sample rate, up to 1000 Hz (default: the source's own)")
-    ap.add_argument("--sigma-uT", type=finite_float(0, min_exclusive=True), default=1.5,
-                    help="1-sigma field error per axis used by the estimators (default 1.5 uT)")
+    ap.add_argument("--sigma-uT", type=finite_float(0, MAX_SIGMA_UT, min_exclusive=True), default=1.5,
+                    help="1-sigma field error per axis used by the estimators (default 1.5 uT, at most 1000)")
     ap.add_argument("--max-sample-tlm-hz", type=finite_float(0.01, MAX_RATE_HZ), default=20.0,
                     help="at most this many magnetometer samples per second go out on the link "
                          "(0.01 to 1000, default 20)")

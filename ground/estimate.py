@@ -43,6 +43,7 @@ from datetime import datetime
 import numpy as np
 
 from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float
+from fsw.config import MAX_SIGMA_UT
 from fsw.estimation import attitude_kalman as ak
 from fsw.estimation import field_check as fc
 from fsw.estimation import filter_banks as fb
@@ -284,7 +285,7 @@ def main(argv=None) -> int:
     ap.add_argument("--rates", required=True, metavar="OUT.csv", help="rate estimates to write")
     ap.add_argument("--method", choices=METHODS, default="smoother", help="estimator (default smoother)")
     ap.add_argument("--plot", metavar="FILE.png", help="estimate, 1-σ band and reference per axis")
-    ap.add_argument("--sigma-uT", type=finite_float(0, min_exclusive=True), default=None,
+    ap.add_argument("--sigma-uT", type=finite_float(0, MAX_SIGMA_UT, min_exclusive=True), default=None,
                     help="1-σ field noise per axis, > 0 (default: estimated from third differences)")
     ap.add_argument("--decimate-hz", type=finite_float(0, min_exclusive=True), default=None, metavar="HZ",
                     help="keep one sample per 1/HZ s first (mimic a slower sensor)")

@@ -49,6 +49,7 @@ from typing import Callable
 import numpy as np
 
 from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range
+from fsw.config import MAX_SIGMA_UT
 from fsw.estimation import euler_fit as ef
 from fsw.estimation import field_check as fc
 from fsw.estimation import inertia as inr
@@ -322,7 +323,7 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--field-turn-dps", type=finite_float(0), default=LEO_FIELD_TURN_DPS, metavar="DPS",
                     help="without an orbit: the field's turn in inertial space the intervals allow for "
                          f"(default {LEO_FIELD_TURN_DPS} °/s, a low orbit; 0: none)")
-    ap.add_argument("--sigma-uT", type=finite_float(0, min_exclusive=True), default=1.5,
+    ap.add_argument("--sigma-uT", type=finite_float(0, MAX_SIGMA_UT, min_exclusive=True), default=1.5,
                     help="1-σ field noise per axis, > 0 (default 1.5 µT)")
     ap.add_argument("--diag", action="store_true",
                     help="diagonal tensor only (sedelnikov2023's special case: sensor axes = principal axes)")
