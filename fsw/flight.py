@@ -354,9 +354,10 @@ class FlightSoftware:
             return
         t = self.sample_t_s
         self.tlm_samples += 1
-        seq = self.sample_store.append(t, self.raw_b_T)
-        self.tlm.mag_sample(t, self.raw_b_T, seq, self.sample_store.run_id,
-                            mavlink.DEBRIS_SAMPLE_FLAGS_KIT_MOVING if self.kit_skip else 0)
+        flags = mavlink.DEBRIS_SAMPLE_FLAGS_KIT_MOVING if self.kit_skip else 0
+        kit = self.kit_T if self.kit_field is not None else None  # what _calibrate took out of raw_b_T
+        seq = self.sample_store.append(t, self.raw_b_T, flags, kit)
+        self.tlm.mag_sample(t, self.raw_b_T, seq, self.sample_store.run_id, flags, kit)
         for name, est in self.estimators.items():
             if self.new_estimate[name]:
                 self.tlm.rate_estimate(t, est.omega_radps, est.sigma_radps, METHODS[name], est.flags)

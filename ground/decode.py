@@ -428,14 +428,20 @@ class Decoder:
         t_s = np.array(times, dtype=float) / 1e6
         b_T = np.array([seg.mag_gauss[t] for t in times], dtype=float).reshape(-1, 3) * T_PER_GAUSS
         meta = self.metadata(seg)
+        kit = {}
+        if seg.kit_seen:  # the kit's field the box took out, and the flags (KIT_MOVING)
+            zero = ((0.0, 0.0, 0.0), 0)
+            k = [seg.kit.get(t, zero) for t in times]
+            kit = {"kit_T": np.array([x[0] for x in k], dtype=float).reshape(-1, 3) * T_PER_GAUSS,
+                   "flags": np.array([x[1] for x in k], dtype=np.int64)}
         if not seg.truth:
-            return Recording(t_s=t_s, b_T=b_T, metadata=meta)
+            return Recording(t_s=t_s, b_T=b_T, metadata=meta, **kit)
         nan3 = ((math.nan,) * 3, (math.nan,) * 3)
         truth = [seg.truth.get(t, nan3) for t in times]
         w = np.array([x[0] for x in truth], dtype=float).reshape(-1, 3)
         m = np.array([x[1] for x in truth], dtype=float).reshape(-1, 3)
         meta["reference"] = "DEBRIS_SIM_STATE: simulation truth, for scoring only"
-        return Recording(t_s=t_s, b_T=b_T, m_Nm=m, w_ref_radps=w, metadata=meta)
+        return Recording(t_s=t_s, b_T=b_T, m_Nm=m, w_ref_radps=w, metadata=meta, **kit)
 
     def rate_estimates(self, seg: Segment | None = None, times: list[int] | None = None) -> RateEstimates:
         """Onboard estimates of the selected method, one row per magnetometer sample (NaN where

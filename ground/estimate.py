@@ -31,7 +31,9 @@ laboratory, the Earth's rotation; 0: none).
 
 The host's hard and soft iron: `--magcal FILE.json` applies a calibration to the samples first,
 `--estimate-magcal` estimates it from the recording along its orbit, and without either the calibration in
-the recording's metadata (the box's) is applied unless `--no-magcal` (`ground/magcal.py`).
+the recording's metadata (the box's) is applied unless `--no-magcal` (`ground/magcal.py`). Before that the
+de-orbit kit's field the box recorded (``kit_b*_uT``) is subtracted and the samples flagged KIT_MOVING are
+skipped (`ground/kit_field.py`; the first line says how many; `--kit-raw` keeps them as recorded).
 """
 from __future__ import annotations
 
@@ -51,6 +53,7 @@ from fsw.estimation import kotelnikov as ko
 from fsw.estimation import rate_formulas as rf
 from fsw.estimation import rate_kalman as rk
 from fsw.estimation.tle import TleError, parse_tle
+from ground import kit_field
 from ground import magcal as gm
 from ground import smoother as sm
 from ground.field import recording_field, scenario_field, tle_field
@@ -299,6 +302,7 @@ def main(argv=None) -> int:
     ap.add_argument("--known-inertia", metavar="I", type=inertia_tensor,
                     help="known tensor for euler/kalman-euler: 'Ixx,Iyy,Izz' or 9 values, kg·m²")
     gm.add_arguments(ap)
+    kit_field.add_arguments(ap)
     args = ap.parse_args(argv)
     if args.tle and not args.utc0:
         ap.error("--tle needs --utc0")
@@ -318,7 +322,8 @@ def main(argv=None) -> int:
         except ValueError as e:
             ap.error(f"--plot {e}")
     try:
-        rec = read_recording(args.input)
+        rec, kit_line = kit_field.take_out(read_recording(args.input), raw=args.kit_raw)
+        print(kit_line)
         field, orbit_how = recording_field(rec.metadata, scenario=args.scenario, tle=args.tle, utc0=args.utc0)
         print(f"field: {orbit_how}")
         check_samples(rec, args.method)
@@ -338,6 +343,7 @@ def main(argv=None) -> int:
                 "field": "along the orbit" if field is not None else "fixed in inertial space", "orbit": orbit_how}
         if calibrated:
             meta["magcal"] = calibrated
+        meta["kit_field"] = kit_line
         meta.update({k: str(v) for k, v in notes.items()})
         write_rate_estimates(args.rates, RateEstimates(rec.t_s, w, s, metadata=meta))
     except (RecordingError, ValueError, OSError) as e:

@@ -28,7 +28,9 @@ each inertial axis in turn, and the three shifts of the tensor are added to its 
 long. The JSON says so in ``field_turn``; the running estimate of ``--plot`` is not widened.
 
 The host's hard and soft iron are taken out of the samples first with ``--magcal FILE.json`` or
-``--estimate-magcal`` (`ground/magcal.py`; the JSON then says which in ``magcal``).
+``--estimate-magcal`` (`ground/magcal.py`; the JSON then says which in ``magcal``). Before that the de-orbit
+kit's field the box recorded (``kit_b*_uT``) is subtracted and the samples flagged KIT_MOVING are skipped
+(`ground/kit_field.py`; the first line says how many; ``--kit-raw`` keeps them as recorded).
 
 Output: the inertia JSON of recording-format.md — tensor about the centre of mass in sensor axes,
 95 % half-widths, principal moments, method, samples — plus the 99 % half-widths, the physical
@@ -57,6 +59,7 @@ from fsw.estimation import sampled_moment as sm
 from fsw.estimation.tle import TleError, parse_tle
 from fsw.files import write_atomic
 
+from . import kit_field
 from . import magcal as gm
 from .field import LEO_FIELD_TURN_DPS, recording_field, scenario_field
 from .plot import check_plot_path, save_figure
@@ -336,6 +339,7 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
                     help="points of the running estimate drawn by --plot (default 12)")
     ap.add_argument("--quiet", action="store_true", help="no progress lines")
     gm.add_arguments(ap)
+    kit_field.add_arguments(ap)
 
 
 def check_cli_paths(ap: argparse.ArgumentParser, input_path: str, output_path: str, args,
@@ -367,7 +371,8 @@ def run_cli(input_path: str, output_path: str, args) -> int:
             print(f"ground.inertia: --tle: {e}", file=sys.stderr)
             return 2
     try:
-        rec = read_recording(input_path)
+        rec, kit_line = kit_field.take_out(read_recording(input_path), raw=getattr(args, "kit_raw", False))
+        print(kit_line)
         fc.check(rec.b_T, str(input_path))             # units first: they matter more than a missing orbit
         b_inertial, truth, where = field_model(args.scenario, rec.metadata, tle=tle, utc0=getattr(args, "utc0", None))
         print(f"field: {where}")

@@ -192,7 +192,7 @@ class Recorder:
             f.paths = self._paths(source, index)
             meta = decoder.metadata(seg)
             if "csv" in f.paths:
-                f.csv = RecordingAppender(f.paths["csv"], meta, truth=bool(seg.truth))
+                f.csv = RecordingAppender(f.paths["csv"], meta, truth=bool(seg.truth), kit=seg.kit_seen)
                 self._stated(f, seg, meta)
                 self.written.append(("recording", f.paths["csv"]))
             if "rates" in f.paths:
@@ -202,8 +202,12 @@ class Recorder:
             rec = decoder.recording(seg, ready)
             if rec.w_ref_radps is not None and not f.csv.truth:
                 f.dirty = True  # truth appeared after the file was opened without its columns
-            f.csv.append(rec.t_s, rec.b_T, rec.m_Nm,
-                         rec.w_ref_radps if rec.w_ref_radps is not None else np.full((len(ready), 3), np.nan))
+            if rec.kit_T is not None and not f.csv.kit:
+                f.dirty = True  # the kit's field appeared after the file was opened without its columns
+            nan3 = np.full((len(ready), 3), np.nan)
+            f.csv.append(rec.t_s, rec.b_T, rec.m_Nm, rec.w_ref_radps if rec.w_ref_radps is not None else nan3,
+                         rec.kit_T if rec.kit_T is not None else np.zeros((len(ready), 3)),
+                         rec.flags if rec.flags is not None else np.zeros(len(ready)))
         if f.rates is not None:
             est = decoder.rate_estimates(seg, ready)
             f.rates.append(est.t_s, est.w_radps, est.sigma_radps)

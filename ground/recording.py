@@ -6,9 +6,12 @@ holds µT and °/s (unit in the column name), the arrays in memory hold tesla, r
 
 Recording columns: ``t_s`` (strictly increasing), ``bx_uT, by_uT, bz_uT`` (required);
 ``mx_Nm, my_Nm, mz_Nm`` (known applied moment, optional, zeros when the columns are absent) and
-``wx_dps, wy_dps, wz_dps`` (reference rate for scoring, optional). Rate-estimate columns: ``t_s,
-wx_dps, wy_dps, wz_dps, sx_dps, sy_dps, sz_dps`` (NaN where no estimate exists; a σ of ``inf`` where the
-estimator had no information: a degenerate sample, e.g. a zero field).
+``wx_dps, wy_dps, wz_dps`` (reference rate for scoring, optional); ``kit_bx_uT, kit_by_uT, kit_bz_uT``
+(the de-orbit kit's field at the sensor that the box took out of the sample, as modelled on board;
+optional: the field columns stay the sensor's own) and ``flags`` (the sample's DEBRIS_SAMPLE_FLAGS
+without RESENT, an integer: 2 = KIT_MOVING, taken while a shutter or magnet moved; optional).
+Rate-estimate columns: ``t_s, wx_dps, wy_dps, wz_dps, sx_dps, sy_dps, sz_dps`` (NaN where no estimate
+exists; a σ of ``inf`` where the estimator had no information: a degenerate sample, e.g. a zero field).
 
 Reading rules (spec, "Rules"):
 - a line starting with ``#`` is a comment; ``# key: value`` comments become metadata (a key given on
@@ -53,6 +56,9 @@ M_COLUMNS = ("mx_Nm", "my_Nm", "mz_Nm")
 W_COLUMNS = ("wx_dps", "wy_dps", "wz_dps")
 #: Column names of the rate-estimate output.
 SIGMA_COLUMNS = ("sx_dps", "sy_dps", "sz_dps")
+#: The kit's field the box took out of each sample, and the sample's flags (optional columns).
+KIT_COLUMNS = ("kit_bx_uT", "kit_by_uT", "kit_bz_uT")
+FLAGS_COLUMN = "flags"
 
 T_PER_UT = 1e-6
 
@@ -90,7 +96,9 @@ class Recording:
 
     t_s (N,) s, strictly increasing; b_T (N, 3) tesla in the sensor axes; m_Nm (N, 3) known applied
     moment about the centre of mass, N·m (zeros when the file has none; NaN rows = unknown);
-    w_ref_radps (N, 3) reference body rate for scoring only, or None; metadata from ``# key: value``.
+    w_ref_radps (N, 3) reference body rate for scoring only, or None; metadata from ``# key: value``;
+    kit_T (N, 3) the de-orbit kit's field at the sensor the box took out (b_T still includes it), or None;
+    flags (N,) int, the samples' DEBRIS_SAMPLE_FLAGS (RESENT excluded), or None.
     """
 
     t_s: np.ndarray
@@ -99,6 +107,8 @@ class Recording:
     w_ref_radps: np.ndarray | None = None
     metadata: dict[str, str] = field(default_factory=dict)
     path: Path | None = None
+    kit_T: np.ndarray | None = None
+    flags: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.t_s = _vector(self.t_s, "t_s")
@@ -107,6 +117,12 @@ class Recording:
         self.m_Nm = np.zeros((n, 3)) if self.m_Nm is None else _triads(self.m_Nm, n, "m_Nm")
         if self.w_ref_radps is not None:
             self.w_ref_radps = _triads(self.w_ref_radps, n, "w_ref_radps")
+        if self.kit_T is not None:
+            self.kit_T = _triads(self.kit_T, n, "kit_T")
+        if self.flags is not None:
+            self.flags = np.asarray(self.flags, dtype=np.int64)
+            if self.flags.shape != (n,):
+                raise ValueError(f"flags must have shape ({n},), got {self.flags.shape}")
         self.metadata = dict(self.metadata)
 
     def __len__(self) -> int:
@@ -170,6 +186,8 @@ _RECORDING_GROUPS = (
     _Group(B_COLUMNS, required=True, nan_ok=False),
     _Group(M_COLUMNS, required=False, nan_ok=True),
     _Group(W_COLUMNS, required=False, nan_ok=True),
+    _Group(KIT_COLUMNS, required=False, nan_ok=True),
+    _Group((FLAGS_COLUMN,), required=False, nan_ok=False, nonnegative=True),
 )
 _RATE_GROUPS = (
     _Group((T_COLUMN,), required=True, nan_ok=False, increasing=True),
@@ -343,12 +361,22 @@ def read_recording(path: PathLike, *, check_units: bool = False) -> Recording:
     t = cols[T_COLUMN][:, 0]
     m = cols[M_COLUMNS[0]]
     w = cols[W_COLUMNS[0]]
+    kit = cols[KIT_COLUMNS[0]]
+    flags = cols[FLAGS_COLUMN]
+    if flags is not None:
+        flags = flags[:, 0]
+        odd = (flags != np.round(flags)) | (flags > 0xFF)
+        if odd.any():
+            raise RecordingError(path, _data_line(path, int(np.argmax(odd))), FLAGS_COLUMN,
+                                 f"not a flags byte: {flags[int(np.argmax(odd))]!r}")
+        flags = flags.astype(np.int64)
     if check_units:
         _check_field_units(path, cols[B_COLUMNS[0]])
     return Recording(t_s=t, b_T=cols[B_COLUMNS[0]] * T_PER_UT,
                      m_Nm=None if m is None else m,
                      w_ref_radps=None if w is None else np.deg2rad(w),
-                     metadata=metadata, path=Path(path))
+                     metadata=metadata, path=Path(path),
+                     kit_T=None if kit is None else kit * T_PER_UT, flags=flags)
 
 
 def _check_field_units(path: PathLike, b_uT: np.ndarray) -> None:
@@ -504,17 +532,20 @@ class _Appender:
 
 class RecordingAppender(_Appender):
     """A recording written row by row (SI in, µT / N·m / °/s in the file); `truth`: with the moment and
-    reference-rate columns."""
+    reference-rate columns; `kit`: with the kit-field and flags columns."""
 
-    def __init__(self, path: PathLike, metadata: dict[str, str], *, truth: bool) -> None:
-        t, b, m, w = _RECORDING_GROUPS
-        super().__init__(path, (t, b, m, w) if truth else (t, b), metadata)
+    def __init__(self, path: PathLike, metadata: dict[str, str], *, truth: bool, kit: bool = False) -> None:
+        t, b, m, w, k, f = _RECORDING_GROUPS
+        super().__init__(path, (t, b) + ((m, w) if truth else ()) + ((k, f) if kit else ()), metadata)
         self.truth = truth
+        self.kit = kit
 
-    def append(self, t_s, b_T, m_Nm=None, w_ref_radps=None) -> None:
+    def append(self, t_s, b_T, m_Nm=None, w_ref_radps=None, kit_T=None, flags=None) -> None:
         cols = [np.asarray(t_s, dtype=float)[:, None], np.asarray(b_T, dtype=float) / T_PER_UT]
         if self.truth:
             cols += [np.asarray(m_Nm, dtype=float), np.rad2deg(np.asarray(w_ref_radps, dtype=float))]
+        if self.kit:
+            cols += [np.asarray(kit_T, dtype=float) / T_PER_UT, np.asarray(flags, dtype=float)[:, None]]
         self._append(np.hstack(cols))
 
 
@@ -532,14 +563,18 @@ class RateAppender(_Appender):
 def write_recording(path: PathLike, rec: Recording) -> None:
     """Write `rec` as recording format v1: metadata comments, header, one row per sample (µT, N·m,
     °/s). The moment columns are written when any moment is non-zero, the reference columns when
-    `w_ref_radps` is given. Atomic; raises RecordingError, writing nothing, on data the reader would
-    reject."""
-    t, b, m, w = _RECORDING_GROUPS
+    `w_ref_radps` is given, the kit columns and flags when `kit_T` / `flags` are. Atomic; raises
+    RecordingError, writing nothing, on data the reader would reject."""
+    t, b, m, w, k, f = _RECORDING_GROUPS
     blocks = [(t, rec.t_s[:, None]), (b, rec.b_T / T_PER_UT)]
     if np.any(rec.m_Nm != 0.0):  # NaN != 0: unknown moments are written too
         blocks.append((m, rec.m_Nm))
     if rec.w_ref_radps is not None:
         blocks.append((w, np.rad2deg(rec.w_ref_radps)))
+    if rec.kit_T is not None:
+        blocks.append((k, rec.kit_T / T_PER_UT))
+    if rec.flags is not None:
+        blocks.append((f, rec.flags.astype(float)[:, None]))
     write_atomic(path, _table_lines(path, rec.metadata, blocks))
 
 

@@ -6,7 +6,9 @@ telemetry on `--link`) with :class:`RecordingReplay` in place of the driver, on 
 as possible. The loop clock starts at the recording's first sample time; a sample is delivered at the
 first tick at or after its time, one per tick, so a loop at least as fast as the recording delivers
 every sample at its own time and a slower one falls behind (counted in `max_lag_s`), never skipping a
-sample. `--rates-out` writes the flown Kalman filter's estimates, one row per recording sample.
+sample. `--rates-out` writes the flown Kalman filter's estimates, one row per sample replayed.
+The de-orbit kit's field the box recorded is taken out first and the samples flagged KIT_MOVING are
+not replayed (`ground.kit_field`; the first line says how many; `--kit-raw` replays them as recorded).
 """
 from __future__ import annotations
 
@@ -28,6 +30,7 @@ from fsw.estimation.rate_formulas import unobserved_sigma  # noqa: E402
 from fsw.runner import run_loop, run_program, status_line, summary  # noqa: E402
 from fsw.system import build_flight  # noqa: E402
 
+from . import kit_field  # noqa: E402
 from .recording import RateEstimates, read_recording, write_rate_estimates  # noqa: E402
 
 
@@ -50,16 +53,21 @@ class RecordingReplay:
         self.sample_time_s = float("nan")
         self.index = 0  # next sample to deliver
         self.max_lag_s = 0.0
+        self.kit_line = ""  # what was done with the recording's kit field (`ground.kit_field.take_out`)
 
     @classmethod
-    def from_csv(cls, path, warn=None) -> "RecordingReplay":
-        """From a recording-format-v1 file (the reference columns are not read). A field that cannot be
-        µT is refused (`field_check.FieldMagnitudeError`, a ValueError naming the file); the check's
-        warnings go to ``warn`` (default: stderr)."""
-        rec = read_recording(path)
+    def from_csv(cls, path, warn=None, *, kit_raw: bool = False) -> "RecordingReplay":
+        """From a recording-format-v1 file (the reference columns are not read), the kit's field taken
+        out unless `kit_raw`. A field that cannot be µT is refused (`field_check.FieldMagnitudeError`, a
+        ValueError naming the file); the check's warnings go to ``warn`` (default: stderr)."""
+        rec, line = kit_field.take_out(read_recording(path), raw=kit_raw)
+        if not len(rec):
+            raise ValueError(f"{path}: no sample left once the samples flagged KIT_MOVING are skipped")
         for w in field_check.check_recording(rec.b_T, str(path), rec.t_s, rec.metadata):
             (warn or _stderr)(f"warning: {w}")
-        return cls(rec.t_s, rec.b_T)
+        source = cls(rec.t_s, rec.b_T)
+        source.kit_line = line
+        return source
 
     @property
     def done(self) -> bool:
@@ -85,10 +93,12 @@ class RecordingReplay:
         return True
 
 
-def replay(path: str, cfg: RunConfig, *, rates_out: str | None = None, out: TextIO = sys.stdout):
+def replay(path: str, cfg: RunConfig, *, rates_out: str | None = None, out: TextIO = sys.stdout,
+           kit_raw: bool = False):
     """Run the flight software on the recording at `path`; returns (flight software, loop result). The loop
     runs at twice the recording's rate at least (one sample a tick at most), on the virtual clock."""
-    source = RecordingReplay.from_csv(path)
+    source = RecordingReplay.from_csv(path, kit_raw=kit_raw)
+    print(source.kit_line, file=out, flush=True)
     rate = min(1000.0, max(cfg.rate_hz, 2.0 * source.sample_rate_hz))
     cfg = replace(cfg, rate_hz=rate, speed=0.0)
     flight = build_flight(cfg, source, sigma_b_T=cfg.sigma_T, sample_rate_hz=source.sample_rate_hz)
@@ -135,6 +145,7 @@ def main(argv=None) -> int:
     ap.add_argument("input", metavar="INPUT.csv", help="a recording (format v1)")
     ap.add_argument("--rates-out", metavar="OUT.csv",
                     help="write the onboard Kalman filter's estimates, one row per sample")
+    kit_field.add_arguments(ap)
     add_run_options(ap)
 
     def body() -> str:
@@ -142,7 +153,7 @@ def main(argv=None) -> int:
         check_paths_or_exit(ap, inputs={"INPUT.csv": args.input, "--key": args.key},
                             outputs={"--rates-out": args.rates_out, "--sample-store": args.sample_store})
         check_key_or_exit(ap, args.key)
-        return summary(*replay(args.input, run_config(args), rates_out=args.rates_out))
+        return summary(*replay(args.input, run_config(args), rates_out=args.rates_out, kit_raw=args.kit_raw))
 
     return run_program(body)
 

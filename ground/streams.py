@@ -41,6 +41,9 @@ class Segment:
     truth: dict[int, tuple[tuple[float, ...], tuple[float, ...]]] = field(default_factory=dict)
     seq_of: dict[int, int] = field(default_factory=dict)  # sample time → its number
     arrived_s: dict[int, float] = field(default_factory=dict)  # sample time → when it arrived
+    #: numbered samples: sample time → (kit field the box took out, gauss; flags without RESENT)
+    kit: dict[int, tuple[tuple[float, float, float], int]] = field(default_factory=dict)
+    kit_seen: bool = False  # a sample with a kit field or a kit flag arrived: the recording gets the columns
     latest_us: int = -1
     first_us: int = -1
     late: int = 0  # samples that arrived after a newer one (sent again after an outage or on request)
@@ -149,7 +152,15 @@ class Stream:
                 self.restarts.append(f"run id changed from {self.current.run_id:#010x} to {seg.run_id:#010x}: "
                                      "flight software restarted, new recording segment")
             self.current = seg
-        return seg if seg.add_sample(int(msg.time_usec), b_gauss, now_s, int(msg.seq)) else None
+        if not seg.add_sample(int(msg.time_usec), b_gauss, now_s, int(msg.seq)):
+            return None
+        kit = tuple(float(x) for x in getattr(msg, "kit_mag", (0.0, 0.0, 0.0)))
+        if not all(map(math.isfinite, kit)):
+            kit = (math.nan,) * 3
+        flags = int(msg.flags) & ~1  # RESENT is the link's, not the sample's
+        seg.kit[int(msg.time_usec)] = (kit, flags)
+        seg.kit_seen = seg.kit_seen or flags != 0 or any(kit)
+        return seg
 
     def plain_sample(self, t_us: int, now_s: float, b_gauss) -> Segment | None:
         """A HIGHRES_IMU magnetometer sample (no number, no run id)."""

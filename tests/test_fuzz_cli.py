@@ -361,6 +361,7 @@ SPECS: list[Tool] = [
     }, stubs=["fsw.system:FlightSoftware"]),
     Tool("ground.replay", ground.replay.main, {
         "--rates-out": Opt(OUT, role="out"),
+        "--kit-raw": flag(),
         **RUN_OPTIONS,
     }, positionals=[("input", Opt(IN_RECORDING, role="in"))], stubs=["fsw.system:FlightSoftware"]),
     Tool("ground.decode", ground.decode.main, {
@@ -393,6 +394,7 @@ SPECS: list[Tool] = [
                                 ("nan,1,1", False), ("1,1,3", False), ("1,2", False), ("-1,1,1", False), ("a", False),
                                 ("1,0.5,0,0,1,0,0,0,1", False), ("1e308,1e308,1e308", None), ("", False)]),
         **MAGCAL_OPTIONS,
+        "--kit-raw": flag(),
     }, positionals=[("input", Opt(IN_RECORDING, role="in", required=True))],
         stubs=["ground.estimate:estimate", "ground.plot:plot_rates"], judge=_estimate_judge),
     Tool("ground.estimate --inertia", ground.estimate.main, {
@@ -406,6 +408,7 @@ SPECS: list[Tool] = [
         "--running": Opt(ints(1)),
         "--quiet": flag(),
         **MAGCAL_OPTIONS,
+        "--kit-raw": flag(),
         **ORBIT_OPTIONS,
     }, positionals=[("input", Opt(IN_RECORDING, role="in", required=True))],
         stubs=["ground.inertia:run"], probe=("--inertia",), judge=_estimate_judge),
@@ -419,6 +422,7 @@ SPECS: list[Tool] = [
         "--running": Opt(ints(1)),
         "--quiet": flag(),
         **MAGCAL_OPTIONS,
+        "--kit-raw": flag(),
         **ORBIT_OPTIONS,
     }, positionals=[("input", Opt(IN_RECORDING, role="in", required=True)),
                     ("output", Opt(OUT, role="out", required=True))],

@@ -498,7 +498,7 @@ enums["DEBRIS_SAMPLE_FLAGS"].bitmask = True
 DEBRIS_SAMPLE_FLAGS_RESENT = 1
 enums["DEBRIS_SAMPLE_FLAGS"][1] = EnumEntry("DEBRIS_SAMPLE_FLAGS_RESENT", """Sent again from the box's sample store at the ground's request (DEBRIS_SAMPLE_REQUEST), not live.""")
 DEBRIS_SAMPLE_FLAGS_KIT_MOVING = 2
-enums["DEBRIS_SAMPLE_FLAGS"][2] = EnumEntry("DEBRIS_SAMPLE_FLAGS_KIT_MOVING", """Taken while a shutter or a magnet of the de-orbit kit moved: the kit's field at the sensor is not known then, so the sample is not used on board (live samples only).""")
+enums["DEBRIS_SAMPLE_FLAGS"][2] = EnumEntry("DEBRIS_SAMPLE_FLAGS_KIT_MOVING", """Taken while a shutter or a magnet of the de-orbit kit moved: the kit's field at the sensor is not known then, so the sample is not used on board. Kept in the sample store: a sample sent again keeps it.""")
 DEBRIS_SAMPLE_FLAGS_ENUM_END = 3
 enums["DEBRIS_SAMPLE_FLAGS"][3] = EnumEntry("DEBRIS_SAMPLE_FLAGS_ENUM_END", """""")
 
@@ -7205,22 +7205,22 @@ class MAVLink_debris_mag_sample_message(MAVLink_message):
 
     id = MAVLINK_MSG_ID_DEBRIS_MAG_SAMPLE
     msgname = "DEBRIS_MAG_SAMPLE"
-    fieldnames = ["time_usec", "seq", "run_id", "mag", "flags"]
-    ordered_fieldnames = ["time_usec", "seq", "run_id", "mag", "flags"]
-    fieldtypes = ["uint64_t", "uint32_t", "uint32_t", "float", "uint8_t"]
+    fieldnames = ["time_usec", "seq", "run_id", "mag", "flags", "kit_mag"]
+    ordered_fieldnames = ["time_usec", "seq", "run_id", "mag", "flags", "kit_mag"]
+    fieldtypes = ["uint64_t", "uint32_t", "uint32_t", "float", "uint8_t", "float"]
     fielddisplays_by_name: Dict[str, str] = {"flags": "bitmask"}
     fieldenums_by_name: Dict[str, str] = {"flags": "DEBRIS_SAMPLE_FLAGS"}
-    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "mag": "gauss"}
-    native_format = bytearray(b"<QIIfB")
-    orders = [0, 1, 2, 3, 4]
-    lengths = [1, 1, 1, 3, 1]
-    array_lengths = [0, 0, 0, 3, 0]
+    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "mag": "gauss", "kit_mag": "gauss"}
+    native_format = bytearray(b"<QIIfBf")
+    orders = [0, 1, 2, 3, 4, 5]
+    lengths = [1, 1, 1, 3, 1, 3]
+    array_lengths = [0, 0, 0, 3, 0, 3]
     crc_extra = 77
-    unpacker = struct.Struct("<QII3fB")
+    unpacker = struct.Struct("<QII3fB3f")
     instance_field = None
     instance_offset = -1
 
-    def __init__(self, time_usec: int, seq: int, run_id: int, mag: Sequence[float], flags: int):
+    def __init__(self, time_usec: int, seq: int, run_id: int, mag: Sequence[float], flags: int, kit_mag: Sequence[float] = (0, 0, 0)):
         MAVLink_message.__init__(self, MAVLink_debris_mag_sample_message.id, MAVLink_debris_mag_sample_message.msgname)
         self._fieldnames = MAVLink_debris_mag_sample_message.fieldnames
         self._instance_field = MAVLink_debris_mag_sample_message.instance_field
@@ -7230,9 +7230,10 @@ class MAVLink_debris_mag_sample_message(MAVLink_message):
         self.run_id = run_id
         self.mag = mag
         self.flags = flags
+        self.kit_mag = kit_mag
 
     def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
-        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.seq, self.run_id, self.mag[0], self.mag[1], self.mag[2], self.flags), force_mavlink1=force_mavlink1)
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.seq, self.run_id, self.mag[0], self.mag[1], self.mag[2], self.flags, self.kit_mag[0], self.kit_mag[1], self.kit_mag[2]), force_mavlink1=force_mavlink1)
 
 
 # Define name on the class for backwards compatibility (it is now msgname).
@@ -18551,7 +18552,7 @@ class MAVLink(object):
         """
         self.send(self.debris_link_status_encode(time_usec, cmd_accepted, rejected_unsigned, rejected_bad_signature, rejected_replay, rejected_invalid, tlm_buffered, tlm_replayed, tlm_dropped, link_up, frames_sent, uplink_bytes, uplink_bytes_dropped, uplink_garbage_bytes, uplink_bad_crc, uplink_foreign_datagrams, uplink_os_dropped), force_mavlink1=force_mavlink1)
 
-    def debris_mag_sample_encode(self, time_usec: int, seq: int, run_id: int, mag: Sequence[float], flags: int) -> MAVLink_debris_mag_sample_message:
+    def debris_mag_sample_encode(self, time_usec: int, seq: int, run_id: int, mag: Sequence[float], flags: int, kit_mag: Sequence[float] = (0, 0, 0)) -> MAVLink_debris_mag_sample_message:
         """
         One magnetometer sample, numbered: the box's data product. Every
         sample handed to telemetry gets the next number and is kept in
@@ -18563,11 +18564,12 @@ class MAVLink(object):
         run_id                    : Identifier of the run of the flight software that took the sample (new at every start). (type:uint32_t)
         mag                       : Field in the sensor axes (X, Y, Z). [gauss] (type:float)
         flags                     : Sample flags. (type:uint8_t, values:DEBRIS_SAMPLE_FLAGS)
+        kit_mag                   : The de-orbit kit's field at the sensor as modelled on board at this sample, in the sensor axes (X, Y, Z): what the box took out of `mag` before its estimators (`mag` is the sensor's own, kit included). Zero without a kit (and then truncated from the frame: no cost). [gauss] (type:float)
 
         """
-        return MAVLink_debris_mag_sample_message(time_usec, seq, run_id, mag, flags)
+        return MAVLink_debris_mag_sample_message(time_usec, seq, run_id, mag, flags, kit_mag)
 
-    def debris_mag_sample_send(self, time_usec: int, seq: int, run_id: int, mag: Sequence[float], flags: int, force_mavlink1: bool = False) -> None:
+    def debris_mag_sample_send(self, time_usec: int, seq: int, run_id: int, mag: Sequence[float], flags: int, kit_mag: Sequence[float] = (0, 0, 0), force_mavlink1: bool = False) -> None:
         """
         One magnetometer sample, numbered: the box's data product. Every
         sample handed to telemetry gets the next number and is kept in
@@ -18579,9 +18581,10 @@ class MAVLink(object):
         run_id                    : Identifier of the run of the flight software that took the sample (new at every start). (type:uint32_t)
         mag                       : Field in the sensor axes (X, Y, Z). [gauss] (type:float)
         flags                     : Sample flags. (type:uint8_t, values:DEBRIS_SAMPLE_FLAGS)
+        kit_mag                   : The de-orbit kit's field at the sensor as modelled on board at this sample, in the sensor axes (X, Y, Z): what the box took out of `mag` before its estimators (`mag` is the sensor's own, kit included). Zero without a kit (and then truncated from the frame: no cost). [gauss] (type:float)
 
         """
-        self.send(self.debris_mag_sample_encode(time_usec, seq, run_id, mag, flags), force_mavlink1=force_mavlink1)
+        self.send(self.debris_mag_sample_encode(time_usec, seq, run_id, mag, flags, kit_mag), force_mavlink1=force_mavlink1)
 
     def debris_sample_store_encode(self, time_usec: int, run_id: int, run_first_seq: int, stored_first_seq: int, next_seq: int, resend_queued: int, resent: int, requests: int, requests_refused: int, persistent: int) -> MAVLink_debris_sample_store_message:
         """

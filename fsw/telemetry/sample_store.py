@@ -2,7 +2,9 @@
 the ground can ask again for what a lossy radio did not deliver (DEBRIS_SAMPLE_REQUEST) and the
 recording on the ground ends complete.
 
-- :class:`SampleStore`: a ring of the last `capacity` samples (number, run, time, field), preallocated.
+- :class:`SampleStore`: a ring of the last `capacity` samples (number, run, time, field, the sample's
+  DEBRIS_SAMPLE_FLAGS and the de-orbit kit's field the box took out of it), preallocated: a sample sent
+  again carries its flag (KIT_MOVING) and its kit field as it did live.
   With a `path` the ring lives in a file (memory-mapped) that survives a restart: the numbering goes
   on where the previous run stopped and the previous runs' samples can still be sent. The file is
   written in place, sample by sample, and its header (the next number) after the sample: a process
@@ -29,15 +31,17 @@ DEFAULT_CAPACITY = 65536
 MAX_REQUEST = 1000
 DEFAULT_RESEND_BYTES_PER_S = 1000.0
 
-_MAGIC = b"DEBRIS-SAMPLES-1"
+_MAGIC = b"DEBRIS-SAMPLES-2"
+_MAGIC_PREFIX = b"DEBRIS-SAMPLES-"  # any layout of a store: a file of an older one is moved aside
 _HEADER = np.dtype([("magic", "S16"), ("capacity", "<u8"), ("next_seq", "<u8")])
-_RECORD = np.dtype([("seq", "<u8"), ("run_id", "<u4"), ("pad", "<u4"), ("t_us", "<u8"), ("b_T", "<f8", (3,))])
+_RECORD = np.dtype([("seq", "<u8"), ("run_id", "<u4"), ("flags", "<u4"), ("t_us", "<u8"), ("b_T", "<f8", (3,)),
+                    ("kit_T", "<f8", (3,))])
 
 
 def _has_magic(p: Path) -> bool:
     try:
         with open(p, "rb") as f:
-            return f.read(len(_MAGIC)) == _MAGIC
+            return f.read(len(_MAGIC)).startswith(_MAGIC_PREFIX)
     except OSError:
         return False
 
@@ -66,6 +70,7 @@ class SampleStore:
         # plain views of the record fields: assignments into them do not allocate
         r = self._records
         self._seq, self._run, self._t_us, self._b = r["seq"], r["run_id"], r["t_us"], r["b_T"]
+        self._flags, self._kit = r["flags"], r["kit_T"]
 
     def _open_file(self) -> None:
         size = _HEADER.itemsize + self.capacity * _RECORD.itemsize
@@ -91,6 +96,8 @@ class SampleStore:
         if p.stat().st_size != size:
             return f"{p.stat().st_size} bytes, a store of {self.capacity} samples has {size}"
         head = np.fromfile(p, dtype=_HEADER, count=1)
+        if bytes(head["magic"][0]) != _MAGIC:
+            return f"another layout ({bytes(head['magic'][0]).decode('ascii', 'replace')})"
         if int(head["capacity"][0]) != self.capacity:
             return f"capacity {int(head['capacity'][0])}, not {self.capacity}"
         return ""
@@ -113,12 +120,18 @@ class SampleStore:
         return self.next_seq - self.first_seq
 
     # --- writing ----------------------------------------------------------------------------------
-    def append(self, t_s: float, b_T) -> int:
-        """Keep one sample; its number."""
+    def append(self, t_s: float, b_T, flags: int = 0, kit_T=None) -> int:
+        """Keep one sample (`flags`: its DEBRIS_SAMPLE_FLAGS; `kit_T`: the kit's field taken out of it,
+        T, None: none); its number."""
         seq = self._next
         k = seq % self.capacity
         self._t_us[k] = int(round(t_s * 1e6))
         self._b[k] = b_T
+        self._flags[k] = int(flags)
+        if kit_T is None:
+            self._kit[k] = 0.0
+        else:
+            self._kit[k] = kit_T
         self._run[k] = self.run_id
         self._seq[k] = seq
         self._next = seq + 1
@@ -126,13 +139,14 @@ class SampleStore:
         return seq
 
     def get(self, seq: int):
-        """(run id, time µs, field T as a view) of sample `seq`, or None when it is not held."""
+        """(run id, time µs, field T as a view, flags, kit field T as a view) of sample `seq`, or None when
+        it is not held."""
         if not self.first_seq <= seq < self.next_seq:
             return None
         k = seq % self.capacity
         if int(self._seq[k]) != seq:  # a slot the previous run did not finish writing
             return None
-        return int(self._run[k]), int(self._t_us[k]), self._b[k]
+        return int(self._run[k]), int(self._t_us[k]), self._b[k], int(self._flags[k]), self._kit[k]
 
     def sync(self) -> None:
         """Write the file's dirty pages out (once a second from the status task)."""
@@ -188,7 +202,7 @@ class Resender:
         return True
 
     def service(self, now_s: float, send) -> None:
-        """Send what the budget allows: `send(seq, run_id, t_us, b_T) -> bytes written or None` (None:
+        """Send what the budget allows: `send(seq, run_id, t_us, b_T, flags, kit_T) -> bytes written or None` (None:
         the link is down; try again next tick)."""
         if self._now_s is not None:
             self._tokens = min(self._tokens + max(0.0, now_s - self._now_s) * self.bytes_per_s, self.bytes_per_s)

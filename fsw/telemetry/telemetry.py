@@ -147,22 +147,27 @@ class Telemetry:
             *(int(x) & u32 for x in (uplink_bytes, uplink_bytes_dropped, uplink_garbage_bytes, uplink_bad_crc,
                                      uplink_foreign_datagrams, uplink_os_dropped))))
 
-    def mag_sample(self, t_s: float, b_T: np.ndarray, seq: int, run_id: int, flags: int = 0) -> None:
-        """DEBRIS_MAG_SAMPLE: the numbered sample (field in gauss), live; `flags`: DEBRIS_SAMPLE_FLAGS."""
+    def mag_sample(self, t_s: float, b_T: np.ndarray, seq: int, run_id: int, flags: int = 0,
+                   kit_T: np.ndarray | None = None) -> None:
+        """DEBRIS_MAG_SAMPLE: the numbered sample (field in gauss), live; `flags`: DEBRIS_SAMPLE_FLAGS;
+        `kit_T`: the kit's field the box took out of it (the kit_mag extension; zero ones cost no bytes)."""
         g = b_T * GAUSS_PER_TESLA
         self._send(mavlink.MAVLink_debris_mag_sample_message(
-            usec(t_s), seq & 0xFFFFFFFF, run_id, [float(g[0]), float(g[1]), float(g[2])], int(flags)))
+            usec(t_s), seq & 0xFFFFFFFF, run_id, [float(g[0]), float(g[1]), float(g[2])], int(flags),
+            _gauss3(kit_T)))
 
-    def resend_sample(self, seq: int, run_id: int, t_us: int, b_T: np.ndarray) -> int | None:
-        """DEBRIS_MAG_SAMPLE flagged RESENT, from the sample store: the bytes written, or None while the
-        link is down (nothing is stored for later: the ground asks again)."""
+    def resend_sample(self, seq: int, run_id: int, t_us: int, b_T: np.ndarray, flags: int = 0,
+                      kit_T: np.ndarray | None = None) -> int | None:
+        """DEBRIS_MAG_SAMPLE flagged RESENT (with the flags and kit field it was stored with), from the
+        sample store: the bytes written, or None while the link is down (nothing is stored for later:
+        the ground asks again)."""
         sf = self.store
         if sf is not None and not sf.link_up:
             return None
         g = b_T * GAUSS_PER_TESLA
         n = self._write(mavlink.MAVLink_debris_mag_sample_message(
             t_us, seq & 0xFFFFFFFF, run_id, [float(g[0]), float(g[1]), float(g[2])],
-            mavlink.DEBRIS_SAMPLE_FLAGS_RESENT))
+            (int(flags) | mavlink.DEBRIS_SAMPLE_FLAGS_RESENT) & 0xFF, _gauss3(kit_T)))
         if sf is not None:
             sf.write_failed() if n is None else sf.write_ok()
         return n
@@ -275,3 +280,10 @@ class Telemetry:
             [float(x) * 1e6 for x in cal.b_T], [float(x) for x in terms], [float(x) * 1e6 for x in sig[:3]],
             [float(x) for x in sig[3:]], float(residual), int(state),
             [float(x) * 1e6 * 3600.0 for x in rate_T_per_s], float(drift_period_s or 0.0), int(restored)))
+
+
+def _gauss3(b_T) -> list[float]:
+    """A field in T as the three floats in gauss of a message (zeros for None)."""
+    if b_T is None:
+        return [0.0, 0.0, 0.0]
+    return [float(b_T[0]) * GAUSS_PER_TESLA, float(b_T[1]) * GAUSS_PER_TESLA, float(b_T[2]) * GAUSS_PER_TESLA]

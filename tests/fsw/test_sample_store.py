@@ -16,7 +16,8 @@ def test_numbers_are_consecutive_and_the_ring_keeps_the_last_capacity():
     fill(s, 25)
     assert s.next_seq == 25 and s.first_seq == 15 and len(s) == 10
     assert s.get(14) is None and s.get(25) is None                  # forgotten, not yet taken
-    run, t_us, b = s.get(20)
+    run, t_us, b, flags, kit = s.get(20)
+    assert flags == 0 and not kit.any()
     assert run == 7 and t_us == 2_000_000 and b[0] == pytest.approx(20e-6)
 
 
@@ -77,7 +78,7 @@ def test_a_path_that_is_not_a_store_is_never_touched(tmp_path, kind):
 
 
 def send_log(sent, bytes_per_frame=50, down=False):
-    def send(seq, run_id, t_us, b):
+    def send(seq, run_id, t_us, b, flags, kit_T):
         if down:
             return None
         sent.append(seq)
@@ -123,3 +124,32 @@ def test_samples_no_longer_held_are_skipped_and_a_down_link_pauses():
     assert r.unavailable == 50
     r.service(2.0, send_log(sent))
     assert sent == list(range(150, 160))
+
+
+def test_flags_and_the_kit_field_are_kept_in_the_file_and_resent(tmp_path):
+    """A sample taken while the kit moved keeps its flag and the kit field the box took out of it, across a
+    restart, and the resender hands both on."""
+    path = tmp_path / "samples.bin"
+    s = SampleStore(100, run_id=1, path=path)
+    s.append(0.0, np.array([1e-6, 2e-6, 3e-6]))
+    s.append(0.1, np.array([60e-6, 2e-6, 3e-6]), 2, np.array([59e-6, -1e-6, 0.5e-6]))
+    s.close()
+    s2 = SampleStore(100, run_id=2, path=path)
+    _, _, _, flags0, kit0 = s2.get(0)
+    _, _, _, flags1, kit1 = s2.get(1)
+    assert flags0 == 0 and not kit0.any()
+    assert flags1 == 2 and kit1 == pytest.approx([59e-6, -1e-6, 0.5e-6], abs=1e-15)
+    got = []
+    r = Resender(s2)
+    r.request(0, 2)
+    r.service(0.0, lambda *a: got.append(a) or 50)
+    r.service(1.0, lambda *a: got.append(a) or 50)
+    assert [(a[0], a[4]) for a in got] == [(0, 0), (1, 2)] and got[1][5][0] == pytest.approx(59e-6)
+
+
+def test_a_store_file_of_the_older_layout_is_moved_aside(tmp_path):
+    path = tmp_path / "samples.bin"
+    path.write_bytes(b"DEBRIS-SAMPLES-1" + bytes(16 + 48 * 100))
+    s = SampleStore(100, path=path)
+    assert s.persistent and "moved to samples.bin.bad" in s.reset_reason and s.next_seq == 0
+    assert (tmp_path / "samples.bin.bad").exists()
