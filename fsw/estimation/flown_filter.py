@@ -149,8 +149,9 @@ class FlownFilter:
         kf = members(self.orbit)[0] if not isinstance(self.orbit, RateModelBank) else self.orbit.main
         if not getattr(kf, "_started", False):
             return None
-        s = np.sqrt(np.clip(np.diagonal(kf.P)[:3], 0.0, None))
-        return np.array(kf.q, float), np.minimum(s, math.pi)
+        q, P = self.orbit.attitude() if hasattr(self.orbit, "attitude") else (kf.q, kf.P[:3, :3])
+        s = np.sqrt(np.clip(np.diagonal(P), 0.0, None))
+        return np.array(q, float), np.minimum(s, math.pi)
 
     # -- the loop ------------------------------------------------------------------------------------
     def reset(self) -> None:
