@@ -152,7 +152,8 @@ class AttitudeKalmanTuning:
       field model, `field_rate_radps` lets the (unknown, fixed) inertial field drift instead.
     max_substep_rad: rotation per integration substep of Euler's equations (RK4).
     about_b_turn_rad, about_b_sigma_rad: with a field model, the floor of the attitude's 1-σ about the
-      field: `about_b_sigma_rad` (a uniform angle) until the inertial field has turned by `about_b_turn_rad`
+      field inside the filter: `about_b_sigma_rad` (0: none, the default; the published σ is floored
+      by :func:`attitude_cov` with a uniform angle's π/√3) until the inertial field has turned by `about_b_turn_rad`
       from its direction at the start, then shrinking as (turn₀/turn)² (:meth:`AttitudeRateKalman.
       about_b_floor_rad`). The rotation about B is seen only through that turn; without the floor the
       linearised update takes the large early corrections about B as information and the σ collapses to
@@ -188,7 +189,7 @@ class AttitudeKalmanTuning:
     gap_factor: float = 1.8
     sigma_flag_radps: float = 0.1
     about_b_turn_rad: float = math.radians(20.0)
-    about_b_sigma_rad: float = math.pi / math.sqrt(3.0)
+    about_b_sigma_rad: float = 0.0
 
 
 class AttitudeRateKalman:
@@ -620,6 +621,28 @@ class AttitudeRateKalman:
         self.omega_radps[:] = w
         self.sigma_radps[:] = np.minimum(s, SIGMA_UNOBSERVED_RADPS)
         self.flags = flags
+
+
+#: 1-σ of an angle uniform over a turn: the attitude about B before the field has turned
+ABOUT_B_SIGMA_UNIFORM_RAD = math.pi / math.sqrt(3.0)
+
+
+def attitude_cov(kf: AttitudeRateKalman) -> np.ndarray:
+    """The 3×3 covariance of `kf`'s attitude error (body axes) to publish: its own, the variance about the
+    field held at or above the floor of a uniform angle (:meth:`AttitudeRateKalman.about_b_floor_rad` with
+    `about_b_sigma_rad` = π/√3) at the field's inertial turn so far."""
+    P = np.array(kf.P[:3, :3], float)
+    if kf.field is None or kf._b_i0 is None:
+        return P
+    h, _ = kf.measurement(kf.t_s)
+    u = h / np.linalg.norm(h)
+    turn0 = kf.tuning.about_b_turn_rad
+    if not turn0 > 0:
+        return P
+    shrink = min(1.0, (turn0 / max(kf.field_turn_rad, 1e-12)) ** 2)
+    f = max(kf.tuning.about_b_sigma_rad, ABOUT_B_SIGMA_UNIFORM_RAD * shrink)
+    P += max(0.0, f * f - float(u @ P @ u)) * np.outer(u, u)
+    return P
 
 
 def attitude_kalman_rate(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, **kwargs

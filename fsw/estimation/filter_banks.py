@@ -9,7 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .attitude_kalman import AttitudeKalmanTuning, AttitudeRateKalman, FieldFn, physical_shape
+from .attitude_kalman import AttitudeKalmanTuning, AttitudeRateKalman, FieldFn, attitude_cov, physical_shape
 from .rate_kalman import run_stream
 from .rotations import quat_conj, quat_exp, quat_log, quat_mul, quat_to_dcm
 
@@ -64,13 +64,6 @@ class _Bank:
         return self.main.flags
 
 
-class _Turn:
-    """The inputs of :meth:`AttitudeRateKalman.about_b_floor_rad` (the field's turn, the tuning)."""
-
-    def __init__(self, field_turn_rad: float, tuning: AttitudeKalmanTuning) -> None:
-        self.field_turn_rad, self.tuning = field_turn_rad, tuning
-
-
 class EulerAcquisitionKalman(_Bank):
     """:class:`AttitudeRateKalman` with the inertia shape estimated, acquired by parallel hypotheses.
 
@@ -104,8 +97,7 @@ class EulerAcquisitionKalman(_Bank):
         # the publishing filter's rate is left as it was: no floor about B inside it (the floor's large
         # attitude variance about B moved its rate along B: 0.20 → 0.38 °/s on a 1.5 µT row); the
         # attitude goes out from the hypotheses over the angle about B (:meth:`attitude`)
-        tun = replace(tuning or AttitudeKalmanTuning(euler_adapt_max=EULER_ADAPT_MAX), euler_nis_max=-math.inf,
-                      about_b_sigma_rad=0.0)
+        tun = replace(tuning or AttitudeKalmanTuning(euler_adapt_max=EULER_ADAPT_MAX), euler_nis_max=-math.inf)
         self.main = AttitudeRateKalman(sigma_b_T, field_eci_T=field_eci_T, estimate_inertia=True, tuning=tun,
                                        angle_about_b_rad=angle_about_b_rad)
         self.shapes = tuple(tuple(map(float, p)) for p in (shape_grid() if shapes is None else shapes))
@@ -262,15 +254,7 @@ class EulerAcquisitionKalman(_Bank):
         hypotheses over the angle about B still running, the mixture's (each weighted by its likelihood,
         its offset from `main` included), so that the σ covers the hypotheses not yet excluded."""
         if not self._about_b:  # before the hypotheses: `main`'s, its σ about B held at the floor
-            main = self.main
-            P = np.array(main.P[:3, :3], float)
-            if main.field is not None and main._b_i0 is not None:
-                h, _ = main.measurement(main.t_s)
-                u = h / np.linalg.norm(h)
-                floor = replace(main.tuning, about_b_sigma_rad=AttitudeKalmanTuning.about_b_sigma_rad)
-                f2 = AttitudeRateKalman.about_b_floor_rad(_Turn(main.field_turn_rad, floor)) ** 2
-                P += max(0.0, f2 - float(u @ P @ u)) * np.outer(u, u)
-            return np.array(main.q, float), P
+            return np.array(self.main.q, float), attitude_cov(self.main)
         scores = np.array([h[0].nll - h[1] for h in self._about_b])
         main = self._about_b[int(np.argmin(scores))][0]
         w = np.exp(-(scores - scores.min()) / ABOUT_B_TEMPER)

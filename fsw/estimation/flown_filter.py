@@ -42,7 +42,7 @@ import math
 
 import numpy as np
 
-from .attitude_kalman import AttitudeRateKalman
+from .attitude_kalman import AttitudeRateKalman, attitude_cov
 from .filter_banks import EulerAcquisitionKalman, RateModelBank
 from .rate_kalman import NO_ESTIMATE, RateKalman
 
@@ -152,7 +152,7 @@ class FlownFilter:
         kf = members(self.orbit)[0] if not isinstance(self.orbit, RateModelBank) else self.orbit.main
         if not getattr(kf, "_started", False):
             return None
-        q, P = self.orbit.attitude() if hasattr(self.orbit, "attitude") else (kf.q, kf.P[:3, :3])
+        q, P = self.orbit.attitude() if hasattr(self.orbit, "attitude") else (kf.q, attitude_cov(kf))
         s = np.sqrt(np.clip(np.diagonal(P), 0.0, None))
         return np.array(q, float), np.minimum(s, math.pi)
 
