@@ -213,7 +213,8 @@ class EulerAcquisitionKalman(_Bank):
     def _start_about_b(self) -> None:
         """Hypotheses over the attitude's angle about the field: `main` turned about the inertial field by
         k·2π/K, each with the floor of its σ about B at a uniform angle over its 2π/K (the linearisation
-        holds within it). Their innovations' likelihoods choose the one that publishes."""
+        holds within it). Their innovations' likelihoods choose the attitude sent (:meth:`attitude`); the
+        rate published stays `main`'s."""
         k = self.about_b_hypotheses
         main = self.main
         if k < 2 or main.field is None:
