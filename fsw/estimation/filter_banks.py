@@ -9,9 +9,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from .attitude_kalman import AttitudeKalmanTuning, AttitudeRateKalman, FieldFn, attitude_cov, physical_shape
+from .attitude_kalman import AttitudeKalmanTuning, AttitudeRateKalman, FieldFn, physical_shape
 from .rate_kalman import run_stream
-from .rotations import quat_conj, quat_exp, quat_log, quat_mul, quat_to_dcm
 
 
 #: half-width of the default shape grid, in steps of 0.35: ln J ratios to ±1.75, principal moments up to
@@ -32,17 +31,6 @@ def shape_grid(step: float = 0.35, half_width: int = SHAPE_GRID_HALF_WIDTH) -> t
 #: unmodelled torques up to √30 × `rate_accel_radps2`; above, a persistent NIS excess (e.g. a
 #: magnetorquer's field on the magnetometer) would let the poorly observed component along B wander.
 EULER_ADAPT_MAX = 30.0
-
-#: hypotheses over the attitude's angle about the field once Euler's equations run (:class:`EulerAcquisitionKalman`)
-ABOUT_B_HYPOTHESES = 6
-#: a hypothesis whose log-likelihood is this far below the best one's is dropped (odds e⁻⁵⁰), once the inertial
-#: field has turned by twice `AttitudeKalmanTuning.about_b_turn_rad` (before, the wrong hypotheses'
-#: transients can briefly beat the right one by 10–30)
-ABOUT_B_DROP_NLL = 50.0
-#: the likelihood's temper in the mixture's weights, exp(−Δnll/T): the filters' likelihoods are over-sure of
-#: the angle about B (a wrong hypothesis leads the right one by 10–40 for minutes on some tumbles: the
-#: rate's random walk and the field model's error absorb part of the misfit)
-ABOUT_B_TEMPER = 10.0
 
 
 class _Bank:
@@ -91,12 +79,9 @@ class EulerAcquisitionKalman(_Bank):
     def __init__(self, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
                  tuning: AttitudeKalmanTuning | None = None, shapes=None, sigma_shape: float = 0.2,
                  trial_samples: int = 15, trial_s: float = 15.0, retry_samples: int = 15,
-                 angle_about_b_rad: float = 0.0, about_b_hypotheses: int = ABOUT_B_HYPOTHESES,
+                 angle_about_b_rad: float = 0.0,
                  deferred: bool = False) -> None:
         # the bank decides when Euler's equations start: the filters' own innovation test is off
-        # the publishing filter's rate is left as it was: no floor about B inside it (the floor's large
-        # attitude variance about B moved its rate along B: 0.20 → 0.38 °/s on a 1.5 µT row); the
-        # attitude goes out from the hypotheses over the angle about B (:meth:`attitude`)
         tun = replace(tuning or AttitudeKalmanTuning(euler_adapt_max=EULER_ADAPT_MAX), euler_nis_max=-math.inf)
         self.main = AttitudeRateKalman(sigma_b_T, field_eci_T=field_eci_T, estimate_inertia=True, tuning=tun,
                                        angle_about_b_rad=angle_about_b_rad)
@@ -117,9 +102,6 @@ class EulerAcquisitionKalman(_Bank):
         self._main_nll = math.nan
         self._next = 0
         self._wait = 0
-        self.about_b_hypotheses = int(about_b_hypotheses)
-        #: the hypotheses over the angle about B: [filter, its nll at the start] (empty: none running)
-        self._about_b: list[list] = []
 
     @property
     def euler(self) -> bool:
@@ -138,8 +120,6 @@ class EulerAcquisitionKalman(_Bank):
     def update(self, t_s: float, b_T) -> bool:
         """Add a field sample (tesla, body axes) at `t_s` to the publishing filter and to the trial's
         hypotheses (at once, or with `deferred` in :meth:`work`); True when an estimate was published."""
-        if self._about_b:
-            self._update_about_b(t_s, b_T)
         main = self.main
         resets = main.resets
         out = main.update(t_s, b_T)
@@ -206,65 +186,6 @@ class EulerAcquisitionKalman(_Bank):
             self._wait = self.retry_samples
         else:
             self.main = best
-            if not self._about_b:
-                self._start_about_b()
-
-    # -- the angle about B -------------------------------------------------------------------------
-    def _start_about_b(self) -> None:
-        """Hypotheses over the attitude's angle about the field: `main` turned about the inertial field by
-        k·2π/K, each with the floor of its σ about B at a uniform angle over its 2π/K (the linearisation
-        holds within it). Their innovations' likelihoods choose the attitude sent (:meth:`attitude`); the
-        rate published stays `main`'s."""
-        k = self.about_b_hypotheses
-        main = self.main
-        if k < 2 or main.field is None:
-            return
-        h, _ = main.measurement(main.t_s)
-        b_i = quat_to_dcm(main.q) @ (h / np.linalg.norm(h))
-        tun = replace(main.tuning, about_b_sigma_rad=2.0 * math.pi / k / math.sqrt(12.0))
-        self._about_b = []
-        for j in range(k):
-            kf = main.clone()
-            kf.tuning = tun
-            if j:
-                kf.q = quat_mul(quat_exp(b_i * (2.0 * math.pi * j / k)), kf.q)
-            u = h / np.linalg.norm(h)
-            v = float(u @ kf.P[:3, :3] @ u)
-            kf.P[:3, :3] += (tun.about_b_sigma_rad ** 2 - v) * np.outer(u, u)
-            self._about_b.append([kf, kf.nll, kf.resets])
-
-    def _update_about_b(self, t_s: float, b_T) -> None:
-        """The hypotheses over the angle about B take the sample; the lost ones (restarted, or out of
-        Euler's equations) and, once the field has turned by twice `about_b_turn_rad`, those
-        `ABOUT_B_DROP_NLL` behind the best are dropped; the last one stays (the attitude's filter)."""
-        for h in self._about_b:
-            with np.errstate(all="ignore"):
-                h[0].update(t_s, b_T)
-        live = [h for h in self._about_b if h[0].resets == h[2] and h[0].euler]
-        if not live:  # every hypothesis lost: the attitude from `main` again, and a new start at its next trial
-            self._about_b = []
-            return
-        scores = [h[0].nll - h[1] for h in live]
-        best = min(scores)
-        lead = live[scores.index(best)][0]
-        drop = lead.field_turn_rad >= 2.0 * lead.tuning.about_b_turn_rad
-        self._about_b = [h for h, sc in zip(live, scores) if not drop or sc - best < ABOUT_B_DROP_NLL]
-
-    def attitude(self) -> tuple[np.ndarray, np.ndarray]:
-        """(q body → ECI of `main`, the 3×3 covariance of its attitude error in body axes): with the
-        hypotheses over the angle about B still running, the mixture's (each weighted by its likelihood,
-        its offset from `main` included), so that the σ covers the hypotheses not yet excluded."""
-        if not self._about_b:  # before the hypotheses: `main`'s, its σ about B held at the floor
-            return np.array(self.main.q, float), attitude_cov(self.main)
-        scores = np.array([h[0].nll - h[1] for h in self._about_b])
-        main = self._about_b[int(np.argmin(scores))][0]
-        w = np.exp(-(scores - scores.min()) / ABOUT_B_TEMPER)
-        w /= w.sum()
-        cov = np.zeros((3, 3))
-        for wj, h in zip(w, self._about_b):
-            d = quat_log(quat_mul(quat_conj(main.q), h[0].q))
-            cov += wj * (h[0].P[:3, :3] + np.outer(d, d))
-        return np.array(main.q, float), cov
 
 
 #: the process models of :class:`RateModelBank`: (τ s, a rad/s²) of a Gauss–Markov rate, stationary 1-σ

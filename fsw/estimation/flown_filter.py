@@ -26,11 +26,8 @@ the host calibration's first corrected one, a step the fixed filter takes as a r
 published rate does not jump; the attitude about B, which
 the fixed filter does not know, starts wide. A new TLE or UTC (a new field object) is taken at the next
 sample without a restart. The attitude (:meth:`FlownFilter.attitude`) carries the field along the orbit
-onto the measured one; its angle about the field shows only as the field turns along the orbit: its σ
-there is held wide until the field has turned (`AttitudeKalmanTuning.about_b_turn_rad`), and the Euler
-filter runs hypotheses over that angle (:meth:`~.filter_banks.EulerAcquisitionKalman.attitude`: the
-mixture's covariance). On some tumbles the likelihood still prefers a wrong angle with a σ of a few
-degrees (docs/rate-estimation.md).
+onto the measured one; its angle about the field shows only as the field turns along the orbit, and a
+filter can settle in a minimum of its own there with a σ that does not cover it (docs/rate-estimation.md).
 
 The Euler filter's shape trial (34 hypotheses a sample for 15 samples and at least 15 s) runs in the
 loop's ticks between samples (:meth:`FlownFilter.work`, a few filter updates a tick), not all in the tick
@@ -42,7 +39,7 @@ import math
 
 import numpy as np
 
-from .attitude_kalman import AttitudeRateKalman, attitude_cov
+from .attitude_kalman import AttitudeRateKalman
 from .filter_banks import EulerAcquisitionKalman, RateModelBank
 from .rate_kalman import NO_ESTIMATE, RateKalman
 
@@ -152,9 +149,8 @@ class FlownFilter:
         kf = members(self.orbit)[0] if not isinstance(self.orbit, RateModelBank) else self.orbit.main
         if not getattr(kf, "_started", False):
             return None
-        q, P = self.orbit.attitude() if hasattr(self.orbit, "attitude") else (kf.q, attitude_cov(kf))
-        s = np.sqrt(np.clip(np.diagonal(P), 0.0, None))
-        return np.array(q, float), np.minimum(s, math.pi)
+        s = np.sqrt(np.clip(np.diagonal(kf.P)[:3], 0.0, None))
+        return np.array(kf.q, float), np.minimum(s, math.pi)
 
     # -- the loop ------------------------------------------------------------------------------------
     def reset(self) -> None:
