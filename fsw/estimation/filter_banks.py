@@ -31,6 +31,8 @@ def shape_grid(step: float = 0.35, half_width: int = SHAPE_GRID_HALF_WIDTH) -> t
 #: unmodelled torques up to √30 × `rate_accel_radps2`; above, a persistent NIS excess (e.g. a
 #: magnetorquer's field on the magnetometer) would let the poorly observed component along B wander.
 EULER_ADAPT_MAX = 30.0
+#: the shape trial's least step between the samples it takes (:class:`EulerAcquisitionKalman`)
+TRIAL_STEP_S = 0.5
 
 
 class _Bank:
@@ -74,12 +76,20 @@ class EulerAcquisitionKalman(_Bank):
     a shape no body has) falls back to the random-walk phase and the bank acquires again. Causal: each
     sample is used once, when it arrives; the published estimate is `main`'s (the random-walk filter's
     during a trial).
+
+    The trial's cost is bounded whatever the sample rate: it takes samples at least `trial_step_s` apart
+    (0.5 s: at most two a second, ~70 filter updates a second for 34 shapes, which the loop's
+    background work keeps up with); when that leaves out samples `main` takes, the random-walk filter's
+    score over the window is that of a copy of it run on the trial's samples.
+    A trial that falls behind anyway (a loop too slow, or one that never calls :meth:`work`) catches
+    up by two rounds of its hypotheses with each sample it takes, never all at once (a 50 Hz sensor
+    once stalled the loop for 27 s that way).
     """
 
     def __init__(self, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
                  tuning: AttitudeKalmanTuning | None = None, shapes=None, sigma_shape: float = 0.2,
                  trial_samples: int = 15, trial_s: float = 15.0, retry_samples: int = 15,
-                 angle_about_b_rad: float = 0.0,
+                 angle_about_b_rad: float = 0.0, trial_step_s: float = TRIAL_STEP_S,
                  deferred: bool = False) -> None:
         # the bank decides when Euler's equations start: the filters' own innovation test is off
         tun = replace(tuning or AttitudeKalmanTuning(euler_adapt_max=EULER_ADAPT_MAX), euler_nis_max=-math.inf)
@@ -89,6 +99,7 @@ class EulerAcquisitionKalman(_Bank):
         self.sigma_shape = float(sigma_shape)
         self.trial_samples = int(trial_samples)
         self.trial_s = float(trial_s)
+        self.trial_step_s = float(trial_step_s)
         self._window = self.trial_samples  # the running trial's length in samples
         self.retry_samples = int(retry_samples)
         #: the hypotheses' updates wait for :meth:`work` (the flight loop's ticks between samples) instead of
@@ -96,12 +107,14 @@ class EulerAcquisitionKalman(_Bank):
         self.deferred = bool(deferred)
         self.trials = 0
         #: the trial: [filter, its nll at the start, its resets at the start, samples taken, nll at the
-        #: end of the trial window] per hypothesis, and the samples since the trial started
+        #: end of the trial window] per hypothesis (the first: the random-walk filter's copy, the
+        #: reference), and the samples since the trial started
         self._trial: list[list] = []
         self._samples: list[tuple[float, np.ndarray]] = []
-        self._main_nll = math.nan
         self._next = 0
         self._wait = 0
+        self._ref: list | None = None
+        self._main_nll = math.nan
 
     @property
     def euler(self) -> bool:
@@ -126,12 +139,14 @@ class EulerAcquisitionKalman(_Bank):
         if self._trial:
             if main.resets != resets:  # the random-walk filter restarted: the trial's start is void
                 self._trial, self._samples = [], []
-            else:
+            elif not self._samples or t_s - self._samples[-1][0] >= self.trial_step_s - 1e-9:
                 self._samples.append((t_s, np.array(b_T, float)))
-                if len(self._samples) == self._window:
+                if self._ref is None and len(self._samples) == self._window:
                     self._main_nll = main.nll - self._nll0
-                if not self.deferred or len(self._samples) > 2 * self._window:
-                    self.work()  # (deferred, but left too far behind: a loop that never calls work)
+                if not self.deferred:
+                    self.work()
+                elif len(self._samples) > 2 * self._window:  # a loop too slow for the trial: two rounds of
+                    self.work(2 * len(self._trial))           # the hypotheses a sample, never all at once
         elif self._wait > 0:
             self._wait -= 1
         elif not main.euler and main.rate_found():
@@ -158,8 +173,12 @@ class EulerAcquisitionKalman(_Bank):
             if h[3] == self._window:
                 h[4] = kf.nll - h[1]
             done += 1
-            if kf.resets != h[2] or not kf.euler:
+            if kf.resets != h[2] or not (kf.euler or h is self._ref):
                 self._trial.remove(h)
+                if h is self._ref:  # the reference lost: no comparison to make, try again later
+                    self._trial, self._samples = [], []
+                    self._wait = self.retry_samples
+                    return done
         if n >= self._window and all(h[3] >= n for h in self._trial):
             self._decide()
         return done
@@ -167,19 +186,25 @@ class EulerAcquisitionKalman(_Bank):
     def _start_trial(self) -> None:
         self.trials += 1
         self._trial, self._samples = [], []
-        dt = self.main._dt_nominal  # the sample step seen so far
+        dt = max(self.main._dt_nominal, self.trial_step_s)  # the trial's sample step
         self._window = max(self.trial_samples, int(math.ceil(self.trial_s / dt - 1e-9)) if dt > 0 else 0)
+        self._ref = None
+        if self.main._dt_nominal < self.trial_step_s - 1e-9:  # the trial leaves samples out: score a copy
+            ref = self.main.clone()
+            self._ref = [ref, ref.nll, ref.resets, 0, math.nan]
+            self._trial.append(self._ref)
+        self._nll0 = self.main.nll
+        self._main_nll = math.nan
         for p in self.shapes:
             kf = self.main.clone()
             kf.start_euler(np.array(p), self.sigma_shape)
             self._trial.append([kf, kf.nll, kf.resets, 0, math.nan])
-        self._nll0 = self.main.nll
-        self._main_nll = math.nan
 
     def _decide(self) -> None:
-        best, best_nll = None, self._main_nll
-        for kf, _, _, _, d in self._trial:
-            if d < best_nll:
+        best, best_nll = None, self._main_nll if self._ref is None else self._ref[4]
+        for h in self._trial:
+            kf, d = h[0], h[4]
+            if h is not self._ref and d < best_nll:
                 best, best_nll = kf, d
         self._trial, self._samples = [], []
         if best is None:

@@ -217,3 +217,33 @@ def test_the_hand_over_at_the_first_calibrated_sample_starts_from_the_rate_befor
     fixed = rk.kalman_rate(t, raw, sigma)[0]
     rms = math.degrees(np.sqrt(np.mean(np.sum((w_est[late] - w[late]) ** 2, axis=1))))
     assert rms < 1.0 and rms < math.degrees(np.sqrt(np.mean(np.sum((fixed[late] - w[late]) ** 2, axis=1))))
+
+
+def test_the_shape_trial_costs_a_bounded_number_of_updates_a_sample_at_a_high_sample_rate(monkeypatch):
+    """A 20 Hz sensor on a 20 Hz loop (one tick's background work a sample): the shape trial takes samples
+    0.5 s apart and, when the ticks cannot keep up, catches up by two rounds of its hypotheses a sample —
+    no sample's update does more than that (a 50 Hz sensor once made one tick run ~25,000 filter updates,
+    a 27 s stall); and the Euler filter is still chosen and follows the tumble."""
+    sigma = math.hypot(0.5e-6, CHIP_NOISE_T)
+    scn, t, b, bt, w, q = tumble(2, 10.0, 0.05, 0.5e-6, 90.0)
+    calls = [0]
+    update = fb.AttitudeRateKalman.update
+
+    def counted(self, *args, **kw):
+        calls[0] += 1
+        return update(self, *args, **kw)
+
+    monkeypatch.setattr(fb.AttitudeRateKalman, "update", counted)
+    kf = FlownFilter(sigma, "euler", Switch(InterpolatedOrbitField(field_model(scn)), lambda ts: True))
+    most, w_est = 0, np.full((len(t), 3), np.nan)
+    for k in range(len(t)):
+        calls[0] = 0
+        if kf.update(t[k], b[k]) and not kf.flags & kf.NO_ESTIMATE:
+            w_est[k] = kf.omega_radps
+        most = max(most, calls[0])
+        kf.work(ESTIMATOR_WORK_PER_TICK)
+    hypotheses = len(fb.shape_grid()) + 1                      # the shapes and the random-walk filter's copy
+    assert most <= 1 + 2 * hypotheses
+    assert kf.name == "euler" and kf.orbit.euler
+    late = t >= 60.0
+    assert math.degrees(np.sqrt(np.nanmean(np.sum((w_est[late] - w[late]) ** 2, axis=1)))) < 1.0
