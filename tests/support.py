@@ -223,3 +223,23 @@ def flight_assumptions_file(tmp_path, name: str = "isoi") -> str:
     path = tmp_path / f"{name}_flight_assumptions.toml"
     path.write_text(text, encoding="utf-8")
     return str(path)
+
+
+def deorbit_loop(link=None):
+    """The amds_deorbit closed loop as SITL composes it, at 10 Hz, without the identification experiment
+    (the kit-field tests): the `hil.sitl` box; `link` None: no link (`NullLink`)."""
+    from fsw.config import RunConfig
+    from hil import scenario as scenarios
+    from hil import sitl
+
+    return sitl.build(sitl.SitlConfig(RunConfig(rate_hz=10, buffer_frames=0), scenario=scenarios.load("amds_deorbit"),
+                                      seed=0, max_step_s=0.1), link=link if link is not None else NullLink(),
+                      run_id=0, ident=False)
+
+
+def start_controller(kit, t_s: float) -> int:
+    """MAV_CMD_DEBRIS_CONTROLLER on (param1 = 1) handed to the de-orbit kit's application: its MAV_RESULT."""
+    from types import SimpleNamespace
+
+    return kit.handle_command(SimpleNamespace(command=mavlink.MAV_CMD_DEBRIS_CONTROLLER, param1=1, param2=0,
+                                              param3=0, param4=0, param5=0, param6=0, param7=0), t_s)

@@ -2,16 +2,13 @@
 and magnets): the flight software takes their field out of every sample (against the simulator's own kit
 field), skips the samples taken while a shutter moves, and its flown rate filter runs through the
 capsule events without a restart or a jump; the same run without the compensation jumps."""
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from fsw.config import RunConfig
-from fsw.system import NullLink
 from fsw.telemetry.dialect import mavlink
-from hil import scenario as scenarios
 from hil import sitl
+from support import deorbit_loop, start_controller
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow]
 
@@ -20,8 +17,7 @@ WINDOW_S = 30.0
 
 
 def closed_loop(compensate: bool):
-    box = sitl.build(sitl.SitlConfig(RunConfig(rate_hz=10, buffer_frames=0), scenario=scenarios.load("amds_deorbit"),
-                                     seed=0, max_step_s=0.1), link=NullLink(), run_id=0, ident=False)
+    box = deorbit_loop()
     sim, flight = box.sim, box.fsw
     kit = flight.apps["deorbit"]
     if not compensate:
@@ -30,15 +26,13 @@ def closed_loop(compensate: bool):
     resets = []
     reset = kf.reset
     kf.reset = lambda: (resets.append(sim.t_s), reset())
-    start = SimpleNamespace(command=mavlink.MAV_CMD_DEBRIS_CONTROLLER, param1=1, param2=0, param3=0, param4=0,
-                            param5=0, param6=0, param7=0)
     err, resid = [], []
     for k in range(int(DURATION_S * 10) + 1):
         t = k * 0.1
         sim.advance_to(t)
         b_kit_true = sim.kit_field.b_body_T()
         if k == 0:
-            assert kit.handle_command(start, t) == mavlink.MAV_RESULT_ACCEPTED
+            assert start_controller(kit, t) == mavlink.MAV_RESULT_ACCEPTED
         flight.tick(t)
         if flight.new_sample and not flight.kit_skip:
             resid.append(b_kit_true - flight.kit_T)
@@ -85,18 +79,15 @@ def test_samples_taken_while_a_shutter_opens_are_sent_flagged_and_not_used():
     from support import Capture
 
     link = Capture()
-    box = sitl.build(sitl.SitlConfig(RunConfig(rate_hz=10, buffer_frames=0), scenario=scenarios.load("amds_deorbit"),
-                                     seed=0, max_step_s=0.1), link=link, run_id=0, ident=False)
+    box = deorbit_loop(link)
     sim, flight = box.sim, box.fsw
     kit = flight.apps["deorbit"]
-    start = SimpleNamespace(command=mavlink.MAV_CMD_DEBRIS_CONTROLLER, param1=1, param2=0, param3=0, param4=0,
-                            param5=0, param6=0, param7=0)
     used, skipped = [], []
     for k in range(111):
         t = k * 0.1
         sim.advance_to(t)
         if k == 30:  # the pitch magnet is homed, then its capsule opens
-            assert kit.handle_command(start, t) == mavlink.MAV_RESULT_ACCEPTED
+            assert start_controller(kit, t) == mavlink.MAV_RESULT_ACCEPTED
         flight.tick(t)
         if flight.new_sample:
             (skipped if flight.kit_skip else used).append(

@@ -10,15 +10,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from fsw.config import RunConfig
 from fsw.telemetry.dialect import mavlink
 from ground import estimate
 from ground.decode import Decoder
 from ground.recorder import Recorder
 from ground.recording import read_recording, read_rate_estimates
-from hil import scenario as scenarios
-from hil import sitl
-from support import Capture
+from support import Capture, deorbit_loop, start_controller
 
 pytestmark = [pytest.mark.sitl]  # about 8 s
 
@@ -30,18 +27,15 @@ def sitl_run():
     """The closed loop at 10 Hz; per sample sent: (time, box's skip flag, simulator's kit field); the link's
     bytes; the capsule events; the flight software."""
     link = Capture()
-    box = sitl.build(sitl.SitlConfig(RunConfig(rate_hz=10, buffer_frames=0), scenario=scenarios.load("amds_deorbit"),
-                                     seed=0, max_step_s=0.1), link=link, run_id=0, ident=False)
+    box = deorbit_loop(link)
     sim, flight = box.sim, box.fsw
     kit = flight.apps["deorbit"]
-    start = SimpleNamespace(command=mavlink.MAV_CMD_DEBRIS_CONTROLLER, param1=1, param2=0, param3=0, param4=0,
-                            param5=0, param6=0, param7=0)
     samples = {}
     for k in range(int(DURATION_S * 10) + 1):
         t = k * 0.1
         sim.advance_to(t)
         if k == 0:
-            assert kit.handle_command(start, t) == mavlink.MAV_RESULT_ACCEPTED
+            assert start_controller(kit, t) == mavlink.MAV_RESULT_ACCEPTED
         kit_true = sim.kit_field.b_body_T().copy()
         flight.tick(t)
         if flight.new_sample:
