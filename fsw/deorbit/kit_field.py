@@ -276,11 +276,7 @@ class KitFieldModel:
     def field_at(self, t_s: float) -> tuple[np.ndarray, bool]:
         """(the kit's modelled field at the sensor for a sample at `t_s` [T], skip it): a sample taken
         while something moved is skipped (its field is still the best guess, from the last rest)."""
-        b = np.zeros(3)
-        for m, r, f in zip(self.models, self.rest, self._from):
-            state = r if r is not None else f
-            if state is not None:
-                b += m.field_T(state)
+        b = self._model(tuple(r if r is not None else f for r, f in zip(self.rest, self._from)))
         skip = False
         for i, m in enumerate(self.models):
             if self.rest[i] is None or self.moving(t_s, i):
@@ -361,9 +357,11 @@ class KitFieldModel:
         return coef[-1], np.diag(var * np.linalg.inv(X.T @ X)[-1, -1]), float(np.sqrt(np.mean(var)))
 
     def _model(self, states: tuple) -> np.ndarray:
+        """The modelled field of the channels in `states` (a channel whose state is None: none)."""
         b = np.zeros(3)
         for m, r in zip(self.models, states):
-            b += m.field_T(r)
+            if r is not None:
+                b += m.field_T(r)
         return b
 
     def _update(self, c: _Cluster, d: np.ndarray, R: np.ndarray) -> None:
