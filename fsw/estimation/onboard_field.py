@@ -45,12 +45,17 @@ class KnotField:
         self.max_knots = int(max_knots)
         self._knots: dict[int, np.ndarray] = {}
         self.knots_evaluated = 0
+        # the last scalar time asked and its field: every filter of a bank (a shape trial's 35, the rate
+        # models' 6) asks for the same sample's time in turn
+        self._last: tuple[float, np.ndarray] | None = None
 
     def direct_b_eci_T(self, t_s) -> np.ndarray:
         raise NotImplementedError
 
     def b_eci_T(self, t_s) -> np.ndarray:
         """B_I at t, interpolated between knots."""
+        if np.ndim(t_s) == 0 and self._last is not None and self._last[0] == t_s:
+            return self._last[1].copy()
         t = np.asarray(t_s, float)
         x = t.ravel() / self.knot_step_s
         k0 = np.floor(x).astype(np.int64)
@@ -62,8 +67,10 @@ class KnotField:
         # cubic Lagrange weights on nodes -1, 0, 1, 2
         w = np.stack((-u * (u - 1) * (u - 2) / 6, (u + 1) * (u - 1) * (u - 2) / 2,
                       -(u + 1) * u * (u - 2) / 2, (u + 1) * u * (u - 1) / 6), axis=-1)
-        b = np.einsum("nk,nkj->nj", w, vals)
-        return b.reshape(t.shape + (3,))
+        b = np.einsum("nk,nkj->nj", w, vals).reshape(t.shape + (3,))
+        if t.ndim == 0:
+            self._last = (float(t), b.copy())
+        return b
 
     __call__ = b_eci_T
     turn_rate_radps = OrbitField.turn_rate_radps

@@ -81,6 +81,17 @@ def test_interpolation_between_knots_against_direct_evaluation():
     np.testing.assert_allclose(flight.b_eci_T(k), flight.direct_b_eci_T(k), atol=1e-15)
 
 
+def test_a_time_asked_again_is_the_same_field_and_a_caller_cannot_change_it():
+    """A filter bank asks for one sample's time once per member: the answer is the direct interpolation's
+    (against the SGP4 and IGRF evaluation at the knots), whoever asked first or wrote into it."""
+    t, (flight, _, _) = along_the_orbit(hours=1.0, step_s=60.0)
+    first = flight.b_eci_T(1234.5)
+    first[:] = 0.0                                                 # a caller scribbling on its copy
+    again = flight.b_eci_T(1234.5)
+    assert np.linalg.norm(again - flight.direct_b_eci_T(1234.5)) * 1e6 <= 0.05
+    assert np.array_equal(again, flight.b_eci_T(np.array([1234.5]))[0])
+
+
 def test_the_onboard_field_turns_like_the_field_and_has_the_estimators_interface():
     t, (flight, full, _) = along_the_orbit(hours=2.0, step_s=60.0)
     b = flight(t)
