@@ -90,9 +90,7 @@ def decimate(rec: Recording, hz: float) -> Recording:
         if t >= next_t - 1e-9:
             keep.append(i)
             next_t = t + step
-    idx = np.array(keep)
-    return Recording(rec.t_s[idx], rec.b_T[idx], rec.m_Nm[idx],
-                     None if rec.w_ref_radps is None else rec.w_ref_radps[idx], rec.metadata)
+    return rec.rows(np.array(keep))
 
 
 def field_error_rel(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float) -> float:

@@ -160,10 +160,7 @@ def known_moment_span(rec: Recording) -> tuple[Recording, int]:
     i0, i1 = sm.known_span(rec.m_Nm)
     if (i0, i1) == (0, len(rec)):
         return rec, 0
-    cut = slice(i0, i1)
-    return (Recording(rec.t_s[cut], rec.b_T[cut], rec.m_Nm[cut],
-                      None if rec.w_ref_radps is None else rec.w_ref_radps[cut], rec.metadata, rec.path),
-            len(rec) - (i1 - i0))
+    return rec.rows(slice(i0, i1)), len(rec) - (i1 - i0)
 
 
 def run(rec: Recording, b_inertial: Callable, *, sigma_b_T: float = 1.5e-6, mode: str = "full",

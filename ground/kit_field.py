@@ -13,6 +13,7 @@ unchanged.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 import numpy as np
 
@@ -43,8 +44,8 @@ def take_out(rec: Recording, *, raw: bool = False) -> tuple[Recording, str]:
                      "used, the recorded kit field not subtracted")
     keep = ~(flagged | unknown)
     kit = rec.kit_T[keep] if has_kit else np.zeros((int(keep.sum()), 3))
-    out = Recording(rec.t_s[keep], rec.b_T[keep] - kit, rec.m_Nm[keep],
-                    None if rec.w_ref_radps is None else rec.w_ref_radps[keep], rec.metadata, rec.path)
+    out = dataclasses.replace(rec.rows(keep), kit_T=None, flags=None)  # the kit is out: no columns of it
+    out.b_T = out.b_T - kit
     peak = float(np.max(np.linalg.norm(kit, axis=1))) * 1e6 if len(kit) else 0.0
     line = (f"kit field: {int(flagged.sum())} of {n} samples flagged KIT_MOVING skipped"
             + (f", {int((unknown & ~flagged).sum())} with an unknown kit field skipped" if unknown.any() else "")

@@ -128,6 +128,13 @@ class Recording:
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
 
+    def rows(self, index) -> Recording:
+        """The recording of the rows `index` selects (a mask, indices or a slice), every column kept."""
+        def pick(a):
+            return None if a is None else a[index]
+        return Recording(self.t_s[index], self.b_T[index], self.m_Nm[index], pick(self.w_ref_radps), self.metadata,
+                         self.path, pick(self.kit_T), pick(self.flags))
+
 
 @dataclass
 class RateEstimates:
