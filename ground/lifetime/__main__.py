@@ -43,15 +43,17 @@ def _parser() -> ArgumentParser:
                    help="inclination (default 90)")
     o.add_argument("--tle", nargs=2, metavar=("LINE1", "LINE2"), help="the orbit from a TLE's mean elements")
     c = ap.add_argument_group("spacecraft")
-    c.add_argument("--mass-kg", type=finite_float(), default=180.0, help="mass (default 180)")
-    c.add_argument("--sail-m2", type=finite_float(), default=5.0, help="sail area (default 5)")
-    c.add_argument("--body-m2", type=finite_float(), default=0.58, help="body midsection (default 0.58)")
-    c.add_argument("--body-surface-m2", type=finite_float(), help="body surface: tumbling body shows a quarter")
-    c.add_argument("--cd", type=finite_float(), default=2.2, help="drag coefficient (default 2.2)")
+    c.add_argument("--mass-kg", type=finite_float(0, min_exclusive=True), default=180.0, help="mass (default 180)")
+    c.add_argument("--sail-m2", type=finite_float(0), default=5.0, help="sail area (default 5)")
+    c.add_argument("--body-m2", type=finite_float(0), default=0.58, help="body midsection (default 0.58)")
+    c.add_argument("--body-surface-m2", type=finite_float(0, min_exclusive=True), help="body surface: tumbling body shows a quarter")
+    c.add_argument("--cd", type=finite_float(0, min_exclusive=True), default=2.2, help="drag coefficient (default 2.2)")
     c.add_argument("--pointing-error-deg", type=finite_float(0, 90), default=0.0, metavar="DEG",
                    help="stabilised: the sail's angle off broadside (default 0)")
     c.add_argument("--deorbit-json", metavar="FILE",
                    help="stabilised: the largest yaw and pitch errors of a python -m bench.deorbit --json run")
+    c.add_argument("--tumble-sail-fraction", type=finite_float(0, 1), default=0.5, metavar="X",
+                   help="tumbling: the share of the sail shown on average (default 0.5, a random tumble)")
     c.add_argument("--modes", nargs="+", choices=MODES, default=["tumbling", "stabilised"],
                    help="attitude modes to compute (default tumbling stabilised)")
     a = ap.add_argument_group("activity")
@@ -191,7 +193,8 @@ def main(argv: list[str] | None = None) -> int:
         elif args.pointing_error_deg:
             import math
             cos = math.cos(math.radians(args.pointing_error_deg))
-        craft = Craft(args.mass_kg, args.sail_m2, args.body_m2, args.cd, args.body_surface_m2, cos).check()
+        craft = Craft(args.mass_kg, args.sail_m2, args.body_m2, args.cd, args.body_surface_m2, cos,
+                      args.tumble_sail_fraction).check()
     except CraftError as e:
         ap.error(str(e))
     decays = {}
@@ -220,7 +223,8 @@ def main(argv: list[str] | None = None) -> int:
             "orbit": {"perigee_km": orbit.perigee_km, "apogee_km": orbit.apogee_km, "a_m": orbit.a_m, "e": orbit.e,
                       "inclination_deg": orbit.inclination_deg},
             "craft": {"mass_kg": craft.mass_kg, "sail_m2": craft.sail_m2, "body_m2": craft.body_m2, "cd": craft.cd,
-                      "body_surface_m2": craft.body_surface_m2, "pointing_cos": craft.pointing_cos},
+                      "body_surface_m2": craft.body_surface_m2, "pointing_cos": craft.pointing_cos,
+                      "tumble_sail_fraction": craft.tumble_sail_fraction},
             "activity": sched.name, "reentry_km": args.reentry_km, "max_years": args.max_years,
             "lifetime_years": life, "gain": gain,
             "modes": {m: {"area_m2": craft.area_m2(m), "ballistic_m2kg": craft.ballistic_m2kg(m),

@@ -3,7 +3,9 @@
 - tumbling: a random tumble, every attitude equally likely. The mean projected area of a convex body
   is a quarter of its surface (Cauchy); a flat plate of area A (two faces, 2A of surface) shows A/2.
   The sail shows A/2; the body shows its midsection `body_m2` (the paper gives only that), or a
-  quarter of its surface when `body_surface_m2` is given.
+  quarter of its surface when `body_surface_m2` is given. `tumble_sail_fraction` (default 1/2) is the
+  share of the sail shown on average: other values are for what-ifs (lapkhanov2019's tumbling times
+  imply about 3/4; `ground.lifetime.paper`).
 - stabilised: the sail held broadside to the flow: A · cos(yaw error) · cos(pitch error) (0 by default;
   `from_deorbit_json` takes the largest errors after convergence of a `python -m bench.deorbit --json`
   run, whose JSON holds those errors but no projected-area statistics: a lower bound on the area), plus
@@ -34,6 +36,7 @@ class Craft:
     cd: float = 2.2
     body_surface_m2: float | None = None
     pointing_cos: float = 1.0            # cos(yaw err) · cos(pitch err) when stabilised
+    tumble_sail_fraction: float = 0.5    # the share of the sail a tumbling craft shows on average
 
     def check(self) -> "Craft":
         for name, v, zero_ok in (("mass", self.mass_kg, False), ("sail area", self.sail_m2, True),
@@ -44,6 +47,8 @@ class Craft:
             raise CraftError(f"body surface must be > 0, got {self.body_surface_m2:g}")
         if not (0.0 <= self.pointing_cos <= 1.0):
             raise CraftError(f"pointing cosine must be within 0-1, got {self.pointing_cos:g}")
+        if not (0.0 <= self.tumble_sail_fraction <= 1.0):
+            raise CraftError(f"tumbling sail fraction must be within 0-1, got {self.tumble_sail_fraction:g}")
         if self.sail_m2 + self.body_m2 <= 0:
             raise CraftError("sail and body areas are both 0: nothing for the drag to act on")
         return self
@@ -52,7 +57,7 @@ class Craft:
         """The mean area the flow sees in `mode` (module docstring)."""
         if mode == "tumbling":
             body = self.body_m2 if self.body_surface_m2 is None else self.body_surface_m2 / 4
-            return self.sail_m2 / 2 + body
+            return self.sail_m2 * self.tumble_sail_fraction + body
         if mode == "stabilised":
             return self.sail_m2 * self.pointing_cos + self.body_m2
         if mode == "passive":
