@@ -46,7 +46,8 @@ def _parser() -> ArgumentParser:
     c.add_argument("--mass-kg", type=finite_float(0, min_exclusive=True), default=180.0, help="mass (default 180)")
     c.add_argument("--sail-m2", type=finite_float(0), default=5.0, help="sail area (default 5)")
     c.add_argument("--body-m2", type=finite_float(0), default=0.58, help="body midsection (default 0.58)")
-    c.add_argument("--body-surface-m2", type=finite_float(0, min_exclusive=True), help="body surface: tumbling body shows a quarter")
+    c.add_argument("--body-surface-m2", type=finite_float(0, min_exclusive=True),
+                   help="body surface: tumbling body shows a quarter")
     c.add_argument("--cd", type=finite_float(0, min_exclusive=True), default=2.2, help="drag coefficient (default 2.2)")
     c.add_argument("--pointing-error-deg", type=finite_float(0, 90), default=0.0, metavar="DEG",
                    help="stabilised: the sail's angle off broadside (default 0)")
