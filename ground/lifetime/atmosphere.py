@@ -115,5 +115,7 @@ def density_kgm3(log_profile: np.ndarray, alt_km):
     """ρ at heights (km) from a ln ρ profile on `ALT_GRID_KM` (log-linear; held beyond the grid's top,
     extrapolated along the lowest interval below 100 km)."""
     h = np.asarray(alt_km, float)
+    if h.min() >= ALT_GRID_KM[0]:
+        return np.exp(np.interp(h, ALT_GRID_KM, log_profile))
     lo = log_profile[0] + (h - ALT_GRID_KM[0]) * (log_profile[1] - log_profile[0]) / 10.0
     return np.exp(np.where(h < ALT_GRID_KM[0], lo, np.interp(h, ALT_GRID_KM, log_profile)))

@@ -1,5 +1,5 @@
 """Orbit decay over years: mean elements a, e under drag, averaged over each orbit, plus J2's secular
-turn of the node and perigee; a fixed-step RK4 in time whose steps lower a by at most 1 km.
+turn of the node and perigee; a fixed-step RK4 in time whose steps lower a by at most 2 km.
 
 The rates (Gauss's equations with a drag acceleration along the velocity relative to the co-rotating
 atmosphere, a_T = −½ ρ B v² f², B = C_D A / m, f = 1 − ω_E h cos i / v² the atmosphere's rotation;
@@ -119,10 +119,14 @@ def j2_rates_radps(a_m: float, e: float, inclination_deg: float) -> tuple[float,
 
 
 def decay(orbit: Orbit, b_m2kg: float, schedule: act.Schedule, *, reentry_km: float = REENTRY_KM,
-          max_years: float = 200.0, max_step_days: float = 5.0, max_da_m: float = 1000.0,
+          max_years: float = 200.0, max_step_days: float | None = None, max_da_m: float = 2000.0,
           progress: Callable[[float], None] | None = None) -> Decay:
     """Decay `orbit` with ballistic coefficient `b_m2kg` (C_D A / m) until its perigee reaches
-    `reentry_km` or `max_years` pass. `progress(fraction)` is called as the perigee comes down."""
+    `reentry_km` or `max_years` pass. `progress(fraction)` is called as the perigee comes down.
+    Steps lower a by at most `max_da_m` and last at most `max_step_days` (default 30 days for constant
+    activity, 5 days for a monthly schedule)."""
+    if max_step_days is None:
+        max_step_days = 30.0 if schedule.constant else 5.0
     max_days = max_years * YEAR_DAYS
     dens = _Density(schedule, orbit.inclination_deg, max_days)
     cos_i = math.cos(math.radians(orbit.inclination_deg))

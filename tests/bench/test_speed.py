@@ -143,3 +143,23 @@ def test_filterpy_kalman_step(benchmark):
 
     benchmark(step)
     assert np.all(np.isfinite(kf.x))
+
+
+def test_lifetime_30_years(benchmark):
+    """A 30-year de-orbit lifetime (lapkhanov2019 Table 2's 700 × 842.85 km row, sail stabilised, constant
+    moderate activity): NRLMSIS's averaged profile computed afresh each round (its cache cleared in the
+    setup), then the orbit-averaged decay. Target: ≤ 5 s."""
+    from ground.lifetime import activity as act
+    from ground.lifetime import atmosphere, paper
+    from ground.lifetime.decay import decay
+
+    row = paper.ROWS[4]
+    o, b = paper.orbit(row), paper.craft(row).ballistic_m2kg("stabilised")
+    sched = act.constant(paper.PAPER_ACTIVITY)
+
+    def fresh():
+        atmosphere._log_profile.cache_clear()
+        return (), {}
+
+    d = benchmark.pedantic(lambda: decay(o, b, sched), setup=fresh, rounds=3, iterations=1)
+    assert d.lifetime_years >= 30

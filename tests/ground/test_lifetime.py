@@ -289,3 +289,12 @@ def test_cli_paper_table(tmp_path):
         assert {"tumbling_years", "stabilised_years", "spread"} <= set(r)
         s = r["spread"]
         assert s["high"]["stabilised"] < s["moderate"]["stabilised"] < s["low"]["stabilised"]
+
+
+def test_steps_converged():
+    """The default steps against steps 8× shorter in a and ≤ 1 day: the same lifetime to 1e-5."""
+    row = paper.ROWS[0]
+    o, b = paper.orbit(row), paper.craft(row).ballistic_m2kg("stabilised")
+    coarse = decay(o, b, PAPER_SCHEDULE).lifetime_days
+    fine = decay(o, b, PAPER_SCHEDULE, max_step_days=1.0, max_da_m=250.0).lifetime_days
+    assert coarse == pytest.approx(fine, rel=1e-5)
