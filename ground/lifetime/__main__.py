@@ -17,6 +17,7 @@ Exit status: 0 done, 2 bad usage or input (one line naming it).
 from __future__ import annotations
 
 import json
+import math
 import sys
 
 from fsw.startup import interrupt_quietly
@@ -55,6 +56,8 @@ def _parser() -> ArgumentParser:
                    help="stabilised: the largest yaw and pitch errors of a python -m bench.deorbit --json run")
     c.add_argument("--tumble-sail-fraction", type=finite_float(0, 1), default=0.5, metavar="X",
                    help="tumbling: the share of the sail shown on average (default 0.5, a random tumble)")
+    c.add_argument("--passive-swing-deg", type=finite_float(0, 90), default=57.29578, metavar="DEG",
+                   help="passive: amplitude of the sail's undamped yaw and pitch swings (default 1 rad)")
     c.add_argument("--modes", nargs="+", choices=MODES, default=["tumbling", "stabilised"],
                    help="attitude modes to compute (default tumbling stabilised)")
     a = ap.add_argument_group("activity")
@@ -105,7 +108,6 @@ def _orbit(ap: ArgumentParser, args) -> Orbit:
             sat = parse_tle(*args.tle).satrec()
         except TleError as e:
             ap.error(f"--tle: {e}")
-        import math
         return Orbit(sat.a * sat.radiusearthkm * 1e3, sat.ecco, math.degrees(sat.inclo))
     if args.perigee_km is None:
         ap.error("give the orbit: --perigee-km [--apogee-km] or --tle")
@@ -192,10 +194,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.deorbit_json:
             cos = pointing_cos_from_deorbit_json(args.deorbit_json)
         elif args.pointing_error_deg:
-            import math
             cos = math.cos(math.radians(args.pointing_error_deg))
         craft = Craft(args.mass_kg, args.sail_m2, args.body_m2, args.cd, args.body_surface_m2, cos,
-                      args.tumble_sail_fraction).check()
+                      args.tumble_sail_fraction, math.radians(args.passive_swing_deg)).check()
     except CraftError as e:
         ap.error(str(e))
     decays = {}
@@ -225,7 +226,8 @@ def main(argv: list[str] | None = None) -> int:
                       "inclination_deg": orbit.inclination_deg},
             "craft": {"mass_kg": craft.mass_kg, "sail_m2": craft.sail_m2, "body_m2": craft.body_m2, "cd": craft.cd,
                       "body_surface_m2": craft.body_surface_m2, "pointing_cos": craft.pointing_cos,
-                      "tumble_sail_fraction": craft.tumble_sail_fraction},
+                      "tumble_sail_fraction": craft.tumble_sail_fraction,
+                      "passive_swing_rad": craft.passive_swing_rad},
             "activity": sched.name, "reentry_km": args.reentry_km, "max_years": args.max_years,
             "lifetime_years": life, "gain": gain,
             "modes": {m: {"area_m2": craft.area_m2(m), "ballistic_m2kg": craft.ballistic_m2kg(m),

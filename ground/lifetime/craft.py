@@ -10,8 +10,11 @@
   `from_deorbit_json` takes the largest errors after convergence of a `python -m bench.deorbit --json`
   run, whose JSON holds those errors but no projected-area statistics: a lower bound on the area), plus
   the body's midsection.
-- passive: the kit off: the sail spins flat about an axis in its plane across the flow (the slow spin an
-  aerodynamically unstable sail settles into), so it shows A · 2/π on average, plus the body's midsection.
+- passive: the kit off. The sail is weathercock-stable (centre of pressure 0.12 m behind the centre of
+  mass, docs/deorbit.md) but nothing damps it: it swings about broadside in yaw and pitch. With
+  sinusoidal swings of amplitude θ0 in both, independent, it shows A · J0(θ0)² on average (⟨cos(θ0 sin
+  ωt)⟩ = J0(θ0)); θ0 = 1 rad by default, the swing `bench.deorbit`'s craft keeps from 60°/45° without
+  control. Plus the body's midsection.
 
 C_D = 2.2 by default (the usual free-molecular value for a compact satellite), the same for all modes.
 """
@@ -37,6 +40,7 @@ class Craft:
     body_surface_m2: float | None = None
     pointing_cos: float = 1.0            # cos(yaw err) · cos(pitch err) when stabilised
     tumble_sail_fraction: float = 0.5    # the share of the sail a tumbling craft shows on average
+    passive_swing_rad: float = 1.0       # amplitude of the undamped yaw and pitch swings, kit off
 
     def check(self) -> "Craft":
         for name, v, zero_ok in (("mass", self.mass_kg, False), ("sail area", self.sail_m2, True),
@@ -49,6 +53,8 @@ class Craft:
             raise CraftError(f"pointing cosine must be within 0-1, got {self.pointing_cos:g}")
         if not (0.0 <= self.tumble_sail_fraction <= 1.0):
             raise CraftError(f"tumbling sail fraction must be within 0-1, got {self.tumble_sail_fraction:g}")
+        if not (math.isfinite(self.passive_swing_rad) and 0.0 <= self.passive_swing_rad <= math.pi / 2):
+            raise CraftError(f"passive swing must be within 0-90°, got {math.degrees(self.passive_swing_rad):g}°")
         if self.sail_m2 + self.body_m2 <= 0:
             raise CraftError("sail and body areas are both 0: nothing for the drag to act on")
         return self
@@ -61,7 +67,8 @@ class Craft:
         if mode == "stabilised":
             return self.sail_m2 * self.pointing_cos + self.body_m2
         if mode == "passive":
-            return self.sail_m2 * 2 / math.pi + self.body_m2
+            from scipy.special import j0
+            return self.sail_m2 * float(j0(self.passive_swing_rad)) ** 2 + self.body_m2
         raise CraftError(f"unknown attitude mode {mode!r}: one of {', '.join(MODES)}")
 
     def ballistic_m2kg(self, mode: str) -> float:

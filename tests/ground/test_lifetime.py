@@ -109,7 +109,10 @@ def test_mode_areas():
     c = Craft(180, 5.0, 0.58)
     assert c.area_m2("tumbling") == pytest.approx(2.5 + 0.58)
     assert c.area_m2("stabilised") == pytest.approx(5.58)
-    assert c.area_m2("passive") == pytest.approx(5 * 2 / math.pi + 0.58)
+    # passive: undamped 1-rad swings in yaw and pitch; ⟨cos(θ0 sin ωt)⟩² by quadrature over a period
+    ph = (np.arange(100_000) + 0.5) * 2 * math.pi / 100_000
+    assert c.area_m2("passive") == pytest.approx(5 * np.cos(1.0 * np.sin(ph)).mean() ** 2 + 0.58, rel=1e-9)
+    assert Craft(180, 5.0, 0.58, passive_swing_rad=0.0).area_m2("passive") == pytest.approx(5.58)
     assert Craft(180, 5.0, 0.58, body_surface_m2=3.48).area_m2("tumbling") == pytest.approx(2.5 + 0.87)
 
 
@@ -298,3 +301,9 @@ def test_steps_converged():
     coarse = decay(o, b, PAPER_SCHEDULE).lifetime_days
     fine = decay(o, b, PAPER_SCHEDULE, max_step_days=1.0, max_da_m=250.0).lifetime_days
     assert coarse == pytest.approx(fine, rel=1e-5)
+
+
+def test_cli_help(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["--help"])
+    assert e.value.code == 0 and capsys.readouterr().out.startswith("usage:")
