@@ -61,8 +61,9 @@ def _parser() -> ArgumentParser:
     c.add_argument("--modes", nargs="+", choices=MODES, default=["tumbling", "stabilised"],
                    help="attitude modes to compute (default tumbling stabilised)")
     a = ap.add_argument_group("activity")
-    a.add_argument("--activity", choices=(*act.LEVELS, "cycle"), default="moderate",
-                   help="constant low/moderate/high level or the idealised solar cycle (default moderate)")
+    a.add_argument("--activity", choices=(*act.LEVELS, "cycle"),
+                   help="constant low/moderate/high level or the idealised solar cycle (default moderate; "
+                        "with --paper-table: F10.7 = F10.7a = 150 sfu, Ap 15)")
     a.add_argument("--cycle-phase", type=finite_float(), default=0.0, metavar="X",
                    help="with --activity cycle: phase at the start, 0 minimum, 0.5 maximum (default 0)")
     a.add_argument("--f107", type=finite_float(), metavar="SFU", help="constant F10.7 (with --f107a, --ap)")
@@ -92,7 +93,8 @@ def _schedule(ap: ArgumentParser, args) -> act.Schedule:
             return act.from_file(args.activity_file)
         if args.activity == "cycle":
             return act.cycle(args.cycle_phase, args.max_years + 1)
-        return act.constant(act.LEVELS[args.activity], f"{args.activity} activity (constant)")
+        level = args.activity or "moderate"
+        return act.constant(act.LEVELS[level], f"{level} activity (constant)")
     except ActivityError as e:
         ap.error(str(e))
     except OSError as e:
@@ -170,8 +172,11 @@ def main(argv: list[str] | None = None) -> int:
         from . import paper
         if args.plot:
             ap.error("--plot is for one orbit, not --paper-table")
+        chosen = (args.activity or args.activity_file or args.f107 is not None or args.f107a is not None
+                  or args.ap is not None)
+        sched = _schedule(ap, args) if chosen else None
         with tqdm(total=len(paper.ROWS), desc="Table 2 rows", disable=args.quiet, file=sys.stderr) as bar:
-            res = paper.table(reentry_km=args.reentry_km, progress=lambda k: bar.update(k - bar.n))
+            res = paper.table(schedule=sched, reentry_km=args.reentry_km, progress=lambda k: bar.update(k - bar.n))
         for r in res["rows"]:
             print(f"{r['altitude_km']:.0f} x {r['apogee_km']:.2f} km, {r['inclination_deg']:.0f}°: tumbling "
                   f"{r['tumbling_years']:.2f} (paper {r['paper_tumbling_years']}), "
