@@ -111,7 +111,7 @@ class UplinkCounters:
     parser_resets: int = 0
     answers_withheld: int = 0  # answers not sent: the request's sender is not the answer address
     unsigned_reads: int = 0  # unsigned requests that only read, answered (box with a key)
-    unsigned_reads_dropped: int = 0  # over the tick's budget for them
+    unsigned_reads_dropped: int = 0  # over the tick's budget for them (counted in `unsigned` too)
     answers_limited: int = 0  # answers to unauthenticated requests over `answer_limit`
 
     @property
@@ -349,8 +349,8 @@ class Uplink:
             verdict = self.verifier.check(frame, now_s)
             if verdict is Verdict.UNSIGNED and (frame[7] | frame[8] << 8 | frame[9] << 16) in UNSIGNED_READS:
                 if self._unsigned_left is not None and self._unsigned_left <= 0:
+                    c.unsigned += 1  # not answered: counted as any unsigned frame, and why
                     c.unsigned_reads_dropped += 1
-                    c.dropped_bytes += len(frame)
                     return
                 if self._unsigned_left is not None:
                     self._unsigned_left -= 1
