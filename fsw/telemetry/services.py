@@ -11,6 +11,7 @@ sends a MAVLink system, answered by the box.
 | MAV_CMD_GET_MESSAGE_INTERVAL (510)             | ACK + MESSAGE_INTERVAL                 | answered               |
 | MAV_CMD_SET_MESSAGE_INTERVAL (511)             | ACK; the message's rate changed        | dropped, no answer     |
 | PARAM_REQUEST_LIST / PARAM_REQUEST_READ        | PARAM_VALUE (`fsw.telemetry.uplink`)   | answered               |
+| FILE_TRANSFER_PROTOCOL (MAVLink FTP)           | NAK UnknownCommand: no files           | answered               |
 
 (`fsw.telemetry.uplink` decides what may be answered unsigned; this module only answers.)
 
@@ -40,12 +41,19 @@ are not limited here (the uplink's per-tick decode budget bounds them).
 from __future__ import annotations
 
 import math
+import struct
 from dataclasses import dataclass
 from typing import Callable
 
 from ..commands import int_param
 from .dialect import mavlink
 
+#: MAVLink FTP: the header before the data, the payload's size, the opcodes and error used
+FTP_HEADER_BYTES = 12
+FTP_PAYLOAD_BYTES = 251
+FTP_OP_ACK = 128
+FTP_OP_NAK = 129
+FTP_ERR_UNKNOWN_COMMAND = 7
 #: the shortest interval a message can be set to (s): 10 Hz
 MIN_INTERVAL_S = 0.1
 #: the longest (s): MESSAGE_INTERVAL's int32 µs holds 2147 s
@@ -199,8 +207,9 @@ class Services:
         router.register(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, self.cmd_set_message_interval, changes_state=True)
 
     def message_handlers(self) -> dict:
-        """PING and TIMESYNC (the time-and-orbit application's TIMESYNC, with the UTC, takes precedence)."""
-        return {"PING": self.on_ping, "TIMESYNC": self.on_timesync}
+        """PING, TIMESYNC (the time-and-orbit application's TIMESYNC, with the UTC, takes precedence) and
+        MAVLink FTP."""
+        return {"PING": self.on_ping, "TIMESYNC": self.on_timesync, "FILE_TRANSFER_PROTOCOL": self.on_ftp}
 
     # --- the bucket -----------------------------------------------------------------------------------
     def allow(self, now_s: float, authenticated: bool) -> bool:
@@ -296,6 +305,24 @@ class Services:
         utc = self.utc_s(now_s) if self.utc_s is not None else math.nan
         t_s = utc if math.isfinite(utc) else now_s
         return mavlink.MAVLink_timesync_message(int(round(t_s * 1e9)), int(msg.ts1))
+
+    def on_ftp(self, msg, now_s: float, authenticated: bool):
+        """MAVLink FTP (https://mavlink.io/en/services/ftp.html): the box serves no files (AUTOPILOT_VERSION
+        does not claim MAV_PROTOCOL_CAPABILITY_FTP), but ground stations try it first for the parameters
+        (MAVProxy: `@PARAM/param.pck`) and wait for time-outs: every request is answered NAK with
+        ERR_UnknownCommand at once, so that they fall back to PARAM_REQUEST_LIST. A reply (ACK/NAK) is
+        not answered."""
+        raw = bytes(msg.payload)
+        if len(raw) < FTP_HEADER_BYTES:
+            return None
+        seq, session, opcode = struct.unpack_from("<HBB", raw)
+        if opcode >= FTP_OP_ACK:
+            return None
+        self.requests += 1
+        nak = struct.pack("<HBBBBBBI", (seq + 1) & 0xFFFF, session, FTP_OP_NAK, 1, opcode, 0, 0, 0) + bytes(
+            [FTP_ERR_UNKNOWN_COMMAND])
+        return mavlink.MAVLink_file_transfer_protocol_message(
+            0, msg.get_srcSystem(), msg.get_srcComponent(), list(nak.ljust(FTP_PAYLOAD_BYTES, b"\0")))
 
     def _system_time(self, now_s: float) -> None:
         utc = self.utc_s(now_s) if self.utc_s is not None else math.nan

@@ -9,12 +9,12 @@ parser. Per frame:
    replayed (timestamp not after the stream's last, or a new stream over a minute old) and
    far-future frames are counted by reason and dropped without an answer (MAVLink signing: an
    unauthenticated frame is ignored). Without a key nothing can be verified: every frame is
-   unauthenticated and the router refuses every state-changing command (MAV_RESULT_DENIED);
+   unauthenticated and the router refuses every state-changing command (MAV_RESULT_DENIED).
    Requests that only read are the exception (`UNSIGNED_READS`: PING, TIMESYNC, PARAM_REQUEST_READ,
-   PARAM_REQUEST_LIST, and COMMAND_LONG / COMMAND_INT of a command registered as not changing state,
-   e.g. MAV_CMD_REQUEST_MESSAGE): answered unsigned too, at most `max_unsigned_per_tick` a tick, so
-   that a ground station without the key sees the box; an unsigned state-changing command is still
-   dropped without an answer and counted as unsigned;
+   PARAM_REQUEST_LIST, MAVLink FTP (always refused), and COMMAND_LONG / COMMAND_INT of a command
+   registered as not changing state, e.g. MAV_CMD_REQUEST_MESSAGE): answered unsigned too, at most
+   `max_unsigned_per_tick` a tick, so that a ground station without the key sees the box; an
+   unsigned state-changing command is still dropped without an answer and counted as unsigned;
 3. addressed to us: target system ours or 0, target component ours, 0, or 1 (MAV_COMP_ID_AUTOPILOT1:
    the box is its system's autopilot, and ground stations address a vehicle's commands to
    component 1). COMMAND_LONG → `fsw.commands.CommandRouter` → COMMAND_ACK to the sender (an unknown
@@ -76,7 +76,8 @@ UPLINK_LINK_ID = 1
 #: COMMAND_LONG / COMMAND_INT only for commands registered with changes_state=False)
 UNSIGNED_READS = frozenset({mavlink.MAVLINK_MSG_ID_PING, mavlink.MAVLINK_MSG_ID_TIMESYNC,
                             mavlink.MAVLINK_MSG_ID_PARAM_REQUEST_READ, mavlink.MAVLINK_MSG_ID_PARAM_REQUEST_LIST,
-                            mavlink.MAVLINK_MSG_ID_COMMAND_LONG, mavlink.MAVLINK_MSG_ID_COMMAND_INT})
+                            mavlink.MAVLINK_MSG_ID_COMMAND_LONG, mavlink.MAVLINK_MSG_ID_COMMAND_INT,
+                            mavlink.MAVLINK_MSG_ID_FILE_TRANSFER_PROTOCOL})
 _COMMANDS = ("COMMAND_LONG", "COMMAND_INT")
 #: DEBRIS_LINK_STATUS fields filled from the uplink (:meth:`Uplink.link_counters`)
 LINK_STATUS_FIELDS = ("cmd_accepted", "rejected_unsigned", "rejected_bad_signature", "rejected_replay",

@@ -2,6 +2,7 @@
 station at the other end): what ground software asks, what the box answers, signed and unsigned, and
 what a flood of requests costs."""
 import math
+import struct
 
 import numpy as np
 import pytest
@@ -327,3 +328,24 @@ def test_an_unsigned_request_flood_costs_a_bounded_decode_and_a_signed_command_s
     assert up.counters.unsigned_reads_dropped > 0
     assert acks(box.run(0.5)) == [] and len(box.runs) == 20  # every signed command obeyed
     assert acks([r.msg for r in box.received]).count((R.MAV_CMD_USER_1, R.MAV_RESULT_ACCEPTED)) == 20
+
+
+@pytest.mark.parametrize("signed", [True, False])
+def test_mavlink_ftp_is_refused_at_once_so_ground_stations_fall_back_to_the_parameter_protocol(signed):
+    """MAVProxy asks for its parameters over MAVLink FTP first (OpenFileRO of @PARAM/param.pck): the box
+    has no files and says so at once (NAK, ERR_UnknownCommand = 7, seq + 1, same session)."""
+    box = Box()
+    box.run(0.5)
+    name = b"@PARAM/param.pck"
+    req = struct.pack("<HBBBBBBI", 41, 3, 4, len(name), 0, 0, 0, 0) + name  # OpenFileRO (4)
+    (box.ground if signed else box.stranger).send(mavlink.MAVLink_file_transfer_protocol_message(
+        0, FSW_SYSID, FSW_COMPID, list(req.ljust(251, b"\0"))), box.now)
+    ftp = of(box.run(0.3), "FILE_TRANSFER_PROTOCOL")
+    assert len(ftp) == 1 and (ftp[0].target_system, ftp[0].target_component) == (GCS_SYSID, GCS_COMPID)
+    seq, session, opcode, size, req_opcode = struct.unpack_from("<HBBBB", bytes(ftp[0].payload))
+    assert (seq, session, opcode, size, req_opcode, ftp[0].payload[12]) == (42, 3, 129, 1, 4, 7)
+    # a NAK from someone else is not answered
+    nak = struct.pack("<HBBBBBBI", 1, 3, 129, 1, 4, 0, 0, 0) + b"\x07"
+    box.ground.send(mavlink.MAVLink_file_transfer_protocol_message(
+        0, FSW_SYSID, FSW_COMPID, list(nak.ljust(251, b"\0"))), box.now)
+    assert of(box.run(0.3), "FILE_TRANSFER_PROTOCOL") == []
