@@ -27,8 +27,8 @@ Tasks (base rate = the loop rate), in the order they run within a tick:
 Commands: handlers register with `self.commands` (`fsw.commands.CommandRouter`), parameters with
 `self.params`; the uplink (`telemetry.uplink`) runs them when they arrive signed with the mission key.
 The MAVLink services ground software expects (PING, TIMESYNC, REQUEST_MESSAGE, AUTOPILOT_VERSION,
-PROTOCOL_VERSION, message intervals) are `self.services` (`telemetry.services`); the messages set
-faster than their own rate go out in the telemetry task.
+message intervals, FTP refused) are `self.services` (`telemetry.services`); the messages set faster
+than their own rate go out in the telemetry task.
 
 Time comes from the caller of :meth:`FlightSoftware.tick`: the simulator's clock in SITL, a monotonic
 clock on target. Nothing in here reads the wall clock.
