@@ -1,4 +1,4 @@
-"""Command router: MAVLink COMMAND_LONG → a registered handler → MAV_RESULT (→ COMMAND_ACK).
+"""Command router: MAVLink COMMAND_LONG (or COMMAND_INT) → a registered handler → MAV_RESULT (→ COMMAND_ACK).
 
 API (everything another module needs)::
 
@@ -84,6 +84,7 @@ def float_param(x: float, lo: float, hi: float, name: str, *, default: float | N
 class _Entry:
     handler: Handler
     changes_state: bool
+    long_only: bool = False
 
 
 @dataclass
@@ -124,16 +125,25 @@ class CommandRouter:
         self._last: tuple | None = None  # (command, params, time, result, result_param2)
         #: COMMAND_ACK.result_param2 of the latest command handled (a handler's detail, e.g. a reason code)
         self.result_param2 = 0
+        #: whether the command being handled authenticated (for a handler that answers with messages)
+        self.authenticated = True
 
     def set_result_param2(self, value: int) -> None:
         """For a handler: the COMMAND_ACK's result_param2 (int32) of the command it is handling."""
         self.result_param2 = int(value)
 
-    def register(self, command: int, handler: Handler, *, changes_state: bool = True) -> None:
-        """Route `command` (a MAV_CMD value) to `handler`. Registering a command twice is an error."""
+    def register(self, command: int, handler: Handler, *, changes_state: bool = True,
+                 long_only: bool = False) -> None:
+        """Route `command` (a MAV_CMD value) to `handler`. Registering a command twice is an error.
+        `long_only`: its params 5-6 are fractional (COMMAND_INT carries them as integers): COMMAND_INT
+        is answered MAV_RESULT_COMMAND_LONG_ONLY."""
         if command in self._handlers:
             raise ValueError(f"command {command} already has a handler")
-        self._handlers[int(command)] = _Entry(handler, changes_state)
+        self._handlers[int(command)] = _Entry(handler, changes_state, long_only)
+
+    def long_only(self, command: int) -> bool:
+        e = self._handlers.get(int(command))
+        return e is not None and e.long_only
 
     def registered(self) -> list[int]:
         return sorted(self._handlers)
@@ -147,6 +157,7 @@ class CommandRouter:
         """Run the handler of ``msg.command``; returns the MAV_RESULT for the COMMAND_ACK. Never raises."""
         c = self.counters
         self.result_param2 = 0
+        self.authenticated = authenticated
         try:
             command = int(msg.command)
             params = _params(msg)

@@ -26,6 +26,9 @@ Tasks (base rate = the loop rate), in the order they run within a tick:
 
 Commands: handlers register with `self.commands` (`fsw.commands.CommandRouter`), parameters with
 `self.params`; the uplink (`telemetry.uplink`) runs them when they arrive signed with the mission key.
+The MAVLink services ground software expects (PING, TIMESYNC, REQUEST_MESSAGE, AUTOPILOT_VERSION,
+message intervals, FTP refused) are `self.services` (`telemetry.services`); the messages set faster
+than their own rate go out in the telemetry task.
 
 Time comes from the caller of :meth:`FlightSoftware.tick`: the simulator's clock in SITL, a monotonic
 clock on target. Nothing in here reads the wall clock.
@@ -38,7 +41,7 @@ from typing import Callable, Iterable, Protocol, runtime_checkable
 import numpy as np
 
 from .app import App
-from .commands import CommandRouter, ParamTable, int_param
+from .commands import CommandRouter, ParamTable
 from .estimation.rate_formulas import BoerStream, DerivativeStream
 from .estimation.flown_filter import FILTER_IDS
 from .estimation.rate_kalman import RateKalman
@@ -47,6 +50,7 @@ from .host_calibration import FixedField, HostCalibration
 from .scheduler import Scheduler, Task
 from .telemetry.dialect import mavlink
 from .telemetry.sample_store import Resender, SampleStore
+from .telemetry.services import Services
 from .telemetry.telemetry import Telemetry
 from .telemetry.uplink import LINK_STATUS_FIELDS, Uplink
 
@@ -110,6 +114,16 @@ ATTITUDE_TLM_PERIOD_S = 1.0
 ESTIMATOR_WORK_PER_TICK = 2
 
 
+def _version() -> str:
+    """The installed package's version (AUTOPILOT_VERSION), "0.0.0" when it is not installed."""
+    try:
+        from importlib.metadata import version
+
+        return version("debris-box")
+    except Exception:  # noqa: BLE001 - a source tree without metadata
+        return "0.0.0"
+
+
 def load_compiled_kernels() -> None:
     """Run the estimators' compiled kernels once on throwaway instances, so that loading them from the
     on-disk cache (or compiling them, the first time) happens before the loop, not in its first ticks."""
@@ -169,7 +183,6 @@ class FlightSoftware:
         self.commands = CommandRouter()
         self.params = ParamTable()
         self._register_params(sample_rate_hz or rate_hz)
-        self.commands.register(mavlink.MAV_CMD_REQUEST_MESSAGE, self._request_message, changes_state=False)
         self.apps: dict[str, App] = {}
         messages = {"DEBRIS_SAMPLE_REQUEST": self._sample_request}
         for app in apps:
@@ -183,6 +196,18 @@ class FlightSoftware:
                     raise ValueError(f"two handlers for {kind}")
                 messages[kind] = handler
             self.apps[app.name] = app
+        utc_app = next((a for a in self.apps.values() if callable(getattr(a, "utc_s", None))), None)
+        self.services = Services(telemetry, producers={
+            mavlink.MAVLINK_MSG_ID_HEARTBEAT: lambda now_s: self.tlm.heartbeat(),
+            mavlink.MAVLINK_MSG_ID_SYS_STATUS: lambda now_s: self._sys_status(self._link_counters()),
+            mavlink.MAVLINK_MSG_ID_DEBRIS_LINK_STATUS: lambda now_s: self.tlm.link_status(
+                now_s, **self._link_counters()),
+            mavlink.MAVLINK_MSG_ID_DEBRIS_SAMPLE_STORE: lambda now_s: self.tlm.sample_store_status(
+                now_s, self.sample_store, self.resender)},
+            utc_s=None if utc_app is None else utc_app.utc_s, flight_sw_version=_version())
+        self.services.register(self.commands)
+        for kind, handler in self.services.message_handlers().items():
+            messages.setdefault(kind, handler)  # an application's (the time's TIMESYNC, with the UTC) first
         # the de-orbit kit's field at the sensor (`fsw.deorbit.kit_field`): taken out of every sample before
         # the gate, the calibration and the estimators; samples taken while it moves are skipped by them
         self.kit_field = next((a.sensor_field for a in self.apps.values()
@@ -198,7 +223,7 @@ class FlightSoftware:
         self.uplink = None if uplink is None else Uplink(
             uplink, self.commands, sysid=telemetry.mav.srcSystem, compid=telemetry.mav.srcComponent, key=key,
             clock=telemetry.clock, reply=telemetry.send_now if uplink is telemetry.conn else None,
-            params=self.params, handlers=messages)
+            params=self.params, handlers=messages, answer_limit=self.services.allow)
         period = 1.0 / rate_hz
         self.scheduler = Scheduler(rate_hz, [
             Task("uplink", self._uplink, rate_hz, 0.1 * period),
@@ -239,17 +264,6 @@ class FlightSoftware:
         if store is not None:
             self.params.register("SF_REPLAY_BPS", lambda: store.replay_bytes_per_s,
                                  lambda v: setattr(store, "replay_bytes_per_s", v), 0.0, 1e6)
-
-    def _request_message(self, msg, now_s: float) -> int:
-        """MAV_CMD_REQUEST_MESSAGE (reads only): param1 = HEARTBEAT or DEBRIS_LINK_STATUS, sent at once."""
-        mid = int_param(msg.param1, 0, 0xFFFFFF, "message id")
-        if mid == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
-            self.tlm.heartbeat()
-        elif mid == mavlink.MAVLINK_MSG_ID_DEBRIS_LINK_STATUS:
-            self.tlm.link_status(now_s, **self._link_counters())
-        else:
-            return mavlink.MAV_RESULT_DENIED
-        return mavlink.MAV_RESULT_ACCEPTED
 
     def _sample_request(self, msg, now_s: float, authenticated: bool) -> None:
         """DEBRIS_SAMPLE_REQUEST: queue the range for the resender (signed only, with a mission key: the
@@ -346,6 +360,7 @@ class FlightSoftware:
                 mark_gap(est, self._gap)
 
     def _telemetry(self, now_s: float) -> None:
+        self.services.tick(now_s)
         self._live_sample()
         self.resender.service(now_s, self.tlm.resend_sample)
 
@@ -371,19 +386,25 @@ class FlightSoftware:
             tr = self.truth(t)
             self.tlm.sim_state(t, tr.omega_radps, tr.q_body_to_eci, tr.b_body_T, tr.moment_Nm)
 
-    def _status(self, now_s: float) -> None:
-        st = self.scheduler.stats
-        mean_us, p50_us, p99_us, max_us = st.summary_us()
+    def _sys_status(self, link: dict, mean_us: float | None = None) -> None:
         drv = self.driver
         healthy = (drv is None or int(drv.state) == mavlink.DEBRIS_MAG_STATE_MEASURE) and not self.gate.rejecting
-        link = self._link_counters()
-        self.tlm.heartbeat()
+        if mean_us is None:
+            mean_us = self.scheduler.stats.summary_us()[0]
         self.tlm.sys_status(mag_healthy=healthy,
                             load_permille=int(mean_us * 1e-3 / self.scheduler.period_s),
                             errors_comm=(drv.bus_errors if drv else 0) + self.tlm.send_errors,
                             errors_count=(self.gate.rejected, drv.resets if drv else 0,
                                           sum(v for k, v in link.items() if k.startswith("rejected_")),
                                           self.tlm.store.dropped if self.tlm.store is not None else 0))
+
+    def _status(self, now_s: float) -> None:
+        st = self.scheduler.stats
+        mean_us, p50_us, p99_us, max_us = st.summary_us()
+        drv = self.driver
+        link = self._link_counters()
+        self.tlm.heartbeat()
+        self._sys_status(link, mean_us)
         self.tlm.link_status(now_s, **link)
         self.tlm.loop_status(now_s, ticks=st.ticks, overruns=st.overruns, task_overruns=st.task_overruns,
                              period_s=self.scheduler.period_s, mean_us=mean_us, p50_us=p50_us, p99_us=p99_us,

@@ -154,7 +154,8 @@ class IdentExperiment:
     # --- commands ------------------------------------------------------------------------------
     def register(self, router) -> None:
         """Register the START/STOP handlers with a `fsw.commands.CommandRouter`."""
-        router.register(mavlink.MAV_CMD_DEBRIS_IDENT_START, self.cmd_start, changes_state=True)
+        router.register(mavlink.MAV_CMD_DEBRIS_IDENT_START, self.cmd_start, changes_state=True,
+                        long_only=True)  # params 5-6: moments, fractional
         router.register(mavlink.MAV_CMD_DEBRIS_IDENT_STOP, self.cmd_stop, changes_state=True)
 
     def cmd_start(self, msg, now_s: float) -> int:

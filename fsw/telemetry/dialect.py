@@ -30,8 +30,11 @@ GCS_SYSID = 255
 GCS_COMPID = mavlink.MAV_COMP_ID_MISSIONPLANNER
 
 
-def generate(output: Path) -> None:
+def generate(output: Path, xml_path: Path = XML_PATH) -> None:
     """Run pymavlink's mavgen on `debris.xml` and write the Python (MAVLink 2) bindings to `output`.
+
+    With mavgen's strict units (`--strict-units`): a field's or parameter's `units` must be one of the
+    schema's list, so that every MAVLink tool reads them; other units go in the description.
 
     mavgen resolves `<include>` relative to the XML's folder, so the XML is generated from a temporary
     folder that also holds pymavlink's own copies of the included standard definitions.
@@ -45,12 +48,16 @@ def generate(output: Path) -> None:
         for name in ("common.xml", "standard.xml", "minimal.xml"):
             shutil.copy(std_dir / name, tmpdir / name)
         xml = tmpdir / "debris.xml"
-        shutil.copy(XML_PATH, xml)
+        shutil.copy(xml_path, xml)
         out_base = tmpdir / "mavlink_debris"
         opts = mavgen.Opts(str(out_base), wire_protocol=mavparse.PROTOCOL_2_0, language="Python3",
-                           validate=True, strict_units=False)
-        if not mavgen.mavgen(opts, [str(xml)]):
-            raise RuntimeError(f"mavgen failed on {XML_PATH}")
+                           validate=True, strict_units=True)
+        try:
+            ok = mavgen.mavgen(opts, [str(xml)])
+        except SystemExit as e:  # mavgen exits on a schema error (e.g. a unit outside the strict list)
+            raise RuntimeError(f"mavgen refused {xml_path}: {e}") from None
+        if not ok:
+            raise RuntimeError(f"mavgen failed on {xml_path}")
         shutil.copy(out_base.with_suffix(".py"), output)
 
 

@@ -2850,11 +2850,11 @@ enums["MAV_CMD"][54000].param[3] = """Duration of the torque."""
 enums["MAV_CMD"][54000].label[3] = """Torque time"""
 enums["MAV_CMD"][54000].param[4] = """Observation after the torque."""
 enums["MAV_CMD"][54000].label[4] = """Observe after"""
-enums["MAV_CMD"][54000].param[5] = """Known moment, body X (source TUG; ignored for MAGNETS)."""
+enums["MAV_CMD"][54000].param[5] = """Known moment, body X (source TUG; ignored for MAGNETS). Unit: N.m."""
 enums["MAV_CMD"][54000].label[5] = """Mx"""
-enums["MAV_CMD"][54000].param[6] = """Known moment, body Y."""
+enums["MAV_CMD"][54000].param[6] = """Known moment, body Y. Unit: N.m."""
 enums["MAV_CMD"][54000].label[6] = """My"""
-enums["MAV_CMD"][54000].param[7] = """Known moment, body Z."""
+enums["MAV_CMD"][54000].param[7] = """Known moment, body Z. Unit: N.m."""
 enums["MAV_CMD"][54000].label[7] = """Mz"""
 MAV_CMD_DEBRIS_IDENT_STOP = 54001
 enums["MAV_CMD"][54001] = EnumEntry("MAV_CMD_DEBRIS_IDENT_STOP", """Stop the inertia identification experiment.""")
@@ -6916,7 +6916,7 @@ class MAVLink_debris_sim_state_message(MAVLink_message):
     fieldtypes = ["uint64_t", "float", "float", "float", "float", "float", "float", "float", "float", "float", "float"]
     fielddisplays_by_name: Dict[str, str] = {}
     fieldenums_by_name: Dict[str, str] = {}
-    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "wx": "rad/s", "wy": "rad/s", "wz": "rad/s", "bx": "gauss", "by": "gauss", "bz": "gauss", "mx": "N.m", "my": "N.m", "mz": "N.m"}
+    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "wx": "rad/s", "wy": "rad/s", "wz": "rad/s", "bx": "gauss", "by": "gauss", "bz": "gauss"}
     native_format = bytearray(b"<Qffffffffff")
     orders = [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10]
     lengths = [1, 1, 1, 1, 4, 1, 1, 1, 1, 1, 1]
@@ -7059,7 +7059,7 @@ class MAVLink_debris_inertia_estimate_message(MAVLink_message):
     fieldtypes = ["uint64_t", "uint32_t", "float", "float", "float", "uint8_t", "uint8_t"]
     fielddisplays_by_name: Dict[str, str] = {}
     fieldenums_by_name: Dict[str, str] = {"state": "DEBRIS_IDENT_STATE"}
-    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "inertia": "kg.m^2", "ci95": "kg.m^2", "ci99": "kg.m^2"}
+    fieldunits_by_name: Dict[str, str] = {"time_usec": "us"}
     native_format = bytearray(b"<QIfffBB")
     orders = [0, 1, 2, 3, 4, 5, 6]
     lengths = [1, 1, 6, 6, 6, 1, 1]
@@ -7104,7 +7104,7 @@ class MAVLink_debris_deorbit_status_message(MAVLink_message):
     fieldtypes = ["uint64_t", "int32_t", "uint32_t", "float", "uint16_t", "uint16_t", "uint16_t", "uint8_t", "uint8_t", "int8_t", "uint8_t", "uint8_t"]
     fielddisplays_by_name: Dict[str, str] = {"fault": "bitmask"}
     fieldenums_by_name: Dict[str, str] = {"capsule_state": "DEBRIS_CAPSULE_STATE", "magnet_state": "DEBRIS_MAGNET_STATE", "fault": "DEBRIS_DEORBIT_FAULT", "controller_state": "DEBRIS_CONTROLLER_STATE"}
-    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "energy": "J"}
+    fieldunits_by_name: Dict[str, str] = {"time_usec": "us"}
     native_format = bytearray(b"<QiIfHHHBBbBB")
     orders = [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11]
     lengths = [1, 2, 2, 2, 2, 2, 1, 2, 2, 2, 2, 1]
@@ -7449,7 +7449,7 @@ class MAVLink_debris_magcal_message(MAVLink_message):
     fieldtypes = ["uint64_t", "uint32_t", "uint32_t", "uint16_t", "float", "float", "float", "float", "float", "uint8_t", "float", "float", "uint8_t"]
     fielddisplays_by_name: Dict[str, str] = {}
     fieldenums_by_name: Dict[str, str] = {"state": "DEBRIS_MAGCAL_STATE"}
-    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "hard_iron": "uT", "hard_iron_sigma": "uT", "hard_iron_rate": "uT/h", "drift_period": "s"}
+    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "drift_period": "s"}
     native_format = bytearray(b"<QIIfffffHBffB")
     orders = [0, 1, 2, 8, 3, 4, 5, 6, 7, 9, 10, 11, 12]
     lengths = [1, 1, 1, 3, 6, 3, 6, 1, 1, 1, 3, 1, 1]
@@ -7504,7 +7504,7 @@ class MAVLink_debris_kit_field_message(MAVLink_message):
     fieldtypes = ["uint64_t", "uint8_t", "uint8_t", "float", "float", "float", "float", "float", "uint16_t", "uint16_t", "uint16_t", "uint32_t"]
     fielddisplays_by_name: Dict[str, str] = {}
     fieldenums_by_name: Dict[str, str] = {}
-    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "field": "uT", "innovation": "uT", "fit_rms": "uT"}
+    fieldunits_by_name: Dict[str, str] = {"time_usec": "us"}
     native_format = bytearray(b"<QfffffIHHHBB")
     orders = [0, 10, 11, 1, 2, 3, 4, 5, 7, 8, 9, 6]
     lengths = [1, 1, 1, 3, 1, 1, 1, 1, 1, 1, 1, 1]
@@ -18330,9 +18330,9 @@ class MAVLink(object):
         bx                        : True (noise-free) field, body X. [gauss] (type:float)
         by                        : True (noise-free) field, body Y. [gauss] (type:float)
         bz                        : True (noise-free) field, body Z. [gauss] (type:float)
-        mx                        : Applied moment about the centre of mass, body X. [N.m] (type:float)
-        my                        : Applied moment about the centre of mass, body Y. [N.m] (type:float)
-        mz                        : Applied moment about the centre of mass, body Z. [N.m] (type:float)
+        mx                        : Applied moment about the centre of mass, body X. Unit: N.m. (type:float)
+        my                        : Applied moment about the centre of mass, body Y. Unit: N.m. (type:float)
+        mz                        : Applied moment about the centre of mass, body Z. Unit: N.m. (type:float)
 
         """
         return MAVLink_debris_sim_state_message(time_usec, wx, wy, wz, q, bx, by, bz, mx, my, mz)
@@ -18351,9 +18351,9 @@ class MAVLink(object):
         bx                        : True (noise-free) field, body X. [gauss] (type:float)
         by                        : True (noise-free) field, body Y. [gauss] (type:float)
         bz                        : True (noise-free) field, body Z. [gauss] (type:float)
-        mx                        : Applied moment about the centre of mass, body X. [N.m] (type:float)
-        my                        : Applied moment about the centre of mass, body Y. [N.m] (type:float)
-        mz                        : Applied moment about the centre of mass, body Z. [N.m] (type:float)
+        mx                        : Applied moment about the centre of mass, body X. Unit: N.m. (type:float)
+        my                        : Applied moment about the centre of mass, body Y. Unit: N.m. (type:float)
+        mz                        : Applied moment about the centre of mass, body Z. Unit: N.m. (type:float)
 
         """
         self.send(self.debris_sim_state_encode(time_usec, wx, wy, wz, q, bx, by, bz, mx, my, mz), force_mavlink1=force_mavlink1)
@@ -18435,9 +18435,9 @@ class MAVLink(object):
 
         time_usec                 : Time of the estimate. [us] (type:uint64_t)
         samples                   : Samples used. (type:uint32_t)
-        inertia                   : Ixx, Iyy, Izz, Ixy, Ixz, Iyz. [kg.m^2] (type:float)
-        ci95                      : 95 % half-widths of the six components. [kg.m^2] (type:float)
-        ci99                      : 99 % half-widths of the six components. [kg.m^2] (type:float)
+        inertia                   : Ixx, Iyy, Izz, Ixy, Ixz, Iyz. Unit: kg.m^2. (type:float)
+        ci95                      : 95 % half-widths of the six components. Unit: kg.m^2. (type:float)
+        ci99                      : 99 % half-widths of the six components. Unit: kg.m^2. (type:float)
         state                     : Experiment state. (type:uint8_t, values:DEBRIS_IDENT_STATE)
         flags                     : Bit 0: positive definite; bit 1: principal moments satisfy the triangle inequalities; bit 2: full tensor (else diagonal only). (type:uint8_t)
 
@@ -18451,9 +18451,9 @@ class MAVLink(object):
 
         time_usec                 : Time of the estimate. [us] (type:uint64_t)
         samples                   : Samples used. (type:uint32_t)
-        inertia                   : Ixx, Iyy, Izz, Ixy, Ixz, Iyz. [kg.m^2] (type:float)
-        ci95                      : 95 % half-widths of the six components. [kg.m^2] (type:float)
-        ci99                      : 99 % half-widths of the six components. [kg.m^2] (type:float)
+        inertia                   : Ixx, Iyy, Izz, Ixy, Ixz, Iyz. Unit: kg.m^2. (type:float)
+        ci95                      : 95 % half-widths of the six components. Unit: kg.m^2. (type:float)
+        ci99                      : 99 % half-widths of the six components. Unit: kg.m^2. (type:float)
         state                     : Experiment state. (type:uint8_t, values:DEBRIS_IDENT_STATE)
         flags                     : Bit 0: positive definite; bit 1: principal moments satisfy the triangle inequalities; bit 2: full tensor (else diagonal only). (type:uint8_t)
 
@@ -18468,7 +18468,7 @@ class MAVLink(object):
         time_usec                 : Loop time. [us] (type:uint64_t)
         position_steps            : Stepper position from home, steps (200 per turn). (type:int32_t)
         steps_total               : Steps made since start. (type:uint32_t)
-        energy                    : Energy used since start, per channel. [J] (type:float)
+        energy                    : Energy used since start, per channel. Unit: J. (type:float)
         capsule_openings          : Capsule openings since start. (type:uint16_t)
         magnet_turns              : Magnet turns since start. (type:uint16_t)
         interlock_violations        : Interlock violations ever seen (must stay 0). (type:uint16_t)
@@ -18489,7 +18489,7 @@ class MAVLink(object):
         time_usec                 : Loop time. [us] (type:uint64_t)
         position_steps            : Stepper position from home, steps (200 per turn). (type:int32_t)
         steps_total               : Steps made since start. (type:uint32_t)
-        energy                    : Energy used since start, per channel. [J] (type:float)
+        energy                    : Energy used since start, per channel. Unit: J. (type:float)
         capsule_openings          : Capsule openings since start. (type:uint16_t)
         magnet_turns              : Magnet turns since start. (type:uint16_t)
         interlock_violations        : Interlock violations ever seen (must stay 0). (type:uint16_t)
@@ -18749,13 +18749,13 @@ class MAVLink(object):
         samples                   : Samples in the calibration's sums. (type:uint32_t)
         dropped                   : Samples left out: stretches that did not fit the last good calibration. (type:uint32_t)
         rejections                : Solutions refused since start. (type:uint16_t)
-        hard_iron                 : Hard iron b (X, Y, Z) of the applied calibration. [uT] (type:float)
+        hard_iron                 : Hard iron b (X, Y, Z) of the applied calibration. Unit: uT. (type:float)
         soft_iron                 : Soft iron D of the applied calibration: D11, D22, D33, D12, D13, D23. (type:float)
-        hard_iron_sigma           : 1-sigma of b (NaN before any calibration). [uT] (type:float)
+        hard_iron_sigma           : 1-sigma of b (NaN before any calibration). Unit: uT. (type:float)
         soft_iron_sigma           : 1-sigma of D's six terms (NaN before any calibration). (type:float)
         residual                  : Residual chi-square per degree of freedom of the latest solution (NaN before one). (type:float)
         state                     : Calibration state. (type:uint8_t, values:DEBRIS_MAGCAL_STATE)
-        hard_iron_rate            : Rate of change of the applied hard iron along its thermal drift (a first harmonic per orbit); the hard iron applied between two messages follows it. [uT/h] (type:float)
+        hard_iron_rate            : Rate of change of the applied hard iron along its thermal drift (a first harmonic per orbit); the hard iron applied between two messages follows it. Unit: uT/h. (type:float)
         drift_period              : Period of the hard iron's drift the calibration follows (the orbit's); 0: a constant host. [s] (type:float)
         restored                  : 0: the applied calibration was solved in this run (or there is none); 1: restored from the state directory after a restart, applied, not yet confirmed by a solution from new samples; 2: one was restored and the new samples did not fit it: dropped. (type:uint8_t)
 
@@ -18773,13 +18773,13 @@ class MAVLink(object):
         samples                   : Samples in the calibration's sums. (type:uint32_t)
         dropped                   : Samples left out: stretches that did not fit the last good calibration. (type:uint32_t)
         rejections                : Solutions refused since start. (type:uint16_t)
-        hard_iron                 : Hard iron b (X, Y, Z) of the applied calibration. [uT] (type:float)
+        hard_iron                 : Hard iron b (X, Y, Z) of the applied calibration. Unit: uT. (type:float)
         soft_iron                 : Soft iron D of the applied calibration: D11, D22, D33, D12, D13, D23. (type:float)
-        hard_iron_sigma           : 1-sigma of b (NaN before any calibration). [uT] (type:float)
+        hard_iron_sigma           : 1-sigma of b (NaN before any calibration). Unit: uT. (type:float)
         soft_iron_sigma           : 1-sigma of D's six terms (NaN before any calibration). (type:float)
         residual                  : Residual chi-square per degree of freedom of the latest solution (NaN before one). (type:float)
         state                     : Calibration state. (type:uint8_t, values:DEBRIS_MAGCAL_STATE)
-        hard_iron_rate            : Rate of change of the applied hard iron along its thermal drift (a first harmonic per orbit); the hard iron applied between two messages follows it. [uT/h] (type:float)
+        hard_iron_rate            : Rate of change of the applied hard iron along its thermal drift (a first harmonic per orbit); the hard iron applied between two messages follows it. Unit: uT/h. (type:float)
         drift_period              : Period of the hard iron's drift the calibration follows (the orbit's); 0: a constant host. [s] (type:float)
         restored                  : 0: the applied calibration was solved in this run (or there is none); 1: restored from the state directory after a restart, applied, not yet confirmed by a solution from new samples; 2: one was restored and the new samples did not fit it: dropped. (type:uint8_t)
 
@@ -18800,9 +18800,9 @@ class MAVLink(object):
         moving                    : 1 while the channel's shutter or magnet moves (its samples are flagged and skipped). (type:uint8_t)
         scale                     : The moment as the sensor sees it, relative to the design (1: as designed). (type:float)
         scale_sigma               : 1-sigma of scale. (type:float)
-        field                     : The channel's modelled field at the sensor now (X, Y, Z). [uT] (type:float)
-        innovation                : The step of the field the model missed at the channel's latest transition (NaN before one). [uT] (type:float)
-        fit_rms                   : Residual RMS per axis of the latest step's fit (NaN before one). [uT] (type:float)
+        field                     : The channel's modelled field at the sensor now (X, Y, Z). Unit: uT. (type:float)
+        innovation                : The step of the field the model missed at the channel's latest transition (NaN before one). Unit: uT. (type:float)
+        fit_rms                   : Residual RMS per axis of the latest step's fit (NaN before one). Unit: uT. (type:float)
         steps                     : Steps taken into the calibration. (type:uint16_t)
         ill_conditioned           : Steps refused as ill-conditioned (too few samples, sigma too large). (type:uint16_t)
         outliers                  : Steps refused as outliers (the last good calibration stays). (type:uint16_t)
@@ -18825,9 +18825,9 @@ class MAVLink(object):
         moving                    : 1 while the channel's shutter or magnet moves (its samples are flagged and skipped). (type:uint8_t)
         scale                     : The moment as the sensor sees it, relative to the design (1: as designed). (type:float)
         scale_sigma               : 1-sigma of scale. (type:float)
-        field                     : The channel's modelled field at the sensor now (X, Y, Z). [uT] (type:float)
-        innovation                : The step of the field the model missed at the channel's latest transition (NaN before one). [uT] (type:float)
-        fit_rms                   : Residual RMS per axis of the latest step's fit (NaN before one). [uT] (type:float)
+        field                     : The channel's modelled field at the sensor now (X, Y, Z). Unit: uT. (type:float)
+        innovation                : The step of the field the model missed at the channel's latest transition (NaN before one). Unit: uT. (type:float)
+        fit_rms                   : Residual RMS per axis of the latest step's fit (NaN before one). Unit: uT. (type:float)
         steps                     : Steps taken into the calibration. (type:uint16_t)
         ill_conditioned           : Steps refused as ill-conditioned (too few samples, sigma too large). (type:uint16_t)
         outliers                  : Steps refused as outliers (the last good calibration stays). (type:uint16_t)

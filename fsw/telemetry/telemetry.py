@@ -31,6 +31,12 @@ class Telemetry:
     is lost). `key` + `clock`: sign every frame with the mission key (`fsw.telemetry.signing`).
     Call :meth:`service` once per loop tick: it sets the signing time, retries a link that is down
     and replays stored frames within the replay budget.
+
+    `rates` (a `fsw.telemetry.services.MessageRates`, set by the services; None: every message at its
+    own rate): what is sent on the box's own schedule goes out only when its interval allows (the
+    ground's MAV_CMD_SET_MESSAGE_INTERVAL); answers (:meth:`send_now`) and what is sent through
+    :meth:`ungated` (a requested message) always go. `latest`: the last instance of every message
+    sent, by id (MAV_CMD_REQUEST_MESSAGE sends it again).
     """
 
     def __init__(self, conn, *, store: StoreForward | None = None, key: bytes | None = None,
@@ -46,9 +52,14 @@ class Telemetry:
         self.signed = key is not None
         if key is not None:
             setup_outgoing(self.mav, key, self.clock, link_id)
+        self.rates = None
+        self.latest: dict[int, object] = {}
+        self._now_s = 0.0
+        self._gated = True
 
     def service(self, now_s: float, max_replay_frames: int = 16) -> None:
         """Once per loop tick, before sending: signing time, link retry, replay of stored frames."""
+        self._now_s = now_s
         if self.signed:
             sign_ready(self.mav, self.clock, now_s)
         sf = self.store
@@ -68,7 +79,24 @@ class Telemetry:
                 break
             sf.replay_sent(n)
 
+    def send(self, msg) -> None:
+        """Send a message on the box's own schedule (its rate may be set by the ground; kept while the link
+        is down)."""
+        self._send(msg)
+
+    def ungated(self, fn, *args) -> None:
+        """Run `fn(*args)`, whose messages go out whatever their rate setting (a requested message)."""
+        self._gated = False
+        try:
+            fn(*args)
+        finally:
+            self._gated = True
+
     def _send(self, msg) -> None:
+        mid = msg.id
+        self.latest[mid] = msg
+        if self._gated and self.rates is not None and not self.rates.due(mid, self._now_s):
+            return
         sf = self.store
         if sf is not None and not sf.may_send():
             sf.keep(msg)
@@ -119,8 +147,11 @@ class Telemetry:
         return self.mav.total_bytes_sent
 
     def heartbeat(self) -> None:
+        """HEARTBEAT: a spacecraft (MAV_TYPE_SPACECRAFT_ORBITER) whose autopilot is the box
+        (MAV_AUTOPILOT_GENERIC): ground stations (MAVProxy) take a heartbeat with MAV_AUTOPILOT_INVALID for
+        a peripheral, never a vehicle, and never show it online."""
         self._send(mavlink.MAVLink_heartbeat_message(
-            mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0,
+            mavlink.MAV_TYPE_SPACECRAFT_ORBITER, mavlink.MAV_AUTOPILOT_GENERIC, 0, 0,
             mavlink.MAV_STATE_ACTIVE, 3))
 
     def sys_status(self, *, mag_healthy: bool, load_permille: int, errors_comm: int,

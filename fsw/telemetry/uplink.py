@@ -9,13 +9,23 @@ parser. Per frame:
    replayed (timestamp not after the stream's last, or a new stream over a minute old) and
    far-future frames are counted by reason and dropped without an answer (MAVLink signing: an
    unauthenticated frame is ignored). Without a key nothing can be verified: every frame is
-   unauthenticated and the router refuses every state-changing command (MAV_RESULT_DENIED);
-3. COMMAND_LONG addressed to us (target system / component ours or 0) → `fsw.commands.CommandRouter`
-   → COMMAND_ACK to the sender; COMMAND_INT → COMMAND_ACK MAV_RESULT_COMMAND_LONG_ONLY;
+   unauthenticated and the router refuses every state-changing command (MAV_RESULT_DENIED).
+   Requests that only read are the exception (`UNSIGNED_READS`: PING, TIMESYNC, PARAM_REQUEST_READ,
+   PARAM_REQUEST_LIST, MAVLink FTP (always refused), and COMMAND_LONG / COMMAND_INT of a command
+   registered as not changing state, e.g. MAV_CMD_REQUEST_MESSAGE): answered unsigned too, at most
+   `max_unsigned_per_tick` a tick, so that a ground station without the key sees the box; an
+   unsigned state-changing command is still dropped without an answer and counted as unsigned;
+3. addressed to us: target system ours or 0, target component ours, 0, or 1 (MAV_COMP_ID_AUTOPILOT1:
+   the box is its system's autopilot, and ground stations address a vehicle's commands to
+   component 1). COMMAND_LONG → `fsw.commands.CommandRouter` → COMMAND_ACK to the sender (an unknown
+   command: MAV_RESULT_UNSUPPORTED); COMMAND_INT the same (param5, param6 = x, y; param7 = z), except
+   the commands registered `long_only` (float params 5-6) → MAV_RESULT_COMMAND_LONG_ONLY;
    PARAM_SET → `fsw.commands.ParamTable` (authenticated only) → PARAM_VALUE with the value now in
    force; PARAM_REQUEST_READ / PARAM_REQUEST_LIST → PARAM_VALUE (reading changes nothing);
    the message types given as `handlers` → their handler (which may return an answer, sent like a
-   COMMAND_ACK: e.g. TIMESYNC); anything else is counted and ignored.
+   COMMAND_ACK: e.g. TIMESYNC, PING, `fsw.telemetry.services`); anything else is counted and ignored.
+   Answers to frames that did not authenticate go out within `answer_limit` (a token bucket, the
+   services'): a flood of requests is answered at a bounded rate, the rest counted.
 
 Bounded work, a loop tick at a time, whatever arrives (`poll`; the budgets are arguments of
 :class:`Uplink`, sized for 50 Hz on a slow core, far above what a ground station sends):
@@ -62,6 +72,13 @@ from .signing import SigningClock, Verdict, Verifier, setup_outgoing, sign_ready
 
 #: what the flight software's own uplink link id is when it signs its answers on a separate link
 UPLINK_LINK_ID = 1
+#: message types answered to an unsigned sender although the box has a key (they change nothing;
+#: COMMAND_LONG / COMMAND_INT only for commands registered with changes_state=False)
+UNSIGNED_READS = frozenset({mavlink.MAVLINK_MSG_ID_PING, mavlink.MAVLINK_MSG_ID_TIMESYNC,
+                            mavlink.MAVLINK_MSG_ID_PARAM_REQUEST_READ, mavlink.MAVLINK_MSG_ID_PARAM_REQUEST_LIST,
+                            mavlink.MAVLINK_MSG_ID_COMMAND_LONG, mavlink.MAVLINK_MSG_ID_COMMAND_INT,
+                            mavlink.MAVLINK_MSG_ID_FILE_TRANSFER_PROTOCOL})
+_COMMANDS = ("COMMAND_LONG", "COMMAND_INT")
 #: DEBRIS_LINK_STATUS fields filled from the uplink (:meth:`Uplink.link_counters`)
 LINK_STATUS_FIELDS = ("cmd_accepted", "rejected_unsigned", "rejected_bad_signature", "rejected_replay",
                       "rejected_invalid", "uplink_bytes", "uplink_bytes_dropped", "uplink_garbage_bytes",
@@ -94,10 +111,42 @@ class UplinkCounters:
     read_errors: int = 0  # reads that failed, answers that could not be sent
     parser_resets: int = 0
     answers_withheld: int = 0  # answers not sent: the request's sender is not the answer address
+    unsigned_reads: int = 0  # unsigned requests that only read, answered (box with a key)
+    unsigned_reads_dropped: int = 0  # over the tick's budget for them (counted in `unsigned` too)
+    answers_limited: int = 0  # answers to unauthenticated requests over `answer_limit`
 
     @property
     def rejected_replay(self) -> int:
         return self.replay + self.future
+
+
+class _LongView:
+    """A COMMAND_INT seen as a COMMAND_LONG by the router: param5, param6 = x, y; param7 = z; no
+    confirmation (COMMAND_INT has none)."""
+
+    __slots__ = ("command", "param1", "param2", "param3", "param4", "param5", "param6", "param7",
+                 "confirmation", "target_system", "target_component", "frame", "_src")
+
+    def __init__(self, msg) -> None:
+        self.command = msg.command
+        self.param1, self.param2, self.param3, self.param4 = msg.param1, msg.param2, msg.param3, msg.param4
+        self.param5, self.param6, self.param7 = float(msg.x), float(msg.y), float(msg.z)
+        self.confirmation = 0
+        self.target_system, self.target_component, self.frame = msg.target_system, msg.target_component, msg.frame
+        self._src = (msg.get_srcSystem(), msg.get_srcComponent())
+
+    def get_srcSystem(self) -> int:
+        return self._src[0]
+
+    def get_srcComponent(self) -> int:
+        return self._src[1]
+
+    def get_type(self) -> str:
+        return "COMMAND_INT"
+
+
+def _as_long(msg) -> _LongView:
+    return _LongView(msg)
 
 
 def _param_id(raw) -> str:
@@ -116,14 +165,21 @@ class Uplink:
                  max_datagrams_per_tick: int = 128, max_parsed_per_tick: int = 16,
                  max_crc_checks_per_tick: int = 32, max_frames_per_tick: int = 16,
                  peers: int = DEFAULT_CAPACITY, max_future_s: float = 600.0,
-                 handlers: dict[str, Callable[[object, float, bool], None]] | None = None) -> None:
+                 handlers: dict[str, Callable[[object, float, bool], None]] | None = None,
+                 max_unsigned_per_tick: int = 2,
+                 answer_limit: Callable[[float, bool], bool] | None = None) -> None:
         """Budgets per `poll` (one loop tick; defaults sized for 50 Hz on a slow core): datagrams read,
         datagrams parsed, bytes parsed (stream links: read), frame candidates CRC-checked, frames
         decoded. A genuine ground station needs one or two of each. `handlers`: message type →
         handler(msg, now_s, authenticated) for the messages addressed to us beyond commands and parameters
         (e.g. DEBRIS_SAMPLE_REQUEST); a handler's return value, when not None, is a message sent back as
-        the answer."""
+        the answer. `max_unsigned_per_tick`: unsigned read-only requests decoded a tick (box with a
+        key); `answer_limit(now_s, authenticated) -> bool`: may an answer go out (None: always)."""
         self.conn = conn
+        self.max_unsigned_per_tick = int(max_unsigned_per_tick)
+        self.answer_limit = answer_limit
+        self._unsigned_left: int | None = None
+        self._authenticated = False
         self.router = router
         self.params = params if params is not None else ParamTable()
         self.handlers = dict(handlers or {})
@@ -156,6 +212,7 @@ class Uplink:
         """Read what the link has (non-blocking, bounded) and act on it."""
         self._now_s = now_s
         self._frames_left = self.max_frames_per_tick
+        self._unsigned_left = self.max_unsigned_per_tick
         try:
             read_datagrams = getattr(self.conn, "read_datagrams", None)
             if read_datagrams is not None:
@@ -164,6 +221,7 @@ class Uplink:
                 self._poll_stream(now_s)
         finally:
             self._frames_left = None
+            self._unsigned_left = None
 
     def _poll_stream(self, now_s: float) -> None:
         recv = getattr(self.conn, "recv", None)
@@ -287,9 +345,18 @@ class Uplink:
         c = self.counters
         c.frames += 1
         authenticated = False
+        unsigned_read = False
         if self.verifier is not None:
             verdict = self.verifier.check(frame, now_s)
-            if verdict is not Verdict.OK:
+            if verdict is Verdict.UNSIGNED and (frame[7] | frame[8] << 8 | frame[9] << 16) in UNSIGNED_READS:
+                if self._unsigned_left is not None and self._unsigned_left <= 0:
+                    c.unsigned += 1  # not answered: counted as any unsigned frame, and why
+                    c.unsigned_reads_dropped += 1
+                    return
+                if self._unsigned_left is not None:
+                    self._unsigned_left -= 1
+                unsigned_read = True
+            elif verdict is not Verdict.OK:
                 if verdict is Verdict.UNSIGNED:
                     c.unsigned += 1
                 elif verdict is Verdict.BAD_SIGNATURE:
@@ -299,10 +366,11 @@ class Uplink:
                 else:
                     c.future += 1
                 return
-            authenticated = True
-            self.last_authenticated_s = now_s
-            if addr is not None:
-                self._answer_to(addr, now_s, authenticated=True)
+            else:
+                authenticated = True
+                self.last_authenticated_s = now_s
+                if addr is not None:
+                    self._answer_to(addr, now_s, authenticated=True)
         if self._frames_left is not None:  # decoding is the expensive part (~15 µs a frame)
             if self._frames_left <= 0:
                 c.dropped_frames += 1
@@ -313,6 +381,11 @@ class Uplink:
         if msg.get_type() == "BAD_DATA":
             c.malformed += 1
             return
+        if unsigned_read:
+            if msg.get_type() in _COMMANDS and self.router.changes_state(msg.command):
+                c.unsigned += 1  # a command that acts: refused unsigned, without an answer, as always
+                return
+            c.unsigned_reads += 1
         self._frame(msg, now_s, authenticated, addr)
 
     def _answer_to(self, addr, now_s: float, *, authenticated: bool) -> None:
@@ -332,19 +405,21 @@ class Uplink:
             if not authenticated and self.verifier is None and addr is not None:
                 self._answer_to(addr, now_s, authenticated=False)  # no key: the last well-formed sender
         self._addr = addr
+        self._authenticated = authenticated
         if handler is not None:
             answer = handler(msg, now_s, authenticated)
             if answer is not None:
                 self._answer(msg, answer)
-        elif kind == "COMMAND_LONG":
+        elif kind in _COMMANDS:
             c.commands += 1
-            result = self.router.handle(msg, now_s, authenticated=authenticated)
+            if kind == "COMMAND_INT" and self.router.long_only(msg.command):
+                result, param2 = mavlink.MAV_RESULT_COMMAND_LONG_ONLY, 0
+            else:
+                result = self.router.handle(msg if kind == "COMMAND_LONG" else _as_long(msg), now_s,
+                                            authenticated=authenticated)
+                param2 = self.router.result_param2
             self._answer(msg, mavlink.MAVLink_command_ack_message(
-                msg.command, result, 0, self.router.result_param2, msg.get_srcSystem(), msg.get_srcComponent()))
-        elif kind == "COMMAND_INT":
-            self._answer(msg, mavlink.MAVLink_command_ack_message(
-                msg.command, mavlink.MAV_RESULT_COMMAND_LONG_ONLY, 0, 0, msg.get_srcSystem(),
-                msg.get_srcComponent()))
+                msg.command, result, 0, param2, msg.get_srcSystem(), msg.get_srcComponent()))
         elif kind == "PARAM_SET":
             name = _param_id(msg.param_id)
             if authenticated and self.params.set(name, float(msg.param_value)):
@@ -367,9 +442,10 @@ class Uplink:
             c.ignored += 1
 
     def _for_us(self, msg) -> bool:
-        """Addressed to us, or to everyone (a message without target fields, e.g. SYSTEM_TIME)."""
+        """Addressed to us (our component or the system's autopilot, component 1), or to everyone (a message
+        without target fields, e.g. SYSTEM_TIME)."""
         return getattr(msg, "target_system", 0) in (0, self.sysid) and getattr(msg, "target_component", 0) in (
-            0, self.compid)
+            0, self.compid, mavlink.MAV_COMP_ID_AUTOPILOT1)
 
     # --- output ---------------------------------------------------------------------------------
     def _param_value(self, request, name: str) -> None:
@@ -380,7 +456,11 @@ class Uplink:
 
     def _answer(self, request, msg) -> None:
         """To the answer address: the request's sender, which just authenticated (or, without a key,
-        sent a well-formed frame to us); on a stream link or with `reply`, along the link."""
+        sent a well-formed frame to us); on a stream link or with `reply`, along the link. An answer to a
+        request that did not authenticate goes out only within `answer_limit`."""
+        if self.answer_limit is not None and not self.answer_limit(self._now_s, self._authenticated):
+            self.counters.answers_limited += 1
+            return
         if self._reply is not None:
             self._reply(msg)
             return

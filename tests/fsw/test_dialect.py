@@ -1,6 +1,8 @@
 """The committed MAVLink bindings are what mavgen makes of the dialect XML, and speak MAVLink 2."""
 import difflib
 
+import pytest
+
 from fsw.telemetry import dialect
 
 
@@ -25,3 +27,15 @@ def test_dialect_messages_in_private_range_and_mavlink2():
     assert frame[0] == 0xFD   # MAVLink 2 start byte
     back = m.MAVLink(None).parse_char(frame)
     assert back.get_type() == "DEBRIS_RATE_ESTIMATE" and abs(back.wy - 0.2) < 1e-7
+
+
+def test_dialect_passes_mavgen_strict_units(tmp_path):
+    """The generation runs mavgen with strict units (every unit from the schema's list); a unit outside
+    it (the N.m the dialect used to carry) is refused, so the check is real."""
+    dialect.generate(tmp_path / "strict.py")  # raises on a unit outside the list
+    bad = tmp_path / "debris.xml"
+    text = dialect.XML_PATH.read_text()
+    bad.write_text(text.replace('units="rad/s"', 'units="N.m"', 1))
+    assert 'units="N.m"' in bad.read_text()
+    with pytest.raises(RuntimeError, match="N.m"):
+        dialect.generate(tmp_path / "bad.py", bad)

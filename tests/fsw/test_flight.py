@@ -26,7 +26,7 @@ def test_message_rates_and_contents():
     fsw, msgs = run(5.0)
     assert len(by_type(msgs, "HEARTBEAT")) == 5
     hb = by_type(msgs, "HEARTBEAT")[0]
-    assert hb.type == mavlink.MAV_TYPE_ONBOARD_CONTROLLER and hb.autopilot == mavlink.MAV_AUTOPILOT_INVALID
+    assert hb.type == mavlink.MAV_TYPE_SPACECRAFT_ORBITER and hb.autopilot == mavlink.MAV_AUTOPILOT_GENERIC
     assert len(by_type(msgs, "SYS_STATUS")) == 5
     assert len(by_type(msgs, "DEBRIS_LOOP_STATUS")) == 5
     imu = by_type(msgs, "DEBRIS_MAG_SAMPLE")
