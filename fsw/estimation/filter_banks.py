@@ -46,6 +46,13 @@ ABOUT_B_STEP_S = 1.0
 #: transients can briefly beat the right one by 10–30); the publishing filter's own copy dropped so, the
 #: best hypothesis takes over
 ABOUT_B_DROP_NLL = 50.0
+#: the best hypothesis takes over from the publishing filter's copy when it leads it by this much (a likelihood
+#: ratio of e³ ≈ 20) once the field has turned by twice `about_b_turn_rad`, and their attitudes differ by more
+#: than `ABOUT_B_SAME_RAD` (closer, they are the same solution). The likelihoods tell the angle about B
+#: apart slowly: on a 10 °/s tumble (1 s, 0.5 µT) the publishing filter's copy settled 80–170° off 3–4
+#: behind the best (the right one) for ten minutes, then fell behind by 10–20 as the field kept turning
+ABOUT_B_SWITCH_NLL = 3.0
+ABOUT_B_SAME_RAD = math.radians(10.0)
 #: the likelihood's temper in the mixture's weights, exp(−Δnll/T): the filters' likelihoods are over-sure of
 #: the angle about B (a wrong hypothesis leads the right one by 10–40 for minutes on some tumbles: the
 #: rate's random walk and the field model's error absorb part of the misfit)
@@ -362,10 +369,12 @@ class EulerAcquisitionKalman(_Bank):
         best_i = int(np.argmin(scores))
         best = live[best_i]
         if ref[0].field_turn_rad >= 2.0 * ref[0].tuning.about_b_turn_rad:
+            ref_score = ref[0].nll - ref[1]
             live = [h for h, sc in zip(live, scores) if sc - scores[best_i] < ABOUT_B_DROP_NLL or h is best]
             scores = np.array([h[0].nll - h[1] for h in live])
-            if ref not in live:  # clearly worse than the best: the best flies
-                self._switch_about_b(best)
+            apart = np.linalg.norm(quat_log(quat_mul(quat_conj(ref[0].q), best[0].q))) > ABOUT_B_SAME_RAD
+            if ref not in live or (ref_score - scores.min() >= ABOUT_B_SWITCH_NLL and apart):
+                self._switch_about_b(best)  # clearly worse than the best: the best flies
                 ref = best
         self._about_b = live
         if len(live) == 1:  # settled: `main` goes on alone

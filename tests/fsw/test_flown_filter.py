@@ -306,3 +306,40 @@ def test_the_sigma_about_the_field_stays_wide_until_the_field_has_turned():
     assert turn < math.radians(20.0)
     u = quat_to_dcm(kf.q).T @ b1 / np.linalg.norm(b1)
     assert math.sqrt(float(u @ attitude_cov(kf) @ u)) >= 0.99 * math.pi / math.sqrt(3.0)
+
+
+def test_the_hypotheses_about_the_field_run_in_the_background_work_not_in_the_samples_tick(monkeypatch):
+    """A 50 Hz sensor on a 100 Hz loop (two ticks' background work a sample): once Euler's equations run,
+    the six hypotheses over the angle about B take samples a second apart in `FlownFilter.work` only:
+    each sample's update is one filter update (the publishing filter's), each tick's work at most
+    `ESTIMATOR_WORK_PER_TICK`, and they keep up (at most one second's samples waiting). On the reverted
+    version every sample's update ran all six as well (seven filter updates a sample, the loop's mean
+    step doubled at 50 Hz)."""
+    sigma = math.hypot(0.5e-6, CHIP_NOISE_T)
+    scn, t, b, bt, w, q = tumble(2, 10.0, 0.02, 0.5e-6, 75.0)
+    calls = [0]
+    update = fb.AttitudeRateKalman.update
+
+    def counted(self, *args, **kw):
+        calls[0] += 1
+        return update(self, *args, **kw)
+
+    monkeypatch.setattr(fb.AttitudeRateKalman, "update", counted)
+    kf = FlownFilter(sigma, "euler", Switch(InterpolatedOrbitField(field_model(scn)), lambda ts: True))
+    in_sample, in_work, running, behind = [], 0, 0, 0
+    for k in range(len(t)):
+        calls[0] = 0
+        trial = bool(kf.orbit is not None and kf.orbit._trial)
+        kf.update(t[k], b[k])
+        if kf.orbit is not None and kf.orbit.about_b_running and not trial:
+            in_sample.append(calls[0])
+            running += 1
+            behind = max(behind, kf.orbit.pending)
+        for _ in range(2):
+            calls[0] = 0
+            done = kf.work(ESTIMATOR_WORK_PER_TICK)
+            assert calls[0] == done <= ESTIMATOR_WORK_PER_TICK
+            in_work += done
+    assert running > 1000 and max(in_sample) == 1  # ≥ 20 s of the hypotheses, none in a sample's update
+    assert kf.orbit.about_b_updates > 6 * 15 and kf.orbit.about_b_running == fb.ABOUT_B_HYPOTHESES
+    assert behind <= 2 * fb.ABOUT_B_HYPOTHESES
