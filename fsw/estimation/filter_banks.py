@@ -41,6 +41,10 @@ ABOUT_B_HYPOTHESES = 6
 #: the orbit (7–12° a minute), which samples a second apart see as well as every sample; at a 50 Hz sensor six
 #: hypotheses then cost 6 filter updates a second, not 300
 ABOUT_B_STEP_S = 1.0
+#: at most this many of their updates in one call of :meth:`EulerAcquisitionKalman.work` (a loop tick): they need
+#: six a second, a loop ticks 50–100 times a second; two in a tick with the sample's own update overran the
+#: estimator task's 3 ms budget at 100 Hz a hundred times in 400 s, one kept it to main's
+ABOUT_B_WORK_PER_CALL = 1
 #: a hypothesis whose log-likelihood is this far below the best one's is dropped (odds e⁻⁵⁰), once the inertial
 #: field has turned by twice `AttitudeKalmanTuning.about_b_turn_rad` (before, the wrong hypotheses'
 #: transients can briefly beat the right one by 10–30); the publishing filter's own copy dropped so, the
@@ -211,10 +215,12 @@ class EulerAcquisitionKalman(_Bank):
 
     def work(self, max_updates: int | None = None) -> int:
         """Background work, at most `max_updates` filter updates (None: all): the shape trial's hypotheses
-        (:meth:`_work_trial`) first, then those over the angle about B (:meth:`_work_about_b`). Returns the
-        updates done."""
+        (:meth:`_work_trial`) first, then those over the angle about B (:meth:`_work_about_b`, at most
+        `ABOUT_B_WORK_PER_CALL`). Returns the updates done."""
         done = self._work_trial(max_updates)
-        return done + self._work_about_b(None if max_updates is None else max_updates - done)
+        if max_updates is None:
+            return done + self._work_about_b()
+        return done + self._work_about_b(min(max_updates - done, ABOUT_B_WORK_PER_CALL))
 
     def _work_trial(self, max_updates: int | None = None) -> int:
         """Advance the trial's hypotheses through the samples taken since it started, at most `max_updates`
