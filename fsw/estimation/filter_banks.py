@@ -122,8 +122,11 @@ class EulerAcquisitionKalman(_Bank):
     (`AttitudeKalmanTuning.about_b_sigma_rad`). The published estimate stays `main`'s; the hypotheses'
     spread, weighted by their tempered likelihoods, widens its attitude's covariance (:meth:`attitude`).
     Once the field has turned by twice `about_b_turn_rad`, a hypothesis `ABOUT_B_DROP_NLL` behind the best
-    is dropped; when that drops the reference, `main` becomes a copy of the best hypothesis (counted in
-    `about_b_switches`). When only the reference is left the hypotheses stop.
+    is dropped, and when the best leads the reference by `ABOUT_B_SWITCH_NLL` at an attitude more than
+    `ABOUT_B_SAME_RAD` away, `main` becomes a copy of it (it is the reference from then on; counted in
+    `about_b_switches`). When only the reference is left the hypotheses stop. They cost one filter
+    update a second each, at most `ABOUT_B_WORK_PER_CALL` a call of :meth:`work`, none in :meth:`update`
+    while the loop keeps up.
     """
 
     def __init__(self, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
