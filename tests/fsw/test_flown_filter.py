@@ -312,7 +312,7 @@ def test_the_hypotheses_about_the_field_run_in_the_background_work_not_in_the_sa
     """A 50 Hz sensor on a 100 Hz loop (two ticks' background work a sample): once Euler's equations run,
     the six hypotheses over the angle about B take samples a second apart in `FlownFilter.work` only:
     each sample's update is one filter update (the publishing filter's), each tick's work at most
-    `ESTIMATOR_WORK_PER_TICK`, and they keep up (at most one second's samples waiting). On the reverted
+    `ESTIMATOR_WORK_PER_TICK` (of which theirs at most `ABOUT_B_WORK_PER_CALL`), and they keep up. On the reverted
     version every sample's update ran all six as well (seven filter updates a sample, the loop's mean
     step doubled at 50 Hz)."""
     sigma = math.hypot(0.5e-6, CHIP_NOISE_T)
@@ -337,8 +337,11 @@ def test_the_hypotheses_about_the_field_run_in_the_background_work_not_in_the_sa
             behind = max(behind, kf.orbit.pending)
         for _ in range(2):
             calls[0] = 0
+            about0 = kf.orbit.about_b_updates if kf.orbit is not None else 0
             done = kf.work(ESTIMATOR_WORK_PER_TICK)
             assert calls[0] == done <= ESTIMATOR_WORK_PER_TICK
+            if kf.orbit is not None:
+                assert kf.orbit.about_b_updates - about0 <= fb.ABOUT_B_WORK_PER_CALL
             in_work += done
     assert running > 1000 and max(in_sample) == 1  # ≥ 20 s of the hypotheses, none in a sample's update
     assert kf.orbit.about_b_updates > 6 * 15 and kf.orbit.about_b_running == fb.ABOUT_B_HYPOTHESES
