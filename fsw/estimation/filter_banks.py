@@ -114,8 +114,9 @@ class EulerAcquisitionKalman(_Bank):
     once stalled the loop for 27 s that way).
 
     The attitude's angle about the field shows only as the field turns along the orbit, and a single
-    filter can settle 100–180° off there with a σ of a few degrees. Once Euler's equations run,
-    `about_b_hypotheses` copies of `main` turned k·2π/K about the inertial field (the first: `main`'s own
+    filter can settle 100–180° off there with a σ of a few degrees. With `about_b_hypotheses` (the flown
+    filter: `ABOUT_B_HYPOTHESES`; 0, none, by default, as the ground's estimates run it), once Euler's
+    equations run, `about_b_hypotheses` copies of `main` turned k·2π/K about the inertial field (the first: `main`'s own
     copy, the reference) take samples at least `about_b_step_s` apart, in :meth:`work` as the trial's
     hypotheses do (with each sample when not `deferred`; a loop that falls behind catches up by one round
     a sample). Each keeps its σ about B at least a uniform angle's over its 2π/K inside
@@ -133,7 +134,7 @@ class EulerAcquisitionKalman(_Bank):
                  tuning: AttitudeKalmanTuning | None = None, shapes=None, sigma_shape: float = 0.2,
                  trial_samples: int = 15, trial_s: float = 15.0, retry_samples: int = 15,
                  angle_about_b_rad: float = 0.0, trial_step_s: float = TRIAL_STEP_S,
-                 about_b_hypotheses: int = ABOUT_B_HYPOTHESES, about_b_step_s: float = ABOUT_B_STEP_S,
+                 about_b_hypotheses: int = 0, about_b_step_s: float = ABOUT_B_STEP_S,
                  deferred: bool = False) -> None:
         # the bank decides when Euler's equations start: the filters' own innovation test is off
         tun = replace(tuning or AttitudeKalmanTuning(euler_adapt_max=EULER_ADAPT_MAX), euler_nis_max=-math.inf)

@@ -43,7 +43,7 @@ import math
 import numpy as np
 
 from .attitude_kalman import AttitudeRateKalman, attitude_cov
-from .filter_banks import EulerAcquisitionKalman, RateModelBank
+from .filter_banks import ABOUT_B_HYPOTHESES, EulerAcquisitionKalman, RateModelBank
 from .rate_kalman import NO_ESTIMATE, RateKalman
 
 #: the choices of `RunConfig.rate_filter`, and the method names of the accuracy benchmark they fly
@@ -80,8 +80,10 @@ def make_orbit_filter(kind: str, sigma_b_T: float, field_eci_T):
     """The filter `kind` (not "fixed") with the field along the orbit `field_eci_T(t_s)` [T]."""
     if kind == "orbit":
         return AttitudeRateKalman(sigma_b_T, field_eci_T=field_eci_T)
-    if kind == "euler":  # the shape trial's hypotheses run in the loop's ticks (FlownFilter.work)
-        return EulerAcquisitionKalman(sigma_b_T, field_eci_T=field_eci_T, deferred=True)
+    if kind == "euler":
+        # the shape trial's hypotheses and those over the angle about B run in the loop's ticks (FlownFilter.work)
+        return EulerAcquisitionKalman(sigma_b_T, field_eci_T=field_eci_T, deferred=True,
+                                      about_b_hypotheses=ABOUT_B_HYPOTHESES)
     if kind == "mm":
         return RateModelBank(sigma_b_T, field_eci_T=field_eci_T)
     raise ValueError(f"unknown rate filter {kind!r}: choose from {', '.join(FILTERS)}")
