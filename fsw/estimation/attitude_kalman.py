@@ -507,7 +507,6 @@ class AttitudeRateKalman:
 
     def _update(self, t_s: float, z: np.ndarray) -> None:
         h, H = self.measurement(t_s)
-        b_i = quat_to_dcm(self.q) @ h if self._b_i0 is not None else None  # the field along the orbit
         self._bhat = z / max(float(np.linalg.norm(z)), 1e-30)
         P = self.P
         y = z - h
@@ -525,8 +524,8 @@ class AttitudeRateKalman:
             self.p = self.p + dx[6:6 + self.n_p]
         if self.n_beta:
             self.beta = self.beta + dx[self.i_beta:]
-        if b_i is not None and not self.store:
-            self._floor_about_b(b_i)
+        if self._b_i0 is not None and not self.store and self.tuning.about_b_sigma_rad > 0:
+            self._floor_about_b(t_s)
         if self.store:
             lg = self.log
             lg["q"].append(self.q.copy())
@@ -543,17 +542,21 @@ class AttitudeRateKalman:
             return 0.0
         return tun.about_b_sigma_rad * min(1.0, (turn0 / max(self.field_turn_rad, 1e-12)) ** 2)
 
-    def _floor_about_b(self, b_i: np.ndarray) -> None:
-        """Hold the attitude's variance about the field (`b_i`, the field along the orbit, in body axes
-        at the updated attitude) at :meth:`about_b_floor_rad` or above, the field's inertial turn from
-        its direction at the start updated."""
+    def _floor_about_b(self, t_s: float) -> None:
+        """The field's inertial turn from its direction at the start updated (the field along the orbit at
+        `t_s`); with `about_b_sigma_rad`, the attitude's variance about the field held at
+        :meth:`about_b_floor_rad` or above. With the floor it runs at each update; without, when the
+        attitude is published (:func:`attitude_cov`)."""
+        b_i = np.asarray(self.field(t_s), float)
         nb = float(np.linalg.norm(b_i))
         if not nb > 0:
             return
         b_i = b_i / nb
-        u = quat_to_dcm(self.q).T @ b_i
         turn = math.acos(max(-1.0, min(1.0, float(b_i @ self._b_i0))))
         self.field_turn_rad = max(self.field_turn_rad, turn)
+        if not self.tuning.about_b_sigma_rad > 0:
+            return
+        u = quat_to_dcm(self.q).T @ b_i
         floor2 = self.about_b_floor_rad() ** 2
         v = float(u @ self.P[:3, :3] @ u)
         if v < floor2:
@@ -634,6 +637,8 @@ def attitude_cov(kf: AttitudeRateKalman) -> np.ndarray:
     P = np.array(kf.P[:3, :3], float)
     if kf.field is None or kf._b_i0 is None:
         return P
+    if not kf.store:
+        kf._floor_about_b(kf.t_s)  # the field's turn so far (the floor inside, if any, holds already)
     h, _ = kf.measurement(kf.t_s)
     u = h / np.linalg.norm(h)
     turn0 = kf.tuning.about_b_turn_rad
