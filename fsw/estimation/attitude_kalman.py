@@ -151,6 +151,13 @@ class AttitudeKalmanTuning:
     field_sigma_T: 1-σ per axis of the field model's error, added to the measurement noise; with no
       field model, `field_rate_radps` lets the (unknown, fixed) inertial field drift instead.
     max_substep_rad: rotation per integration substep of Euler's equations (RK4).
+    about_b_turn_rad, about_b_sigma_rad: with a field model, the floor of the attitude's 1-σ about the
+      field inside the filter: `about_b_sigma_rad` (0: none, the default; the published σ is floored
+      by :func:`attitude_cov` with a uniform angle's π/√3) until the inertial field has turned by `about_b_turn_rad`
+      from its direction at the start, then shrinking as (turn₀/turn)² (:meth:`AttitudeRateKalman.
+      about_b_floor_rad`). The rotation about B is seen only through that turn; without the floor the
+      linearised update takes the large early corrections about B as information and the σ collapses to
+      a few degrees within a minute while the angle is still 100–180° off.
     rate_tau_s: with a finite value the random-walk phase's ω is a first-order Gauss–Markov process
       instead, ω̇ = −ω/τ + w (stationary 1-σ per axis `rate_accel_radps2`·√(τ/2)): a motion that stays
       bounded about zero (a libration about a held attitude). The component of ω along B, which the
@@ -181,6 +188,8 @@ class AttitudeKalmanTuning:
     max_gap_s: float = 60.0
     gap_factor: float = 1.8
     sigma_flag_radps: float = 0.1
+    about_b_turn_rad: float = math.radians(20.0)
+    about_b_sigma_rad: float = 0.0
 
 
 class AttitudeRateKalman:
@@ -251,6 +260,8 @@ class AttitudeRateKalman:
         self._started = False
         self._gap = False
         self._dt_nominal = math.inf
+        self._b_i0 = None  # the inertial field's direction at the start (the floor about B)
+        self.field_turn_rad = 0.0
 
     # -- public -----------------------------------------------------------------------------------
     def reset(self) -> None:
@@ -287,6 +298,8 @@ class AttitudeRateKalman:
             self.q = quat_aligning(z, b_i, self.angle_about_b_rad) if q is None else np.array(q, float)
             self.beta = np.zeros(0)
             bh = z / np.linalg.norm(z)
+            self._b_i0 = b_i / np.linalg.norm(b_i)
+            self.field_turn_rad = 0.0
             P0[:3, :3] = (sb / np.linalg.norm(z)) ** 2 * np.eye(3) + (math.pi ** 2 / 3) * np.outer(bh, bh)
         P0[3:6, 3:6] = tun.sigma_rate0_radps ** 2 * np.eye(3) if rate_cov is None else np.asarray(rate_cov, float)
         P0[6:6 + self.n_p, 6:6 + self.n_p] = tun.sigma_log_inertia0 ** 2 * np.eye(self.n_p)
@@ -511,12 +524,43 @@ class AttitudeRateKalman:
             self.p = self.p + dx[6:6 + self.n_p]
         if self.n_beta:
             self.beta = self.beta + dx[self.i_beta:]
+        if self._b_i0 is not None and not self.store and self.tuning.about_b_sigma_rad > 0:
+            self._floor_about_b(t_s)
         if self.store:
             lg = self.log
             lg["q"].append(self.q.copy())
             lg["x"].append(self._x())
             lg["P"].append(self.P.copy())
             lg["nis"].append(self.nis)
+
+    def about_b_floor_rad(self) -> float:
+        """The floor of the attitude's 1-σ about the field at the inertial field's turn so far
+        (`AttitudeKalmanTuning.about_b_turn_rad`, `about_b_sigma_rad`)."""
+        tun = self.tuning
+        turn0 = tun.about_b_turn_rad
+        if not turn0 > 0:
+            return 0.0
+        return tun.about_b_sigma_rad * min(1.0, (turn0 / max(self.field_turn_rad, 1e-12)) ** 2)
+
+    def _floor_about_b(self, t_s: float) -> None:
+        """The field's inertial turn from its direction at the start updated (the field along the orbit at
+        `t_s`); with `about_b_sigma_rad`, the attitude's variance about the field held at
+        :meth:`about_b_floor_rad` or above. With the floor it runs at each update; without, when the
+        attitude is published (:func:`attitude_cov`)."""
+        b_i = np.asarray(self.field(t_s), float)
+        nb = float(np.linalg.norm(b_i))
+        if not nb > 0:
+            return
+        b_i = b_i / nb
+        turn = math.acos(max(-1.0, min(1.0, float(b_i @ self._b_i0))))
+        self.field_turn_rad = max(self.field_turn_rad, turn)
+        if not self.tuning.about_b_sigma_rad > 0:
+            return
+        u = quat_to_dcm(self.q).T @ b_i
+        floor2 = self.about_b_floor_rad() ** 2
+        v = float(u @ self.P[:3, :3] @ u)
+        if v < floor2:
+            self.P[:3, :3] += (floor2 - v) * np.outer(u, u)
 
     def _x(self) -> np.ndarray:
         return np.concatenate([self.w, self.p, self.beta])
@@ -580,6 +624,30 @@ class AttitudeRateKalman:
         self.omega_radps[:] = w
         self.sigma_radps[:] = np.minimum(s, SIGMA_UNOBSERVED_RADPS)
         self.flags = flags
+
+
+#: 1-σ of an angle uniform over a turn: the attitude about B before the field has turned
+ABOUT_B_SIGMA_UNIFORM_RAD = math.pi / math.sqrt(3.0)
+
+
+def attitude_cov(kf: AttitudeRateKalman) -> np.ndarray:
+    """The 3×3 covariance of `kf`'s attitude error (body axes) to publish: its own, the variance about the
+    field held at or above the floor of a uniform angle (:meth:`AttitudeRateKalman.about_b_floor_rad` with
+    `about_b_sigma_rad` = π/√3) at the field's inertial turn so far."""
+    P = np.array(kf.P[:3, :3], float)
+    if kf.field is None or kf._b_i0 is None:
+        return P
+    if not kf.store:
+        kf._floor_about_b(kf.t_s)  # the field's turn so far (the floor inside, if any, holds already)
+    h, _ = kf.measurement(kf.t_s)
+    u = h / np.linalg.norm(h)
+    turn0 = kf.tuning.about_b_turn_rad
+    if not turn0 > 0:
+        return P
+    shrink = min(1.0, (turn0 / max(kf.field_turn_rad, 1e-12)) ** 2)
+    f = max(kf.tuning.about_b_sigma_rad, ABOUT_B_SIGMA_UNIFORM_RAD * shrink)
+    P += max(0.0, f * f - float(u @ P @ u)) * np.outer(u, u)
+    return P
 
 
 def attitude_kalman_rate(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, **kwargs

@@ -9,8 +9,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from .attitude_kalman import AttitudeKalmanTuning, AttitudeRateKalman, FieldFn, physical_shape
+from .attitude_kalman import AttitudeKalmanTuning, AttitudeRateKalman, FieldFn, attitude_cov, physical_shape
 from .rate_kalman import run_stream
+from .rotations import quat_conj, quat_exp, quat_log, quat_mul, quat_to_dcm
 
 
 #: half-width of the default shape grid, in steps of 0.35: ln J ratios to ±1.75, principal moments up to
@@ -33,6 +34,33 @@ def shape_grid(step: float = 0.35, half_width: int = SHAPE_GRID_HALF_WIDTH) -> t
 EULER_ADAPT_MAX = 30.0
 #: the shape trial's least step between the samples it takes (:class:`EulerAcquisitionKalman`)
 TRIAL_STEP_S = 0.5
+
+#: hypotheses over the attitude's angle about the field once Euler's equations run (:class:`EulerAcquisitionKalman`)
+ABOUT_B_HYPOTHESES = 6
+#: their least step between the samples they take (s): the angle about B shows only as the field turns along
+#: the orbit (7–12° a minute), which samples a second apart see as well as every sample; at a 50 Hz sensor six
+#: hypotheses then cost 6 filter updates a second, not 300
+ABOUT_B_STEP_S = 1.0
+#: at most this many of their updates in one call of :meth:`EulerAcquisitionKalman.work` (a loop tick): they need
+#: six a second, a loop ticks 50–100 times a second; two in a tick with the sample's own update overran the
+#: estimator task's 3 ms budget at 100 Hz a hundred times in 400 s, one kept it to main's
+ABOUT_B_WORK_PER_CALL = 1
+#: a hypothesis whose log-likelihood is this far below the best one's is dropped (odds e⁻⁵⁰), once the inertial
+#: field has turned by twice `AttitudeKalmanTuning.about_b_turn_rad` (before, the wrong hypotheses'
+#: transients can briefly beat the right one by 10–30); the publishing filter's own copy dropped so, the
+#: best hypothesis takes over
+ABOUT_B_DROP_NLL = 50.0
+#: the best hypothesis takes over from the publishing filter's copy when it leads it by this much (a likelihood
+#: ratio of e³ ≈ 20) once the field has turned by twice `about_b_turn_rad`, and their attitudes differ by more
+#: than `ABOUT_B_SAME_RAD` (closer, they are the same solution). The likelihoods tell the angle about B
+#: apart slowly: on a 10 °/s tumble (1 s, 0.5 µT) the publishing filter's copy settled 80–170° off 3–4
+#: behind the best (the right one) for ten minutes, then fell behind by 10–20 as the field kept turning
+ABOUT_B_SWITCH_NLL = 3.0
+ABOUT_B_SAME_RAD = math.radians(10.0)
+#: the likelihood's temper in the mixture's weights, exp(−Δnll/T): the filters' likelihoods are over-sure of
+#: the angle about B (a wrong hypothesis leads the right one by 10–40 for minutes on some tumbles: the
+#: rate's random walk and the field model's error absorb part of the misfit)
+ABOUT_B_TEMPER = 10.0
 
 
 class _Bank:
@@ -84,12 +112,29 @@ class EulerAcquisitionKalman(_Bank):
     A trial that falls behind anyway (a loop too slow, or one that never calls :meth:`work`) catches
     up by two rounds of its hypotheses with each sample it takes, never all at once (a 50 Hz sensor
     once stalled the loop for 27 s that way).
+
+    The attitude's angle about the field shows only as the field turns along the orbit, and a single
+    filter can settle 100–180° off there with a σ of a few degrees. With `about_b_hypotheses` (the flown
+    filter: `ABOUT_B_HYPOTHESES`; 0, none, by default, as the ground's estimates run it), once Euler's
+    equations run, `about_b_hypotheses` copies of `main` turned k·2π/K about the inertial field (the first: `main`'s own
+    copy, the reference) take samples at least `about_b_step_s` apart, in :meth:`work` as the trial's
+    hypotheses do (with each sample when not `deferred`; a loop that falls behind catches up by one round
+    a sample). Each keeps its σ about B at least a uniform angle's over its 2π/K inside
+    (`AttitudeKalmanTuning.about_b_sigma_rad`). The published estimate stays `main`'s; the hypotheses'
+    spread, weighted by their tempered likelihoods, widens its attitude's covariance (:meth:`attitude`).
+    Once the field has turned by twice `about_b_turn_rad`, a hypothesis `ABOUT_B_DROP_NLL` behind the best
+    is dropped, and when the best leads the reference by `ABOUT_B_SWITCH_NLL` at an attitude more than
+    `ABOUT_B_SAME_RAD` away, `main` becomes a copy of it (it is the reference from then on; counted in
+    `about_b_switches`). When only the reference is left the hypotheses stop. They cost one filter
+    update a second each, at most `ABOUT_B_WORK_PER_CALL` a call of :meth:`work`, none in :meth:`update`
+    while the loop keeps up.
     """
 
     def __init__(self, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
                  tuning: AttitudeKalmanTuning | None = None, shapes=None, sigma_shape: float = 0.2,
                  trial_samples: int = 15, trial_s: float = 15.0, retry_samples: int = 15,
                  angle_about_b_rad: float = 0.0, trial_step_s: float = TRIAL_STEP_S,
+                 about_b_hypotheses: int = 0, about_b_step_s: float = ABOUT_B_STEP_S,
                  deferred: bool = False) -> None:
         # the bank decides when Euler's equations start: the filters' own innovation test is off
         tun = replace(tuning or AttitudeKalmanTuning(euler_adapt_max=EULER_ADAPT_MAX), euler_nis_max=-math.inf)
@@ -115,6 +160,19 @@ class EulerAcquisitionKalman(_Bank):
         self._wait = 0
         self._ref: list | None = None
         self._main_nll = math.nan
+        self.about_b_hypotheses = int(about_b_hypotheses)
+        self.about_b_step_s = float(about_b_step_s)
+        #: the hypotheses over the angle about B: [filter, its nll at the start, its resets at the start,
+        #: samples taken] each (empty: none running); the first `main`'s copy (the reference) until a switch
+        self._about_b: list[list] = []
+        self._about_b_ref: list | None = None
+        self._about_b_samples: list[tuple[float, np.ndarray]] = []
+        self._about_b_want = False  # start them at the next sample (main in Euler's equations, none running)
+        #: the hypotheses' share of the attitude's covariance: (the reference's weight, Σ the others' weight ×
+        #: (covariance + offset offsetᵀ)), from their last full round
+        self._about_b_mix: tuple[float, np.ndarray] = (1.0, np.zeros((3, 3)))
+        self.about_b_switches = 0
+        self.about_b_updates = 0
 
     @property
     def euler(self) -> bool:
@@ -126,9 +184,14 @@ class EulerAcquisitionKalman(_Bank):
 
     @property
     def pending(self) -> int:
-        """Hypothesis updates still to do (0 outside a trial)."""
-        n = len(self._samples)
-        return sum(n - h[3] for h in self._trial)
+        """Hypothesis updates still to do (the shape trial's and those over the angle about B)."""
+        n, m = len(self._samples), len(self._about_b_samples)
+        return sum(n - h[3] for h in self._trial) + sum(m - h[3] for h in self._about_b)
+
+    @property
+    def about_b_running(self) -> int:
+        """Hypotheses over the angle about B running (0: none)."""
+        return len(self._about_b)
 
     def update(self, t_s: float, b_T) -> bool:
         """Add a field sample (tesla, body axes) at `t_s` to the publishing filter and to the trial's
@@ -144,16 +207,26 @@ class EulerAcquisitionKalman(_Bank):
                 if self._ref is None and len(self._samples) == self._window:
                     self._main_nll = main.nll - self._nll0
                 if not self.deferred:
-                    self.work()
+                    self._work_trial()
                 elif len(self._samples) > 2 * self._window:  # a loop too slow for the trial: two rounds of
-                    self.work(2 * len(self._trial))           # the hypotheses a sample, never all at once
+                    self._work_trial(2 * len(self._trial))    # the hypotheses a sample, never all at once
         elif self._wait > 0:
             self._wait -= 1
         elif not main.euler and main.rate_found():
             self._start_trial()
+        self._about_b_sample(t_s, b_T, main.resets != resets)
         return out
 
     def work(self, max_updates: int | None = None) -> int:
+        """Background work, at most `max_updates` filter updates (None: all): the shape trial's hypotheses
+        (:meth:`_work_trial`) first, then those over the angle about B (:meth:`_work_about_b`, at most
+        `ABOUT_B_WORK_PER_CALL`). Returns the updates done."""
+        done = self._work_trial(max_updates)
+        if max_updates is None:
+            return done + self._work_about_b()
+        return done + self._work_about_b(min(max_updates - done, ABOUT_B_WORK_PER_CALL))
+
+    def _work_trial(self, max_updates: int | None = None) -> int:
         """Advance the trial's hypotheses through the samples taken since it started, at most `max_updates`
         filter updates (None: all), round robin; decide once every hypothesis has taken every sample and
         the trial window is full. Returns the updates done."""
@@ -211,6 +284,144 @@ class EulerAcquisitionKalman(_Bank):
             self._wait = self.retry_samples
         else:
             self.main = best
+            self._stop_about_b()
+            self._about_b_want = True
+
+    # -- the angle about B -------------------------------------------------------------------------
+    def _about_b_sample(self, t_s: float, b_T, restarted: bool) -> None:
+        """`main` took the sample (t_s, b_T): the hypotheses over the angle about B start, stop (`main`
+        restarted or out of Euler's equations: they are void) or keep it for :meth:`work`."""
+        main = self.main
+        if restarted or not main.euler:
+            self._stop_about_b()
+            self._about_b_want = False
+            return
+        if self._about_b_want:
+            self._about_b_want = False
+            self._start_about_b()
+            return
+        if not self._about_b:
+            return
+        last = self._about_b_samples[-1][0] if self._about_b_samples else self._about_b_ref[0].t_s
+        if t_s - last < self.about_b_step_s - 1e-9:
+            return
+        self._about_b_samples.append((t_s, np.array(b_T, float)))
+        if not self.deferred:
+            self._work_about_b()
+        elif len(self._about_b_samples) > 2:  # a loop too slow for them: one round a sample, never all at once
+            self._work_about_b(len(self._about_b))
+
+    def _start_about_b(self) -> None:
+        """The hypotheses over the attitude's angle about the field: `main` turned about the inertial field by
+        k·2π/K, each with the floor of its σ about B at a uniform angle over its 2π/K (the linearisation holds
+        within it)."""
+        k = self.about_b_hypotheses
+        main = self.main
+        self._stop_about_b()
+        if k < 2 or main.field is None or main.store or not main._started:
+            return
+        h, _ = main.measurement(main.t_s)
+        u = h / np.linalg.norm(h)
+        b_i = quat_to_dcm(main.q) @ u
+        tun = replace(main.tuning, about_b_sigma_rad=2.0 * math.pi / k / math.sqrt(12.0))
+        for j in range(k):
+            kf = main.clone()
+            kf.tuning = tun
+            if j:
+                kf.q = quat_mul(quat_exp(b_i * (2.0 * math.pi * j / k)), kf.q)
+            v = float(u @ kf.P[:3, :3] @ u)
+            kf.P[:3, :3] += (tun.about_b_sigma_rad ** 2 - v) * np.outer(u, u)
+            self._about_b.append([kf, kf.nll, kf.resets, 0])
+        self._about_b_ref = self._about_b[0]
+
+    def _stop_about_b(self) -> None:
+        self._about_b, self._about_b_ref, self._about_b_samples = [], None, []
+        self._about_b_mix = (1.0, np.zeros((3, 3)))
+
+    def _work_about_b(self, max_updates: int | None = None) -> int:
+        """Advance the hypotheses over the angle about B through their samples, at most `max_updates` filter
+        updates (None: all), round robin; after each full round, weigh them (:meth:`_judge_about_b`).
+        Returns the updates done."""
+        done = 0
+        while self._about_b and (max_updates is None or done < max_updates):
+            n = len(self._about_b_samples)
+            h = min(self._about_b, key=lambda g: g[3])  # the one furthest behind: rounds stay level
+            if h[3] >= n:
+                break
+            t, b = self._about_b_samples[h[3]]
+            with np.errstate(all="ignore"):  # a wrong hypothesis may diverge: it is dropped below
+                h[0].update(t, b)
+            h[3] += 1
+            done += 1
+            if all(g[3] == h[3] for g in self._about_b):
+                self._judge_about_b()
+        self.about_b_updates += done
+        if self._about_b:  # the samples every hypothesis has taken are not kept
+            first = min(h[3] for h in self._about_b)
+            if first:
+                del self._about_b_samples[:first]
+                for h in self._about_b:
+                    h[3] -= first
+        return done
+
+    def _judge_about_b(self) -> None:
+        """After a full round: the lost hypotheses (restarted, or out of Euler's equations) and, once the
+        field has turned by twice `about_b_turn_rad`, those `ABOUT_B_DROP_NLL` behind the best are dropped;
+        the reference dropped so, `main` becomes a copy of the best; the mixture's covariance about the
+        reference is kept for :meth:`attitude`."""
+        ref = self._about_b_ref
+        live = [h for h in self._about_b if h[0].resets == h[2] and h[0].euler]
+        if ref not in live:  # `main`'s copy lost while `main` goes on: the hypotheses start again from it
+            self._stop_about_b()
+            self._about_b_want = True
+            return
+        scores = np.array([h[0].nll - h[1] for h in live])
+        best_i = int(np.argmin(scores))
+        best = live[best_i]
+        if ref[0].field_turn_rad >= 2.0 * ref[0].tuning.about_b_turn_rad:
+            ref_score = ref[0].nll - ref[1]
+            live = [h for h, sc in zip(live, scores) if sc - scores[best_i] < ABOUT_B_DROP_NLL or h is best]
+            scores = np.array([h[0].nll - h[1] for h in live])
+            apart = np.linalg.norm(quat_log(quat_mul(quat_conj(ref[0].q), best[0].q))) > ABOUT_B_SAME_RAD
+            if ref not in live or (ref_score - scores.min() >= ABOUT_B_SWITCH_NLL and apart):
+                self._switch_about_b(best)  # clearly worse than the best: the best flies
+                ref = best
+        self._about_b = live
+        if len(live) == 1:  # settled: `main` goes on alone
+            self._stop_about_b()
+            return
+        w = np.exp(-(scores - scores.min()) / ABOUT_B_TEMPER)
+        w /= w.sum()
+        spread = np.zeros((3, 3))
+        w_ref = 1.0
+        for wj, h in zip(w, live):
+            if h is ref:
+                w_ref = float(wj)
+                continue
+            d = quat_log(quat_mul(quat_conj(ref[0].q), h[0].q))
+            spread += wj * (h[0].P[:3, :3] + np.outer(d, d))
+        self._about_b_mix = (w_ref, spread)
+
+    def _switch_about_b(self, best: list) -> None:
+        """`main` becomes a copy of the hypothesis `best` (at its last sample; `main`'s samples since then are
+        left out, the filter propagates across them), with `main`'s tuning (no floor about B inside)."""
+        main = self.main
+        new = best[0].clone()
+        new.tuning = main.tuning
+        new._dt_nominal = main._dt_nominal
+        new.resets = main.resets
+        self.main = new
+        self._about_b_ref = best
+        self.about_b_switches += 1
+
+    def attitude(self) -> tuple[np.ndarray, np.ndarray]:
+        """(q body → ECI of `main`, the 3×3 covariance of its attitude error in body axes): `main`'s
+        (:func:`~.attitude_kalman.attitude_cov`, its σ about B held wide until the field has turned) and,
+        with the hypotheses over the angle about B running, the mixture's about it (each hypothesis weighted
+        by its tempered likelihood, its offset from `main`'s copy included), so that the σ covers the
+        hypotheses not yet excluded."""
+        w_ref, spread = self._about_b_mix
+        return np.array(self.main.q, float), w_ref * attitude_cov(self.main) + spread
 
 
 #: the process models of :class:`RateModelBank`: (τ s, a rad/s²) of a Gauss–Markov rate, stationary 1-σ

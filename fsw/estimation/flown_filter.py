@@ -26,12 +26,15 @@ the host calibration's first corrected one, a step the fixed filter takes as a r
 published rate does not jump; the attitude about B, which
 the fixed filter does not know, starts wide. A new TLE or UTC (a new field object) is taken at the next
 sample without a restart. The attitude (:meth:`FlownFilter.attitude`) carries the field along the orbit
-onto the measured one; its angle about the field shows only as the field turns along the orbit, and a
-filter can settle in a minimum of its own there with a σ that does not cover it (docs/rate-estimation.md).
+onto the measured one; its angle about the field shows only as the field turns along the orbit: its σ
+there is held wide until the field has turned (`AttitudeKalmanTuning.about_b_turn_rad`,
+:func:`~.attitude_kalman.attitude_cov`), and the Euler filter runs hypotheses over that angle whose
+spread widens it (:meth:`~.filter_banks.EulerAcquisitionKalman.attitude`) and the best of which takes
+over when the publishing filter's own copy falls clearly behind it (docs/rate-estimation.md).
 
-The Euler filter's shape trial (34 hypotheses a sample for 15 samples and at least 15 s) runs in the
-loop's ticks between samples (:meth:`FlownFilter.work`, a few filter updates a tick), not all in the tick
-of the sample.
+The Euler filter's shape trial (34 hypotheses a sample for 15 samples and at least 15 s) and its hypotheses
+over the angle about B (six, on samples a second apart) run in the loop's ticks between samples
+(:meth:`FlownFilter.work`, a few filter updates a tick), not in the tick of the sample.
 """
 from __future__ import annotations
 
@@ -39,8 +42,8 @@ import math
 
 import numpy as np
 
-from .attitude_kalman import AttitudeRateKalman
-from .filter_banks import EulerAcquisitionKalman, RateModelBank
+from .attitude_kalman import AttitudeRateKalman, attitude_cov
+from .filter_banks import ABOUT_B_HYPOTHESES, EulerAcquisitionKalman, RateModelBank
 from .rate_kalman import NO_ESTIMATE, RateKalman
 
 #: the choices of `RunConfig.rate_filter`, and the method names of the accuracy benchmark they fly
@@ -77,8 +80,10 @@ def make_orbit_filter(kind: str, sigma_b_T: float, field_eci_T):
     """The filter `kind` (not "fixed") with the field along the orbit `field_eci_T(t_s)` [T]."""
     if kind == "orbit":
         return AttitudeRateKalman(sigma_b_T, field_eci_T=field_eci_T)
-    if kind == "euler":  # the shape trial's hypotheses run in the loop's ticks (FlownFilter.work)
-        return EulerAcquisitionKalman(sigma_b_T, field_eci_T=field_eci_T, deferred=True)
+    if kind == "euler":
+        # the shape trial's hypotheses and those over the angle about B run in the loop's ticks (FlownFilter.work)
+        return EulerAcquisitionKalman(sigma_b_T, field_eci_T=field_eci_T, deferred=True,
+                                      about_b_hypotheses=ABOUT_B_HYPOTHESES)
     if kind == "mm":
         return RateModelBank(sigma_b_T, field_eci_T=field_eci_T)
     raise ValueError(f"unknown rate filter {kind!r}: choose from {', '.join(FILTERS)}")
@@ -149,8 +154,9 @@ class FlownFilter:
         kf = members(self.orbit)[0] if not isinstance(self.orbit, RateModelBank) else self.orbit.main
         if not getattr(kf, "_started", False):
             return None
-        s = np.sqrt(np.clip(np.diagonal(kf.P)[:3], 0.0, None))
-        return np.array(kf.q, float), np.minimum(s, math.pi)
+        q, P = self.orbit.attitude() if hasattr(self.orbit, "attitude") else (kf.q, attitude_cov(kf))
+        s = np.sqrt(np.clip(np.diagonal(P), 0.0, None))
+        return np.array(q, float), np.minimum(s, math.pi)
 
     # -- the loop ------------------------------------------------------------------------------------
     def reset(self) -> None:
@@ -192,8 +198,8 @@ class FlownFilter:
 
     def work(self, max_updates: int) -> int:
         """Background work of the orbit filter, at most `max_updates` filter updates (the shape trial's
-        hypotheses, :meth:`~.filter_banks.EulerAcquisitionKalman.work`); the flight loop calls it every
-        tick. Returns the updates done."""
+        hypotheses and those over the angle about B, :meth:`~.filter_banks.EulerAcquisitionKalman.work`);
+        the flight loop calls it every tick. Returns the updates done."""
         if self.orbit is None or not hasattr(self.orbit, "work"):
             return 0
         try:
