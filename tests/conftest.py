@@ -15,11 +15,15 @@ checks that are about speed or size, which a slow shared machine fails for no fa
 """
 import os
 import sys
+import tempfile
 from pathlib import Path
 
 from hypothesis import HealthCheck, settings
 
 sys.path.insert(0, str(Path(__file__).parent))
+# ground.decode archives a live link's frames by default (ground.archive.default_path, under XDG_DATA_HOME):
+# the tests' decoders, in process and in subprocesses, archive into a temporary directory
+os.environ["XDG_DATA_HOME"] = tempfile.mkdtemp(prefix="debris-box-tests-")
 
 FUZZ_EXAMPLES = 10_000
 
