@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import os
 import sqlite3
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
@@ -85,6 +86,34 @@ def box_time_us(msg) -> int | None:
     return t if 0 <= t <= _INT64_MAX else None
 
 
+def _create(path: Path) -> None:
+    """Make a new, empty archive at `path` at once: built in a temporary file beside it, then linked
+    into place, so that no reader ever sees a file without its table (if another writer made it
+    meanwhile, theirs is kept)."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        conn = sqlite3.connect(tmp, isolation_level=None)
+        try:
+            conn.execute(f"PRAGMA application_id = {APPLICATION_ID}")
+            conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+            conn.execute("PRAGMA journal_mode = WAL")
+            conn.executescript(_SCHEMA)
+        finally:
+            conn.close()
+        try:
+            os.link(tmp, path)
+        except FileExistsError:
+            pass
+        except OSError:  # a file system without hard links: renamed instead, unless one appeared meanwhile
+            if not path.exists():
+                os.rename(tmp, path)
+                return
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
 class ArchiveWriter:
     """Appends frames to an archive (created if missing) in transactions of at most `commit_period_s` of
     receive time or `max_pending` frames; `close` commits the rest."""
@@ -95,18 +124,14 @@ class ArchiveWriter:
         self.commit_period_s = commit_period_s
         self.max_pending = max_pending
         try:
+            if not self.path.exists():
+                _create(self.path)
             self.conn = sqlite3.connect(self.path, timeout=BUSY_TIMEOUT_S, isolation_level=None)
-            fresh = self.conn.execute("PRAGMA application_id").fetchone()[0] == 0 and \
-                self.conn.execute("SELECT count(*) FROM sqlite_schema").fetchone()[0] == 0
-            if fresh:
-                self.conn.execute(f"PRAGMA application_id = {APPLICATION_ID}")
-                self.conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
             _check(self.conn, self.path)
             self.conn.execute("PRAGMA journal_mode = WAL")
             self.conn.execute("PRAGMA synchronous = FULL")
-            self.conn.executescript(_SCHEMA)
-        except sqlite3.Error as e:
-            raise ArchiveError(f"{self.path}: {e}") from None
+        except (sqlite3.Error, OSError) as e:
+            raise ArchiveError(f"{self.path}: {getattr(e, 'strerror', None) or e}") from None
         self._rows: list[tuple] = []
         self._oldest_s: float | None = None
         #: frames committed by this writer, and commits

@@ -238,3 +238,46 @@ def test_a_live_decoder_archives_by_default_and_not_when_told(tmp_path, monkeypa
     assert not default_path().exists()
     assert decode.main([url, "--quiet", "--duration", "0.3"]) == 1
     assert open_reader(default_path()).execute("SELECT count(*) FROM frames").fetchone()[0] == 0
+
+
+def test_a_live_decoder_killed_leaves_an_archive_that_holds_what_a_reader_saw(tmp_path):
+    """ground.decode on UDP, archiving by default; a second reader polls the archive while the frames
+    arrive; after a kill -9 the file opens, checks, and holds a prefix of what was sent, at least as much
+    as the reader saw."""
+    import signal
+    import socket
+    import time
+
+    from support import wait_udp_bound
+
+    port = free_udp_port()
+    env = dict(os.environ, PYTHONPATH=str(ROOT), XDG_DATA_HOME=str(tmp_path / "data"))
+    archive = tmp_path / "data" / "debris-box" / "archive.sqlite"
+    proc = subprocess.Popen([sys.executable, "-m", "ground.decode", f"udpin:127.0.0.1:{port}", "--quiet",
+                             "--no-resend"], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    sent = [f for _, f in box_frames(120)]
+    seen = []
+    try:
+        wait_udp_bound(port)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            deadline = time.monotonic() + 120
+            for i, frame in enumerate(sent):
+                sock.sendto(frame, ("127.0.0.1", port))
+                time.sleep(0.002)
+                if i % 20 == 0 and archive.exists():
+                    conn = open_reader(archive)
+                    seen.append(conn.execute("SELECT count(*) FROM frames").fetchone()[0])
+                    conn.close()
+                    if seen[-1] >= 300:
+                        break
+                assert time.monotonic() < deadline, "the decoder never archived"
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=60)
+    finally:
+        proc.kill()
+        proc.communicate(timeout=60)
+    assert seen == sorted(seen) and seen[-1] >= 300
+    conn = open_reader(archive)
+    assert conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+    kept = [f for (f,) in conn.execute("SELECT frame FROM frames ORDER BY rowid")]
+    assert len(kept) >= seen[-1] and kept == sent[:len(kept)]
