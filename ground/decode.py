@@ -788,7 +788,11 @@ def main(argv: list[str] | None = None) -> int:
     archive = None if args.no_archive else args.archive
     if archive is None and not args.no_archive and not Path(args.url).is_file():
         archive = default_path()
-        archive.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            archive.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            ap.error(f"--archive {archive}: cannot make its directory ({e.strerror or e}); --no-archive to run "
+                     "without one")
     check_paths_or_exit(ap, inputs={"input": args.url if Path(args.url).exists() else None, "--key": args.key},
                         outputs={"--tlog": args.tlog, "--csv": args.csv, "--rates-csv": args.rates_csv,
                                  "--archive": archive})

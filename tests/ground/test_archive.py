@@ -281,3 +281,11 @@ def test_a_live_decoder_killed_leaves_an_archive_that_holds_what_a_reader_saw(tm
     assert conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
     kept = [f for (f,) in conn.execute("SELECT frame FROM frames ORDER BY rowid")]
     assert len(kept) >= seen[-1] and kept == sent[:len(kept)]
+
+
+def test_a_default_archive_that_cannot_be_made_is_a_usage_error(tmp_path, monkeypatch, capsys):
+    (tmp_path / "file").write_text("not a directory")
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "file"))
+    assert exit_status(decode.main, [f"udpin:127.0.0.1:{free_udp_port()}", "--duration", "0.1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "--no-archive" in err[-1] and "Traceback" not in "\n".join(err)
