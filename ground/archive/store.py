@@ -242,12 +242,12 @@ def spans(conn: sqlite3.Connection, gap_s: float = 60.0) -> list[BoxSpan]:
     return out
 
 
-def frames(conn: sqlite3.Connection, sysid: int, from_us: int | None = None, to_us: int | None = None
-           ) -> Iterator[tuple[int, bytes]]:
-    """(receive time µs, raw frame) of box `sysid` (every component) with from_us <= t < to_us, in
-    receive order; one snapshot (a single read transaction) of the archive."""
+def frames(conn: sqlite3.Connection, sysid: int, from_us: int | None = None, to_us: int | None = None, *,
+           with_msgid: bool = False) -> Iterator[tuple]:
+    """(receive time µs, raw frame) — (time, msgid, frame) `with_msgid` — of box `sysid` (every component)
+    with from_us <= t < to_us, in receive order; one snapshot (a single read transaction) of the archive."""
     lo = -1 if from_us is None else from_us
     hi = _INT64_MAX if to_us is None else to_us
-    yield from conn.execute("SELECT t_us, frame FROM frames WHERE sysid = ? AND t_us >= ? AND t_us < ? "
+    cols = "t_us, msgid, frame" if with_msgid else "t_us, frame"
+    yield from conn.execute(f"SELECT {cols} FROM frames WHERE sysid = ? AND t_us >= ? AND t_us < ? "
                             "ORDER BY t_us, rowid", (sysid, lo, hi))
-

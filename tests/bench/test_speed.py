@@ -213,7 +213,7 @@ def archive_hour(tmp_path_factory):
     with ArchiveWriter(path, max_pending=50_000) as w:
         for sysid, seconds in ((1, 3600), (2, 60)):
             for t_us, frame in box_frames(seconds, sysid=sysid):
-                w.add_frame(t_us, sysid, 191, 0, None, frame)
+                w.add_frame(t_us, sysid, 191, frame[7] | frame[8] << 8 | frame[9] << 16, None, frame)
     return path
 
 

@@ -17,6 +17,7 @@ from ground import decode
 from ground.archive import ArchiveWriter, open_reader
 from ground.archive.__main__ import main as archive_main
 from ground.archive.__main__ import utc_time_us
+from ground.archive.export import export_recordings
 from ground.archive.store import spans
 from ground.tlog import read_tlog
 from support import box_frames, exit_status, free_udp_port
@@ -70,6 +71,23 @@ def test_the_csv_export_is_what_the_decoder_writes_from_the_same_frames(two_boxe
     assert not (d / f"ex.{OTHER}-1.run1.csv").exists()          # only the box asked for
 
 
+def test_frames_the_recordings_do_not_use_still_count_in_the_link_accounting(two_boxes, tmp_path):
+    """The export decodes only the messages the recordings are made of; the others go to the decoder's
+    link accounting undecoded: it counts the same as a decoder fed every frame (with a frame lost)."""
+    d, ours, _ = two_boxes
+    lossy = ours[:500] + ours[501:]                        # a status frame lost: the accounting sees the gap
+    with ArchiveWriter(tmp_path / "a.sqlite") as w:
+        for t_us, f in lossy:
+            w.add_frame(t_us, f[5], f[6], f[7] | f[8] << 8 | f[9] << 16, None, f)
+    out = export_recordings(open_reader(tmp_path / "a.sqlite"), FSW_SYSID, tmp_path / "ex.csv")
+    (tmp_path / "in.tlog").write_bytes(tlog_bytes(lossy))
+    whole = decode.run(str(tmp_path / "in.tlog"), quiet=True)
+    src = (FSW_SYSID, FSW_COMPID)
+    assert out.decoder.stats.sources[src].as_dict() == whole.stats.sources[src].as_dict()
+    assert out.decoder.stats.sources[src].lost == 1
+    assert sum(out.decoder.frames_by_type.values()) < len(lossy)     # not every frame was decoded
+
+
 def test_an_interval_export_is_the_decoding_of_that_interval_alone(two_boxes, tmp_path):
     d, ours, _ = two_boxes
     lo, hi = WALL0_US + 10_000_000, WALL0_US + 25_000_000
@@ -93,7 +111,8 @@ def test_the_tlog_export_reads_back_with_the_project_decoder_and_stock_mavlogdum
     msgs = [m for r in reader for m in r.messages]
     assert len(msgs) == len(ours) and not reader.report.damaged
     assert {m.get_type() for m in msgs} == {"HEARTBEAT", "DEBRIS_MAG_SAMPLE", "DEBRIS_RATE_ESTIMATE",
-                                            "DEBRIS_SIM_STATE"}
+                                            "DEBRIS_SIM_STATE", "SYS_STATUS", "DEBRIS_MAG_STATUS",
+                                            "ATTITUDE_QUATERNION"}
     mavlogdump = Path(sys.executable).with_name("mavlogdump.py")
     if not mavlogdump.exists():
         pytest.skip("pymavlink's mavlogdump.py is not installed beside the interpreter")
