@@ -529,9 +529,10 @@ class Decoder:
 
 
 def tlog_record(msg, now_s: float) -> bytes:
-    """One tlog record: big-endian µs time stamp (low 2 bits: link id 0, as pymavlink writes it),
-    then the frame's bytes as received."""
-    return struct.pack(">Q", int(now_s * 1e6) & ~3) + bytes(msg.get_msgbuf())
+    """One tlog record: big-endian µs time stamp (`now_s` rounded to the µs, as the archive keeps it; low
+    2 bits: link id 0, as pymavlink writes it), then the frame's bytes as received. Rounded, not truncated:
+    a time stamp read from a tlog (t × 1e-6 s) is written back as it was."""
+    return struct.pack(">Q", round(now_s * 1e6) & ~3) + bytes(msg.get_msgbuf())
 
 
 def run(url: str, *, duration_s: float | None = None, count: int | None = None,

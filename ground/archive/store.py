@@ -20,8 +20,8 @@ commit.
 from __future__ import annotations
 
 import os
+import secrets
 import sqlite3
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
@@ -90,8 +90,8 @@ def _create(path: Path) -> None:
     """Make a new, empty archive at `path` at once: built in a temporary file beside it, then linked
     into place, so that no reader ever sees a file without its table (if another writer made it
     meanwhile, theirs is kept)."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
+    tmp = path.parent / f".{path.name}.{secrets.token_hex(8)}.tmp"
+    os.close(os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))  # the umask's permissions: others may read
     try:
         conn = sqlite3.connect(tmp, isolation_level=None)
         try:

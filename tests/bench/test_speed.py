@@ -205,7 +205,7 @@ def test_archive_ingest(benchmark, archive_messages, tmp_path):
 
 @pytest.fixture(scope="module")
 def archive_hour(tmp_path_factory):
-    """An archive holding one hour of a box (its telemetry at 10 Hz: 111,600 frames) beside a minute of another."""
+    """An archive holding one hour of a box (its telemetry at 10 Hz: 122,400 frames) beside a minute of another."""
     from ground.archive import ArchiveWriter
     from support import box_frames
 
@@ -218,13 +218,13 @@ def archive_hour(tmp_path_factory):
 
 
 def test_archive_export_hour_tlog(benchmark, archive_hour, tmp_path):
-    """`python -m ground.archive export --box 1 --tlog`: one hour of a box (111,600 frames). Target ≤ 2 s."""
+    """`python -m ground.archive export --box 1 --tlog`: one hour of a box (122,400 frames). Target ≤ 2 s."""
     from ground.archive import open_reader
     from ground.archive.export import export_tlog
 
     conn = open_reader(archive_hour)
     out = benchmark.pedantic(export_tlog, args=(conn, 1, tmp_path / "hour.tlog"), rounds=3, iterations=1)
-    assert out.frames == 111_600
+    assert out.frames == 122_400
 
 
 def test_archive_export_hour_csv(benchmark, archive_hour, tmp_path):
@@ -235,4 +235,4 @@ def test_archive_export_hour_csv(benchmark, archive_hour, tmp_path):
 
     conn = open_reader(archive_hour)
     out = benchmark.pedantic(export_recordings, args=(conn, 1, tmp_path / "hour.csv"), rounds=1, iterations=1)
-    assert out.frames == 111_600 and len(out.written) == 1
+    assert out.frames == 122_400 and len(out.written) == 1
