@@ -559,7 +559,7 @@ def run(url: str, *, duration_s: float | None = None, count: int | None = None,
     to line noise); a serial port that goes away is reopened every second until it is back.
 
     `archive`: every intact frame also goes into this archive (`ground.archive`, created if missing),
-    committed at least every half second of the time line; ``decoder.archived`` counts them."""
+    committed within half a second; ``decoder.archived`` counts them."""
     check_paths(inputs={"input": url if Path(url).exists() else None},
                 outputs={"--tlog": tlog, "--csv": csv, "--rates-csv": rates_csv, "--archive": archive})
     recorder = Recorder(csv, rates_csv, protect=[p for p in (url, tlog) if p is not None and Path(p).exists()])
@@ -613,7 +613,7 @@ def run(url: str, *, duration_s: float | None = None, count: int | None = None,
             if log_out is not None and batch and not is_log:
                 log_out.flush()
             if store is not None:
-                store.tick(now_s)
+                store.tick()
             if duration_s is not None and now_s - start_s >= duration_s:
                 break
         if not is_log and not done:

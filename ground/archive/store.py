@@ -10,9 +10,11 @@ The index ``(sysid, t_us)`` makes an interval of one box a range scan.
 Durability and readers: the database is in WAL mode (one writer, any number of readers, each reading a
 consistent snapshot: whole transactions only) with ``synchronous=FULL``: a commit is on the disk when
 it returns (one fsync of the WAL per commit). :class:`ArchiveWriter` commits whenever the oldest frame
-it holds is `COMMIT_PERIOD_S` old (by the receive time it is given, checked on every `add` and `tick`)
-or it holds `MAX_PENDING` frames, so a crash of the process or a power cut loses at most the frames of
-the last second; what is committed is never lost or torn (SQLite's journal). A second station reads
+it holds was handed over `COMMIT_PERIOD_S` ago (by the monotonic clock, checked on every `add` and
+`tick`: `ground.decode` ticks at least every 0.1 s) or it holds `MAX_PENDING` frames, so a crash of the
+process or a power cut loses at most the frames of the last second; what is committed is never lost or
+torn (SQLite's journal). A .tlog imported (`ground.decode FILE.tlog --archive A`) is committed by the
+same clock: a few commits a second, however long the recording. A second station reads
 the file while it is written (`open_reader`: read-only) and sees the frames up to the last commit.
 Several writers on one file (two decoders) take turns: each waits up to `BUSY_TIMEOUT_S` for the other's
 commit.
@@ -22,9 +24,10 @@ from __future__ import annotations
 import os
 import secrets
 import sqlite3
+import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 #: PRAGMA user_version of an archive of this layout
 SCHEMA_VERSION = 1
@@ -115,13 +118,15 @@ def _create(path: Path) -> None:
 
 
 class ArchiveWriter:
-    """Appends frames to an archive (created if missing) in transactions of at most `commit_period_s` of
-    receive time or `max_pending` frames; `close` commits the rest."""
+    """Appends frames to an archive (created if missing) in transactions of the frames handed over within
+    `commit_period_s` of `clock` (monotonic seconds) or `max_pending` frames; `close` commits the rest."""
 
     def __init__(self, path: str | os.PathLike, *, commit_period_s: float = COMMIT_PERIOD_S,
+                 clock: Callable[[], float] = time.monotonic,
                  max_pending: int = MAX_PENDING) -> None:
         self.path = Path(path)
         self.commit_period_s = commit_period_s
+        self.clock = clock
         self.max_pending = max_pending
         try:
             if not self.path.exists():
@@ -151,22 +156,24 @@ class ArchiveWriter:
         rows = self._rows
         rows.append((round(now_s * 1e6), msg.get_srcSystem(), msg.get_srcComponent(), msg.get_msgId(), t,
                      bytes(msg.get_msgbuf())))
+        now = self.clock()
         if self._oldest_s is None:
-            self._oldest_s = now_s
-        elif now_s - self._oldest_s >= self.commit_period_s or len(rows) >= self.max_pending:
+            self._oldest_s = now
+        elif now - self._oldest_s >= self.commit_period_s or len(rows) >= self.max_pending:
             self.commit()
 
     def add_frame(self, t_us: int, sysid: int, compid: int, msgid: int, box_t_us: int | None, frame: bytes) -> None:
-        """Archive a raw frame received at `t_us` (µs since 1970; it is also the time the commits go by)."""
+        """Archive a raw frame received at `t_us` (µs since 1970)."""
         self._rows.append((t_us, sysid, compid, msgid, box_t_us, frame))
-        now_s = t_us * 1e-6
         if self._oldest_s is None:
-            self._oldest_s = now_s
-        self.tick(now_s)
+            self._oldest_s = self.clock()
+        self.tick()
 
-    def tick(self, now_s: float) -> None:
-        """Commit if the oldest frame held is `commit_period_s` old, or `max_pending` are held."""
-        if self._rows and (now_s - self._oldest_s >= self.commit_period_s or len(self._rows) >= self.max_pending):
+    def tick(self) -> None:
+        """Commit if the oldest frame held was handed over `commit_period_s` ago, or `max_pending` are held
+        (call it also when nothing arrives)."""
+        if self._rows and (self.clock() - self._oldest_s >= self.commit_period_s or
+                           len(self._rows) >= self.max_pending):
             self.commit()
 
     def commit(self) -> None:

@@ -139,9 +139,11 @@ WRITER = textwrap.dedent("""
     from ground.archive import ArchiveWriter
     path, period, max_pending, n = sys.argv[1], float(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
     frame = bytes(range(40))
-    with ArchiveWriter(path, commit_period_s=period, max_pending=max_pending) as w:
+    now = [0.0]
+    with ArchiveWriter(path, commit_period_s=period, max_pending=max_pending, clock=lambda: now[0]) as w:
         for k in range(n):
-            t_us = 1_750_000_000_000_000 + k * 1000          # a frame every millisecond of receive time
+            t_us = 1_750_000_000_000_000 + k * 1000          # a frame every millisecond (the writer's clock)
+            now[0] = k * 1e-3
             w.add_frame(t_us, 1, 191, 54000, k, frame)
             if k % 100 == 99:
                 print(t_us, flush=True)
