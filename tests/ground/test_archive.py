@@ -136,6 +136,7 @@ def test_the_tlog_export_reads_back_with_the_project_decoder_and_stock_mavlogdum
 
 WRITER = textwrap.dedent("""
     import sys
+    import time
     from ground.archive import ArchiveWriter
     path, period, max_pending, n = sys.argv[1], float(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
     frame = bytes(range(40))
@@ -147,6 +148,7 @@ WRITER = textwrap.dedent("""
             w.add_frame(t_us, 1, 191, 54000, k, frame)
             if k % 100 == 99:
                 print(t_us, flush=True)
+                time.sleep(0.001)                             # let a reader in between the commits
     """)
 
 
