@@ -3,7 +3,7 @@ box and receive time, and any interval of a box exported as a .tlog or as record
 
     python -m ground.archive list [--archive FILE] [--gap S]
     python -m ground.archive export --box SYSID [--from T] [--to T] [--csv FILE] [--rates-csv FILE]
-                                    [--tlog FILE] [--archive FILE]
+                                    [--method M] [--tlog FILE] [--archive FILE]
 
 `ground.decode` archives every intact frame it receives from a live link by default
 (`--archive FILE`, default `store.default_path`; `--no-archive`); from a .tlog only when asked.

@@ -2,7 +2,7 @@
 
     python -m ground.archive list [--archive FILE] [--gap S]
     python -m ground.archive export --box SYSID [--from T] [--to T] [--csv FILE] [--rates-csv FILE]
-                                    [--tlog FILE] [--archive FILE]
+                                    [--method M] [--tlog FILE] [--archive FILE]
 
 ``list``: every source (sysid/compid), its stretches of reception (split where nothing came for more
 than ``--gap`` seconds, default 60) with their UTC times and frame counts.
@@ -10,7 +10,7 @@ than ``--gap`` seconds, default 60) with their UTC times and frame counts.
 ``export``: box SYSID's frames received from ``--from`` (included) to ``--to`` (excluded), each a UTC
 time in ISO 8601 (``2026-11-24T10:00:00Z``, ``2026-11-24 10:00``; a time without a zone is UTC) or
 seconds since 1970; either left out: from the first frame / to the last. ``--tlog``: the frames as
-received; ``--csv`` / ``--rates-csv``: the recordings `ground.decode --csv` / ``--rates-csv`` writes
+received; ``--csv`` / ``--rates-csv`` (of ``--method``): the recordings `ground.decode --csv` / ``--rates-csv`` writes
 (`ground.archive.export`). Output paths are checked first (`fsw.files.check_paths`: none may be the
 archive). Nothing in the interval: said, nothing written, exit status 1. The archive is read as one
 snapshot, so exporting while a station writes is safe.
@@ -24,6 +24,7 @@ from datetime import datetime, timezone
 
 from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range
 
+from ..decode import METHODS
 from .export import export_recordings, export_tlog
 from .store import ArchiveError, default_path, open_reader, spans
 
@@ -73,7 +74,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="first receive time (included): ISO 8601 UTC or seconds since 1970")
     ex.add_argument("--to", dest="to_us", type=_time_arg, metavar="T", help="last receive time (excluded)")
     ex.add_argument("--csv", help="the magnetometer samples as recording-format CSV (as ground.decode --csv)")
-    ex.add_argument("--rates-csv", help="the onboard rate estimates (boer) as CSV (as ground.decode --rates-csv)")
+    ex.add_argument("--rates-csv", help="the onboard rate estimates of --method as CSV (as ground.decode --rates-csv)")
+    ex.add_argument("--method", choices=sorted(METHODS, key=METHODS.get), default="boer",
+                    help="the onboard estimator of --rates-csv (default boer)")
     ex.add_argument("--tlog", help="the frames as received, as a .tlog")
     args = ap.parse_args(argv)
     archive = args.archive
@@ -116,6 +119,7 @@ def _export(conn, args) -> int:
         print(f"{out.frames} frames of box {args.box}, {_utc(out.first_us)} to {_utc(out.last_us)}")
     if args.csv or args.rates_csv:
         out = export_recordings(conn, args.box, args.csv, args.rates_csv, args.from_us, args.to_us,
+                                method=METHODS[args.method],
                                 origin=f"{args.archive} ({shown})", protect=[args.archive] + (
                                     [args.tlog] if args.tlog else []))
         if not out.frames:

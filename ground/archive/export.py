@@ -109,13 +109,14 @@ _RECORDED = SAMPLE_MESSAGES | KNOWLEDGE_MESSAGES | {"DEBRIS_LOOP_STATUS", "DEBRI
 
 def export_recordings(conn: sqlite3.Connection, sysid: int, csv: str | os.PathLike | None,
                       rates_csv: str | os.PathLike | None = None, from_us: int | None = None,
-                      to_us: int | None = None, *, origin: str = "", protect=()) -> Exported:
+                      to_us: int | None = None, *, method: int = mavlink.DEBRIS_RATE_METHOD_BOER, origin: str = "",
+                      protect=()) -> Exported:
     """Decode box `sysid`'s frames with from_us <= t < to_us through `ground.decode.Decoder` and write
-    its recordings (`csv`) and rate estimates (`rates_csv`); `protect`: files the recorder's extra files
+    its recordings (`csv`) and rate estimates of `method` (`rates_csv`); `protect`: files the recorder's extra files
     (other runs) may never take the name of. Frames of messages the recordings do not use go to the
     decoder's link accounting and clock only (`_Unread`): the same files, at a fraction of the time."""
     recorder = Recorder(csv, rates_csv, protect=protect)
-    decoder = Decoder(origin=origin, recorder=recorder)
+    decoder = Decoder(method=method, origin=origin, recorder=recorder)
     decode = Deframer().decode
     handle, on_frame, tick = decoder.handle, decoder.stats.on_frame, decoder.tick
     recorded = {msgid for msgid, cls in mavlink.mavlink_map.items() if cls.msgname in _RECORDED}

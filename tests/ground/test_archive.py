@@ -332,3 +332,13 @@ def test_a_default_archive_that_cannot_be_made_is_a_usage_error(tmp_path, monkey
     assert exit_status(decode.main, [f"udpin:127.0.0.1:{free_udp_port()}", "--duration", "0.1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert "--no-archive" in err[-1] and "Traceback" not in "\n".join(err)
+
+
+def test_the_rates_of_another_method_are_what_the_decoder_writes_for_it(two_boxes, tmp_path):
+    d = two_boxes[0]
+    assert decode.main([str(d / "in.tlog"), "--quiet", "--method", "derivative", "--rates-csv",
+                        str(tmp_path / "dec.csv")]) == 0
+    assert archive_main(["export", "--archive", str(d / "a.sqlite"), "--box", "1", "--method", "derivative",
+                         "--rates-csv", str(tmp_path / "ex.csv")]) == 0
+    assert without_source(tmp_path / "ex.csv") == without_source(tmp_path / "dec.csv")
+    assert "derivative" in (tmp_path / "ex.csv").read_text()
