@@ -2,7 +2,7 @@
 
     python -m ground.decode URL [--baud B] [--tlog FILE] [--csv FILE] [--rates-csv FILE] [--key FILE]
                                 [--method boer|derivative|kalman] [--duration S] [--count N] [--quiet]
-                                [--no-resend]
+                                [--no-resend] [--archive FILE | --no-archive]
 
 URL is any pymavlink connection string: ``udpin:0.0.0.0:14550``, ``tcp:host:port``, a serial device
 (with ``--baud``) or a ``.tlog`` file (read to its end, on its recorded timeline; a damaged one is read
@@ -46,6 +46,9 @@ On a live link the decoder asks again for the numbers that did not arrive (DEBRI
 Samples the box kept during an outage of a serial link arrive later too. The summary says what is still
 missing.
 
+``--archive FILE`` (default for a live link: `ground.archive.default_path`; ``--no-archive``): every
+intact frame also goes into the archive (`ground.archive`, SQLite), a crash losing at most the last second.
+
 ``--key FILE``: verify every frame's MAVLink 2 signature with the mission key (`fsw.telemetry.signing`,
 with a 64-frame reorder window); unsigned, wrongly signed or replayed frames are counted by reason
 and not used (the link accounting and the tlog still see every intact frame).
@@ -76,6 +79,7 @@ from fsw.telemetry.udp_link import UDP_MAX_PAYLOAD, UdpLink
 from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range, link_url
 from fsw.files import check_paths
 
+from .archive.store import ArchiveWriter, default_path
 from .command import GroundLink
 from .link_stats import MAG_FIELDS, MAX_TIME_US, LinkStats
 from .recorder import Recorder
@@ -525,9 +529,10 @@ class Decoder:
 
 
 def tlog_record(msg, now_s: float) -> bytes:
-    """One tlog record: big-endian µs time stamp (low 2 bits: link id 0, as pymavlink writes it),
-    then the frame's bytes as received."""
-    return struct.pack(">Q", int(now_s * 1e6) & ~3) + bytes(msg.get_msgbuf())
+    """One tlog record: big-endian µs time stamp (`now_s` rounded to the µs, as the archive keeps it; low
+    2 bits: link id 0, as pymavlink writes it), then the frame's bytes as received. Rounded, not truncated:
+    a time stamp read from a tlog (t × 1e-6 s) is written back as it was."""
+    return struct.pack(">Q", round(now_s * 1e6) & ~3) + bytes(msg.get_msgbuf())
 
 
 def run(url: str, *, duration_s: float | None = None, count: int | None = None,
@@ -535,7 +540,8 @@ def run(url: str, *, duration_s: float | None = None, count: int | None = None,
         rates_csv: str | Path | None = None, method: int = mavlink.DEBRIS_RATE_METHOD_BOER,
         quiet: bool = False, on_line: Callable[[str], None] = print, baud: int = 115200,
         clock: Callable[[], float] = time.time, key: bytes | None = None, resend: bool = True,
-        uplink: str | None = None, should_stop: Callable[[], bool] = lambda: False) -> Decoder:
+        uplink: str | None = None, should_stop: Callable[[], bool] = lambda: False,
+        archive: str | Path | None = None) -> Decoder:
     """Decode `url` until `duration_s` (of the link's time line: `clock` for live links, the
     recorded time stamps for a tlog) or `count` intact frames, the end of a tlog, `should_stop()`
     (SIGINT/SIGTERM in `main`) or Ctrl-C. Waits on the link in 0.1 s slices, never spins.
@@ -550,9 +556,12 @@ def run(url: str, *, duration_s: float | None = None, count: int | None = None,
     `ground.tlog.read_tlog`: every intact record is decoded, damage is skipped and counted in
     ``decoder.tlog_report``; a file with nothing intact raises TlogError and nothing is written. Live
     links are framed by `fsw.telemetry.framing.Deframer` (byte-wise resync, so no intact frame is lost
-    to line noise); a serial port that goes away is reopened every second until it is back."""
+    to line noise); a serial port that goes away is reopened every second until it is back.
+
+    `archive`: every intact frame also goes into this archive (`ground.archive`, created if missing),
+    committed within half a second; ``decoder.archived`` counts them."""
     check_paths(inputs={"input": url if Path(url).exists() else None},
-                outputs={"--tlog": tlog, "--csv": csv, "--rates-csv": rates_csv})
+                outputs={"--tlog": tlog, "--csv": csv, "--rates-csv": rates_csv, "--archive": archive})
     recorder = Recorder(csv, rates_csv, protect=[p for p in (url, tlog) if p is not None and Path(p).exists()])
     decoder = Decoder(method=method, on_line=None if quiet else on_line, origin=url, key=key, recorder=recorder)
     is_log = Path(url).is_file()
@@ -571,11 +580,13 @@ def run(url: str, *, duration_s: float | None = None, count: int | None = None,
             decoder.requests = GroundLink(live.write if up is None else up.write, key, unix_clock(),
                                           link_id=REQUEST_LINK_ID)
     log_out = None
+    store = None
     frames = 0
     start_s = None
     done = False
     try:
         log_out = open(tlog, "wb") if tlog is not None else None
+        store = ArchiveWriter(archive) if archive is not None else None
         while not done and not should_stop():
             if is_log:
                 record = next(records, None)
@@ -594,11 +605,15 @@ def run(url: str, *, duration_s: float | None = None, count: int | None = None,
                     frames += 1
                     if log_out is not None:
                         log_out.write(tlog_record(msg, now_s))
+                    if store is not None:
+                        store.add(msg, now_s)
                 if count is not None and frames >= count:
                     done = True
                     break
             if log_out is not None and batch and not is_log:
                 log_out.flush()
+            if store is not None:
+                store.tick()
             if duration_s is not None and now_s - start_s >= duration_s:
                 break
         if not is_log and not done:
@@ -606,6 +621,8 @@ def run(url: str, *, duration_s: float | None = None, count: int | None = None,
                 decoder.handle(msg, now_s)
                 if msg.get_type() != "BAD_DATA" and log_out is not None:
                     log_out.write(tlog_record(msg, now_s))
+                if msg.get_type() != "BAD_DATA" and store is not None:
+                    store.add(msg, now_s)
         if should_stop():
             decoder.interrupted = True
     except KeyboardInterrupt:
@@ -617,7 +634,10 @@ def run(url: str, *, duration_s: float | None = None, count: int | None = None,
             up.close()
         if log_out is not None:
             log_out.close()
+        if store is not None:
+            store.close()
     decoder.frames = frames
+    decoder.archived = store.frames if store is not None else 0
     decoder.finish()
     return decoder
 
@@ -758,12 +778,25 @@ def main(argv: list[str] | None = None) -> int:
                                                   "authentic ones; sign the requests for missing samples")
     ap.add_argument("--no-resend", action="store_true",
                     help="do not ask the box again for numbered samples that did not arrive")
+    ap.add_argument("--archive", metavar="FILE",
+                    help=f"archive every intact frame in this SQLite file (ground.archive); default for a live "
+                         f"link: {default_path()}, for a .tlog: none")
+    ap.add_argument("--no-archive", action="store_true", help="do not archive the frames")
     ap.add_argument("--uplink", metavar="URL", type=link_url,
                     help="send the requests for missing samples on this link (the box's --uplink) instead of "
                          "back on URL")
     args = ap.parse_args(argv)
+    archive = None if args.no_archive else args.archive
+    if archive is None and not args.no_archive and not Path(args.url).is_file():
+        archive = default_path()
+        try:
+            archive.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            ap.error(f"--archive {archive}: cannot make its directory ({e.strerror or e}); --no-archive to run "
+                     "without one")
     check_paths_or_exit(ap, inputs={"input": args.url if Path(args.url).exists() else None, "--key": args.key},
-                        outputs={"--tlog": args.tlog, "--csv": args.csv, "--rates-csv": args.rates_csv})
+                        outputs={"--tlog": args.tlog, "--csv": args.csv, "--rates-csv": args.rates_csv,
+                                 "--archive": archive})
     missing = _missing_path(args.url)
     if missing:
         print(f"ground.decode: {missing}", file=sys.stderr)
@@ -779,7 +812,7 @@ def main(argv: list[str] | None = None) -> int:
         decoder = run(args.url, duration_s=args.duration, count=args.count, tlog=args.tlog, csv=args.csv,
                       rates_csv=args.rates_csv, method=sent[args.method], quiet=args.quiet,
                       baud=args.baud, key=key, resend=not args.no_resend, uplink=args.uplink,
-                      should_stop=lambda: bool(stop))
+                      should_stop=lambda: bool(stop), archive=archive)
     except (OSError, ValueError) as e:
         print(f"ground.decode: {e}", file=sys.stderr)
         return 1
@@ -801,6 +834,8 @@ def main(argv: list[str] | None = None) -> int:
         print("no magnetometer samples received: no recording written")
     if args.tlog:
         print(f"wrote tlog: {args.tlog}")
+    if archive is not None:
+        print(f"archived {decoder.archived} frames: {archive}")
     return 0
 
 

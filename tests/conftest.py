@@ -13,13 +13,20 @@ Both are derandomized (the examples are a function of the test's code: a failure
 run and machine), without deadline (timing is the benchmarks' business) and without the health
 checks that are about speed or size, which a slow shared machine fails for no fault of the code.
 """
+import atexit
 import os
+import shutil
 import sys
+import tempfile
 from pathlib import Path
 
 from hypothesis import HealthCheck, settings
 
 sys.path.insert(0, str(Path(__file__).parent))
+# ground.decode archives a live link's frames by default (ground.archive.default_path, under XDG_DATA_HOME):
+# the tests' decoders, in process and in subprocesses, archive into a temporary directory
+os.environ["XDG_DATA_HOME"] = tempfile.mkdtemp(prefix="debris-box-tests-")
+atexit.register(shutil.rmtree, os.environ["XDG_DATA_HOME"], ignore_errors=True)
 
 FUZZ_EXAMPLES = 10_000
 

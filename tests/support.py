@@ -1,6 +1,7 @@
 """Helpers shared by the test modules (importable from tests/ and its sub-directories: tests/conftest.py
 puts this directory on the path)."""
 import functools
+import math
 import socket
 from pathlib import Path
 
@@ -243,3 +244,34 @@ def start_controller(kit, t_s: float) -> int:
 
     return kit.handle_command(SimpleNamespace(command=mavlink.MAV_CMD_DEBRIS_CONTROLLER, param1=1, param2=0,
                                               param3=0, param4=0, param5=0, param6=0, param7=0), t_s)
+
+
+def box_frames(seconds: float, sysid: int = FSW_SYSID, compid: int = FSW_COMPID, wall0_us: int = 1_750_000_000_000_000,
+               run_id: int = 0x1234, rate_hz: int = 10) -> list[tuple[int, bytes]]:
+    """(receive time µs, frame) of what a box sends for `seconds`: numbered magnetometer samples, the BOER
+    estimate and the simulator's truth of each at `rate_hz`, a heartbeat and three status messages (zeros)
+    a second; receive times 40 µs after
+    the sample (multiples of 4 µs, so that a tlog's time stamps keep them exactly)."""
+    p = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)
+    out = []
+
+    def send(msg, t_us):
+        out.append((t_us, bytes(msg.pack(p))))
+        p.seq = (p.seq + 1) % 256
+
+    period_us = 1_000_000 // rate_hz
+    for k in range(round(seconds * rate_hz)):
+        box_us, wall_us = k * period_us, wall0_us + k * period_us + 40
+        if k % rate_hz == 0:
+            send(mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID,
+                                                   0, 0, mavlink.MAV_STATE_ACTIVE, 3), wall_us)
+            for cls in (mavlink.MAVLink_sys_status_message, mavlink.MAVLink_debris_mag_status_message,
+                        mavlink.MAVLink_attitude_quaternion_message):
+                send(cls(*[[0] * n if n else 0 for n in cls.array_lengths]), wall_us)
+        b = [0.3 * math.cos(0.01 * k), 0.3 * math.sin(0.01 * k), -0.2]
+        send(mavlink.MAVLink_debris_mag_sample_message(box_us, k, run_id, b, 0), wall_us)
+        send(mavlink.MAVLink_debris_rate_estimate_message(box_us, 0.1, 0.2, 0.3 + 1e-4 * k, 0.01, 0.01, 0.01,
+                                                          mavlink.DEBRIS_RATE_METHOD_BOER, 0), wall_us)
+        send(mavlink.MAVLink_debris_sim_state_message(box_us, 0.1, 0.2, 0.3, [1, 0, 0, 0], *b, 0.0, 0.01, 0.0),
+             wall_us)
+    return out

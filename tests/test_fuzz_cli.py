@@ -376,6 +376,8 @@ SPECS: list[Tool] = [
         "--key": Opt(KEY, role="in"),
         "--no-resend": flag(),
         "--uplink": Opt(URL_OUT),
+        "--archive": Opt(OUT, role="out"),
+        "--no-archive": flag(),
     }, positionals=[("url", Opt([("{files}/good.tlog", True), ("udpin:127.0.0.1:{port}", True),
                                  ("{files}/missing.tlog", False), ("{files}/rec.csv", False),
                                  ("{files}/empty.csv", False), ("udpin:127.0.0.1:99999", False), ("", False),

@@ -1,0 +1,141 @@
+"""An interval of one box out of the archive: a .tlog, or the recordings `ground.decode --csv` writes.
+
+The .tlog holds the archived frames as they were received, each after its receive time stamp (8 bytes,
+big-endian µs, the low 2 bits cleared: pymavlink's link id 0, as `ground.decode.tlog_record` writes
+them): any tlog reader (pymavlink's `mavlogdump.py --dialect`, MAVProxy, `ground.decode FILE.tlog`)
+reads it. It is written atomically (`fsw.files.atomic_file`).
+
+The recordings are made by the decoder itself: the frames are decoded (with the dialect in use now)
+and handed to `ground.decode.Decoder` with their receive times, as `ground.decode` does with a .tlog,
+so the CSVs are the ones `ground.decode --csv` writes from the same frames (one file per run of each
+source: `ground.recorder`), the ``# source:`` line aside, which names the archive and the box.
+"""
+from __future__ import annotations
+
+import os
+import sqlite3
+import struct
+from dataclasses import dataclass
+
+from fsw.files import atomic_file
+from fsw.telemetry.framing import Deframer
+
+from fsw.telemetry.dialect import mavlink
+
+from ..decode import KNOWLEDGE_MESSAGES, SAMPLE_MESSAGES, Decoder
+from ..recorder import Recorder
+from .store import frames
+
+_STAMP = struct.Struct(">Q")
+
+
+@dataclass
+class Exported:
+    """What an export wrote: frames read, the first and last receive time (µs; None if no frame), files."""
+
+    frames: int = 0
+    first_us: int | None = None
+    last_us: int | None = None
+    written: list | None = None
+    #: the decoder the recordings came from (export_recordings)
+    decoder: Decoder | None = None
+
+
+def export_tlog(conn: sqlite3.Connection, sysid: int, path: str | os.PathLike, from_us: int | None = None,
+                to_us: int | None = None) -> Exported:
+    """Write box `sysid`'s frames with from_us <= t < to_us to the .tlog `path` (nothing written when
+    there is none)."""
+    out = Exported(written=[])
+    rows = frames(conn, sysid, from_us, to_us)
+    first = next(rows, None)
+    if first is None:
+        return out
+    stamp = _STAMP.pack
+    with atomic_file(path, "wb") as f:
+        t_us, frame = first
+        out.first_us = t_us
+        f.write(stamp(t_us & ~3) + frame)
+        n = 1
+        chunk: list[bytes] = []
+        for t_us, frame in rows:
+            chunk.append(stamp(t_us & ~3))
+            chunk.append(frame)
+            if len(chunk) >= 8192:
+                f.write(b"".join(chunk))
+                chunk.clear()
+            n += 1
+        f.write(b"".join(chunk))
+    out.frames, out.last_us = n, t_us
+    out.written.append(("tlog", path))
+    return out
+
+
+class _Unread:
+    """A frame the recordings do not use, seen by the decoder's link accounting as itself (source, sequence
+    number, message id and type from its header; its bytes) without being decoded."""
+
+    __slots__ = ("frame", "_type")
+
+    def __init__(self, frame: bytes, msg_type: str) -> None:
+        self.frame, self._type = frame, msg_type
+
+    def get_type(self) -> str:
+        return self._type
+
+    def get_msgbuf(self) -> bytes:
+        return self.frame
+
+    def _at(self, v2: int, v1: int) -> int:
+        return self.frame[v2 if self.frame[0] == 0xFD else v1]
+
+    def get_seq(self) -> int:
+        return self._at(4, 2)
+
+    def get_srcSystem(self) -> int:
+        return self._at(5, 3)
+
+    def get_srcComponent(self) -> int:
+        return self._at(6, 4)
+
+    def get_msgId(self) -> int:
+        f = self.frame
+        return f[7] | f[8] << 8 | f[9] << 16 if f[0] == 0xFD else f[5]
+
+
+#: the messages the recordings are made of (`ground.decode.Decoder.handle`); every other frame only
+#: counts in the link accounting, so it is not decoded (the rows and metadata are the same)
+_RECORDED = SAMPLE_MESSAGES | KNOWLEDGE_MESSAGES | {"DEBRIS_LOOP_STATUS", "DEBRIS_SAMPLE_STORE"}
+
+
+def export_recordings(conn: sqlite3.Connection, sysid: int, csv: str | os.PathLike | None,
+                      rates_csv: str | os.PathLike | None = None, from_us: int | None = None,
+                      to_us: int | None = None, *, method: int = mavlink.DEBRIS_RATE_METHOD_BOER, origin: str = "",
+                      protect=()) -> Exported:
+    """Decode box `sysid`'s frames with from_us <= t < to_us through `ground.decode.Decoder` and write
+    its recordings (`csv`) and rate estimates of `method` (`rates_csv`); `protect`: files the recorder's extra files
+    (other runs) may never take the name of. Frames of messages the recordings do not use go to the
+    decoder's link accounting and clock only (`_Unread`): the same files, at a fraction of the time."""
+    recorder = Recorder(csv, rates_csv, protect=protect)
+    decoder = Decoder(method=method, origin=origin, recorder=recorder)
+    decode = Deframer().decode
+    handle, on_frame, tick = decoder.handle, decoder.stats.on_frame, decoder.tick
+    recorded = {msgid for msgid, cls in mavlink.mavlink_map.items() if cls.msgname in _RECORDED}
+    names = {msgid: cls.msgname for msgid, cls in mavlink.mavlink_map.items()}
+    out = Exported(decoder=decoder)
+    n = 0
+    for t_us, msgid, frame in frames(conn, sysid, from_us, to_us, with_msgid=True):
+        if n == 0:
+            out.first_us = t_us
+        now_s = t_us * 1e-6
+        if msgid in recorded or msgid not in names:
+            handle(decode(frame), now_s)
+        else:
+            on_frame(_Unread(frame, names[msgid]), now_s)
+            tick(now_s)
+        n += 1
+    if n:
+        decoder.finish()
+        out.last_us = t_us
+    out.frames = n
+    out.written = list(recorder.written)
+    return out
