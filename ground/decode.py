@@ -79,7 +79,7 @@ from fsw.telemetry.udp_link import UDP_MAX_PAYLOAD, UdpLink
 from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range, link_url
 from fsw.files import check_paths
 
-from .archive.store import ArchiveWriter, default_path
+from .archive.store import ArchiveFeed, default_path
 from .command import GroundLink
 from .link_stats import MAG_FIELDS, MAX_TIME_US, LinkStats
 from .recorder import Recorder
@@ -586,7 +586,7 @@ def run(url: str, *, duration_s: float | None = None, count: int | None = None,
     done = False
     try:
         log_out = open(tlog, "wb") if tlog is not None else None
-        store = ArchiveWriter(archive) if archive is not None else None
+        store = ArchiveFeed(archive, decoder._say) if archive is not None else None
         while not done and not should_stop():
             if is_log:
                 record = next(records, None)
@@ -638,6 +638,7 @@ def run(url: str, *, duration_s: float | None = None, count: int | None = None,
             store.close()
     decoder.frames = frames
     decoder.archived = store.frames if store is not None else 0
+    decoder.archive_lost, decoder.archive_error = (store.lost, store.error) if store is not None else (0, None)
     decoder.finish()
     return decoder
 
@@ -836,6 +837,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wrote tlog: {args.tlog}")
     if archive is not None:
         print(f"archived {decoder.archived} frames: {archive}")
+        if decoder.archive_error is not None:
+            print(f"archive failed ({decoder.archive_error}): {decoder.archive_lost} frames not archived")
     return 0
 
 

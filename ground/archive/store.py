@@ -203,6 +203,56 @@ class ArchiveWriter:
         self.close()
 
 
+class ArchiveFeed:
+    """A decoder's archive while it runs: the frames go to an `ArchiveWriter` until it fails (a full disk,
+    the file taken away); then the failure is said once (`say`), the writer is dropped and decoding goes on,
+    so the recordings and the tlog lose nothing. `lost` counts the frames that did not reach the archive."""
+
+    def __init__(self, path: str | os.PathLike | None, say: Callable[[str], None]) -> None:
+        self.writer = ArchiveWriter(path) if path is not None else None
+        self.say = say
+        self.given = 0
+        #: frames committed; the failure's text once it failed
+        self.frames = 0
+        self.error: str | None = None
+
+    @property
+    def lost(self) -> int:
+        return self.given - self.frames if self.error is not None else 0
+
+    def add(self, msg, now_s: float) -> None:
+        if self.writer is None:
+            self.given += self.error is not None
+            return
+        self.given += 1
+        self._guard(self.writer.add, msg, now_s)
+
+    def tick(self) -> None:
+        if self.writer is not None:
+            self._guard(self.writer.tick)
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self._guard(self.writer.commit)
+        if self.writer is not None:
+            self.writer.conn.close()
+            self.writer = None
+
+    def _guard(self, call, *args) -> None:
+        try:
+            call(*args)
+        except ArchiveError as e:
+            self.error = str(e)
+            self.say(f"archive failed, decoding goes on without it: {e}")
+            try:
+                self.writer.conn.close()
+            except sqlite3.Error:
+                pass
+            self.writer = None
+        if self.writer is not None:
+            self.frames = self.writer.frames
+
+
 @dataclass
 class BoxSpan:
     """Frames of one source within one stretch of reception (no gap longer than the gap asked for)."""

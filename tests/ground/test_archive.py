@@ -18,7 +18,7 @@ from ground.archive import ArchiveWriter, open_reader
 from ground.archive.__main__ import main as archive_main
 from ground.archive.__main__ import utc_time_us
 from ground.archive.export import export_recordings
-from ground.archive.store import spans
+from ground.archive.store import ArchiveFeed, spans
 from ground.tlog import read_tlog
 from support import box_frames, exit_status, free_udp_port
 
@@ -342,3 +342,30 @@ def test_the_rates_of_another_method_are_what_the_decoder_writes_for_it(two_boxe
                          "--rates-csv", str(tmp_path / "ex.csv")]) == 0
     assert without_source(tmp_path / "ex.csv") == without_source(tmp_path / "dec.csv")
     assert "derivative" in (tmp_path / "ex.csv").read_text()
+
+
+class _FillingUp(ArchiveFeed):
+    """The archive's disk fills up after its first commit (SQLite's own limit on the file's pages)."""
+
+    def __init__(self, path, say):
+        super().__init__(path, say)
+        pages = self.writer.conn.execute("PRAGMA page_count").fetchone()[0]
+        self.writer.conn.execute(f"PRAGMA max_page_count = {pages + 1}")
+
+
+def test_an_archive_that_fails_mid_run_is_said_once_and_the_recording_is_still_written(tmp_path, monkeypatch):
+    frames = box_frames(60, wall0_us=WALL0_US)
+    (tmp_path / "in.tlog").write_bytes(tlog_bytes(frames))
+    assert decode.main([str(tmp_path / "in.tlog"), "--quiet", "--csv", str(tmp_path / "whole.csv")]) == 0
+    monkeypatch.setattr(decode, "ArchiveFeed", _FillingUp)
+    lines = []
+    dec = decode.run(str(tmp_path / "in.tlog"), csv=tmp_path / "dec.csv", archive=tmp_path / "a.sqlite",
+                     on_line=lines.append)
+    failed = [line for line in lines if line.startswith("archive failed")]
+    assert len(failed) == 1 and "full" in failed[0]
+    assert dec.archive_error is not None and dec.archive_lost > 0
+    assert dec.archived + dec.archive_lost == dec.frames == len(frames)
+    assert without_source(tmp_path / "dec.csv") == without_source(tmp_path / "whole.csv")
+    with sqlite3.connect(tmp_path / "a.sqlite") as conn:
+        assert conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+        assert conn.execute("SELECT count(*) FROM frames").fetchone()[0] == dec.archived
