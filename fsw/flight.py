@@ -44,6 +44,7 @@ from .estimation.flown_filter import FILTER_IDS
 from .estimation.rate_kalman import RateKalman
 from .estimation.sample_gate import SampleGate, mark_gap
 from .host_calibration import FixedField, HostCalibration
+from .sample_queue import SampleQueue
 from .scheduler import Scheduler, Task
 from .telemetry.dialect import mavlink
 from .telemetry.sample_store import Resender, SampleStore
@@ -149,7 +150,11 @@ class FlightSoftware:
             "kalman": rate_filter if rate_filter is not None else RateKalman(sigma_b_T)}
         self.new_sample = False
         self.new_estimate = {name: False for name in self.estimators}
+        #: samples received from the source; they wait in `queue` until the pipeline takes them
         self.samples = 0
+        self.queue = SampleQueue()
+        self._took = False  # the pipeline's pass took a sample from the queue
+        self._taken_this_tick = 0
         self.latched = LatchedSample()
         #: the sensor's own sample (what is sent and stored), before the calibration
         self.raw_b_T = np.zeros(3)
@@ -202,14 +207,15 @@ class FlightSoftware:
         period = 1.0 / rate_hz
         self.scheduler = Scheduler(rate_hz, [
             Task("uplink", self._uplink, rate_hz, 0.1 * period),
-            Task("sensor", self._sensor, rate_hz, 0.2 * period),
-            Task("calibration", self._calibrate, rate_hz, 0.4 * period),
-            Task("estimator", self._estimate, rate_hz, 0.3 * period),
-            *(Task(app.name, self._app_task(app), min(app.rate_hz, rate_hz), app.budget * period)
-              for app in self.apps.values()),
-            Task("telemetry", self._telemetry, rate_hz, 0.3 * period),
             Task("status", self._status, min(1.0, rate_hz), 0.5 * period),
-        ])
+            Task("sensor", self._sensor, rate_hz, 0.1 * period),
+            Task("latch", self._latch, rate_hz, 0.1 * period, per_sample=True),
+            Task("calibration", self._calibrate, rate_hz, 0.4 * period, per_sample=True),
+            Task("estimator", self._estimate, rate_hz, 0.3 * period, per_sample=True),
+            *(Task(app.name, self._app_task(app), min(app.rate_hz, rate_hz), app.budget * period,
+                   per_sample=app.rate_hz >= rate_hz) for app in self.apps.values()),
+            Task("telemetry", self._telemetry, rate_hz, 0.3 * period, per_sample=True),
+        ], backlog=self.queue.__len__, taken=lambda: self._took)
 
     @property
     def sample_t_s(self) -> float:
@@ -269,44 +275,66 @@ class FlightSoftware:
             self.uplink.poll(now_s)
 
     def _sensor(self, now_s: float) -> None:
+        """The source's new sample, if any, into the queue (a full queue refuses it, counted)."""
         if self.kit_field is not None:
             self.kit_field.poll(now_s)
-        self.new_sample = self.source.update(now_s)
-        self.kit_skip = False
-        if self.new_sample:
+        self._taken_this_tick = 0
+        if self.source.update(now_s):
             self.samples += 1
-            self.latched.t_s = self.source.sample_time_s
-            self.latched.b_T[:] = self.source.b_body_T
+            self.queue.push(self.source.sample_time_s, self.source.b_body_T)
+
+    def _may_take(self) -> bool:
+        """Whether the pipeline takes a queued sample in this pass: when its measured cost fits the tick's
+        budget; the first of a tick also when the queue is a quarter full or a sample never fits (the
+        tick then overruns, counted, and the sample rate's choice has to act: `_choose_sample_rate`)."""
+        sched = self.scheduler
+        if sched.fits():
+            return True
+        return not self._taken_this_tick and (
+            len(self.queue) >= self.queue.capacity // 4 or sched.stats.sample_cost_s > sched.sample_budget_s)
+
+    def _latch(self, now_s: float) -> None:
+        """The oldest queued sample latched for this pass of the pipeline: kit field, gate."""
+        self.new_sample = self._took = False
+        self.kit_skip = False
+        if not self.queue.depth:
+            return
+        if not self._may_take():
+            self.queue.deferred += 1
+            return
+        self._took = self.new_sample = True
+        self._taken_this_tick += 1
+        self.latched.t_s = self.queue.pop_into(self.latched.b_T)
+        if self.kit_field is not None:
+            kit_T, self.kit_skip = self.kit_field.field_at(self.sample_t_s)
+            self.kit_T[:] = kit_T
+            if self.kit_skip:  # a shutter or a magnet moves: sent and stored, neither judged nor used
+                self.kit_skipped += 1
+                self._kit_skips_in_gap += 1
+                return
+        # an implausible sample (saturated, stuck, spike) is neither estimated on nor sent; the host's
+        # magnetism moves the field the chip sees with the attitude: the gate judges the calibrated
+        # sample and allows for what the calibration may have left (all of it before there is one)
+        if self.calibration.version != self._gate_calibration:  # the reference in the new calibration
+            self._gate_calibration = self.calibration.version
+            self.gate.rebase(self.calibration.for_gate(self.raw_b_T - self._raw_kit_T)[0])
+        judged, self.gate.host_bound_T = self.calibration.for_gate(self.sample_b_T - self.kit_T)
+        self.new_sample = self.gate.check(self.sample_t_s, self.sample_b_T, judged)
+        if self.new_sample:
+            # samples skipped while the kit moved are no reason to restart (the filter propagates
+            # across them; the formulas' estimates across them are flagged DATA_GAP)
+            self._refused_gap = self.gate.gap_samples - self._kit_skips_in_gap
+            self._kit_skips_in_gap = 0
             if self.kit_field is not None:
-                kit_T, self.kit_skip = self.kit_field.field_at(self.sample_t_s)
-                self.kit_T[:] = kit_T
-                if self.kit_skip:  # a shutter or a magnet moves: sent and stored, neither judged nor used
-                    self.kit_skipped += 1
-                    self._kit_skips_in_gap += 1
-                    return
-            # an implausible sample (saturated, stuck, spike) is neither estimated on nor sent; the host's
-            # magnetism moves the field the chip sees with the attitude: the gate judges the calibrated
-            # sample and allows for what the calibration may have left (all of it before there is one)
-            if self.calibration.version != self._gate_calibration:  # the reference in the new calibration
-                self._gate_calibration = self.calibration.version
-                self.gate.rebase(self.calibration.for_gate(self.raw_b_T - self._raw_kit_T)[0])
-            judged, self.gate.host_bound_T = self.calibration.for_gate(self.sample_b_T - self.kit_T)
-            self.new_sample = self.gate.check(self.sample_t_s, self.sample_b_T, judged)
-            if self.new_sample:
-                # samples skipped while the kit moved are no reason to restart (the filter propagates
-                # across them; the formulas' estimates across them are flagged DATA_GAP)
-                self._refused_gap = self.gate.gap_samples - self._kit_skips_in_gap
-                self._kit_skips_in_gap = 0
-                if self.kit_field is not None:
-                    version = self.kit_field.version
-                    self.kit_field.record(self.sample_t_s, self.sample_b_T)
-                    if self.kit_field.version != version:  # a new calibration: this sample and the gate's
-                        self.kit_T[:] = self.kit_field.model_T()  # reference re-expressed in it
-                        self.gate.rebase(self.calibration.for_gate(self.sample_b_T - self.kit_T)[0])
-            if self.new_sample and self._refused_gap > self.gate.reset_after_gap:
-                self.estimator_resets += 1
-                for est in self.estimators.values():  # history too old to difference against
-                    est.reset()
+                version = self.kit_field.version
+                self.kit_field.record(self.sample_t_s, self.sample_b_T)
+                if self.kit_field.version != version:  # a new calibration: this sample and the gate's
+                    self.kit_T[:] = self.kit_field.model_T()  # reference re-expressed in it
+                    self.gate.rebase(self.calibration.for_gate(self.sample_b_T - self.kit_T)[0])
+        if self.new_sample and self._refused_gap > self.gate.reset_after_gap:
+            self.estimator_resets += 1
+            for est in self.estimators.values():  # history too old to difference against
+                est.reset()
 
     def _calibrate(self, now_s: float) -> None:
         if self.new_sample:
@@ -350,7 +378,7 @@ class FlightSoftware:
         self.resender.service(now_s, self.tlm.resend_sample)
 
     def _live_sample(self) -> None:
-        if not self.new_sample or (self.samples - 1) % self._tlm_every:
+        if not self.new_sample or (self.queue.popped - 1) % self._tlm_every:
             return
         t = self.sample_t_s
         self.tlm_samples += 1

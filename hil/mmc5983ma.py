@@ -172,6 +172,14 @@ class EmulatedMmc5983ma:
 
     # --- public helpers -------------------------------------------------------------------------
 
+    def settle(self) -> None:
+        """Complete the measurements that have finished by now (the simulation clock), as the chip does on
+        its own: SITL calls this when it advances the world, so that the chip's physics (the truth at the
+        measurement's time, its noise) is the simulator's work, not the flight loop's register access."""
+        now = self._clock()
+        if now >= self._ready_at:
+            self._advance(now)
+
     def power_cycle(self) -> None:
         """Power the chip off and on: power-on state, unresponsive for the power-on time."""
         self._power_on(ready_at=self._clock() + POWER_ON_TIME_S)

@@ -93,6 +93,9 @@ class Sitl:
     def advance(self, box_t_s: float) -> None:
         """The simulator advanced to the true time at which the box's clock reads `box_t_s`."""
         self.sim.advance_to(self.sim.clock.true_s(box_t_s))
+        settle = getattr(self.sim.sensor, "settle", None)
+        if settle is not None:  # the chip's measurements done by now: the world's work, outside the tick
+            settle()
 
     def truth(self, box_t_s: float | None = None):
         """The simulator's truth at the box's time `box_t_s` (default: now)."""
