@@ -6,23 +6,32 @@ Tasks (base rate = the loop rate), in the order they run within a tick:
 |-----------|--------------|----------------|------------------------------------------------------------|
 | uplink    | loop rate    | 10 % of period | the link's service (signing time, retry, stored frames);   |
 |           |              |                | reads the ground's frames, verifies, runs commands (ACK)   |
-| sensor    | loop rate    | 20 % of period | advances the magnetometer driver; latches a new sample,    |
-|           |              |                | the de-orbit kit's field taken out (`deorbit.kit_field`;   |
-|           |              |                | skipped while a shutter or magnet moves: sent, not used),  |
-|           |              |                | refused if implausible (`estimation.sample_gate`)          |
-| calibration | loop rate  | 40 % of period | host hard/soft iron taken out of the sample (needs the     |
+| status    | 1 Hz, spread | 20 % of period | HEARTBEAT, SYS_STATUS, DEBRIS_LINK_STATUS, loop timing,    |
+|           |              |                | driver health, DEBRIS_SAMPLE_STORE: once a second, one     |
+|           |              |                | step a tick on a fast loop (all in one tick on a slow one) |
+| sensor    | loop rate    | 10 % of period | advances the magnetometer driver; a new sample goes into   |
+|           |              |                | the sample queue (`fsw.sample_queue`)                      |
+| latch *   | loop rate    | 10 % of period | takes the oldest queued sample when the tick's budget has  |
+|           |              |                | room for it; the de-orbit kit's field taken out            |
+|           |              |                | (`deorbit.kit_field`; skipped while a shutter or magnet    |
+|           |              |                | moves: sent, not used), refused if implausible             |
+|           |              |                | (`estimation.sample_gate`)                                 |
+| calibration * | loop rate | 40 % of period | host hard/soft iron taken out of the sample (needs the    |
 |           |              |                | field along the orbit: `fsw.host_calibration`), then       |
 |           |              |                | DEBRIS_MAGCAL every 10 s; a solve a minute (~2 ms) and a   |
 |           |              |                | knot of the field a minute (~2 ms) are its peaks           |
-| estimator | loop rate    | 30 % of period | runs the rate estimators on a new sample                   |
+| estimator * | loop rate  | 30 % of period | runs the rate estimators on a new sample                   |
 | *app*     | the app's    | the app's      | each onboard application (`fsw.app.App`): its tick with    |
 |           |              |                | the sample of this tick, then its telemetry — the inertia  |
-|           |              |                | identification experiment (`fsw.ident`, every tick), the   |
-|           |              |                | de-orbit kit (`fsw.deorbit.kit`, 10 Hz)                    |
-| telemetry | loop rate    | 30 % of period | sends the numbered sample, the estimates (and SITL truth); |
+|           |              |                | identification experiment (`fsw.ident`, every tick, *),    |
+|           |              |                | the de-orbit kit (`fsw.deorbit.kit`, 10 Hz)                |
+| telemetry * | loop rate  | 30 % of period | sends the numbered sample, the estimates (and SITL truth); |
 |           |              |                | samples the ground asked for again, within their budget    |
-| status    | 1 Hz         | 50 % of period | HEARTBEAT, SYS_STATUS, loop timing, driver health,         |
-|           |              |                | DEBRIS_LINK_STATUS, DEBRIS_SAMPLE_STORE                    |
+
+\* the sample pipeline: run again in the same tick, one queued sample a pass, while samples wait and the
+tick's measured work plus a sample's measured cost fits 70 % of the period (`fsw.scheduler`). At 1 Hz
+(`_choose_sample_rate`) the box compares the work a second with its budget and lowers the magnetometer's
+output rate when the configured one does not fit.
 
 Commands: handlers register with `self.commands` (`fsw.commands.CommandRouter`), parameters with
 `self.params`; the uplink (`telemetry.uplink`) runs them when they arrive signed with the mission key.
@@ -32,6 +41,7 @@ clock on target. Nothing in here reads the wall clock.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Callable, Iterable, Protocol, runtime_checkable
 
@@ -106,6 +116,10 @@ METHODS = {"boer": mavlink.DEBRIS_RATE_METHOD_BOER, "derivative": mavlink.DEBRIS
 #: most this often (s): every sample at the default 1 Hz, not 20 times a second at the link's sample cap
 ATTITUDE_TLM_PERIOD_S = 1.0
 
+#: the tick's work so far (share of the period) below which its first queued sample is processed whatever
+#: its measured cost
+FIRST_SAMPLE_BUSY = 0.25
+
 #: filter updates of an estimator's background work per tick (`FlownFilter.work`): the Euler filter's shape
 #: trial, 34 hypotheses a sample, spread over the ticks between samples (about 1 ms each on the target)
 ESTIMATOR_WORK_PER_TICK = 2
@@ -154,6 +168,9 @@ class FlightSoftware:
         self.samples = 0
         self.queue = SampleQueue()
         self._took = False  # the pipeline's pass took a sample from the queue
+        #: called after each sample's pass through the pipeline (a tick may take more than one): e.g. SITL's
+        #: scoring, which copies the estimates there; keep them cheap, their time counts in the tick's
+        self.sample_listeners: list[Callable[[], None]] = []
         self._taken_this_tick = 0
         self.latched = LatchedSample()
         #: the sensor's own sample (what is sent and stored), before the calibration
@@ -205,9 +222,15 @@ class FlightSoftware:
             clock=telemetry.clock, reply=telemetry.send_now if uplink is telemetry.conn else None,
             params=self.params, handlers=messages)
         period = 1.0 / rate_hz
+        self._status_steps = [self._status_health, self._status_link, self._status_loop, self._status_mag,
+                              self._status_store]
+        self._status_step = len(self._status_steps)
+        self._status_divider = max(1, round(rate_hz))  # ticks a second
+        # the steps spread over at most a tenth of a second
+        self._status_per_tick = math.ceil(len(self._status_steps) / max(1, math.floor(0.1 * rate_hz)))
         self.scheduler = Scheduler(rate_hz, [
             Task("uplink", self._uplink, rate_hz, 0.1 * period),
-            Task("status", self._status, min(1.0, rate_hz), 0.5 * period),
+            Task("status", self._status, rate_hz, 0.2 * period),
             Task("sensor", self._sensor, rate_hz, 0.1 * period),
             Task("latch", self._latch, rate_hz, 0.1 * period, per_sample=True),
             Task("calibration", self._calibrate, rate_hz, 0.4 * period, per_sample=True),
@@ -285,13 +308,15 @@ class FlightSoftware:
 
     def _may_take(self) -> bool:
         """Whether the pipeline takes a queued sample in this pass: when its measured cost fits the tick's
-        budget; the first of a tick also when the queue is a quarter full or a sample never fits (the
-        tick then overruns, counted, and the sample rate's choice has to act: `_choose_sample_rate`)."""
+        budget; the first of a tick also when the tick has done little so far (a sample costlier than the
+        budget is processed all the same, one a tick: the tick overruns, counted, and the sample rate's
+        choice has to act) or the queue is a quarter full. A sample waits when the tick is already busy
+        (the status task, a calibration solve, the OS's preemption) or in a catch-up pass without room."""
         sched = self.scheduler
         if sched.fits():
             return True
         return not self._taken_this_tick and (
-            len(self.queue) >= self.queue.capacity // 4 or sched.stats.sample_cost_s > sched.sample_budget_s)
+            sched.elapsed_s() <= FIRST_SAMPLE_BUSY * sched.period_s or len(self.queue) >= self.queue.capacity // 4)
 
     def _latch(self, now_s: float) -> None:
         """The oldest queued sample latched for this pass of the pipeline: kit field, gate."""
@@ -376,6 +401,9 @@ class FlightSoftware:
     def _telemetry(self, now_s: float) -> None:
         self._live_sample()
         self.resender.service(now_s, self.tlm.resend_sample)
+        if self._took:
+            for listener in self.sample_listeners:
+                listener()
 
     def _live_sample(self) -> None:
         if not self.new_sample or (self.queue.popped - 1) % self._tlm_every:
@@ -400,24 +428,44 @@ class FlightSoftware:
             self.tlm.sim_state(t, tr.omega_radps, tr.q_body_to_eci, tr.b_body_T, tr.moment_Nm)
 
     def _status(self, now_s: float) -> None:
+        """Once a second, the status messages: in one tick on a slow loop, one step a tick on a fast one (each
+        step well under a 1 kHz period, where the whole set would take most of it)."""
+        if self.scheduler.stats.ticks % self._status_divider == 0:
+            self._status_step = 0
+        steps = self._status_steps
+        end = min(len(steps), self._status_step + self._status_per_tick)
+        while self._status_step < end:
+            steps[self._status_step](now_s)
+            self._status_step += 1
+
+    def _status_health(self, now_s: float) -> None:
         st = self.scheduler.stats
-        mean_us, p50_us, p99_us, max_us = st.summary_us()
+        mean_us = st.window_mean_s() * 1e6
         drv = self.driver
         healthy = (drv is None or int(drv.state) == mavlink.DEBRIS_MAG_STATE_MEASURE) and not self.gate.rejecting
-        link = self._link_counters()
         self.tlm.heartbeat()
         self.tlm.sys_status(mag_healthy=healthy,
                             load_permille=int(mean_us * 1e-3 / self.scheduler.period_s),
                             errors_comm=(drv.bus_errors if drv else 0) + self.tlm.send_errors,
                             errors_count=(self.gate.rejected, drv.resets if drv else 0,
-                                          sum(v for k, v in link.items() if k.startswith("rejected_")),
+                                          sum(v for k, v in self._link_counters().items() if k.startswith("rejected_")),
                                           self.tlm.store.dropped if self.tlm.store is not None else 0))
-        self.tlm.link_status(now_s, **link)
+
+    def _status_link(self, now_s: float) -> None:
+        self.tlm.link_status(now_s, **self._link_counters())
+
+    def _status_loop(self, now_s: float) -> None:
+        st = self.scheduler.stats
+        mean_us, p50_us, p99_us, max_us = st.summary_us()
         self.tlm.loop_status(now_s, ticks=st.ticks, overruns=st.overruns, task_overruns=st.task_overruns,
                              period_s=self.scheduler.period_s, mean_us=mean_us, p50_us=p50_us, p99_us=p99_us,
                              max_us=max_us)
-        if drv is not None:
-            self.tlm.mag_status(now_s, drv)
+        st.reset_window()
+
+    def _status_mag(self, now_s: float) -> None:
+        if self.driver is not None:
+            self.tlm.mag_status(now_s, self.driver)
+
+    def _status_store(self, now_s: float) -> None:
         self.tlm.sample_store_status(now_s, self.sample_store, self.resender)
         self.sample_store.sync()
-        st.reset_window()

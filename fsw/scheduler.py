@@ -50,7 +50,8 @@ class LoopStats:
     task_overruns: int = 0
     window: np.ndarray = field(default_factory=lambda: np.zeros(4096))
     window_n: int = 0
-    #: the pipeline's work for one sample (s): exponentially weighted mean over the passes that took one
+    #: the pipeline's work for one sample (s): exponentially weighted mean over the passes that took one,
+    #: each pass counted as at most twice the mean so far
     sample_cost_s: float = 0.0
     #: samples taken by the pipeline since start, and the extra passes run to catch up
     samples: int = 0
@@ -84,7 +85,10 @@ class LoopStats:
         self.samples += 1
         self.window_samples += 1
         self.window_sample_work_s += work_s
-        self.sample_cost_s = work_s if self.samples == 1 else self.sample_cost_s + (work_s - self.sample_cost_s) / 32.0
+        if self.samples == 1:
+            self.sample_cost_s = work_s
+        else:  # a pass the OS preempted counts as at most twice the estimate: a rare long one barely moves it
+            self.sample_cost_s += (min(work_s, 2.0 * self.sample_cost_s) - self.sample_cost_s) / 32.0
 
 
 class Scheduler:

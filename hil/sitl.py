@@ -30,6 +30,7 @@ import sys  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
 from datetime import timezone  # noqa: E402
 from pathlib import Path  # noqa: E402
+from types import SimpleNamespace  # noqa: E402
 from typing import TextIO  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -220,6 +221,22 @@ def perpendicular(w: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 @dataclass
+class Taken:
+    """What scoring needs of one sample's pass through the pipeline (copied: the next pass overwrites)."""
+
+    sample_t_s: float
+    estimators: dict
+    new_estimate: dict
+
+    @classmethod
+    def of(cls, fsw: FlightSoftware) -> "Taken":
+        est = {name: SimpleNamespace(omega_radps=e.omega_radps.copy(), flags=e.flags,
+                                     NO_ESTIMATE=getattr(e, "NO_ESTIMATE", 0), name=getattr(e, "name", ""))
+               for name, e in fsw.estimators.items()}
+        return cls(fsw.sample_t_s, est, dict(fsw.new_estimate))
+
+
+@dataclass
 class Score:
     """Errors of the onboard estimates against the simulator's truth, at the sample times."""
 
@@ -314,10 +331,18 @@ def run(cfg: SitlConfig, out: TextIO = sys.stdout, **build_options) -> SitlRun:
     s = build(cfg, **build_options)
     print(s.header(), file=out, flush=True)
     fsw, truth, score = s.fsw, s.truth, Score()
+    taken = []  # each sample's estimates as the pipeline left them (a tick may take more than one)
 
-    def after(t: float) -> None:
+    def keep() -> None:
         if fsw.new_sample:
-            score.add(fsw, truth(fsw.sample_t_s))
+            taken.append(Taken.of(fsw))
+
+    def after(t: float) -> None:  # scored after the tick, outside the loop's measured work
+        for x in taken:
+            score.add(x, truth(x.sample_t_s))
+        taken.clear()
+
+    fsw.sample_listeners.append(keep)
 
     try:
         res = run_loop(fsw, duration_s=cfg.run.duration_s, speed=cfg.run.speed, lockstep=True, t0_s=s.t0_s,

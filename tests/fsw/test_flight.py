@@ -35,8 +35,7 @@ def test_message_rates_and_contents():
     np.testing.assert_allclose(imu[3].mag, Rotation.from_rotvec(-W_RADPS * 0.3).apply(B_I_T) * 1e4, rtol=1e-6)
     assert imu[3].time_usec == 300_000
     store = by_type(msgs, "DEBRIS_SAMPLE_STORE")
-    # at t = 4 s, before that tick's sample (the status goes out ahead of the sample pipeline)
-    assert len(store) == 5 and store[-1].next_seq == 40 and store[-1].stored_first_seq == 0
+    assert len(store) == 5 and store[-1].next_seq == 41 and store[-1].stored_first_seq == 0   # at t = 4 s
     assert all(m.get_header().srcSystem == FSW_SYSID for m in msgs)
     est = by_type(msgs, "DEBRIS_RATE_ESTIMATE")
     boer = [m for m in est if m.method == mavlink.DEBRIS_RATE_METHOD_BOER]
