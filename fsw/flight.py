@@ -11,26 +11,26 @@ Tasks (base rate = the loop rate), in the order they run within a tick:
 |           |              |                | step a tick on a fast loop (all in one tick on a slow one) |
 | sensor    | loop rate    | 10 % of period | advances the magnetometer driver; a new sample goes into   |
 |           |              |                | the sample queue (`fsw.sample_queue`)                      |
-| latch *   | loop rate    | 10 % of period | takes the oldest queued sample when the tick's budget has  |
+| latch (*) | loop rate    | 10 % of period | takes the oldest queued sample when the tick's budget has  |
 |           |              |                | room for it; the de-orbit kit's field taken out            |
 |           |              |                | (`deorbit.kit_field`; skipped while a shutter or magnet    |
 |           |              |                | moves: sent, not used), refused if implausible             |
 |           |              |                | (`estimation.sample_gate`)                                 |
-| calibration * | loop rate | 40 % of period | host hard/soft iron taken out of the sample (needs the    |
+| calibration (*) | loop rate | 40 % of period | host hard/soft iron taken out of the sample (needs the    |
 |           |              |                | field along the orbit: `fsw.host_calibration`), then       |
 |           |              |                | DEBRIS_MAGCAL every 10 s; a solve a minute (~2 ms) and a   |
 |           |              |                | knot of the field a minute (~2 ms) are its peaks           |
-| estimator * | loop rate  | 30 % of period | runs the rate estimators on a new sample                   |
+| estimator (*) | loop rate  | 30 % of period | runs the rate estimators on a new sample                   |
 | *app*     | the app's    | the app's      | each onboard application (`fsw.app.App`): its tick with    |
 |           |              |                | the sample of this tick, then its telemetry — the inertia  |
-|           |              |                | identification experiment (`fsw.ident`, every tick, *),    |
+|           |              |                | identification experiment (`fsw.ident`, every tick, (*)),    |
 |           |              |                | the de-orbit kit (`fsw.deorbit.kit`, 10 Hz)                |
-| telemetry * | loop rate  | 30 % of period | sends the numbered sample, the estimates (and SITL truth); |
+| telemetry (*) | loop rate  | 30 % of period | sends the numbered sample, the estimates (and SITL truth); |
 |           |              |                | samples the ground asked for again, within their budget    |
 
-\* the sample pipeline: run again in the same tick, one queued sample a pass, while samples wait and the
+(*) the sample pipeline: run again in the same tick, one queued sample a pass, while samples wait and the
 tick's measured work plus a sample's measured cost fits 70 % of the period (`fsw.scheduler`). At 1 Hz
-(`_choose_sample_rate`) the box compares the work a second with its budget and lowers the magnetometer's
+(`_status_rate`, `fsw.sample_rate`) the box compares the work a second with its budget and lowers the magnetometer's
 output rate when the configured one does not fit.
 
 Commands: handlers register with `self.commands` (`fsw.commands.CommandRouter`), parameters with
@@ -54,6 +54,7 @@ from .estimation.flown_filter import FILTER_IDS
 from .estimation.rate_kalman import RateKalman
 from .estimation.sample_gate import SampleGate, mark_gap
 from .host_calibration import FixedField, HostCalibration
+from . import sample_rate
 from .sample_queue import SampleQueue
 from .scheduler import Scheduler, Task
 from .telemetry.dialect import mavlink
@@ -139,7 +140,7 @@ class FlightSoftware:
                  truth: Callable[[float], object] | None = None, max_sample_tlm_hz: float = 20.0,
                  sample_rate_hz: float | None = None, uplink=None, key: bytes | None = None,
                  apps: Iterable[App] = (), rate_filter=None, sample_store: SampleStore | None = None,
-                 field=None, field_provider=None) -> None:
+                 field=None, field_provider=None, adapt_sample_rate: bool = False) -> None:
         """`uplink`: the connection commands arrive on (usually the telemetry link itself, `telemetry.conn`;
         None: no uplink); `key`: the mission key (None: every state-changing command is refused);
         `apps`: the onboard applications (`fsw.app.App`: the identification experiment, the de-orbit
@@ -152,7 +153,9 @@ class FlightSoftware:
         memory, run id 0); `field`: the field along the orbit on board for the whole run (an
         `estimation.field_motion.OrbitField`), which the host-magnetics calibration needs, or
         `field_provider`: where it comes from when it may come and go (the time-and-orbit application);
-        neither: the calibration is inactive and says so. The samples sent and stored are the sensor's own; the
+        neither: the calibration is inactive and says so. `adapt_sample_rate`: once a second, the sample rate
+        chosen from the loop's budget (`fsw.sample_rate`; needs a driver that can change its rate). The
+        samples sent and stored are the sensor's own; the
         estimators and the applications get them calibrated."""
         self.source = source
         self.driver = source if isinstance(source, SensorDriver) else None
@@ -168,6 +171,7 @@ class FlightSoftware:
         self.samples = 0
         self.queue = SampleQueue()
         self._took = False  # the pipeline's pass took a sample from the queue
+        self._dropped_seen = 0
         #: called after each sample's pass through the pipeline (a tick may take more than one): e.g. SITL's
         #: scoring, which copies the estimates there; keep them cheap, their time counts in the tick's
         self.sample_listeners: list[Callable[[], None]] = []
@@ -179,6 +183,12 @@ class FlightSoftware:
         self._gate_calibration = 0
         self.calibration = HostCalibration(sigma_b_T, FixedField(field) if field is not None else field_provider)
         # at most max_sample_tlm_hz samples (with their estimates) go out on the link
+        #: the magnetometer's rate in force, and the one configured (`_status_rate` may lower the former)
+        self.sample_rate_hz = self.configured_sample_rate_hz = float(sample_rate_hz or rate_hz)
+        self.adapt_sample_rate = adapt_sample_rate and callable(getattr(source, "set_sample_rate", None))
+        #: (loop time, from Hz, to Hz) of each change of the sample rate
+        self.rate_changes: list[tuple[float, float, float]] = []
+        self._max_sample_tlm_hz = max_sample_tlm_hz
         self._tlm_every = max(1, int(np.ceil((sample_rate_hz or rate_hz) / max_sample_tlm_hz)))
         self.gate = SampleGate(sigma_b_T, 1.0 / (sample_rate_hz or rate_hz))
         self.tlm_samples = 0  # samples handed to telemetry
@@ -222,8 +232,8 @@ class FlightSoftware:
             clock=telemetry.clock, reply=telemetry.send_now if uplink is telemetry.conn else None,
             params=self.params, handlers=messages)
         period = 1.0 / rate_hz
-        self._status_steps = [self._status_health, self._status_link, self._status_loop, self._status_mag,
-                              self._status_store]
+        self._status_steps = [self._status_health, self._status_link, self._status_rate, self._status_loop,
+                              self._status_mag, self._status_store]
         self._status_step = len(self._status_steps)
         self._status_divider = max(1, round(rate_hz))  # ticks a second
         # the steps spread over at most a tenth of a second
@@ -259,9 +269,10 @@ class FlightSoftware:
 
     def _register_params(self, sample_rate_hz: float) -> None:
         def set_tlm_hz(hz: float) -> None:
-            self._tlm_every = max(1, int(np.ceil(sample_rate_hz / hz)))
+            self._max_sample_tlm_hz = hz
+            self._tlm_every = max(1, int(np.ceil(self.sample_rate_hz / hz)))
 
-        self.params.register("TLM_SAMPLE_HZ", lambda: sample_rate_hz / self._tlm_every, set_tlm_hz, 0.01, 1000.0)
+        self.params.register("TLM_SAMPLE_HZ", lambda: self.sample_rate_hz / self._tlm_every, set_tlm_hz, 0.01, 1000.0)
         rs = self.resender
         self.params.register("RESEND_BPS", lambda: rs.bytes_per_s, lambda v: setattr(rs, "bytes_per_s", v), 0.0, 1e6)
         store = self.tlm.store
@@ -457,10 +468,38 @@ class FlightSoftware:
     def _status_loop(self, now_s: float) -> None:
         st = self.scheduler.stats
         mean_us, p50_us, p99_us, max_us = st.summary_us()
+        q = self.queue
         self.tlm.loop_status(now_s, ticks=st.ticks, overruns=st.overruns, task_overruns=st.task_overruns,
                              period_s=self.scheduler.period_s, mean_us=mean_us, p50_us=p50_us, p99_us=p99_us,
-                             max_us=max_us)
+                             max_us=max_us, sample_rate_hz=self.sample_rate_hz,
+                             configured_sample_rate_hz=self.configured_sample_rate_hz,
+                             sample_cost_us=st.window_sample_work_s / max(1, st.window_samples) * 1e6,
+                             samples_taken=q.popped, samples_dropped=q.dropped, queue_depth=q.depth,
+                             queue_max_depth=q.max_depth)
         st.reset_window()
+
+    def _status_rate(self, now_s: float) -> None:
+        """The sample rate from the loop's budget over the last second (`fsw.sample_rate`): lowered, with a
+        STATUSTEXT, when the rate in force does not fit or the queue falls behind."""
+        st = self.scheduler.stats
+        if not self.adapt_sample_rate or st.window_ticks() < self._status_divider // 2 or not st.window_samples:
+            return
+        budget = sample_rate.Budget(self.scheduler.rate_hz, st.window_ticks(), st.window_mean_s() * st.window_ticks(),
+                                    st.window_samples, st.window_sample_work_s)
+        q = self.queue
+        behind = q.dropped > self._dropped_seen or q.depth > q.capacity // 2
+        self._dropped_seen = q.dropped
+        rate = sample_rate.choose(budget, self.sample_rate_hz, self.source.available_rates_hz(self.sample_rate_hz),
+                                  behind=behind)
+        if rate >= self.sample_rate_hz:
+            return
+        was = self.sample_rate_hz
+        self.sample_rate_hz = self.source.set_sample_rate(rate)
+        self.gate.sample_period_s = 1.0 / self.sample_rate_hz
+        self._tlm_every = max(1, int(np.ceil(self.sample_rate_hz / self._max_sample_tlm_hz)))
+        self.rate_changes.append((now_s, was, self.sample_rate_hz))
+        self.tlm.statustext(f"mag rate {was:g}->{self.sample_rate_hz:g} Hz: load {budget.work_share(was):.2f}",
+                            mavlink.MAV_SEVERITY_WARNING)
 
     def _status_mag(self, now_s: float) -> None:
         if self.driver is not None:
