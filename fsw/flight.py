@@ -25,8 +25,10 @@ Tasks (base rate = the loop rate), in the order they run within a tick:
 |           |              |                | the sample of this tick, then its telemetry — the inertia  |
 |           |              |                | identification experiment (`fsw.ident`, every tick, (*)),    |
 |           |              |                | the de-orbit kit (`fsw.deorbit.kit`, 10 Hz)                |
-| telemetry (*) | loop rate  | 30 % of period | sends the numbered sample, the estimates (and SITL truth); |
-|           |              |                | samples the ground asked for again, within their budget    |
+| telemetry (*) | loop rate  | 20 % of period | numbers and stores the sample, its frames (the sample, the |
+|           |              |                | estimates, SITL's truth) into the outbox; samples the      |
+|           |              |                | ground asked for again, within their budget                |
+| downlink  | loop rate    | 20 % of period | the outbox's frames: one a tick, more while they fit       |
 
 (*) the sample pipeline: run again in the same tick, one queued sample a pass, while samples wait and the
 tick's measured work plus a sample's measured cost fits 70 % of the period (`fsw.scheduler`). At 1 Hz
@@ -42,6 +44,7 @@ clock on target. Nothing in here reads the wall clock.
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Callable, Iterable, Protocol, runtime_checkable
 
@@ -172,6 +175,9 @@ class FlightSoftware:
         self.queue = SampleQueue()
         self._took = False  # the pipeline's pass took a sample from the queue
         self._dropped_seen = 0
+        #: the live samples' frames waiting for `_downlink` (a handful: one sample's every `_tlm_every`)
+        self.outbox: deque = deque()
+        self._frame_cost_s = 0.0
         #: called after each sample's pass through the pipeline (a tick may take more than one): e.g. SITL's
         #: scoring, which copies the estimates there; keep them cheap, their time counts in the tick's
         self.sample_listeners: list[Callable[[], None]] = []
@@ -247,7 +253,8 @@ class FlightSoftware:
             Task("estimator", self._estimate, rate_hz, 0.3 * period, per_sample=True),
             *(Task(app.name, self._app_task(app), min(app.rate_hz, rate_hz), app.budget * period,
                    per_sample=app.rate_hz >= rate_hz) for app in self.apps.values()),
-            Task("telemetry", self._telemetry, rate_hz, 0.3 * period, per_sample=True),
+            Task("telemetry", self._telemetry, rate_hz, 0.2 * period, per_sample=True),
+            Task("downlink", self._downlink, rate_hz, 0.2 * period),
         ], backlog=self.queue.__len__, taken=lambda: self._took)
 
     @property
@@ -417,17 +424,22 @@ class FlightSoftware:
                 listener()
 
     def _live_sample(self) -> None:
+        """A sample for the link (every `_tlm_every`-th): numbered and stored now, its frames (the sample, the
+        estimates, the attitude, SITL's truth) into the outbox with copies of what they carry, for
+        `_downlink` to send a frame a tick on a fast loop."""
         if not self.new_sample or (self.queue.popped - 1) % self._tlm_every:
             return
         t = self.sample_t_s
         self.tlm_samples += 1
         flags = mavlink.DEBRIS_SAMPLE_FLAGS_KIT_MOVING if self.kit_skip else 0
-        kit = self.kit_T if self.kit_field is not None else None  # what _calibrate took out of raw_b_T
+        kit = self.kit_T.copy() if self.kit_field is not None else None  # what _calibrate took out of raw_b_T
         seq = self.sample_store.append(t, self.raw_b_T, flags, kit)
-        self.tlm.mag_sample(t, self.raw_b_T, seq, self.sample_store.run_id, flags, kit)
+        out = self.outbox
+        out.append((self.tlm.mag_sample, (t, self.raw_b_T.copy(), seq, self.sample_store.run_id, flags, kit)))
         for name, est in self.estimators.items():
             if self.new_estimate[name]:
-                self.tlm.rate_estimate(t, est.omega_radps, est.sigma_radps, METHODS[name], est.flags)
+                out.append((self.tlm.rate_estimate, (t, est.omega_radps.copy(), est.sigma_radps.copy(), METHODS[name],
+                                                     est.flags)))
         kf = self.estimators["kalman"]
         if self.new_estimate["kalman"] and hasattr(kf, "attitude") and t >= self._next_attitude_s:
             self._next_attitude_s = t + ATTITUDE_TLM_PERIOD_S * (1 - 1e-9)
@@ -435,8 +447,26 @@ class FlightSoftware:
             self.tlm.attitude(t, None if att is None else att[0], kf.omega_radps, None if att is None else att[1],
                               kf.sigma_radps, filter_id=FILTER_IDS[kf.name], flags=kf.flags, handovers=kf.handovers)
         if self.truth is not None:
-            tr = self.truth(t)
-            self.tlm.sim_state(t, tr.omega_radps, tr.q_body_to_eci, tr.b_body_T, tr.moment_Nm)
+            out.append((self._sim_state, (t,)))
+
+    def _sim_state(self, t_s: float) -> None:
+        tr = self.truth(t_s)
+        self.tlm.sim_state(t_s, tr.omega_radps, tr.q_body_to_eci, tr.b_body_T, tr.moment_Nm)
+
+    def _downlink(self, now_s: float) -> None:
+        """The outbox's frames: the oldest one, then more while the tick's budget has room for the measured
+        cost of one (so a sample's frames spread over the next ticks of a fast loop; a slow one sends them all
+        in the tick)."""
+        out, sched = self.outbox, self.scheduler
+        while out:
+            t0 = sched.elapsed_s()
+            send, args = out.popleft()
+            send(*args)
+            cost = sched.elapsed_s() - t0
+            self._frame_cost_s = cost if not self._frame_cost_s else self._frame_cost_s + (
+                min(cost, 2.0 * self._frame_cost_s) - self._frame_cost_s) / 32.0
+            if not sched.fits(self._frame_cost_s):
+                break
 
     def _status(self, now_s: float) -> None:
         """Once a second, the status messages: in one tick on a slow loop, one step a tick on a fast one (each
