@@ -23,6 +23,7 @@ import numpy as np
 
 from .estimation import field_motion as fm
 from .estimation import magcal as mc
+from .percentiles import percentile_pair
 from .telemetry.telemetry import Telemetry
 
 
@@ -48,20 +49,6 @@ def orbit_period_s(field) -> float | None:
     return None
 
 
-
-def _percentiles(x: np.ndarray, p_lo: float, p_hi: float) -> tuple[float, float]:
-    """np.percentile(x, (p_lo, p_hi)) (linear interpolation) by a partial sort: a few µs instead of ~40 in
-    the loop's calibration step."""
-    n = len(x)
-    pos = [p / 100.0 * (n - 1) for p in (p_lo, p_hi)]
-    ks = sorted({min(int(q) + d, n - 1) for q in pos for d in (0, 1)})
-    part = np.partition(x, ks)
-    out = []
-    for q in pos:
-        k = int(q)
-        a, b = float(part[k]), float(part[min(k + 1, n - 1)])
-        out.append(a + (b - a) * (q - k))
-    return out[0], out[1]
 
 class FieldProvider(Protocol):
     def field_now(self, now_s: float) -> tuple[object | None, str]:
@@ -143,7 +130,7 @@ class HostCalibration:
         self._mags[self._n_mags % SPREAD_SAMPLES] = math.sqrt(float(np.dot(b_meas_T, b_meas_T)))
         self._n_mags += 1
         if self._n_mags >= SPREAD_MIN_SAMPLES and self._n_mags % SPREAD_EVERY == 0:
-            lo, hi = _percentiles(self._mags[:min(self._n_mags, SPREAD_SAMPLES)], 2.0, 98.0)
+            lo, hi = percentile_pair(self._mags[:min(self._n_mags, SPREAD_SAMPLES)], 2.0, 98.0)
             self._spread_T = hi - lo  # twice half the spread
 
     def process(self, t_s: float, b_meas_T: np.ndarray, extra_T: np.ndarray | None = None,

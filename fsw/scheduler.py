@@ -23,6 +23,8 @@ from typing import Callable
 
 import numpy as np
 
+from .percentiles import percentile_pair
+
 
 @dataclass
 class Task:
@@ -65,7 +67,7 @@ class LoopStats:
         w = self.window[: min(self.window_n, len(self.window))]
         if w.size == 0:
             return 0.0, 0.0, 0.0, 0.0
-        p50, p99 = np.percentile(w, (50.0, 99.0))
+        p50, p99 = percentile_pair(w, 50.0, 99.0)
         return float(w.mean() * 1e6), float(p50 * 1e6), float(p99 * 1e6), float(w.max() * 1e6)
 
     def reset_window(self) -> None:
