@@ -58,6 +58,7 @@ from .estimation.rate_kalman import RateKalman
 from .estimation.sample_gate import SampleGate, mark_gap
 from .host_calibration import FixedField, HostCalibration
 from . import sample_rate
+from .percentiles import percentile_pair
 from .sample_queue import SampleQueue
 from .scheduler import Scheduler, Task
 from .telemetry.dialect import mavlink
@@ -175,6 +176,7 @@ class FlightSoftware:
         self.queue = SampleQueue()
         self._took = False  # the pipeline's pass took a sample from the queue
         self._dropped_seen = 0
+        self._over_windows = 0  # status rounds in a row whose figures did not fit the rate in force
         #: the live samples' frames waiting for `_downlink` (a handful: one sample's every `_tlm_every`)
         self.outbox: deque = deque()
         self._frame_cost_s = 0.0
@@ -514,11 +516,17 @@ class FlightSoftware:
         st = self.scheduler.stats
         if not self.adapt_sample_rate or st.window_ticks() < self._status_divider // 2 or not st.window_samples:
             return
-        budget = sample_rate.Budget(self.scheduler.rate_hz, st.window_ticks(), st.window_mean_s() * st.window_ticks(),
-                                    st.window_samples, st.window_sample_work_s)
+        n = st.window_ticks()
+        median_s = percentile_pair(st.window[:n], 50.0, 50.0)[0]
+        budget = sample_rate.Budget.from_window(self.scheduler.rate_hz, median_s, st.window_samples / n,
+                                                st.sample_cost_s)
         q = self.queue
         behind = q.dropped > self._dropped_seen or q.depth > q.capacity // 2
         self._dropped_seen = q.dropped
+        over = budget.work_share(self.sample_rate_hz) > sample_rate.WORK_SHARE
+        self._over_windows = self._over_windows + 1 if over else 0
+        if not behind and self._over_windows < 2:
+            return
         rate = sample_rate.choose(budget, self.sample_rate_hz, self.source.available_rates_hz(self.sample_rate_hz),
                                   behind=behind)
         if rate >= self.sample_rate_hz:

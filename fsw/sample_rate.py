@@ -1,15 +1,16 @@
 """The magnetometer's sample rate chosen from the loop's budget, rather than the loop falling behind.
 
 Once a second the flight software hands :func:`choose` the loop's own cycle-time figures over the last
-second (`fsw.scheduler.LoopStats`: the work per tick, the samples the pipeline took and their work —
-measured on the scheduler's work timer, never a clock read here). They split into a cost per tick that
-does not depend on the samples (uplink, sensor poll, status) and a cost per sample (gate, calibration,
-estimators, applications, telemetry); the work a second at sample rate r is then
+second (`fsw.scheduler.LoopStats`: the median work per tick, the samples the pipeline took, its cost per
+sample — measured on the scheduler's work timer, never a clock read here). They split into a cost per
+tick that does not depend on the samples (uplink, sensor poll, status) and a cost per sample (gate,
+calibration, estimators, applications, telemetry); the work a second at sample rate r is then
 
     W(r) = base_per_tick × loop rate + cost_per_sample × r     [s of work per s]
 
-and the configured rate holds when W(r) ≤ `WORK_SHARE`. When it does not — or the sample queue has
-refused samples or holds more than half its capacity — the highest rate the chip offers (its
+and the configured rate holds when W(r) ≤ `WORK_SHARE`. When it does not in two windows in a row (one
+long window is no reason: a burst of the operating system's own work) — or the sample queue has refused
+samples or holds more than half its capacity — the highest rate the chip offers (its
 continuous-mode rates, `fsw.drivers.mmc5983ma.Mmc5983ma.available_rates_hz`) with W(r) ≤ `WORK_SHARE`
 is chosen, the lowest if none fits. The rate only goes down: a rate given up is not tried again in the
 run (a box that cannot hold it once will not be faster later), which also keeps it from oscillating.
@@ -25,21 +26,19 @@ WORK_SHARE = 0.6
 
 @dataclass(frozen=True)
 class Budget:
-    """The loop's figures over a window: ticks, work (s), samples taken and their work (s)."""
+    """The loop's costs: per tick whatever the samples (s) and per sample (s), at its loop rate."""
 
     loop_rate_hz: float
-    ticks: int
-    work_s: float
-    samples: int
-    sample_work_s: float
+    base_per_tick_s: float
+    cost_per_sample_s: float
 
-    @property
-    def cost_per_sample_s(self) -> float:
-        return self.sample_work_s / self.samples if self.samples else 0.0
-
-    @property
-    def base_per_tick_s(self) -> float:
-        return max(0.0, (self.work_s - self.sample_work_s) / self.ticks) if self.ticks else 0.0
+    @classmethod
+    def from_window(cls, loop_rate_hz: float, median_tick_s: float, samples_per_tick: float,
+                    cost_per_sample_s: float) -> "Budget":
+        """From a window's median work per tick (robust to the rare long tick, the OS's preemption), its
+        samples per tick and the pipeline's measured cost per sample."""
+        return cls(loop_rate_hz, max(0.0, median_tick_s - min(1.0, samples_per_tick) * cost_per_sample_s),
+                   cost_per_sample_s)
 
     def work_share(self, sample_rate_hz: float) -> float:
         """W(r): the share of a second the loop's work takes at `sample_rate_hz`."""
