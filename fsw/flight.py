@@ -29,6 +29,8 @@ Tasks (base rate = the loop rate), in the order they run within a tick:
 |           |              |                | estimates, SITL's truth) into the outbox; samples the      |
 |           |              |                | ground asked for again, within their budget                |
 | downlink  | loop rate    | 20 % of period | the outbox's frames: one a tick, more while they fit       |
+| calibration take | loop rate | 40 % of period | the calibration's update with the sample it held (1 Hz,   |
+|           |              |                | ~0.3 ms): when it fits, else in a tick without a sample    |
 
 (*) the sample pipeline: run again in the same tick, one queued sample a pass, while samples wait and the
 tick's measured work plus a sample's measured cost fits 70 % of the period (`fsw.scheduler`). At 1 Hz
@@ -125,6 +127,15 @@ ATTITUDE_TLM_PERIOD_S = 1.0
 #: its measured cost
 FIRST_SAMPLE_BUSY = 0.25
 
+#: the share of the period a tick may fill with deferrable work (a frame, the calibration's update)
+ROOM = 0.9
+#: frames the outbox holds before a busy tick sends one all the same
+OUTBOX_WAIT = 16
+
+#: the longest the calibration's held sample waits for a tick with room (s); below the loop rate most ticks
+#: have no sample and room, at a sample every tick there may be none (the update then overruns its tick)
+TAKE_WAIT_S = 0.1
+
 #: filter updates of an estimator's background work per tick (`FlownFilter.work`): the Euler filter's shape
 #: trial, 34 hypotheses a sample, spread over the ticks between samples (about 1 ms each on the target)
 ESTIMATOR_WORK_PER_TICK = 2
@@ -180,6 +191,8 @@ class FlightSoftware:
         #: the live samples' frames waiting for `_downlink` (a handful: one sample's every `_tlm_every`)
         self.outbox: deque = deque()
         self._frame_cost_s = 0.0
+        self._take_cost_s = 0.0
+        self._take_costs: deque = deque(maxlen=5)  # the last takes' measured costs (a knot's or a solve's are rare)
         #: called after each sample's pass through the pipeline (a tick may take more than one): e.g. SITL's
         #: scoring, which copies the estimates there; keep them cheap, their time counts in the tick's
         self.sample_listeners: list[Callable[[], None]] = []
@@ -257,6 +270,7 @@ class FlightSoftware:
                    per_sample=app.rate_hz >= rate_hz) for app in self.apps.values()),
             Task("telemetry", self._telemetry, rate_hz, 0.2 * period, per_sample=True),
             Task("downlink", self._downlink, rate_hz, 0.2 * period),
+            Task("calibration take", self._calibration_take, rate_hz, 0.4 * period),
         ], backlog=self.queue.__len__, taken=lambda: self._took)
 
     @property
@@ -385,10 +399,26 @@ class FlightSoftware:
         if self.new_sample:
             self.raw_b_T[:] = self.latched.b_T
             kit = self.kit_T if self.kit_field is not None else None
-            self.latched.b_T[:] = self.calibration.process(self.sample_t_s, self.raw_b_T, kit, self.kit_skip)
+            # the calibration's 1 Hz update (~0.3 ms) is held for `_calibration_take`, at the tick's end
+            self.latched.b_T[:] = self.calibration.process(self.sample_t_s, self.raw_b_T, kit, self.kit_skip,
+                                                           hold=True)
             if not self.kit_skip:
                 self._raw_kit_T[:] = self.kit_T
         self.calibration.telemetry(now_s, self.tlm)
+
+    def _calibration_take(self, now_s: float) -> None:
+        """The calibration's held sample taken in, in the first tick with room for its measured cost (one
+        without a sample, at 1 kHz), or after `TAKE_WAIT_S` whatever the tick."""
+        held = self.calibration.held
+        if held is None:
+            return
+        sched = self.scheduler
+        if not (sched.elapsed_s() + self._take_cost_s <= ROOM * sched.period_s or now_s - held[0] > TAKE_WAIT_S):
+            return
+        t0 = sched.elapsed_s()
+        self.calibration.take_held()
+        self._take_costs.append(sched.elapsed_s() - t0)
+        self._take_cost_s = sorted(self._take_costs)[len(self._take_costs) // 2]  # the median of the last few
 
     def _estimate(self, now_s: float) -> None:
         for name, est in self.estimators.items():
@@ -456,10 +486,12 @@ class FlightSoftware:
         self.tlm.sim_state(t_s, tr.omega_radps, tr.q_body_to_eci, tr.b_body_T, tr.moment_Nm)
 
     def _downlink(self, now_s: float) -> None:
-        """The outbox's frames: the oldest one, then more while the tick's budget has room for the measured
-        cost of one (so a sample's frames spread over the next ticks of a fast loop; a slow one sends them all
-        in the tick)."""
+        """The outbox's frames: the oldest one (unless the tick has no room left for it and few wait), then more
+        while the tick's budget has room for the measured cost of one (so a sample's frames spread over the
+        next ticks of a fast loop; a slow one sends them all in the tick)."""
         out, sched = self.outbox, self.scheduler
+        if out and len(out) <= OUTBOX_WAIT and sched.elapsed_s() + self._frame_cost_s > ROOM * sched.period_s:
+            return  # a busy tick: the frames wait for the next (a few at most)
         while out:
             t0 = sched.elapsed_s()
             send, args = out.popleft()

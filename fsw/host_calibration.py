@@ -83,6 +83,9 @@ class HostCalibration:
         self.applied = 0  # samples the last good calibration was applied to
         self.skipped = 0  # samples not taken in: the kit's field at the sensor unknown (process's skip)
         self._t_taken: float | None = None
+        #: a sample due to be taken in, held for `take_held` (process's `hold`): (t, b) or None
+        self.held: tuple[float, np.ndarray] | None = None
+        self._held_b_T = np.zeros(3)
         # |B| of the latest accepted samples (raw), for the host's field before a calibration
         self._mags = np.zeros(SPREAD_SAMPLES)
         self._n_mags = 0
@@ -134,11 +137,13 @@ class HostCalibration:
             self._spread_T = hi - lo  # twice half the spread
 
     def process(self, t_s: float, b_meas_T: np.ndarray, extra_T: np.ndarray | None = None,
-                skip: bool = False) -> np.ndarray:
+                skip: bool = False, hold: bool = False) -> np.ndarray:
         """The sample at `t_s` taken into the calibration (when due) and returned corrected. `extra_T`: a
         field at the sensor known on board, taken out first (the de-orbit kit's magnets,
         `fsw.deorbit.kit_field`); `skip`: that field is not known now (a shutter moves): the sample is
-        not taken into the calibration (counted in `skipped`), only corrected."""
+        not taken into the calibration (counted in `skipped`), only corrected. `hold`: a sample due is
+        copied into `held` instead (the field along the orbit and the calibration's update, about 0.3 ms,
+        left to :meth:`take_held` in a tick with room: the flight loop's choice)."""
         if extra_T is not None:
             b_meas_T = b_meas_T - extra_T
         if skip:
@@ -156,19 +161,34 @@ class HostCalibration:
             self.cal.drift_period_s = orbit_period_s(self.field) or self.cal.drift_period_s
         if self._t_taken is None or t_s - self._t_taken >= self.sample_every_s * (1 - 1e-9):
             self._t_taken = t_s
-            try:
-                mag_T = float(np.linalg.norm(self.field.b_eci_T(t_s)))
-            except (ValueError, ArithmeticError):
-                self.field_errors += 1
+            if hold:
+                if self.held is not None:  # the one held before has waited its turn: taken in now
+                    self.take_held()
+                self._held_b_T[:] = b_meas_T
+                self.held = (t_s, self._held_b_T)
             else:
-                if math.isfinite(mag_T) and mag_T > 0:
-                    self.cal.update(b_meas_T, mag_T, t_s)
-                else:
-                    self.field_errors += 1
+                self._take(t_s, b_meas_T)
         if not self.cal.good:
             return b_meas_T
         self.applied += 1
         return self.cal.apply(b_meas_T, t_s)
+
+    def take_held(self) -> None:
+        """Take the held sample into the calibration (see :meth:`process`'s `hold`)."""
+        if self.held is not None and self.field is not None:
+            self._take(*self.held)
+        self.held = None
+
+    def _take(self, t_s: float, b_meas_T: np.ndarray) -> None:
+        try:
+            mag_T = float(np.linalg.norm(self.field.b_eci_T(t_s)))
+        except (ValueError, ArithmeticError):
+            self.field_errors += 1
+        else:
+            if math.isfinite(mag_T) and mag_T > 0:
+                self.cal.update(b_meas_T, mag_T, t_s)
+            else:
+                self.field_errors += 1
 
     def telemetry(self, now_s: float, tlm: Telemetry) -> None:
         """DEBRIS_MAGCAL every `tlm_every_s`."""
