@@ -103,7 +103,8 @@ def machine() -> dict:
             "load_average_1_5_15": list(os.getloadavg()), "python": sys.version.split()[0]}
 
 
-def sweep(rates, slowdowns, *, duration_s: float, loop_rate_hz: float, shared_core: bool, out=sys.stdout) -> dict:
+def sweep(rates, slowdowns, *, duration_s: float, loop_rate_hz: float, shared_core: bool, out=None) -> dict:
+    out = out or sys.stdout
     runs, highest, chosen = [], {}, {}
     conditions = [(f"x{x:g}", x, False) for x in slowdowns] + ([("shared-core", 1.0, True)] if shared_core else [])
     for name, slowdown, wall in conditions:
