@@ -6,9 +6,6 @@ Tasks (base rate = the loop rate), in the order they run within a tick:
 |-----------|--------------|----------------|------------------------------------------------------------|
 | uplink    | loop rate    | 10 % of period | the link's service (signing time, retry, stored frames);   |
 |           |              |                | reads the ground's frames, verifies, runs commands (ACK)   |
-| status    | 1 Hz, spread | 20 % of period | HEARTBEAT, SYS_STATUS, DEBRIS_LINK_STATUS, loop timing,    |
-|           |              |                | driver health, DEBRIS_SAMPLE_STORE: once a second, one     |
-|           |              |                | step a tick on a fast loop (all in one tick on a slow one) |
 | sensor    | loop rate    | 10 % of period | advances the magnetometer driver; a new sample goes into   |
 |           |              |                | the sample queue (`fsw.sample_queue`)                      |
 | latch (*) | loop rate    | 10 % of period | takes the oldest queued sample when the tick's budget has  |
@@ -30,12 +27,15 @@ Tasks (base rate = the loop rate), in the order they run within a tick:
 |           |              |                | ground asked for again, within their budget                |
 | downlink  | loop rate    | 20 % of period | the outbox's frames: one a tick, more while they fit       |
 | calibration take | loop rate | 40 % of period | the calibration's update with the sample it held (1 Hz,   |
-|           |              |                | ~0.3 ms): when it fits, else in a tick without a sample    |
+|           |              |                | ~0.3 ms): in the first tick with room, at most 0.1 s late  |
+| status    | 1 Hz, spread | 20 % of period | HEARTBEAT, SYS_STATUS, DEBRIS_LINK_STATUS, loop timing,    |
+|           |              |                | driver health, DEBRIS_SAMPLE_STORE: once a second, one     |
+|           |              |                | step a tick on a fast loop (all in one tick on a slow one) |
 
 (*) the sample pipeline: run again in the same tick, one queued sample a pass, while samples wait and the
 tick's measured work plus a sample's measured cost fits 70 % of the period (`fsw.scheduler`). At 1 Hz
-(`_status_rate`, `fsw.sample_rate`) the box compares the work a second with its budget and lowers the magnetometer's
-output rate when the configured one does not fit.
+(`_status_rate`, `fsw.sample_rate`) the box compares the work a second with its budget and lowers the
+magnetometer's output rate when the configured one does not fit.
 
 Commands: handlers register with `self.commands` (`fsw.commands.CommandRouter`), parameters with
 `self.params`; the uplink (`telemetry.uplink`) runs them when they arrive signed with the mission key.
@@ -45,7 +45,6 @@ clock on target. Nothing in here reads the wall clock.
 """
 from __future__ import annotations
 
-import math
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Callable, Iterable, Protocol, runtime_checkable
@@ -127,6 +126,9 @@ ATTITUDE_TLM_PERIOD_S = 1.0
 #: its measured cost
 FIRST_SAMPLE_BUSY = 0.25
 
+#: loop rate from which the status messages go out one step a tick
+SPREAD_STATUS_HZ = 200.0
+
 #: the share of the period a tick may fill with deferrable work (a frame, the calibration's update)
 ROOM = 0.9
 #: frames the outbox holds before a busy tick sends one all the same
@@ -187,6 +189,7 @@ class FlightSoftware:
         self.queue = SampleQueue()
         self._took = False  # the pipeline's pass took a sample from the queue
         self._dropped_seen = 0
+        self._overruns_seen = 0
         self._over_windows = 0  # status rounds in a row whose figures did not fit the rate in force
         #: the live samples' frames waiting for `_downlink` (a handful: one sample's every `_tlm_every`)
         self.outbox: deque = deque()
@@ -257,11 +260,10 @@ class FlightSoftware:
                               self._status_mag, self._status_store]
         self._status_step = len(self._status_steps)
         self._status_divider = max(1, round(rate_hz))  # ticks a second
-        # the steps spread over at most a tenth of a second
-        self._status_per_tick = math.ceil(len(self._status_steps) / max(1, math.floor(0.1 * rate_hz)))
+        # one step a tick on a fast loop (periods of 5 ms or less), all in one tick on a slower one
+        self._status_per_tick = 1 if rate_hz >= SPREAD_STATUS_HZ else len(self._status_steps)
         self.scheduler = Scheduler(rate_hz, [
             Task("uplink", self._uplink, rate_hz, 0.1 * period),
-            Task("status", self._status, rate_hz, 0.2 * period),
             Task("sensor", self._sensor, rate_hz, 0.1 * period),
             Task("latch", self._latch, rate_hz, 0.1 * period, per_sample=True),
             Task("calibration", self._calibrate, rate_hz, 0.4 * period, per_sample=True),
@@ -271,6 +273,7 @@ class FlightSoftware:
             Task("telemetry", self._telemetry, rate_hz, 0.2 * period, per_sample=True),
             Task("downlink", self._downlink, rate_hz, 0.2 * period),
             Task("calibration take", self._calibration_take, rate_hz, 0.4 * period),
+            Task("status", self._status, rate_hz, 0.2 * period),
         ], backlog=self.queue.__len__, taken=lambda: self._took)
 
     @property
@@ -555,12 +558,15 @@ class FlightSoftware:
         q = self.queue
         behind = q.dropped > self._dropped_seen or q.depth > q.capacity // 2
         self._dropped_seen = q.dropped
-        over = budget.work_share(self.sample_rate_hz) > sample_rate.WORK_SHARE
+        overruns, self._overruns_seen = st.overruns - self._overruns_seen, st.overruns
+        # overrunning ticks cost samples in the chip only when a sample comes every tick or two
+        late = overruns > sample_rate.OVERRUN_SHARE * n and 2 * self.sample_rate_hz > self.scheduler.rate_hz
+        over = budget.work_share(self.sample_rate_hz) > sample_rate.WORK_SHARE or late
         self._over_windows = self._over_windows + 1 if over else 0
         if not behind and self._over_windows < 2:
             return
         rate = sample_rate.choose(budget, self.sample_rate_hz, self.source.available_rates_hz(self.sample_rate_hz),
-                                  behind=behind)
+                                  behind=behind or over)
         if rate >= self.sample_rate_hz:
             return
         was = self.sample_rate_hz

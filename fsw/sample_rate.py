@@ -8,16 +8,22 @@ calibration, estimators, applications, telemetry); the work a second at sample r
 
     W(r) = base_per_tick × loop rate + cost_per_sample × r     [s of work per s]
 
-and the configured rate holds when W(r) ≤ `WORK_SHARE`. When it does not in two windows in a row (one
-long window is no reason: a burst of the operating system's own work) — or the sample queue has refused
-samples or holds more than half its capacity — the highest rate the chip offers (its
-continuous-mode rates, `fsw.drivers.mmc5983ma.Mmc5983ma.available_rates_hz`) with W(r) ≤ `WORK_SHARE`
-is chosen, the lowest if none fits. The rate only goes down: a rate given up is not tried again in the
-run (a box that cannot hold it once will not be faster later), which also keeps it from oscillating.
+and the rate in force holds when W(r) ≤ `WORK_SHARE` and, when a sample comes every tick or two (where
+a late tick lets the chip overwrite one), fewer than `OVERRUN_SHARE` of the ticks overran. When it does
+not in two windows in a row (one long window is no reason: a burst of the operating system's own work),
+or the sample queue has refused samples or holds more than half its capacity, the highest rate the chip
+offers below it (its continuous-mode rates,
+`fsw.drivers.mmc5983ma.Mmc5983ma.available_rates_hz`) with W(r) ≤ `WORK_SHARE` is chosen, the lowest
+if none fits. The rate only goes down: a rate given up is not tried again in the run (a box that cannot
+hold it once will not be faster later), which also keeps it from oscillating.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+#: share of a window's ticks that may overrun before the rate in force is judged not held (a tick in a
+#: hundred: the once-a-second peaks of a slow CPU stay below it, a loop that cannot keep up does not)
+OVERRUN_SHARE = 0.01
 
 #: share of each second the loop's work may take at the chosen rate: the rest absorbs the peaks (a
 #: calibration solve, a knot of the field along the orbit) and the operating system
