@@ -17,8 +17,8 @@ previous one was read is lost in the chip (the emulator's ``overwritten``). The 
 loop's own CPU time (`time.thread_time`) × the slowdown, measured by the scheduler itself: another
 process on this shared machine does not count as the loop's work, and the halved CPU is exact and
 repeatable (it scales the interpreter's work; a slower CPU's memory and cache are not modelled). The
-simulator's work (the world, the chip's physics) is outside the tick, as on hardware; the telemetry's
-SITL truth frame is inside it.
+simulator's work (the world, the chip's physics) is outside the tick, as on hardware, and SITL's truth
+frame (DEBRIS_SIM_STATE, a lookup of the simulator's state) is not sent.
 
 ``--shared-core`` measures the halved CPU the other way, on the wall clock: this process pinned to CPU 0
 with a busy process (``while True: pass``) on the same CPU, slowdown 1. It depends on what else runs on
@@ -61,6 +61,7 @@ def run_one(rate_hz: float, *, slowdown: float, duration_s: float, loop_rate_hz:
         argv.append("--fixed-sample-rate")
     s = sitl.build(sitl.parse_args(argv), ident=True)
     fsw = s.fsw
+    fsw.truth = None  # no DEBRIS_SIM_STATE: the simulator's truth frame is no work of the box's
     sched = fsw.scheduler
     if wall:
         timer = time.perf_counter

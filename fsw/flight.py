@@ -262,6 +262,8 @@ class FlightSoftware:
         self._status_divider = max(1, round(rate_hz))  # ticks a second
         # one step a tick on a fast loop (periods of 5 ms or less), all in one tick on a slower one
         self._status_per_tick = 1 if rate_hz >= SPREAD_STATUS_HZ else len(self._status_steps)
+        # and half a second after the 1 Hz tasks (the time-and-orbit application) there
+        self._status_phase = self._status_divider // 2 if rate_hz >= SPREAD_STATUS_HZ else 0
         self.scheduler = Scheduler(rate_hz, [
             Task("uplink", self._uplink, rate_hz, 0.1 * period),
             Task("sensor", self._sensor, rate_hz, 0.1 * period),
@@ -410,8 +412,9 @@ class FlightSoftware:
         self.calibration.telemetry(now_s, self.tlm)
 
     def _calibration_take(self, now_s: float) -> None:
-        """The calibration's held sample taken in, in the first tick with room for its measured cost (one
-        without a sample, at 1 kHz), or after `TAKE_WAIT_S` whatever the tick."""
+        """The calibration's held sample taken in, a step a tick (`HostCalibration.take_step`: the field's |B|,
+        then the update), each in the first tick with room for a step's measured cost, or after
+        `TAKE_WAIT_S` whatever the tick."""
         held = self.calibration.held
         if held is None:
             return
@@ -419,7 +422,7 @@ class FlightSoftware:
         if not (sched.elapsed_s() + self._take_cost_s <= ROOM * sched.period_s or now_s - held[0] > TAKE_WAIT_S):
             return
         t0 = sched.elapsed_s()
-        self.calibration.take_held()
+        self.calibration.take_step()
         self._take_costs.append(sched.elapsed_s() - t0)
         self._take_cost_s = sorted(self._take_costs)[len(self._take_costs) // 2]  # the median of the last few
 
@@ -508,7 +511,7 @@ class FlightSoftware:
     def _status(self, now_s: float) -> None:
         """Once a second, the status messages: in one tick on a slow loop, one step a tick on a fast one (each
         step well under a 1 kHz period, where the whole set would take most of it)."""
-        if self.scheduler.stats.ticks % self._status_divider == 0:
+        if self.scheduler.stats.ticks % self._status_divider == self._status_phase:
             self._status_step = 0
         steps = self._status_steps
         end = min(len(steps), self._status_step + self._status_per_tick)

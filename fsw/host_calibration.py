@@ -85,6 +85,7 @@ class HostCalibration:
         self._t_taken: float | None = None
         #: a sample due to be taken in, held for `take_held` (process's `hold`): (t, b) or None
         self.held: tuple[float, np.ndarray] | None = None
+        self._held_mag_T: float | None = None
         self._held_b_T = np.zeros(3)
         # |B| of the latest accepted samples (raw), for the host's field before a calibration
         self._mags = np.zeros(SPREAD_SAMPLES)
@@ -165,7 +166,7 @@ class HostCalibration:
                 if self.held is not None:  # the one held before has waited its turn: taken in now
                     self.take_held()
                 self._held_b_T[:] = b_meas_T
-                self.held = (t_s, self._held_b_T)
+                self.held, self._held_mag_T = (t_s, self._held_b_T), None
             else:
                 self._take(t_s, b_meas_T)
         if not self.cal.good:
@@ -175,20 +176,39 @@ class HostCalibration:
 
     def take_held(self) -> None:
         """Take the held sample into the calibration (see :meth:`process`'s `hold`)."""
-        if self.held is not None and self.field is not None:
-            self._take(*self.held)
-        self.held = None
+        while self.held is not None:
+            self.take_step()
 
-    def _take(self, t_s: float, b_meas_T: np.ndarray) -> None:
+    def take_step(self) -> None:
+        """The held sample's next step into the calibration, each about half of the work: |B| of the field
+        along the orbit at its time, then the calibration's update."""
+        if self.held is None:
+            return
+        t_s, b_meas_T = self.held
+        if self._held_mag_T is None and self.field is not None:
+            self._held_mag_T = self._model_mag_T(t_s)
+            if self._held_mag_T is not None:
+                return
+        if self._held_mag_T is not None:
+            self.cal.update(b_meas_T, self._held_mag_T, t_s)
+        self.held = self._held_mag_T = None
+
+    def _model_mag_T(self, t_s: float) -> float | None:
+        """|B| of the field along the orbit at `t_s`; None (counted in `field_errors`) when it has none."""
         try:
             mag_T = float(np.linalg.norm(self.field.b_eci_T(t_s)))
         except (ValueError, ArithmeticError):
             self.field_errors += 1
-        else:
-            if math.isfinite(mag_T) and mag_T > 0:
-                self.cal.update(b_meas_T, mag_T, t_s)
-            else:
-                self.field_errors += 1
+            return None
+        if math.isfinite(mag_T) and mag_T > 0:
+            return mag_T
+        self.field_errors += 1
+        return None
+
+    def _take(self, t_s: float, b_meas_T: np.ndarray) -> None:
+        mag_T = self._model_mag_T(t_s)
+        if mag_T is not None:
+            self.cal.update(b_meas_T, mag_T, t_s)
 
     def telemetry(self, now_s: float, tlm: Telemetry) -> None:
         """DEBRIS_MAGCAL every `tlm_every_s`."""
