@@ -27,6 +27,7 @@ if __name__ == "__main__":
 import argparse  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
+import time  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
 from datetime import timezone  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -67,6 +68,9 @@ class SitlConfig:
     ident_inertia_guess_kgm2: float = 100.0
     #: the simulator's integration step (default: 20 ms, or the loop period if shorter)
     max_step_s: float | None = None
+    #: what the loop's step time is measured on: "cpu" (this thread's CPU time: the flight software's own
+    #: work, whatever else runs on the machine) or "wall" (as on target, where nothing else runs)
+    work_clock: str = "cpu"
 
 
 @dataclass
@@ -209,6 +213,8 @@ def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, 
     flight = build_flight(r, driver, sigma_b_T=sigma_b, sample_rate_hz=rate_hz, truth=box_truth(sim), apps=onboard,
                           link=link, uplink=uplink, key=key, clock=clock, run_id=run_id, field=field,
                           timeorbit=timeorbit)
+    if cfg.work_clock == "cpu":  # a lockstep world loses nothing to the OS's preemption: the loop's own work
+        flight.fsw.scheduler.work_timer = time.thread_time
     return Sitl(cfg, scn, sim, driver, flight, sigma_b, warning)
 
 
@@ -364,6 +370,10 @@ def add_sitl_options(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--speed", type=finite_float(0), default=1.0, metavar="X",
                     help="pacing: 1 = real time (default), 10 = ten times faster, 0 = as fast as possible")
     ap.add_argument("--seed", type=int_range(0), default=0, help="random seed of the simulator (default 0)")
+    ap.add_argument("--work-clock", choices=("cpu", "wall"), default="cpu",
+                    help="the loop's step time (overruns, the sample rate's budget) on this thread's CPU time "
+                         "(default: the flight software's own work, whatever else the machine runs) or on the "
+                         "wall clock (as on target)")
     ap.add_argument("--ident-inertia-guess", type=finite_float(0, min_exclusive=True), default=100.0,
                     metavar="KGM2",
                     help="identification experiment: starting tensor = this × identity (default 100 kg.m^2)")
@@ -383,7 +393,7 @@ def parse_args(argv=None) -> SitlConfig:
     except ValueError as e:
         ap.error(str(e))
     return SitlConfig(run=run_config(args), scenario=args.scenario, seed=args.seed,
-                      ident_inertia_guess_kgm2=args.ident_inertia_guess)
+                      ident_inertia_guess_kgm2=args.ident_inertia_guess, work_clock=args.work_clock)
 
 
 def main(argv=None) -> int:
