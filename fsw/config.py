@@ -46,6 +46,8 @@ class RunConfig:
     sample_store: str | None = None
     #: magnetometer sample rate (None: the source's own: 1 Hz on target, the scenario's in SITL)
     sample_rate_hz: float | None = None
+    #: lower the sample rate to one the loop can hold (`fsw.sample_rate`); False: keep it whatever the load
+    adapt_sample_rate: bool = True
     #: 1-σ field error per axis the estimators assume, T (SITL takes the scenario's instead)
     sigma_T: float = 1.5e-6
     max_sample_tlm_hz: float = 20.0
@@ -87,6 +89,9 @@ def add_run_options(ap: argparse.ArgumentParser) -> None:
                          "their numbering survive a restart (default: in memory)")
     ap.add_argument("--sample-rate", type=finite_float(0, MAX_RATE_HZ, min_exclusive=True), default=None,
                     metavar="HZ", help="magnetometer sample rate, up to 1000 Hz (default: the source's own)")
+    ap.add_argument("--fixed-sample-rate", action="store_true",
+                    help="keep the sample rate even when the loop cannot hold it (default: the box lowers it to the "
+                         "highest rate its measured work per sample fits, and says so; bench.speed uses this)")
     ap.add_argument("--sigma-uT", type=finite_float(0, MAX_SIGMA_UT, min_exclusive=True), default=1.5,
                     help="1-sigma field error per axis used by the estimators (default 1.5 uT, at most 1000)")
     ap.add_argument("--max-sample-tlm-hz", type=finite_float(0.01, MAX_RATE_HZ), default=20.0,
@@ -107,6 +112,7 @@ def run_config(args: argparse.Namespace, **overrides) -> RunConfig:
                     link=args.link, baud=args.baud, key_file=args.key, uplink=args.uplink,
                     buffer_frames=args.buffer_frames, sample_store=args.sample_store,
                     sample_rate_hz=args.sample_rate, sigma_T=args.sigma_uT * 1e-6,
+                    adapt_sample_rate=not getattr(args, "fixed_sample_rate", False),
                     max_sample_tlm_hz=args.max_sample_tlm_hz, quiet=args.quiet,
                     rate_filter=getattr(args, "rate_filter", DEFAULT_FILTER))
     return replace(cfg, **overrides)

@@ -6,23 +6,36 @@ Tasks (base rate = the loop rate), in the order they run within a tick:
 |-----------|--------------|----------------|------------------------------------------------------------|
 | uplink    | loop rate    | 10 % of period | the link's service (signing time, retry, stored frames);   |
 |           |              |                | reads the ground's frames, verifies, runs commands (ACK)   |
-| sensor    | loop rate    | 20 % of period | advances the magnetometer driver; latches a new sample,    |
-|           |              |                | the de-orbit kit's field taken out (`deorbit.kit_field`;   |
-|           |              |                | skipped while a shutter or magnet moves: sent, not used),  |
-|           |              |                | refused if implausible (`estimation.sample_gate`)          |
-| calibration | loop rate  | 40 % of period | host hard/soft iron taken out of the sample (needs the     |
+| sensor    | loop rate    | 10 % of period | advances the magnetometer driver; a new sample goes into   |
+|           |              |                | the sample queue (`fsw.sample_queue`)                      |
+| latch (*) | loop rate    | 10 % of period | takes the oldest queued sample when the tick's budget has  |
+|           |              |                | room for it; the de-orbit kit's field taken out            |
+|           |              |                | (`deorbit.kit_field`; skipped while a shutter or magnet    |
+|           |              |                | moves: sent, not used), refused if implausible             |
+|           |              |                | (`estimation.sample_gate`)                                 |
+| calibration (*) | loop rate | 40 % of period | host hard/soft iron taken out of the sample (needs the    |
 |           |              |                | field along the orbit: `fsw.host_calibration`), then       |
 |           |              |                | DEBRIS_MAGCAL every 10 s; a solve a minute (~2 ms) and a   |
 |           |              |                | knot of the field a minute (~2 ms) are its peaks           |
-| estimator | loop rate    | 30 % of period | runs the rate estimators on a new sample                   |
+| estimator (*) | loop rate  | 30 % of period | runs the rate estimators on a new sample                   |
 | *app*     | the app's    | the app's      | each onboard application (`fsw.app.App`): its tick with    |
 |           |              |                | the sample of this tick, then its telemetry — the inertia  |
-|           |              |                | identification experiment (`fsw.ident`, every tick), the   |
-|           |              |                | de-orbit kit (`fsw.deorbit.kit`, 10 Hz)                    |
-| telemetry | loop rate    | 30 % of period | sends the numbered sample, the estimates (and SITL truth); |
-|           |              |                | samples the ground asked for again, within their budget    |
-| status    | 1 Hz         | 50 % of period | HEARTBEAT, SYS_STATUS, loop timing, driver health,         |
-|           |              |                | DEBRIS_LINK_STATUS, DEBRIS_SAMPLE_STORE                    |
+|           |              |                | identification experiment (`fsw.ident`, every tick, (*)),    |
+|           |              |                | the de-orbit kit (`fsw.deorbit.kit`, 10 Hz)                |
+| telemetry (*) | loop rate  | 20 % of period | numbers and stores the sample, its frames (the sample, the |
+|           |              |                | estimates, SITL's truth) into the outbox; samples the      |
+|           |              |                | ground asked for again, within their budget                |
+| downlink  | loop rate    | 20 % of period | the outbox's frames: one a tick, more while they fit       |
+| calibration take | loop rate | 40 % of period | the calibration's update with the sample it held (1 Hz,   |
+|           |              |                | ~0.3 ms): in the first tick with room, at most 0.1 s late  |
+| status    | 1 Hz, spread | 20 % of period | HEARTBEAT, SYS_STATUS, DEBRIS_LINK_STATUS, loop timing,    |
+|           |              |                | driver health, DEBRIS_SAMPLE_STORE: once a second, one     |
+|           |              |                | step a tick on a fast loop (all in one tick on a slow one) |
+
+(*) the sample pipeline: run again in the same tick, one queued sample a pass, while samples wait and the
+tick's measured work plus a sample's measured cost fits 70 % of the period (`fsw.scheduler`). At 1 Hz
+(`_status_rate`, `fsw.sample_rate`) the box compares the work a second with its budget and lowers the
+magnetometer's output rate when the configured one does not fit.
 
 Commands: handlers register with `self.commands` (`fsw.commands.CommandRouter`), parameters with
 `self.params`; the uplink (`telemetry.uplink`) runs them when they arrive signed with the mission key.
@@ -35,6 +48,7 @@ clock on target. Nothing in here reads the wall clock.
 """
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Callable, Iterable, Protocol, runtime_checkable
 
@@ -47,6 +61,9 @@ from .estimation.flown_filter import FILTER_IDS
 from .estimation.rate_kalman import RateKalman
 from .estimation.sample_gate import SampleGate, mark_gap
 from .host_calibration import FixedField, HostCalibration
+from . import sample_rate
+from .percentiles import percentile_pair
+from .sample_queue import SampleQueue
 from .scheduler import Scheduler, Task
 from .telemetry.dialect import mavlink
 from .telemetry.sample_store import Resender, SampleStore
@@ -109,6 +126,22 @@ METHODS = {"boer": mavlink.DEBRIS_RATE_METHOD_BOER, "derivative": mavlink.DEBRIS
 #: most this often (s): every sample at the default 1 Hz, not 20 times a second at the link's sample cap
 ATTITUDE_TLM_PERIOD_S = 1.0
 
+#: the tick's work so far (share of the period) below which its first queued sample is processed whatever
+#: its measured cost
+FIRST_SAMPLE_BUSY = 0.25
+
+#: loop rate from which the status messages go out one step a tick
+SPREAD_STATUS_HZ = 200.0
+
+#: the share of the period a tick may fill with deferrable work (a frame, the calibration's update)
+ROOM = 0.9
+#: frames the outbox holds before a busy tick sends one all the same
+OUTBOX_WAIT = 16
+
+#: the longest the calibration's held sample waits for a tick with room (s); below the loop rate most ticks
+#: have no sample and room, at a sample every tick there may be none (the update then overruns its tick)
+TAKE_WAIT_S = 0.1
+
 #: filter updates of an estimator's background work per tick (`FlownFilter.work`): the Euler filter's shape
 #: trial, 34 hypotheses a sample, spread over the ticks between samples (about 1 ms each on the target)
 ESTIMATOR_WORK_PER_TICK = 2
@@ -138,7 +171,7 @@ class FlightSoftware:
                  truth: Callable[[float], object] | None = None, max_sample_tlm_hz: float = 20.0,
                  sample_rate_hz: float | None = None, uplink=None, key: bytes | None = None,
                  apps: Iterable[App] = (), rate_filter=None, sample_store: SampleStore | None = None,
-                 field=None, field_provider=None) -> None:
+                 field=None, field_provider=None, adapt_sample_rate: bool = False) -> None:
         """`uplink`: the connection commands arrive on (usually the telemetry link itself, `telemetry.conn`;
         None: no uplink); `key`: the mission key (None: every state-changing command is refused);
         `apps`: the onboard applications (`fsw.app.App`: the identification experiment, the de-orbit
@@ -151,7 +184,9 @@ class FlightSoftware:
         memory, run id 0); `field`: the field along the orbit on board for the whole run (an
         `estimation.field_motion.OrbitField`), which the host-magnetics calibration needs, or
         `field_provider`: where it comes from when it may come and go (the time-and-orbit application);
-        neither: the calibration is inactive and says so. The samples sent and stored are the sensor's own; the
+        neither: the calibration is inactive and says so. `adapt_sample_rate`: once a second, the sample rate
+        chosen from the loop's budget (`fsw.sample_rate`; needs a driver that can change its rate). The
+        samples sent and stored are the sensor's own; the
         estimators and the applications get them calibrated."""
         self.source = source
         self.driver = source if isinstance(source, SensorDriver) else None
@@ -163,7 +198,22 @@ class FlightSoftware:
             "kalman": rate_filter if rate_filter is not None else RateKalman(sigma_b_T)}
         self.new_sample = False
         self.new_estimate = {name: False for name in self.estimators}
+        #: samples received from the source; they wait in `queue` until the pipeline takes them
         self.samples = 0
+        self.queue = SampleQueue()
+        self._took = False  # the pipeline's pass took a sample from the queue
+        self._dropped_seen = 0
+        self._overruns_seen = 0
+        self._over_windows = 0  # status rounds in a row whose figures did not fit the rate in force
+        #: the live samples' frames waiting for `_downlink` (a handful: one sample's every `_tlm_every`)
+        self.outbox: deque = deque()
+        self._frame_cost_s = 0.0
+        self._take_cost_s = 0.0
+        self._take_costs: deque = deque(maxlen=5)  # the last takes' measured costs (a knot's or a solve's are rare)
+        #: called after each sample's pass through the pipeline (a tick may take more than one): e.g. SITL's
+        #: scoring, which copies the estimates there; keep them cheap, their time counts in the tick's
+        self.sample_listeners: list[Callable[[], None]] = []
+        self._taken_this_tick = 0
         self.latched = LatchedSample()
         #: the sensor's own sample (what is sent and stored), before the calibration
         self.raw_b_T = np.zeros(3)
@@ -171,6 +221,12 @@ class FlightSoftware:
         self._gate_calibration = 0
         self.calibration = HostCalibration(sigma_b_T, FixedField(field) if field is not None else field_provider)
         # at most max_sample_tlm_hz samples (with their estimates) go out on the link
+        #: the magnetometer's rate in force, and the one configured (`_status_rate` may lower the former)
+        self.sample_rate_hz = self.configured_sample_rate_hz = float(sample_rate_hz or rate_hz)
+        self.adapt_sample_rate = adapt_sample_rate and callable(getattr(source, "set_sample_rate", None))
+        #: (loop time, from Hz, to Hz) of each change of the sample rate
+        self.rate_changes: list[tuple[float, float, float]] = []
+        self._max_sample_tlm_hz = max_sample_tlm_hz
         self._tlm_every = max(1, int(np.ceil((sample_rate_hz or rate_hz) / max_sample_tlm_hz)))
         self.gate = SampleGate(sigma_b_T, 1.0 / (sample_rate_hz or rate_hz))
         self.tlm_samples = 0  # samples handed to telemetry
@@ -225,16 +281,27 @@ class FlightSoftware:
             clock=telemetry.clock, reply=telemetry.send_now if uplink is telemetry.conn else None,
             params=self.params, handlers=messages, answer_limit=self.services.allow)
         period = 1.0 / rate_hz
+        self._status_steps = [self._status_health, self._status_link, self._status_rate, self._status_loop,
+                              self._status_mag, self._status_store]
+        self._status_step = len(self._status_steps)
+        self._status_divider = max(1, round(rate_hz))  # ticks a second
+        # one step a tick on a fast loop (periods of 5 ms or less), all in one tick on a slower one
+        self._status_per_tick = 1 if rate_hz >= SPREAD_STATUS_HZ else len(self._status_steps)
+        # and half a second after the 1 Hz tasks (the time-and-orbit application) there
+        self._status_phase = self._status_divider // 2 if rate_hz >= SPREAD_STATUS_HZ else 0
         self.scheduler = Scheduler(rate_hz, [
             Task("uplink", self._uplink, rate_hz, 0.1 * period),
-            Task("sensor", self._sensor, rate_hz, 0.2 * period),
-            Task("calibration", self._calibrate, rate_hz, 0.4 * period),
-            Task("estimator", self._estimate, rate_hz, 0.3 * period),
-            *(Task(app.name, self._app_task(app), min(app.rate_hz, rate_hz), app.budget * period)
-              for app in self.apps.values()),
-            Task("telemetry", self._telemetry, rate_hz, 0.3 * period),
-            Task("status", self._status, min(1.0, rate_hz), 0.5 * period),
-        ])
+            Task("sensor", self._sensor, rate_hz, 0.1 * period),
+            Task("latch", self._latch, rate_hz, 0.1 * period, per_sample=True),
+            Task("calibration", self._calibrate, rate_hz, 0.4 * period, per_sample=True),
+            Task("estimator", self._estimate, rate_hz, 0.3 * period, per_sample=True),
+            *(Task(app.name, self._app_task(app), min(app.rate_hz, rate_hz), app.budget * period,
+                   per_sample=app.rate_hz >= rate_hz) for app in self.apps.values()),
+            Task("telemetry", self._telemetry, rate_hz, 0.2 * period, per_sample=True),
+            Task("downlink", self._downlink, rate_hz, 0.2 * period),
+            Task("calibration take", self._calibration_take, rate_hz, 0.4 * period),
+            Task("status", self._status, rate_hz, 0.2 * period),
+        ], backlog=self.queue.__len__, taken=lambda: self._took)
 
     @property
     def sample_t_s(self) -> float:
@@ -255,9 +322,10 @@ class FlightSoftware:
 
     def _register_params(self, sample_rate_hz: float) -> None:
         def set_tlm_hz(hz: float) -> None:
-            self._tlm_every = max(1, int(np.ceil(sample_rate_hz / hz)))
+            self._max_sample_tlm_hz = hz
+            self._tlm_every = max(1, int(np.ceil(self.sample_rate_hz / hz)))
 
-        self.params.register("TLM_SAMPLE_HZ", lambda: sample_rate_hz / self._tlm_every, set_tlm_hz, 0.01, 1000.0)
+        self.params.register("TLM_SAMPLE_HZ", lambda: self.sample_rate_hz / self._tlm_every, set_tlm_hz, 0.01, 1000.0)
         rs = self.resender
         self.params.register("RESEND_BPS", lambda: rs.bytes_per_s, lambda v: setattr(rs, "bytes_per_s", v), 0.0, 1e6)
         store = self.tlm.store
@@ -283,53 +351,94 @@ class FlightSoftware:
             self.uplink.poll(now_s)
 
     def _sensor(self, now_s: float) -> None:
+        """The source's new sample, if any, into the queue (a full queue refuses it, counted)."""
         if self.kit_field is not None:
             self.kit_field.poll(now_s)
-        self.new_sample = self.source.update(now_s)
-        self.kit_skip = False
-        if self.new_sample:
+        self._taken_this_tick = 0
+        if self.source.update(now_s):
             self.samples += 1
-            self.latched.t_s = self.source.sample_time_s
-            self.latched.b_T[:] = self.source.b_body_T
+            self.queue.push(self.source.sample_time_s, self.source.b_body_T)
+
+    def _may_take(self) -> bool:
+        """Whether the pipeline takes a queued sample in this pass: when its measured cost fits the tick's
+        budget; the first of a tick also when the tick has done little so far (a sample costlier than the
+        budget is processed all the same, one a tick: the tick overruns, counted, and the sample rate's
+        choice has to act) or the queue is a quarter full. A sample waits when the tick is already busy
+        (the status task, a calibration solve, the OS's preemption) or in a catch-up pass without room."""
+        sched = self.scheduler
+        if sched.fits():
+            return True
+        return not self._taken_this_tick and (
+            sched.elapsed_s() <= FIRST_SAMPLE_BUSY * sched.period_s or len(self.queue) >= self.queue.capacity // 4)
+
+    def _latch(self, now_s: float) -> None:
+        """The oldest queued sample latched for this pass of the pipeline: kit field, gate."""
+        self.new_sample = self._took = False
+        self.kit_skip = False
+        if not self.queue.depth:
+            return
+        if not self._may_take():
+            self.queue.deferred += 1
+            return
+        self._took = self.new_sample = True
+        self._taken_this_tick += 1
+        self.latched.t_s = self.queue.pop_into(self.latched.b_T)
+        if self.kit_field is not None:
+            kit_T, self.kit_skip = self.kit_field.field_at(self.sample_t_s)
+            self.kit_T[:] = kit_T
+            if self.kit_skip:  # a shutter or a magnet moves: sent and stored, neither judged nor used
+                self.kit_skipped += 1
+                self._kit_skips_in_gap += 1
+                return
+        # an implausible sample (saturated, stuck, spike) is neither estimated on nor sent; the host's
+        # magnetism moves the field the chip sees with the attitude: the gate judges the calibrated
+        # sample and allows for what the calibration may have left (all of it before there is one)
+        if self.calibration.version != self._gate_calibration:  # the reference in the new calibration
+            self._gate_calibration = self.calibration.version
+            self.gate.rebase(self.calibration.for_gate(self.raw_b_T - self._raw_kit_T)[0])
+        judged, self.gate.host_bound_T = self.calibration.for_gate(self.sample_b_T - self.kit_T)
+        self.new_sample = self.gate.check(self.sample_t_s, self.sample_b_T, judged)
+        if self.new_sample:
+            # samples skipped while the kit moved are no reason to restart (the filter propagates
+            # across them; the formulas' estimates across them are flagged DATA_GAP)
+            self._refused_gap = self.gate.gap_samples - self._kit_skips_in_gap
+            self._kit_skips_in_gap = 0
             if self.kit_field is not None:
-                kit_T, self.kit_skip = self.kit_field.field_at(self.sample_t_s)
-                self.kit_T[:] = kit_T
-                if self.kit_skip:  # a shutter or a magnet moves: sent and stored, neither judged nor used
-                    self.kit_skipped += 1
-                    self._kit_skips_in_gap += 1
-                    return
-            # an implausible sample (saturated, stuck, spike) is neither estimated on nor sent; the host's
-            # magnetism moves the field the chip sees with the attitude: the gate judges the calibrated
-            # sample and allows for what the calibration may have left (all of it before there is one)
-            if self.calibration.version != self._gate_calibration:  # the reference in the new calibration
-                self._gate_calibration = self.calibration.version
-                self.gate.rebase(self.calibration.for_gate(self.raw_b_T - self._raw_kit_T)[0])
-            judged, self.gate.host_bound_T = self.calibration.for_gate(self.sample_b_T - self.kit_T)
-            self.new_sample = self.gate.check(self.sample_t_s, self.sample_b_T, judged)
-            if self.new_sample:
-                # samples skipped while the kit moved are no reason to restart (the filter propagates
-                # across them; the formulas' estimates across them are flagged DATA_GAP)
-                self._refused_gap = self.gate.gap_samples - self._kit_skips_in_gap
-                self._kit_skips_in_gap = 0
-                if self.kit_field is not None:
-                    version = self.kit_field.version
-                    self.kit_field.record(self.sample_t_s, self.sample_b_T)
-                    if self.kit_field.version != version:  # a new calibration: this sample and the gate's
-                        self.kit_T[:] = self.kit_field.model_T()  # reference re-expressed in it
-                        self.gate.rebase(self.calibration.for_gate(self.sample_b_T - self.kit_T)[0])
-            if self.new_sample and self._refused_gap > self.gate.reset_after_gap:
-                self.estimator_resets += 1
-                for est in self.estimators.values():  # history too old to difference against
-                    est.reset()
+                version = self.kit_field.version
+                self.kit_field.record(self.sample_t_s, self.sample_b_T)
+                if self.kit_field.version != version:  # a new calibration: this sample and the gate's
+                    self.kit_T[:] = self.kit_field.model_T()  # reference re-expressed in it
+                    self.gate.rebase(self.calibration.for_gate(self.sample_b_T - self.kit_T)[0])
+        if self.new_sample and self._refused_gap > self.gate.reset_after_gap:
+            self.estimator_resets += 1
+            for est in self.estimators.values():  # history too old to difference against
+                est.reset()
 
     def _calibrate(self, now_s: float) -> None:
         if self.new_sample:
             self.raw_b_T[:] = self.latched.b_T
             kit = self.kit_T if self.kit_field is not None else None
-            self.latched.b_T[:] = self.calibration.process(self.sample_t_s, self.raw_b_T, kit, self.kit_skip)
+            # the calibration's 1 Hz update (~0.3 ms) is held for `_calibration_take`, at the tick's end
+            self.latched.b_T[:] = self.calibration.process(self.sample_t_s, self.raw_b_T, kit, self.kit_skip,
+                                                           hold=True)
             if not self.kit_skip:
                 self._raw_kit_T[:] = self.kit_T
         self.calibration.telemetry(now_s, self.tlm)
+
+    def _calibration_take(self, now_s: float) -> None:
+        """The calibration's held sample taken in, a step a tick (`HostCalibration.take_step`: the field's |B|,
+        then the update), each in the first tick with room for a step's measured cost, or after
+        `TAKE_WAIT_S` whatever the tick."""
+        held = self.calibration.held
+        if held is None:
+            return
+        sched = self.scheduler
+        if not (sched.elapsed_s() + self._take_cost_s <= ROOM * sched.period_s or now_s - held[0] > TAKE_WAIT_S):
+            return
+        t0 = sched.elapsed_s()
+        self.calibration.take_step()
+        self._take_costs.append(sched.elapsed_s() - t0)
+        self._take_cost_s = sorted(self._take_costs)[len(self._take_costs) // 2]  # the median of the last few
 
     def _estimate(self, now_s: float) -> None:
         for name, est in self.estimators.items():
@@ -363,19 +472,27 @@ class FlightSoftware:
         self.services.tick(now_s)
         self._live_sample()
         self.resender.service(now_s, self.tlm.resend_sample)
+        if self._took:
+            for listener in self.sample_listeners:
+                listener()
 
     def _live_sample(self) -> None:
-        if not self.new_sample or (self.samples - 1) % self._tlm_every:
+        """A sample for the link (every `_tlm_every`-th): numbered and stored now, its frames (the sample, the
+        estimates, the attitude, SITL's truth) into the outbox with copies of what they carry, for
+        `_downlink` to send a frame a tick on a fast loop."""
+        if not self.new_sample or (self.queue.popped - 1) % self._tlm_every:
             return
         t = self.sample_t_s
         self.tlm_samples += 1
         flags = mavlink.DEBRIS_SAMPLE_FLAGS_KIT_MOVING if self.kit_skip else 0
-        kit = self.kit_T if self.kit_field is not None else None  # what _calibrate took out of raw_b_T
+        kit = self.kit_T.copy() if self.kit_field is not None else None  # what _calibrate took out of raw_b_T
         seq = self.sample_store.append(t, self.raw_b_T, flags, kit)
-        self.tlm.mag_sample(t, self.raw_b_T, seq, self.sample_store.run_id, flags, kit)
+        out = self.outbox
+        out.append((self.tlm.mag_sample, (t, self.raw_b_T.copy(), seq, self.sample_store.run_id, flags, kit)))
         for name, est in self.estimators.items():
             if self.new_estimate[name]:
-                self.tlm.rate_estimate(t, est.omega_radps, est.sigma_radps, METHODS[name], est.flags)
+                out.append((self.tlm.rate_estimate, (t, est.omega_radps.copy(), est.sigma_radps.copy(), METHODS[name],
+                                                     est.flags)))
         kf = self.estimators["kalman"]
         if self.new_estimate["kalman"] and hasattr(kf, "attitude") and t >= self._next_attitude_s:
             self._next_attitude_s = t + ATTITUDE_TLM_PERIOD_S * (1 - 1e-9)
@@ -383,14 +500,49 @@ class FlightSoftware:
             self.tlm.attitude(t, None if att is None else att[0], kf.omega_radps, None if att is None else att[1],
                               kf.sigma_radps, filter_id=FILTER_IDS[kf.name], flags=kf.flags, handovers=kf.handovers)
         if self.truth is not None:
-            tr = self.truth(t)
-            self.tlm.sim_state(t, tr.omega_radps, tr.q_body_to_eci, tr.b_body_T, tr.moment_Nm)
+            out.append((self._sim_state, (t,)))
+
+    def _sim_state(self, t_s: float) -> None:
+        tr = self.truth(t_s)
+        self.tlm.sim_state(t_s, tr.omega_radps, tr.q_body_to_eci, tr.b_body_T, tr.moment_Nm)
+
+    def _downlink(self, now_s: float) -> None:
+        """The outbox's frames: the oldest one (unless the tick has no room left for it and few wait), then more
+        while the tick's budget has room for the measured cost of one (so a sample's frames spread over the
+        next ticks of a fast loop; a slow one sends them all in the tick)."""
+        out, sched = self.outbox, self.scheduler
+        if out and len(out) <= OUTBOX_WAIT and sched.elapsed_s() + self._frame_cost_s > ROOM * sched.period_s:
+            return  # a busy tick: the frames wait for the next (a few at most)
+        while out:
+            t0 = sched.elapsed_s()
+            send, args = out.popleft()
+            send(*args)
+            cost = sched.elapsed_s() - t0
+            self._frame_cost_s = cost if not self._frame_cost_s else self._frame_cost_s + (
+                min(cost, 2.0 * self._frame_cost_s) - self._frame_cost_s) / 32.0
+            if not sched.fits(self._frame_cost_s):
+                break
+
+    def _status(self, now_s: float) -> None:
+        """Once a second, the status messages: in one tick on a slow loop, one step a tick on a fast one (each
+        step well under a 1 kHz period, where the whole set would take most of it)."""
+        if self.scheduler.stats.ticks % self._status_divider == self._status_phase:
+            self._status_step = 0
+        steps = self._status_steps
+        end = min(len(steps), self._status_step + self._status_per_tick)
+        while self._status_step < end:
+            steps[self._status_step](now_s)
+            self._status_step += 1
+
+    def _status_health(self, now_s: float) -> None:
+        self.tlm.heartbeat()
+        self._sys_status(self._link_counters())
 
     def _sys_status(self, link: dict, mean_us: float | None = None) -> None:
         drv = self.driver
         healthy = (drv is None or int(drv.state) == mavlink.DEBRIS_MAG_STATE_MEASURE) and not self.gate.rejecting
         if mean_us is None:
-            mean_us = self.scheduler.stats.summary_us()[0]
+            mean_us = self.scheduler.stats.window_mean_s() * 1e6
         self.tlm.sys_status(mag_healthy=healthy,
                             load_permille=int(mean_us * 1e-3 / self.scheduler.period_s),
                             errors_comm=(drv.bus_errors if drv else 0) + self.tlm.send_errors,
@@ -398,19 +550,58 @@ class FlightSoftware:
                                           sum(v for k, v in link.items() if k.startswith("rejected_")),
                                           self.tlm.store.dropped if self.tlm.store is not None else 0))
 
-    def _status(self, now_s: float) -> None:
+    def _status_link(self, now_s: float) -> None:
+        self.tlm.link_status(now_s, **self._link_counters())
+
+    def _status_loop(self, now_s: float) -> None:
         st = self.scheduler.stats
         mean_us, p50_us, p99_us, max_us = st.summary_us()
-        drv = self.driver
-        link = self._link_counters()
-        self.tlm.heartbeat()
-        self._sys_status(link, mean_us)
-        self.tlm.link_status(now_s, **link)
+        q = self.queue
         self.tlm.loop_status(now_s, ticks=st.ticks, overruns=st.overruns, task_overruns=st.task_overruns,
                              period_s=self.scheduler.period_s, mean_us=mean_us, p50_us=p50_us, p99_us=p99_us,
-                             max_us=max_us)
-        if drv is not None:
-            self.tlm.mag_status(now_s, drv)
+                             max_us=max_us, sample_rate_hz=self.sample_rate_hz,
+                             configured_sample_rate_hz=self.configured_sample_rate_hz,
+                             sample_cost_us=st.window_sample_work_s / max(1, st.window_samples) * 1e6,
+                             samples_taken=q.popped, samples_dropped=q.dropped, queue_depth=q.depth,
+                             queue_max_depth=q.max_depth)
+        st.reset_window()
+
+    def _status_rate(self, now_s: float) -> None:
+        """The sample rate from the loop's budget over the last second (`fsw.sample_rate`): lowered, with a
+        STATUSTEXT, when the rate in force does not fit or the queue falls behind."""
+        st = self.scheduler.stats
+        if not self.adapt_sample_rate or st.window_ticks() < self._status_divider // 2 or not st.window_samples:
+            return
+        n = st.window_ticks()
+        median_s = percentile_pair(st.window[:n], 50.0, 50.0)[0]
+        budget = sample_rate.Budget.from_window(self.scheduler.rate_hz, median_s, st.window_samples / n,
+                                                st.sample_cost_s)
+        q = self.queue
+        behind = q.dropped > self._dropped_seen or q.depth > q.capacity // 2
+        self._dropped_seen = q.dropped
+        overruns, self._overruns_seen = st.overruns - self._overruns_seen, st.overruns
+        # overrunning ticks cost samples in the chip only when a sample comes every tick or two
+        late = overruns > sample_rate.OVERRUN_SHARE * n and 2 * self.sample_rate_hz > self.scheduler.rate_hz
+        over = budget.work_share(self.sample_rate_hz) > sample_rate.WORK_SHARE or late
+        self._over_windows = self._over_windows + 1 if over else 0
+        if not behind and self._over_windows < 2:
+            return
+        rate = sample_rate.choose(budget, self.sample_rate_hz, self.source.available_rates_hz(self.sample_rate_hz),
+                                  behind=behind or over)
+        if rate >= self.sample_rate_hz:
+            return
+        was = self.sample_rate_hz
+        self.sample_rate_hz = self.source.set_sample_rate(rate)
+        self.gate.sample_period_s = 1.0 / self.sample_rate_hz
+        self._tlm_every = max(1, int(np.ceil(self.sample_rate_hz / self._max_sample_tlm_hz)))
+        self.rate_changes.append((now_s, was, self.sample_rate_hz))
+        self.tlm.statustext(f"mag rate {was:g}->{self.sample_rate_hz:g} Hz: load {budget.work_share(was):.2f}",
+                            mavlink.MAV_SEVERITY_WARNING)
+
+    def _status_mag(self, now_s: float) -> None:
+        if self.driver is not None:
+            self.tlm.mag_status(now_s, self.driver)
+
+    def _status_store(self, now_s: float) -> None:
         self.tlm.sample_store_status(now_s, self.sample_store, self.resender)
         self.sample_store.sync()
-        st.reset_window()

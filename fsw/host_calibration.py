@@ -23,6 +23,7 @@ import numpy as np
 
 from .estimation import field_motion as fm
 from .estimation import magcal as mc
+from .percentiles import percentile_pair
 from .telemetry.telemetry import Telemetry
 
 
@@ -46,6 +47,7 @@ def orbit_period_s(field) -> float | None:
         if alt is not None:
             return 2.0 * math.pi * math.sqrt((fm.A_WGS84_M + alt) ** 3 / fm.MU_EARTH_M3S2)
     return None
+
 
 
 class FieldProvider(Protocol):
@@ -81,6 +83,10 @@ class HostCalibration:
         self.applied = 0  # samples the last good calibration was applied to
         self.skipped = 0  # samples not taken in: the kit's field at the sensor unknown (process's skip)
         self._t_taken: float | None = None
+        #: a sample due to be taken in, held for `take_held` (process's `hold`): (t, b) or None
+        self.held: tuple[float, np.ndarray] | None = None
+        self._held_mag_T: float | None = None
+        self._held_b_T = np.zeros(3)
         # |B| of the latest accepted samples (raw), for the host's field before a calibration
         self._mags = np.zeros(SPREAD_SAMPLES)
         self._n_mags = 0
@@ -128,15 +134,17 @@ class HostCalibration:
         self._mags[self._n_mags % SPREAD_SAMPLES] = math.sqrt(float(np.dot(b_meas_T, b_meas_T)))
         self._n_mags += 1
         if self._n_mags >= SPREAD_MIN_SAMPLES and self._n_mags % SPREAD_EVERY == 0:
-            lo, hi = np.percentile(self._mags[:min(self._n_mags, SPREAD_SAMPLES)], [2.0, 98.0])
-            self._spread_T = float(hi - lo)  # twice half the spread
+            lo, hi = percentile_pair(self._mags[:min(self._n_mags, SPREAD_SAMPLES)], 2.0, 98.0)
+            self._spread_T = hi - lo  # twice half the spread
 
     def process(self, t_s: float, b_meas_T: np.ndarray, extra_T: np.ndarray | None = None,
-                skip: bool = False) -> np.ndarray:
+                skip: bool = False, hold: bool = False) -> np.ndarray:
         """The sample at `t_s` taken into the calibration (when due) and returned corrected. `extra_T`: a
         field at the sensor known on board, taken out first (the de-orbit kit's magnets,
         `fsw.deorbit.kit_field`); `skip`: that field is not known now (a shutter moves): the sample is
-        not taken into the calibration (counted in `skipped`), only corrected."""
+        not taken into the calibration (counted in `skipped`), only corrected. `hold`: a sample due is
+        copied into `held` instead (the field along the orbit and the calibration's update, about 0.3 ms,
+        left to :meth:`take_held` in a tick with room: the flight loop's choice)."""
         if extra_T is not None:
             b_meas_T = b_meas_T - extra_T
         if skip:
@@ -154,19 +162,53 @@ class HostCalibration:
             self.cal.drift_period_s = orbit_period_s(self.field) or self.cal.drift_period_s
         if self._t_taken is None or t_s - self._t_taken >= self.sample_every_s * (1 - 1e-9):
             self._t_taken = t_s
-            try:
-                mag_T = float(np.linalg.norm(self.field.b_eci_T(t_s)))
-            except (ValueError, ArithmeticError):
-                self.field_errors += 1
+            if hold:
+                if self.held is not None:  # the one held before has waited its turn: taken in now
+                    self.take_held()
+                self._held_b_T[:] = b_meas_T
+                self.held, self._held_mag_T = (t_s, self._held_b_T), None
             else:
-                if math.isfinite(mag_T) and mag_T > 0:
-                    self.cal.update(b_meas_T, mag_T, t_s)
-                else:
-                    self.field_errors += 1
+                self._take(t_s, b_meas_T)
         if not self.cal.good:
             return b_meas_T
         self.applied += 1
         return self.cal.apply(b_meas_T, t_s)
+
+    def take_held(self) -> None:
+        """Take the held sample into the calibration (see :meth:`process`'s `hold`)."""
+        while self.held is not None:
+            self.take_step()
+
+    def take_step(self) -> None:
+        """The held sample's next step into the calibration, each about half of the work: |B| of the field
+        along the orbit at its time, then the calibration's update."""
+        if self.held is None:
+            return
+        t_s, b_meas_T = self.held
+        if self._held_mag_T is None and self.field is not None:
+            self._held_mag_T = self._model_mag_T(t_s)
+            if self._held_mag_T is not None:
+                return
+        if self._held_mag_T is not None:
+            self.cal.update(b_meas_T, self._held_mag_T, t_s)
+        self.held = self._held_mag_T = None
+
+    def _model_mag_T(self, t_s: float) -> float | None:
+        """|B| of the field along the orbit at `t_s`; None (counted in `field_errors`) when it has none."""
+        try:
+            mag_T = float(np.linalg.norm(self.field.b_eci_T(t_s)))
+        except (ValueError, ArithmeticError):
+            self.field_errors += 1
+            return None
+        if math.isfinite(mag_T) and mag_T > 0:
+            return mag_T
+        self.field_errors += 1
+        return None
+
+    def _take(self, t_s: float, b_meas_T: np.ndarray) -> None:
+        mag_T = self._model_mag_T(t_s)
+        if mag_T is not None:
+            self.cal.update(b_meas_T, mag_T, t_s)
 
     def telemetry(self, now_s: float, tlm: Telemetry) -> None:
         """DEBRIS_MAGCAL every `tlm_every_s`."""

@@ -156,6 +156,17 @@ def status_line(t_s: float, fsw: FlightSoftware) -> str:
     return line + f"  w_est=[{w[0]:7.2f} {w[1]:7.2f} {w[2]:7.2f}] +-[{sg[0]:5.2f} {sg[1]:5.2f} {sg[2]:5.2f}] dps"
 
 
+def sample_line(fsw: FlightSoftware) -> str:
+    """The samples' way through the loop: taken by the pipeline, the queue, the rate in force and its changes."""
+    q = fsw.queue
+    line = (f"samples: {fsw.samples} received, {q.popped} processed, {q.depth} waiting (queue at most {q.max_depth}"
+            f" of {q.capacity}, {q.deferred} deferrals, {q.dropped} refused: queue full); sample rate "
+            f"{fsw.sample_rate_hz:g} Hz")
+    for t, was, to in fsw.rate_changes:
+        line += f"; lowered {was:g} -> {to:g} Hz at t={t:.1f} s (the loop's work per sample did not fit)"
+    return line
+
+
 def summary(fsw: FlightSoftware, res: LoopResult, extra: list[str] = ()) -> str:
     """The end-of-run report; `extra` lines (SITL's errors against truth) follow the magnetometer's."""
     tlm = fsw.tlm
@@ -165,7 +176,7 @@ def summary(fsw: FlightSoftware, res: LoopResult, extra: list[str] = ()) -> str:
     lines = [f"--- summary: {res.t_s:.1f} s of loop time in {res.wall_s:.1f} s wall "
              f"({res.t_s / max(res.wall_s, 1e-9):.1f}x real time)",
              f"magnetometer: {fsw.samples} samples, {drv.bus_errors if drv else 0} bus errors, "
-             f"{drv.timeouts if drv else 0} timeouts", *extra]
+             f"{drv.timeouts if drv else 0} timeouts", sample_line(fsw), *extra]
     lines.append(f"loop: {st.ticks} ticks at {fsw.scheduler.rate_hz:g} Hz; step time mean {work.mean_us():.0f} us, "
                  f"p50 {work.percentile_us(50):.0f} us, p99 {work.percentile_us(99):.0f} us, "
                  f"max {work.max_s * 1e6:.0f} us; overruns {st.overruns}, task overruns {st.task_overruns}")

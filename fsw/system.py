@@ -111,7 +111,7 @@ def build_flight(cfg: RunConfig, source: FieldSource, *, sigma_b_T: float, sampl
     fsw = FlightSoftware(source, tlm, rate_hz=cfg.rate_hz, sigma_b_T=sigma_b_T, truth=truth,
                          max_sample_tlm_hz=cfg.max_sample_tlm_hz, sample_rate_hz=sample_rate_hz, uplink=uplink,
                          key=key, apps=(timeorbit, *apps), rate_filter=rate_filter, sample_store=store,
-                         field=field, field_provider=timeorbit)
+                         field=field, field_provider=timeorbit, adapt_sample_rate=cfg.adapt_sample_rate)
     if flown is not None:  # the orbit filters fly on the calibration's field, once it calibrates the samples
         flown.provider = CalibratedField(fsw.calibration.provider, fsw.calibration)
     notes = [f"mission key {key_fingerprint(key)}: commands must be signed, telemetry is signed" if key else

@@ -107,14 +107,15 @@ def replay(path: str, cfg: RunConfig, *, rates_out: str | None = None, out: Text
           f"(virtual clock), link {cfg.link}\n" + "\n".join(flight.notes), file=out, flush=True)
     rates = {}  # sample time -> (ω, σ) of the Kalman filter
 
-    def after(t: float) -> None:
+    def keep() -> None:  # after each sample's pass (a tick may take more than one)
         kf = fsw.estimators["kalman"]
         if fsw.new_estimate["kalman"] and not kf.flags & kf.NO_ESTIMATE:
             rates[fsw.sample_t_s] = (kf.omega_radps.copy(), kf.sigma_radps.copy())
 
+    fsw.sample_listeners.append(keep)
     try:
-        res = run_loop(fsw, duration_s=cfg.duration_s, speed=0.0, lockstep=True, t0_s=source.start_s, after_tick=after,
-                       done=lambda: source.done and not fsw.new_sample,
+        res = run_loop(fsw, duration_s=cfg.duration_s, speed=0.0, lockstep=True, t0_s=source.start_s,
+                       done=lambda: source.done and not fsw.new_sample and not fsw.queue.depth,
                        status=None if cfg.quiet else (lambda t: status_line(t, fsw)), out=out)
     finally:
         flight.close()

@@ -137,6 +137,8 @@ class EmulatedMmc5983ma:
         self.transfers = 0
         self.write_only_reads = 0
         self.measurements = 0
+        #: continuous-mode outputs overwritten by the next before the driver read them: samples lost in the chip
+        self.overwritten = 0
         self._power_on(ready_at=-math.inf)
 
     # --- RegisterBus ----------------------------------------------------------------------------
@@ -171,6 +173,14 @@ class EmulatedMmc5983ma:
             self._ctrl[3] = value
 
     # --- public helpers -------------------------------------------------------------------------
+
+    def settle(self) -> None:
+        """Complete the measurements that have finished by now (the simulation clock), as the chip does on
+        its own: SITL calls this when it advances the world, so that the chip's physics (the truth at the
+        measurement's time, its noise) is the simulator's work, not the flight loop's register access."""
+        now = self._clock()
+        if now >= self._ready_at:
+            self._advance(now)
 
     def power_cycle(self) -> None:
         """Power the chip off and on: power-on state, unresponsive for the power-on time."""
@@ -283,6 +293,7 @@ class EmulatedMmc5983ma:
                     if -(-self._cm_done // every) * every <= n - 1:
                         self._polarity = SET
                 t_start = self._cm_start + (n - 1) * self._cm_period
+                self.overwritten += n - self._cm_done - 1  # outputs that came and went between two accesses
                 self._cm_done = n
                 self._complete_field(t_start + 0.5 * self._cm_tmeas, self._polarity)
 
@@ -290,6 +301,8 @@ class EmulatedMmc5983ma:
         if self.fault_no_data_ready:
             return
         self.measurements += 1
+        if self._cm_start is not None and self._status & Status.MEAS_M_DONE:
+            self.overwritten += 1  # continuous mode: the previous output was never read (and cleared)
         if not self.fault_stuck:
             sigma = math.hypot(self.bandwidth.noise_rms_T, self.extra_noise_T)
             b = polarity * (np.asarray(self._field_T(t_mid), dtype=float) + self.fault_field_T) + self.bridge_offset_T

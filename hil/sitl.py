@@ -27,9 +27,11 @@ if __name__ == "__main__":
 import argparse  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
+import time  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
 from datetime import timezone  # noqa: E402
 from pathlib import Path  # noqa: E402
+from types import SimpleNamespace  # noqa: E402
 from typing import TextIO  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -66,6 +68,9 @@ class SitlConfig:
     ident_inertia_guess_kgm2: float = 100.0
     #: the simulator's integration step (default: 20 ms, or the loop period if shorter)
     max_step_s: float | None = None
+    #: what the loop's step time is measured on: "cpu" (this thread's CPU time: the flight software's own
+    #: work, whatever else runs on the machine) or "wall" (as on target, where nothing else runs)
+    work_clock: str = "cpu"
 
 
 @dataclass
@@ -93,6 +98,9 @@ class Sitl:
     def advance(self, box_t_s: float) -> None:
         """The simulator advanced to the true time at which the box's clock reads `box_t_s`."""
         self.sim.advance_to(self.sim.clock.true_s(box_t_s))
+        settle = getattr(self.sim.sensor, "settle", None)
+        if settle is not None:  # the chip's measurements done by now: the world's work, outside the tick
+            settle()
 
     def truth(self, box_t_s: float | None = None):
         """The simulator's truth at the box's time `box_t_s` (default: now)."""
@@ -205,6 +213,8 @@ def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, 
     flight = build_flight(r, driver, sigma_b_T=sigma_b, sample_rate_hz=rate_hz, truth=box_truth(sim), apps=onboard,
                           link=link, uplink=uplink, key=key, clock=clock, run_id=run_id, field=field,
                           timeorbit=timeorbit)
+    if cfg.work_clock == "cpu":  # a lockstep world loses nothing to the OS's preemption: the loop's own work
+        flight.fsw.scheduler.work_timer = time.thread_time
     return Sitl(cfg, scn, sim, driver, flight, sigma_b, warning)
 
 
@@ -214,6 +224,22 @@ def perpendicular(w: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The part of `w` perpendicular to `b`."""
     bh = b / np.linalg.norm(b)
     return w - np.dot(w, bh) * bh
+
+
+@dataclass
+class Taken:
+    """What scoring needs of one sample's pass through the pipeline (copied: the next pass overwrites)."""
+
+    sample_t_s: float
+    estimators: dict
+    new_estimate: dict
+
+    @classmethod
+    def of(cls, fsw: FlightSoftware) -> "Taken":
+        est = {name: SimpleNamespace(omega_radps=e.omega_radps.copy(), flags=e.flags,
+                                     NO_ESTIMATE=getattr(e, "NO_ESTIMATE", 0), name=getattr(e, "name", ""))
+               for name, e in fsw.estimators.items()}
+        return cls(fsw.sample_t_s, est, dict(fsw.new_estimate))
 
 
 @dataclass
@@ -311,10 +337,18 @@ def run(cfg: SitlConfig, out: TextIO = sys.stdout, **build_options) -> SitlRun:
     s = build(cfg, **build_options)
     print(s.header(), file=out, flush=True)
     fsw, truth, score = s.fsw, s.truth, Score()
+    taken = []  # each sample's estimates as the pipeline left them (a tick may take more than one)
 
-    def after(t: float) -> None:
+    def keep() -> None:
         if fsw.new_sample:
-            score.add(fsw, truth(fsw.sample_t_s))
+            taken.append(Taken.of(fsw))
+
+    def after(t: float) -> None:  # scored after the tick, outside the loop's measured work
+        for x in taken:
+            score.add(x, truth(x.sample_t_s))
+        taken.clear()
+
+    fsw.sample_listeners.append(keep)
 
     try:
         res = run_loop(fsw, duration_s=cfg.run.duration_s, speed=cfg.run.speed, lockstep=True, t0_s=s.t0_s,
@@ -336,6 +370,10 @@ def add_sitl_options(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--speed", type=finite_float(0), default=1.0, metavar="X",
                     help="pacing: 1 = real time (default), 10 = ten times faster, 0 = as fast as possible")
     ap.add_argument("--seed", type=int_range(0), default=0, help="random seed of the simulator (default 0)")
+    ap.add_argument("--work-clock", choices=("cpu", "wall"), default="cpu",
+                    help="the loop's step time (overruns, the sample rate's budget) on this thread's CPU time "
+                         "(default: the flight software's own work, whatever else the machine runs) or on the "
+                         "wall clock (as on target)")
     ap.add_argument("--ident-inertia-guess", type=finite_float(0, min_exclusive=True), default=100.0,
                     metavar="KGM2",
                     help="identification experiment: starting tensor = this × identity (default 100 kg.m^2)")
@@ -355,7 +393,7 @@ def parse_args(argv=None) -> SitlConfig:
     except ValueError as e:
         ap.error(str(e))
     return SitlConfig(run=run_config(args), scenario=args.scenario, seed=args.seed,
-                      ident_inertia_guess_kgm2=args.ident_inertia_guess)
+                      ident_inertia_guess_kgm2=args.ident_inertia_guess, work_clock=args.work_clock)
 
 
 def main(argv=None) -> int:

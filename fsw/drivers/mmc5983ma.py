@@ -175,6 +175,7 @@ class Mmc5983ma:
         self._t_poll = 0.0
         self._t_data = 0.0
         self._new_sample = False
+        self._rate_request: tuple[ContinuousFrequency, float] | None = None
         self.state = MagState.PROBE
         self._phase = _Phase.START
 
@@ -182,6 +183,41 @@ class Mmc5983ma:
     def shadow(self) -> bytes:
         """Shadow copies of Internal Control 0..3 (Internal Control 0 without self-clearing bits)."""
         return bytes(self._shadow)
+
+    def sample_rate_hz(self) -> float:
+        """The output rate in force (a requested change takes effect at the next sample)."""
+        return 1.0 / self.sample_period_s
+
+    def available_rates_hz(self, up_to_hz: float) -> list[float]:
+        """The output rates this bandwidth allows at or below `up_to_hz`, highest first: `up_to_hz` itself
+        (continuous mode if the chip has that rate, else single measurements) and the continuous-mode
+        rates below it whose measurement fits [DS p13-16]."""
+        rates = {float(f.rate_hz) for f in ContinuousFrequency if f.fits(self.bandwidth) and f.rate_hz <= up_to_hz}
+        if 1.0 / up_to_hz >= self._t_meas:
+            rates.add(float(up_to_hz))
+        return sorted(rates, reverse=True)
+
+    def set_sample_rate(self, rate_hz: float) -> float:
+        """Change the output rate, keeping the bandwidth (and so the noise the estimators assume): continuous
+        mode at `rate_hz` if the chip has that rate and its measurement fits, else single measurements every
+        1/`rate_hz` s. In MEASURE the change goes through a SET/RESET calibration right after the next sample
+        (continuous mode stopped first, the grid restarted from it); in any other state it takes effect when
+        MEASURE is entered. Returns the rate; ValueError for one the bandwidth cannot deliver."""
+        cm = next((f for f in ContinuousFrequency if f.rate_hz == rate_hz and f.fits(self.bandwidth)),
+                  ContinuousFrequency.OFF)
+        if cm is ContinuousFrequency.OFF and not (rate_hz > 0 and 1.0 / rate_hz >= self._t_meas):
+            raise ValueError(f"sample rate {rate_hz!r} Hz: {self.bandwidth.name}'s measurement takes {self._t_meas} s")
+        request = (cm, 1.0 / rate_hz)
+        if self.state is MagState.MEASURE:
+            self._rate_request = request
+        else:
+            self._apply_rate(request)
+        return float(rate_hz)
+
+    def _apply_rate(self, request: tuple[ContinuousFrequency, float]) -> None:
+        self.continuous, self.sample_period_s = request
+        self._cm_timeout_s = 4.0 * max(self.sample_period_s, self._t_meas) + TIMEOUT_MARGIN_S
+        self._rate_request = None
 
     # --- public step ----------------------------------------------------------------------------
 
@@ -337,6 +373,7 @@ class Mmc5983ma:
             if self._calibration_due():
                 self._enter(MagState.CALIBRATE, now)
                 self._cal_index = 0
+                self._take_rate_request()
             return True
         if now + _EPS_S < self._t_grid:
             return False
@@ -370,6 +407,7 @@ class Mmc5983ma:
                 self._write_ctrl(2, 0)  # stop, let a running measurement end, then calibrate
                 self._enter(MagState.CALIBRATE, now + self._t_meas)
                 self._cal_index = 0
+                self._take_rate_request()
             return False
         status = self._read(Register.STATUS, 1)[0]
         t_previous_poll, self._t_poll = self._t_poll, now
@@ -439,4 +477,9 @@ class Mmc5983ma:
         self._backoff_s = BACKOFF_INITIAL_S
 
     def _calibration_due(self) -> bool:
-        return 0 < self.calibration_interval <= self._samples_since_cal
+        return self._rate_request is not None or 0 < self.calibration_interval <= self._samples_since_cal
+
+    def _take_rate_request(self) -> None:
+        """A requested rate comes into force as the calibration starts (its end sets up the new mode and grid)."""
+        if self._rate_request is not None:
+            self._apply_rate(self._rate_request)

@@ -6960,22 +6960,22 @@ class MAVLink_debris_loop_status_message(MAVLink_message):
 
     id = MAVLINK_MSG_ID_DEBRIS_LOOP_STATUS
     msgname = "DEBRIS_LOOP_STATUS"
-    fieldnames = ["time_usec", "ticks", "overruns", "task_overruns", "period_us", "cycle_mean_us", "cycle_p50_us", "cycle_p99_us", "cycle_max_us"]
-    ordered_fieldnames = ["time_usec", "ticks", "overruns", "task_overruns", "period_us", "cycle_mean_us", "cycle_p50_us", "cycle_p99_us", "cycle_max_us"]
-    fieldtypes = ["uint64_t", "uint32_t", "uint32_t", "uint32_t", "float", "float", "float", "float", "float"]
+    fieldnames = ["time_usec", "ticks", "overruns", "task_overruns", "period_us", "cycle_mean_us", "cycle_p50_us", "cycle_p99_us", "cycle_max_us", "sample_rate", "configured_sample_rate", "sample_cost_us", "samples_taken", "samples_dropped", "queue_depth", "queue_max_depth"]
+    ordered_fieldnames = ["time_usec", "ticks", "overruns", "task_overruns", "period_us", "cycle_mean_us", "cycle_p50_us", "cycle_p99_us", "cycle_max_us", "sample_rate", "configured_sample_rate", "sample_cost_us", "samples_taken", "samples_dropped", "queue_depth", "queue_max_depth"]
+    fieldtypes = ["uint64_t", "uint32_t", "uint32_t", "uint32_t", "float", "float", "float", "float", "float", "float", "float", "float", "uint32_t", "uint32_t", "uint16_t", "uint16_t"]
     fielddisplays_by_name: Dict[str, str] = {}
     fieldenums_by_name: Dict[str, str] = {}
-    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "period_us": "us", "cycle_mean_us": "us", "cycle_p50_us": "us", "cycle_p99_us": "us", "cycle_max_us": "us"}
-    native_format = bytearray(b"<QIIIfffff")
-    orders = [0, 1, 2, 3, 4, 5, 6, 7, 8]
-    lengths = [1, 1, 1, 1, 1, 1, 1, 1, 1]
-    array_lengths = [0, 0, 0, 0, 0, 0, 0, 0, 0]
+    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "period_us": "us", "cycle_mean_us": "us", "cycle_p50_us": "us", "cycle_p99_us": "us", "cycle_max_us": "us", "sample_rate": "Hz", "configured_sample_rate": "Hz", "sample_cost_us": "us"}
+    native_format = bytearray(b"<QIIIffffffffIIHH")
+    orders = [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15]
+    lengths = [1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1]
+    array_lengths = [0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0]
     crc_extra = 161
-    unpacker = struct.Struct("<QIIIfffff")
+    unpacker = struct.Struct("<QIIIffffffffIIHH")
     instance_field = None
     instance_offset = -1
 
-    def __init__(self, time_usec: int, ticks: int, overruns: int, task_overruns: int, period_us: float, cycle_mean_us: float, cycle_p50_us: float, cycle_p99_us: float, cycle_max_us: float):
+    def __init__(self, time_usec: int, ticks: int, overruns: int, task_overruns: int, period_us: float, cycle_mean_us: float, cycle_p50_us: float, cycle_p99_us: float, cycle_max_us: float, sample_rate: float = 0, configured_sample_rate: float = 0, sample_cost_us: float = 0, samples_taken: int = 0, samples_dropped: int = 0, queue_depth: int = 0, queue_max_depth: int = 0):
         MAVLink_message.__init__(self, MAVLink_debris_loop_status_message.id, MAVLink_debris_loop_status_message.msgname)
         self._fieldnames = MAVLink_debris_loop_status_message.fieldnames
         self._instance_field = MAVLink_debris_loop_status_message.instance_field
@@ -6989,9 +6989,16 @@ class MAVLink_debris_loop_status_message(MAVLink_message):
         self.cycle_p50_us = cycle_p50_us
         self.cycle_p99_us = cycle_p99_us
         self.cycle_max_us = cycle_max_us
+        self.sample_rate = sample_rate
+        self.configured_sample_rate = configured_sample_rate
+        self.sample_cost_us = sample_cost_us
+        self.samples_taken = samples_taken
+        self.samples_dropped = samples_dropped
+        self.queue_depth = queue_depth
+        self.queue_max_depth = queue_max_depth
 
     def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
-        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.ticks, self.overruns, self.task_overruns, self.period_us, self.cycle_mean_us, self.cycle_p50_us, self.cycle_p99_us, self.cycle_max_us), force_mavlink1=force_mavlink1)
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.ticks, self.overruns, self.task_overruns, self.period_us, self.cycle_mean_us, self.cycle_p50_us, self.cycle_p99_us, self.cycle_max_us, self.sample_rate, self.configured_sample_rate, self.sample_cost_us, self.samples_taken, self.samples_dropped, self.queue_depth, self.queue_max_depth), force_mavlink1=force_mavlink1)
 
 
 # Define name on the class for backwards compatibility (it is now msgname).
@@ -18358,7 +18365,7 @@ class MAVLink(object):
         """
         self.send(self.debris_sim_state_encode(time_usec, wx, wy, wz, q, bx, by, bz, mx, my, mz), force_mavlink1=force_mavlink1)
 
-    def debris_loop_status_encode(self, time_usec: int, ticks: int, overruns: int, task_overruns: int, period_us: float, cycle_mean_us: float, cycle_p50_us: float, cycle_p99_us: float, cycle_max_us: float) -> MAVLink_debris_loop_status_message:
+    def debris_loop_status_encode(self, time_usec: int, ticks: int, overruns: int, task_overruns: int, period_us: float, cycle_mean_us: float, cycle_p50_us: float, cycle_p99_us: float, cycle_max_us: float, sample_rate: float = 0, configured_sample_rate: float = 0, sample_cost_us: float = 0, samples_taken: int = 0, samples_dropped: int = 0, queue_depth: int = 0, queue_max_depth: int = 0) -> MAVLink_debris_loop_status_message:
         """
         Timing of the fixed-step flight loop over the last reporting interval.
 
@@ -18371,11 +18378,18 @@ class MAVLink(object):
         cycle_p50_us              : Median work time per tick over the interval. [us] (type:float)
         cycle_p99_us              : 99th percentile of work time per tick over the interval. [us] (type:float)
         cycle_max_us              : Largest work time per tick over the interval. [us] (type:float)
+        sample_rate               : The magnetometer's output rate in force: the configured one, or lower when the box chose a rate its loop can hold (a STATUSTEXT says when). [Hz] (type:float)
+        configured_sample_rate        : The magnetometer's output rate configured at start. [Hz] (type:float)
+        sample_cost_us            : The sample pipeline's work per sample (gate, calibration, estimators, applications, telemetry), mean over the interval. [us] (type:float)
+        samples_taken             : Samples the pipeline has taken from the sample queue since start (each reaches the gate and, accepted, the estimators). (type:uint32_t)
+        samples_dropped           : Samples the sample queue refused since start because it was full. (type:uint32_t)
+        queue_depth               : Samples waiting in the sample queue now. (type:uint16_t)
+        queue_max_depth           : Deepest the sample queue has been since start. (type:uint16_t)
 
         """
-        return MAVLink_debris_loop_status_message(time_usec, ticks, overruns, task_overruns, period_us, cycle_mean_us, cycle_p50_us, cycle_p99_us, cycle_max_us)
+        return MAVLink_debris_loop_status_message(time_usec, ticks, overruns, task_overruns, period_us, cycle_mean_us, cycle_p50_us, cycle_p99_us, cycle_max_us, sample_rate, configured_sample_rate, sample_cost_us, samples_taken, samples_dropped, queue_depth, queue_max_depth)
 
-    def debris_loop_status_send(self, time_usec: int, ticks: int, overruns: int, task_overruns: int, period_us: float, cycle_mean_us: float, cycle_p50_us: float, cycle_p99_us: float, cycle_max_us: float, force_mavlink1: bool = False) -> None:
+    def debris_loop_status_send(self, time_usec: int, ticks: int, overruns: int, task_overruns: int, period_us: float, cycle_mean_us: float, cycle_p50_us: float, cycle_p99_us: float, cycle_max_us: float, sample_rate: float = 0, configured_sample_rate: float = 0, sample_cost_us: float = 0, samples_taken: int = 0, samples_dropped: int = 0, queue_depth: int = 0, queue_max_depth: int = 0, force_mavlink1: bool = False) -> None:
         """
         Timing of the fixed-step flight loop over the last reporting interval.
 
@@ -18388,9 +18402,16 @@ class MAVLink(object):
         cycle_p50_us              : Median work time per tick over the interval. [us] (type:float)
         cycle_p99_us              : 99th percentile of work time per tick over the interval. [us] (type:float)
         cycle_max_us              : Largest work time per tick over the interval. [us] (type:float)
+        sample_rate               : The magnetometer's output rate in force: the configured one, or lower when the box chose a rate its loop can hold (a STATUSTEXT says when). [Hz] (type:float)
+        configured_sample_rate        : The magnetometer's output rate configured at start. [Hz] (type:float)
+        sample_cost_us            : The sample pipeline's work per sample (gate, calibration, estimators, applications, telemetry), mean over the interval. [us] (type:float)
+        samples_taken             : Samples the pipeline has taken from the sample queue since start (each reaches the gate and, accepted, the estimators). (type:uint32_t)
+        samples_dropped           : Samples the sample queue refused since start because it was full. (type:uint32_t)
+        queue_depth               : Samples waiting in the sample queue now. (type:uint16_t)
+        queue_max_depth           : Deepest the sample queue has been since start. (type:uint16_t)
 
         """
-        self.send(self.debris_loop_status_encode(time_usec, ticks, overruns, task_overruns, period_us, cycle_mean_us, cycle_p50_us, cycle_p99_us, cycle_max_us), force_mavlink1=force_mavlink1)
+        self.send(self.debris_loop_status_encode(time_usec, ticks, overruns, task_overruns, period_us, cycle_mean_us, cycle_p50_us, cycle_p99_us, cycle_max_us, sample_rate, configured_sample_rate, sample_cost_us, samples_taken, samples_dropped, queue_depth, queue_max_depth), force_mavlink1=force_mavlink1)
 
     def debris_mag_status_encode(self, time_usec: int, samples: int, bus_errors: int, timeouts: int, bad_id: int, resets: int, state: int, offset_x: float, offset_y: float, offset_z: float) -> MAVLink_debris_mag_status_message:
         """

@@ -241,9 +241,13 @@ class Telemetry:
             *(float(x) for x in g), *(float(x) for x in moment_Nm)))
 
     def loop_status(self, t_s: float, *, ticks: int, overruns: int, task_overruns: int, period_s: float,
-                    mean_us: float, p50_us: float, p99_us: float, max_us: float) -> None:
+                    mean_us: float, p50_us: float, p99_us: float, max_us: float, sample_rate_hz: float = 0.0,
+                    configured_sample_rate_hz: float = 0.0, sample_cost_us: float = 0.0, samples_taken: int = 0,
+                    samples_dropped: int = 0, queue_depth: int = 0, queue_max_depth: int = 0) -> None:
         self._send(mavlink.MAVLink_debris_loop_status_message(
-            usec(t_s), ticks, overruns, task_overruns, period_s * 1e6, mean_us, p50_us, p99_us, max_us))
+            usec(t_s), ticks, overruns, task_overruns, period_s * 1e6, mean_us, p50_us, p99_us, max_us,
+            sample_rate_hz, configured_sample_rate_hz, sample_cost_us, samples_taken & 0xFFFFFFFF,
+            samples_dropped & 0xFFFFFFFF, min(queue_depth, 65535), min(queue_max_depth, 65535)))
 
     def mag_status(self, t_s: float, driver) -> None:
         o = driver.offset_T * GAUSS_PER_TESLA

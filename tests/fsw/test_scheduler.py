@@ -73,3 +73,39 @@ def test_run_histogram_percentiles_match_numpy_to_a_microsecond():
         assert abs(h.percentile_us(p) - np.percentile(work_s * 1e6, p)) <= 1.0
     assert h.mean_us() == pytest.approx(work_s.mean() * 1e6)
     assert h.max_s == work_s.max()
+
+
+def test_catch_up_passes_run_the_pipeline_while_samples_wait_and_the_budget_has_room():
+    """A backlog of 5 samples, a pipeline pass of 2 ms, a 10 ms period and a 75 % budget: the ordinary pass
+    and two catch-up passes fit (2 + 2 + 2 + the 1 ms task = 7 ms), a third would not; the cost per sample
+    is measured from the passes, and the every-tick task outside the pipeline runs once."""
+    timer = FakeTimer()
+    backlog = [5]
+    runs = {"poll": 0, "pipe": 0}
+
+    def poll(_t):
+        runs["poll"] += 1
+        timer.now += 0.001
+
+    def pipe(_t):
+        runs["pipe"] += 1
+        backlog[0] -= 1
+        timer.now += 0.002
+
+    s = Scheduler(100, [Task("poll", poll, 100, 1e-3), Task("pipe", pipe, 100, 5e-3, per_sample=True)],
+                  work_timer=timer, backlog=lambda: backlog[0], taken=lambda: True, sample_budget=0.75)
+    work = s.tick(0.0)
+    assert runs == {"poll": 1, "pipe": 3} and backlog[0] == 2
+    assert s.stats.catch_up_passes == 2 and s.stats.samples == 3
+    assert s.stats.sample_cost_s == pytest.approx(0.002) and work == pytest.approx(0.007)
+    assert s.stats.overruns == 0
+    s.tick(0.01)
+    assert backlog[0] == 0 and runs["pipe"] == 5   # the rest, and no pass on an empty queue
+
+
+def test_a_pipeline_that_declines_ends_the_catch_up():
+    timer = FakeTimer()
+    s = Scheduler(100, [Task("pipe", lambda t: None, 100, 5e-3, per_sample=True)], work_timer=timer,
+                  backlog=lambda: 3, taken=lambda: False)
+    s.tick(0.0)
+    assert s.stats.catch_up_passes == 1 and s.stats.samples == 0
