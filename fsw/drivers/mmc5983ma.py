@@ -27,7 +27,11 @@ States (values = DEBRIS_MAG_STATE in fsw/telemetry/debris.xml):
   Cmm_en + Cm_freq to Internal Control 2, poll Status at every update, read when Meas_M_Done is
   set, then clear it by writing 1; no data within 4 periods + 1 ms counts a timeout and rewrites
   Internal Control 2. To recalibrate, continuous mode is stopped for one measurement time first.
-  CALIBRATE runs again every `calibration_interval` samples (0: only after initialisation).
+  CALIBRATE runs again every `calibration_interval` samples (0: only after initialisation), and not
+  sooner than `calibration_period_s` after the last one: the chip makes no sample while it calibrates
+  (about 7 ms), so at a fast rate a count alone would cost a sample in 140 (1 kHz, every 1000 samples).
+  The flight software's period is `RECALIBRATION_PERIOD_S` (10 s, the reference driver's 1000 readings at
+  100 Hz).
 - BACKOFF: after `max_consecutive_errors` failed transfers in a row, wait 100 ms (doubling up to
   1 s on repeated back-offs, back to 100 ms after a good sample), then PROBE again.
 
@@ -72,6 +76,8 @@ BACKOFF_INITIAL_S = 0.1
 BACKOFF_MAX_S = 1.0
 TIMEOUT_MARGIN_S = 0.001
 """Data-ready timeout = 4 t_meas + 1 ms (SparkFun v1.1.3)."""
+RECALIBRATION_PERIOD_S = 10.0
+"""The flight software's shortest time between two SET/RESET calibrations (`calibration_period_s`)."""
 
 _TM_M = int(InternalControl0.TM_M)
 _SET = int(InternalControl0.SET)
@@ -117,6 +123,7 @@ class Mmc5983ma:
         sample_period_s: float = 0.01,
         calibration_interval: int = 1000,
         probe_retries: int = 10,
+        calibration_period_s: float = 0.0,
         continuous: ContinuousFrequency = ContinuousFrequency.OFF,
         max_consecutive_errors: int = 5,
     ) -> None:
@@ -139,8 +146,11 @@ class Mmc5983ma:
                 )
             period = 1.0 / self.continuous.rate_hz
             self.sample_period_s = period
-        if probe_retries < 1 or max_consecutive_errors < 1 or calibration_interval < 0:
-            raise ValueError("probe_retries, max_consecutive_errors >= 1, calibration_interval >= 0")
+        if (probe_retries < 1 or max_consecutive_errors < 1 or calibration_interval < 0
+                or not calibration_period_s >= 0.0):
+            raise ValueError("probe_retries, max_consecutive_errors >= 1; calibration_interval, "
+                             "calibration_period_s >= 0")
+        self.calibration_period_s = float(calibration_period_s)
         self._bus = bus
         self.calibration_interval = int(calibration_interval)
         self.probe_retries = int(probe_retries)
@@ -166,6 +176,7 @@ class Mmc5983ma:
         self._cal_trigger_s = [0.0, 0.0, 0.0]
         self._cal_index = 0
         self._samples_since_cal = 0
+        self._cal_end_s = -math.inf
         self._probe_attempts = 0
         self._consecutive_errors = 0
         self._backoff_s = BACKOFF_INITIAL_S
@@ -355,6 +366,7 @@ class Mmc5983ma:
             self._deliver(t_cal)
         self.calibrations += 1
         self._samples_since_cal = 0
+        self._cal_end_s = now
         t_ready = now + SET_RESET_SETTLE_S
         if first:
             self._t_grid = t_cal + self.sample_period_s
@@ -370,7 +382,7 @@ class Mmc5983ma:
                 return False
             self._read_sample(self._t_trigger + 0.5 * self._t_meas)
             self._phase = _Phase.IDLE
-            if self._calibration_due():
+            if self._calibration_due(now):
                 self._enter(MagState.CALIBRATE, now)
                 self._cal_index = 0
                 self._take_rate_request()
@@ -403,7 +415,7 @@ class Mmc5983ma:
         if phase is _Phase.CLEAR:
             self._bus.write_register(Register.STATUS, _MEAS_M_DONE)
             self._phase = _Phase.IDLE
-            if self._calibration_due():
+            if self._calibration_due(now):
                 self._write_ctrl(2, 0)  # stop, let a running measurement end, then calibrate
                 self._enter(MagState.CALIBRATE, now + self._t_meas)
                 self._cal_index = 0
@@ -476,8 +488,9 @@ class Mmc5983ma:
         self._new_sample = True
         self._backoff_s = BACKOFF_INITIAL_S
 
-    def _calibration_due(self) -> bool:
-        return self._rate_request is not None or 0 < self.calibration_interval <= self._samples_since_cal
+    def _calibration_due(self, now: float) -> bool:
+        return self._rate_request is not None or (0 < self.calibration_interval <= self._samples_since_cal
+                                                  and now - self._cal_end_s >= self.calibration_period_s)
 
     def _take_rate_request(self) -> None:
         """A requested rate comes into force as the calibration starts (its end sets up the new mode and grid)."""

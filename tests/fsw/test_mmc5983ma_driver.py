@@ -8,6 +8,7 @@ import pytest
 from fsw.bus import BusError
 from fsw.drivers.mmc5983ma import (
     BACKOFF_INITIAL_S,
+    RECALIBRATION_PERIOD_S,
     MagState,
     Mmc5983ma,
 )
@@ -455,3 +456,23 @@ def test_chip_reset_between_slow_samples_is_detected_before_it_inverts_the_axes(
     assert emu.polarity == +1
     assert len(samples) >= 3
     assert np.abs(np.array(samples) - B_TRUE_T).max() < 6 * SIGMA_T + 5 * OFFSET_SIGMA_T
+
+
+def test_the_flight_recalibration_period_keeps_a_1khz_sensor_from_losing_a_sample_a_second():
+    """At 1 kHz continuous, SET/RESET every 1000 samples stops the chip once a second (~5 ms, about 4-5
+    samples not made); with the flight software's period the calibrations come 10 s apart, as the reference
+    driver's 1000 readings at 100 Hz do, and the offset is still refreshed."""
+    made = {}
+    for period_s in (0.0, RECALIBRATION_PERIOD_S):
+        driver, emu, clock = make_emulated(bandwidth=Bandwidth.BW_800HZ, continuous=ContinuousFrequency.HZ_1000,
+                                           calibration_period_s=period_s)
+        made[period_s] = (run(driver, clock, 21.0, dt=2.5e-4), driver.calibrations)
+    (n_count, cals_count), (n_period, cals_period) = made[0.0], made[RECALIBRATION_PERIOD_S]
+    assert cals_count >= 20 and cals_period == 3          # at start, then at 10 s and 20 s
+    assert n_period - n_count >= 80                       # ~4-5 samples a second no longer lost
+    assert n_period >= 0.998 * 21_000
+
+
+def test_a_negative_recalibration_period_is_refused():
+    with pytest.raises(ValueError, match="calibration_period_s"):
+        make_emulated(calibration_period_s=-1.0)
