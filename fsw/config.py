@@ -138,6 +138,6 @@ def check_loop_rate(rate_hz: float, sample_rate_hz: float) -> str | None:
                          f"(give --rate {min(MAX_RATE_HZ, 2 * sample_rate_hz):g} or more)")
     if rate_hz < sample_rate_hz * (1 + 1e-9):
         return (f"warning: --rate {rate_hz:g} Hz equals the sample rate: samples are lost at start-up, at each "
-                "SET/RESET calibration (every 1000 samples, at most every 10 s) and whenever a tick starts late; a faster loop "
-                "loses fewer")
+                "SET/RESET calibration (every 1000 samples, at most every 10 s) and whenever a tick starts late; "
+                "a faster loop loses fewer")
     return None
