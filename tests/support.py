@@ -148,6 +148,14 @@ def circular_tle(altitude_km=485.0, inclination_deg=97.5, epoch="26120.50000000"
     return tuple(line + str(checksum(line + "0")) for line in (l1, l2))
 
 
+def tle_epoch_field(dt):
+    """A TLE's epoch field (YYDDD.DDDDDDDD) of the aware datetime `dt`."""
+    from datetime import datetime, timezone
+
+    start = datetime(dt.year, 1, 1, tzinfo=timezone.utc)
+    return f"{dt.year % 100:02d}{(dt - start).total_seconds() / 86400 + 1:012.8f}"
+
+
 # --- the host-magnetics calibration's truth: a tumble along the simulator's orbit, a host ------------
 
 #: the orbit (altitude m, inclination °) and the field's epoch of the calibration tests
