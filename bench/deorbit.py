@@ -46,7 +46,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float
+from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range
 from fsw.deorbit.controller import ControllerConfig, euler_zyx
 from fsw.deorbit.energy import PAPER_CAPSULES_J, PAPER_MAGNETS_J, PAPER_OPENINGS, PAPER_TOTAL_J, PAPER_TURNS
 from fsw.config import RunConfig
@@ -366,6 +366,13 @@ def report(r: BenchResult) -> str:
         row(f"yaw error after {r.settle_s:.0f} s [rad]", f"{d['yaw_err_max_rad']:.3f}", "<= 0.2"),
         row(f"pitch error after {r.settle_s:.0f} s [rad]", f"{d['pitch_err_max_rad']:.3f}", "<= 0.2"),
         row("within 0.2 rad from [s]", "never" if math.isnan(conv) else f"{conv:.0f}", "-"),
+        *([row("estimate RMS yaw / pitch [rad]", f"{d['att_err_rms_rad']['yaw']:.3f} / "
+                                                 f"{d['att_err_rms_rad']['pitch']:.3f}", "(truth)"),
+           row("estimate RMS rate [deg/s]", f"{d['rate_err_rms_dps']:.4f}", "(truth)"),
+           row("acting on the estimate from [s]", "never" if math.isnan(d["trusted_from_s"])
+               else f"{d['trusted_from_s']:.0f}", "-"),
+           row("decisions held (capsules closed)", f"{d['decisions_held']:d}", "-")]
+          if r.attitude == "estimate" else []),
         row("capsule openings pitch + yaw", f"{o['pitch']:d} + {o['yaw']:d}", "15 + 30"),
         row("magnet turns pitch + yaw", f"{tu['pitch']:d} + {tu['yaw']:d}", "35 + 25"),
         row("energy capsules + magnets [J]", f"{e['capsules']:.0f} + {e['magnets']:.0f}", "1053 + 702"),
@@ -415,12 +422,44 @@ def plot(r: BenchResult, path: str) -> None:
     d = r.as_dict()
     fig.suptitle(f"De-orbit kit, {r.scenario}, law {r.law}: {d['capsule_openings']['total']} openings, "
                  f"{d['magnet_turns']['total']} turns, {d['energy_J']['total']:.0f} J "
-                 f"(paper: 45, 60, 1755 J); attitude from simulation truth", fontsize=10)
+                 f"(paper: 45, 60, 1755 J); attitude from {r.attitude}", fontsize=10)
     fig.tight_layout()
     try:
         save_figure(fig, path, dpi=110)
     finally:
         plt.close(fig)
+
+
+SWEEP_STARTS_DEG = tuple(45.0 * k for k in range(8))
+RUN_KEYS = ("arg_lat0_deg", "seed", "yaw_err_max_rad", "pitch_err_max_rad", "within_0p2_rad", "converged_at_s",
+            "att_err_rms_rad", "att_err_rms_rad_max", "rate_err_rms_dps", "trusted_from_s", "decisions_held",
+            "interlock_violations", "safe_entries", "wall_s")
+
+
+def sweep(scenario_name: str = DEFAULT_SCENARIO, *, starts: int = 8, seeds: int = 5, attitude: str = "estimate",
+          out=sys.stdout, **kwargs) -> dict:
+    """`starts` starts on the orbit × `seeds` seeds, one line each on `out`; the aggregates of the issue."""
+    runs = []
+    for lat0 in SWEEP_STARTS_DEG[:starts]:
+        for seed in range(seeds):
+            d = run_bench(scenario_name, arg_lat0_deg=lat0, seed=seed, attitude=attitude, **kwargs).as_dict()
+            row_ = {k: d[k] for k in RUN_KEYS}
+            row_["energy_J"] = d["energy_J"]["total"]
+            runs.append(row_)
+            print(f"start {lat0:5.0f} deg seed {seed}: yaw {d['yaw_err_max_rad']:.3f} pitch "
+                  f"{d['pitch_err_max_rad']:.3f} rad, {row_['energy_J']:.0f} J, estimate RMS "
+                  f"{d['att_err_rms_rad_max']:.3f} rad, wall {d['wall_s']:.0f} s", file=out, flush=True)
+    energy = np.array([r["energy_J"] for r in runs])
+    est = np.array([r["att_err_rms_rad_max"] for r in runs], float)
+    res = {"scenario": scenario_name, "attitude_source": attitude, "runs": runs,
+           "fraction_within_0p2_rad": float(np.mean([r["within_0p2_rad"] for r in runs])),
+           "energy_J_mean": float(energy.mean()), "energy_J_max": float(energy.max()),
+           "att_err_rms_rad_max": float(np.nanmax(est)) if np.isfinite(est).any() else math.nan,
+           "paper": PAPER}
+    print(f"{len(runs)} runs, attitude {attitude}: within 0.2 rad {100 * res['fraction_within_0p2_rad']:.0f} %, "
+          f"energy mean {res['energy_J_mean']:.0f} J, max {res['energy_J_max']:.0f} J, worst estimate RMS "
+          f"{res['att_err_rms_rad_max']:.3f} rad", file=out)
+    return res
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -436,6 +475,15 @@ def main(argv: list[str] | None = None) -> int:
                     help="what produces M_theor: the receding-horizon choice (default) or the PD law")
     ap.add_argument("--fault", action="append", default=[], metavar="KIND:CH:T[:VALUE]",
                     help="inject a fault, e.g. stall:pitch:1500, stuck:yaw:900:0.5, switch:yaw:600:closed=1")
+    ap.add_argument("--attitude", choices=("estimate", "truth"), default="estimate",
+                    help="the controller's attitude: the box's own estimate (default) or the simulation truth")
+    ap.add_argument("--seed", type=int_range(0, 2**31 - 1), default=0,
+                    help="sensor noise and handed-over calibration errors (default 0)")
+    ap.add_argument("--sweep", action="store_true",
+                    help="the starts on the orbit x seeds (default 8 x 5 = 40 runs); JSON: runs and aggregates")
+    ap.add_argument("--starts", type=int_range(1, 8), default=8, metavar="N",
+                    help="--sweep: the first N of the 8 starts (arguments of latitude 0, 45, ..., 315 deg)")
+    ap.add_argument("--seeds", type=int_range(1, 100), default=5, metavar="N", help="--sweep: seeds 0..N-1")
     ap.add_argument("--json", metavar="FILE", help="write the numbers as JSON")
     ap.add_argument("--plot", metavar="FILE.png", help="write the figure")
     args = ap.parse_args(argv)
@@ -446,13 +494,24 @@ def main(argv: list[str] | None = None) -> int:
             check_plot_path(args.plot)
         except ValueError as e:
             ap.error(f"--plot {e}")
+    if args.sweep and args.plot:
+        ap.error("--plot is for one run, not --sweep")
     try:
         faults = [Fault.parse(f) for f in args.fault]
-        r = run_bench(args.scenario, duration_s=args.duration, rate_hz=args.rate, law=args.law, faults=faults,
-                      arg_lat0_deg=args.arg_lat0)
+        if args.sweep:
+            out = sweep(args.scenario, duration_s=args.duration, rate_hz=args.rate, law=args.law, faults=faults,
+                        attitude=args.attitude, starts=args.starts, seeds=args.seeds)
+        else:
+            r = run_bench(args.scenario, duration_s=args.duration, rate_hz=args.rate, law=args.law, faults=faults,
+                          arg_lat0_deg=args.arg_lat0, attitude=args.attitude, seed=args.seed)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    if args.sweep:
+        if args.json:
+            write_atomic(args.json, json.dumps(out, indent=2, default=float))
+            print(f"wrote {args.json}")
+        return 0
     print(report(r))
     if args.json:
         write_atomic(args.json, json.dumps(r.as_dict(), indent=2, default=float))
