@@ -92,12 +92,12 @@ def test_the_known_dipole_follows_the_open_capsules_and_polarity():
     assert emu.dipole_body_Am2() == pytest.approx([0.0, 15.0, -15.0], abs=1e-6)
 
 
-def _estimate(gate=TrustGate()):
+def _estimate():
     """An estimate fed 120 samples of a body at rest in the orbital frame (yaw = pitch = roll = 0)."""
     orbit = CircularOrbitModel(600e3, 97.8)
     fld = OrbitField(orbit, DipoleModel(2025.0), era0_rad=0.0)
     inputs = OrbitInputs(fld)
-    src = EstimatedAttitude(1.5e-6, gate=gate, provider=FixedField(fld))
+    src = EstimatedAttitude(1.5e-6, gate=TrustGate(), provider=FixedField(fld))
     for t in np.arange(0.0, 120.0):
         r, v, b_eci = inputs(float(t))
         R_oi, _ = orbital_frame(r, v)  # body = orbital frame
