@@ -437,8 +437,10 @@ RUN_KEYS = ("arg_lat0_deg", "seed", "yaw_err_max_rad", "pitch_err_max_rad", "wit
 
 
 def sweep(scenario_name: str = DEFAULT_SCENARIO, *, starts: int = 8, seeds: int = 5, attitude: str = "estimate",
-          out=sys.stdout, **kwargs) -> dict:
-    """`starts` starts on the orbit × `seeds` seeds, one line each on `out`; the aggregates of the issue."""
+          out=None, **kwargs) -> dict:
+    """`starts` starts on the orbit × `seeds` seeds, one line each on `out` (default stdout); the
+    aggregates of the issue."""
+    out = out or sys.stdout
     runs = []
     for lat0 in SWEEP_STARTS_DEG[:starts]:
         for seed in range(seeds):
