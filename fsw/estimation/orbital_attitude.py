@@ -87,17 +87,22 @@ class OrbitalAttitudeTuning:
     """Noise and start settings (SI).
 
     accel_psd: spectral density of the unmodelled angular acceleration [(rad/s²)²/Hz] (density and
-      inertia errors, the shutters' ramps): (2e-7 rad/s²)² over 100 s of correlation by default.
+      inertia errors, the shutters' ramps, the magnets' real moment): (6.3e-7 rad/s²)² over 100 s of
+      correlation by default (chosen on recorded closed-loop runs: smaller values make the estimate
+      overconfident about yaw after the pulses).
     field_sigma_T: the onboard field model's error per axis, added to the sensor's noise.
     sigma_bias0_T, bias_psd_T2_per_s: the sample's slowly varying error in body axes (what the host
       calibration leaves, the hard iron's thermal drift, the kit's field the compensation misses), a
-      random walk from σ `sigma_bias0_T`.
+      random walk from σ `sigma_bias0_T`; when the kit's dipole changes (a capsule opens or closes, a
+      magnet turns), `kit_change_bias_sigma_T` more per axis (what the kit-field model misses changes with
+      the channels' states).
     """
 
-    accel_psd: float = (2e-7) ** 2 * 100.0
+    accel_psd: float = (6.3e-7) ** 2 * 100.0
     field_sigma_T: float = 0.3e-6
     sigma_bias0_T: float = 2e-6
     bias_psd_T2_per_s: float = (1e-6) ** 2 / 1000.0
+    kit_change_bias_sigma_T: float = 1e-6
     sigma_angle0_rad: float = 0.05  # perpendicular to B at the first sample (plus the sample's noise)
     sigma_about_b0_rad: float = 0.5  # about B, per hypothesis
     sigma_rate0_radps: float = 1e-3
@@ -105,7 +110,7 @@ class OrbitalAttitudeTuning:
     drop_nll: float = 25.0
     max_step_s: float = 2.0
     max_gap_s: float = 600.0
-    decide_after_s: float = 1800.0  # then only the best hypothesis runs on
+    decide_after_s: float = 1200.0  # then only the best hypothesis runs on
 
 
 # --- pure functions ----------------------------------------------------------------------------------
@@ -306,7 +311,12 @@ class OrbitalAttitudeBank:
         self.t_s = t_s
         self.samples += 1
         if dipole_body_Am2 is not None:
-            self._dipole = np.asarray(dipole_body_Am2, float).copy()
+            p = np.asarray(dipole_body_Am2, float)
+            if np.any(p != self._dipole):  # the kit's field at the sensor changes with it
+                jump = (self.tuning.kit_change_bias_sigma_T * UT_PER_T) ** 2
+                for m in self.members:
+                    m.P[6:, 6:] += jump * np.eye(3)
+            self._dipole = p.copy()
 
     def spread_rad(self) -> float:
         """The largest angle between the best hypothesis's sail normal (body x) and another's [rad]."""
