@@ -9,7 +9,8 @@ host-magnetics calibration is applied to the samples (`fsw.estimation.flown_filt
 until then there is no estimate.
 
 Trust (:class:`TrustGate`). The controller gets an attitude only when the estimate has run at least
-`min_run_s`, its pointing σ about body y and z and its rate σ are within their limits, its samples fit
+`min_run_s`, its pointing σ about body y and z and its rate σ are within their limits (`hysteresis` times
+wider once trusted), its samples fit
 (the running mean of the normalised innovation squared, 3 expected, below `max_nis_mean`) and the
 hypotheses still running agree on where the sail normal points. Otherwise `attitude` returns None and
 the kit holds both capsules closed for that period (`DeorbitKit.decisions_without_attitude`, reported in
@@ -39,6 +40,9 @@ class TrustGate:
     max_nis_mean: float = 9.0
     nis_window_samples: float = 60.0
     max_spread_rad: float = 0.2
+    #: once trusted, the σ limits widen by this factor before trust is withdrawn (no flapping between
+    #: acting and holding on an estimate whose σ breathes with the pulses)
+    hysteresis: float = 2.0
 
 
 @dataclass(frozen=True)
@@ -113,10 +117,12 @@ class EstimatedAttitude:
         if now_s - bank.t_start_s < g.min_run_s:
             return f"estimate running {now_s - bank.t_start_s:.0f} s of {g.min_run_s:.0f} s"
         _, _, sp, sw, _ = est
-        if max(sp) > g.max_pointing_sigma_rad:
-            return f"pointing sigma {max(sp):.3f} rad > {g.max_pointing_sigma_rad:g}"
-        if float(np.max(sw)) > g.max_rate_sigma_radps:
-            return f"rate sigma {math.degrees(float(np.max(sw))):.4f} deg/s > {math.degrees(g.max_rate_sigma_radps):g}"
+        k = g.hysteresis if self.trusted else 1.0
+        if max(sp) > k * g.max_pointing_sigma_rad:
+            return f"pointing sigma {max(sp):.3f} rad > {k * g.max_pointing_sigma_rad:g}"
+        if float(np.max(sw)) > k * g.max_rate_sigma_radps:
+            return (f"rate sigma {math.degrees(float(np.max(sw))):.4f} deg/s > "
+                    f"{math.degrees(k * g.max_rate_sigma_radps):g}")
         if self.nis_mean > g.max_nis_mean:
             return f"samples do not fit (mean NIS {self.nis_mean:.1f} > {g.max_nis_mean:g})"
         spread = bank.spread_rad()
@@ -126,13 +132,13 @@ class EstimatedAttitude:
 
     def attitude(self, now_s: float) -> AttitudeInput | None:
         """The attitude at `now_s` for a decision, or None (reason in `reason`) when it is not trusted."""
-        self.trusted = False
         if self.bank is None or not self.bank.started:
+            self.trusted = False
             return None
         est = self.bank.orbital(now_s)
         why = self._check(now_s, est)
         if why:
-            self.reason = why
+            self.trusted, self.reason = False, why
             return None
         self.trusted, self.reason = True, ""
         R_bo, w_rel, _, _, q = est

@@ -87,7 +87,7 @@ class OrbitalAttitudeTuning:
     """Noise and start settings (SI).
 
     accel_psd: spectral density of the unmodelled angular acceleration [(rad/s²)²/Hz] (density and
-      inertia errors, the shutters' ramps, the magnets' real moment): (6.3e-7 rad/s²)² over 100 s of
+      inertia errors, the shutters' ramps, the magnets' real moment): (3.5e-7 rad/s²)² over 100 s of
       correlation by default (chosen on recorded closed-loop runs: smaller values make the estimate
       overconfident about yaw after the pulses).
     field_sigma_T: the onboard field model's error per axis, added to the sensor's noise.
@@ -98,7 +98,7 @@ class OrbitalAttitudeTuning:
       the channels' states).
     """
 
-    accel_psd: float = (6.3e-7) ** 2 * 100.0
+    accel_psd: float = (3.5e-7) ** 2 * 100.0
     field_sigma_T: float = 0.3e-6
     sigma_bias0_T: float = 2e-6
     bias_psd_T2_per_s: float = (1e-6) ** 2 / 1000.0

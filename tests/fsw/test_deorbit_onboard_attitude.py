@@ -124,6 +124,14 @@ def test_the_trust_gate_needs_time_sigma_fit_and_agreeing_hypotheses():
     assert att.b_orbital_forecast(np.array([200.0, 300.0])).shape == (2, 3)
     rep = src.report()
     assert rep.source == mavlink.DEBRIS_CONTROLLER_ATTITUDE_TRUSTED and rep.hypotheses == 1
+    # once trusted, a σ between the limit and twice the limit keeps the trust (no flapping) ...
+    best.P[1, 1] = 0.15 ** 2
+    assert src.attitude(119.0) is not None and src.trusted
+    # ... but is not enough to gain it
+    src.trusted = False
+    assert src.attitude(119.0) is None and "pointing sigma" in src.reason
+    best.P[1, 1] = 1e-4
+    assert src.attitude(119.0) is not None
     # samples that do not fit: not trusted
     src.nis_mean = 50.0
     assert src.attitude(119.0) is None and "do not fit" in src.reason
