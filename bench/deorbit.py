@@ -10,7 +10,23 @@ recovery) → controller. With a scenario's [clock] (`hil.box_clock`) the loop r
 from `hil.sitl.box_t0_s` and the simulator on the true time it means (`Sitl.advance`), as in SITL; faults
 and the trace are on true time (the world's).
 The controller is started with the ground command MAV_CMD_DEBRIS_CONTROLLER through the same handler the
-uplink uses. The controller's attitude comes from the simulation truth (the paper assumes it too).
+uplink uses. The controller's attitude (`--attitude`) is the box's own estimate by default
+(`fsw.deorbit.onboard_attitude`: the calibrated, kit-compensated magnetometer, the onboard field along the
+orbit, gravity gradient, the sail and the kit's p × B in the dynamics; no pulse until it is trusted), or
+the simulation truth (what the paper assumes) for comparison. The estimate is scored against the truth
+once a second: `att_err_rms_rad` (yaw, pitch) and `rate_err_rms_dps` from `settle_s` on.
+
+The host-magnetics calibration. A spacecraft held to the flow does not turn enough for the onboard
+calibration (`fsw.host_calibration`) to solve the host's iron (its solutions are ill-conditioned), so the
+box starts with the calibration an earlier phase of the mission (the tumble) would have left it
+(:func:`hand_over_calibration`: the host's hard and soft iron with seeded errors, 0.3 µT and 0.3 %, its
+thermal drift not included), applied as the box's own last good calibration.
+
+`--sweep`: the 8 starts on the orbit (argument of latitude 0°, 45°, ..., 315°) × 5 seeds (the sensor's
+noise, the handed-over calibration's errors), 40 runs of `--duration`; the JSON then has `runs` (one row
+each), `fraction_within_0p2_rad` (yaw and pitch within 0.2 rad from `settle_s` on), `energy_J_mean`,
+`energy_J_max` and `att_err_rms_rad_max` (the worst run's yaw/pitch estimation RMS). `--starts` and
+`--seeds` make it smaller.
 
 Printed: yaw and pitch errors after convergence (from `settle_s`), capsule openings, magnet turns and
 energy per channel, next to the paper's figures (≤ 0.2 rad; 15 + 30 openings, 35 + 25 turns;
@@ -30,7 +46,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float
+from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range
 from fsw.deorbit.controller import ControllerConfig, euler_zyx
 from fsw.deorbit.energy import PAPER_CAPSULES_J, PAPER_MAGNETS_J, PAPER_OPENINGS, PAPER_TOTAL_J, PAPER_TURNS
 from fsw.config import RunConfig
@@ -99,6 +115,13 @@ class Trace:
     m_z: list = field(default_factory=list)
     pulse_pitch: list = field(default_factory=list)  # unscreened fraction × polarity
     pulse_yaw: list = field(default_factory=list)
+    # the onboard estimate against the truth at its latest sample (NaN before it starts / with the truth)
+    est_yaw: list = field(default_factory=list)
+    est_pitch: list = field(default_factory=list)
+    err_yaw: list = field(default_factory=list)
+    err_pitch: list = field(default_factory=list)
+    err_rate_radps: list = field(default_factory=list)
+    trusted: list = field(default_factory=list)
 
 
 @dataclass
@@ -116,6 +139,8 @@ class BenchResult:
     kit: DeorbitKit
     sim: DeorbitSimulator
     faults: list
+    attitude: str = "truth"
+    seed: int = 0
 
     # --- the numbers ----------------------------------------------------------------------------
     def _window(self) -> np.ndarray:
@@ -142,6 +167,29 @@ class BenchResult:
             return math.nan
         return float(self.trace.t_s[bad[-1] + 1])
 
+    def _est_rms(self, values) -> float:
+        w = self._window()
+        v = np.asarray(values, float)[w] if w.any() else np.zeros(0)
+        v = v[np.isfinite(v)]
+        return float(np.sqrt(np.mean(v ** 2))) if v.size else math.nan
+
+    @property
+    def att_err_rms_rad(self) -> tuple[float, float]:
+        """(yaw, pitch) RMS of the onboard estimate's error from `settle_s` on (NaN on the truth)."""
+        return self._est_rms(self.trace.err_yaw), self._est_rms(self.trace.err_pitch)
+
+    @property
+    def rate_err_rms_dps(self) -> float:
+        return math.degrees(self._est_rms(self.trace.err_rate_radps))
+
+    @property
+    def trusted_from_s(self) -> float:
+        """The first second the controller acted on the estimate (NaN: never; 0 with the truth)."""
+        if self.attitude == "truth":
+            return 0.0
+        ok = np.nonzero(np.asarray(self.trace.trusted, bool))[0]
+        return float(self.trace.t_s[ok[0]]) if ok.size else math.nan
+
     def as_dict(self) -> dict:
         kit, seq = self.kit, self.kit.sequencer
         led = kit.energy()
@@ -155,7 +203,14 @@ class BenchResult:
             "scenario": self.scenario, "law": self.law, "duration_s": self.duration_s,
             "settle_s": self.settle_s, "loop_rate_hz": self.rate_hz, "dynamics_step_s": self.step_s,
             "arg_lat0_deg": self.sim.orbit.arg_lat0_deg,
-            "attitude_source": self.attitude_source, "density_model": self.density,
+            "attitude": self.attitude, "attitude_source": self.attitude_source, "density_model": self.density,
+            "seed": self.seed,
+            "att_err_rms_rad": {"yaw": self.att_err_rms_rad[0], "pitch": self.att_err_rms_rad[1]},
+            "att_err_rms_rad_max": max(self.att_err_rms_rad) if self.attitude == "estimate" else math.nan,
+            "rate_err_rms_dps": self.rate_err_rms_dps,
+            "trusted_from_s": self.trusted_from_s,
+            "decisions_held": kit.decisions_without_attitude,
+            "within_0p2_rad": bool(self.yaw_err_max_rad <= 0.2 and self.pitch_err_max_rad <= 0.2),
             "yaw_err_max_rad": self.yaw_err_max_rad, "pitch_err_max_rad": self.pitch_err_max_rad,
             "converged_at_s": self.converged_at_s,
             "roll_rate_max_radps": (float(np.abs(np.diff(np.unwrap(self.trace.roll))).max())
@@ -179,7 +234,7 @@ class BenchResult:
 def run_bench(scenario_name: str = DEFAULT_SCENARIO, *, duration_s: float | None = None, rate_hz: float = 10.0,
               law: str = "mpc", faults: list[Fault] | tuple = (), seed: int = 0,
               settle_s: float | None = None, controller: ControllerConfig | None = None,
-              arg_lat0_deg: float | None = None) -> BenchResult:
+              arg_lat0_deg: float | None = None, attitude: str = "estimate") -> BenchResult:
     scn = scenarios.load(scenario_name)
     if arg_lat0_deg is not None:  # start elsewhere on the same orbit
         scn = dataclasses.replace(scn, arg_lat0_deg=float(arg_lat0_deg))
@@ -192,10 +247,12 @@ def run_bench(scenario_name: str = DEFAULT_SCENARIO, *, duration_s: float | None
     box = sitl.build(sitl.SitlConfig(RunConfig(rate_hz=rate_hz, buffer_frames=0), scenario=scn, seed=seed,
                                       max_step_s=step),
                      link=NullLink(), run_id=0, ident=False,
-                     kit_options={"controller": controller, "law": law, "keep_pulses": True})
+                     kit_options={"controller": controller, "law": law, "keep_pulses": True,
+                                  "attitude": attitude})
     sim, fsw = box.sim, box.fsw
+    hand_over_calibration(fsw.calibration, sim.host, seed=seed)
     kit = fsw.apps["deorbit"]
-    cfg, attitude = kit.controller.config, kit.attitude
+    cfg, source = kit.controller.config, kit.attitude
     # start the controller through its ground command handler
     start = SimpleNamespace(command=mavlink.MAV_CMD_DEBRIS_CONTROLLER, param1=1, param2=0, param3=0,
                             param4=0, param5=0, param6=0, param7=0)
@@ -229,11 +286,58 @@ def run_bench(scenario_name: str = DEFAULT_SCENARIO, *, duration_s: float | None
             chs = sim.kit.channels
             tr.pulse_pitch.append(chs[0].shutter * _sign(chs[0]))
             tr.pulse_yaw.append(chs[1].shutter * _sign(chs[1]))
+            _score_estimate(tr, source if attitude == "estimate" else None, sim)
     wall = time.perf_counter() - wall0
     density = (f"exponential, {spec.density_kgm3:.4g} kg/m3 at {spec.density_ref_alt_km:g} km, scale height "
                f"{spec.density_scale_height_km:g} km (Vallado Table 8-4)")
-    return BenchResult(scn.name, cfg.law, duration, settle, rate_hz, sim.max_step_s, wall, attitude.description,
-                       density, tr, kit, sim, list(faults))
+    return BenchResult(scn.name, cfg.law, duration, settle, rate_hz, sim.max_step_s, wall, source.description,
+                       density, tr, kit, sim, list(faults), attitude, seed)
+
+
+def hand_over_calibration(calibration, host, *, seed: int = 0, hard_sigma_T: float = 0.3e-6,
+                          soft_sigma: float = 0.003) -> str:
+    """Give the box's host-magnetics calibration (`fsw.host_calibration.HostCalibration`) the host's iron
+    as an earlier phase of the mission would have left it: hard iron (its mean: the thermal drift is not
+    in it) and the inverse of the soft iron, with seeded errors of `hard_sigma_T` per axis and
+    `soft_sigma` per element; taken as the box's own last good calibration (kept applied while the new
+    samples cannot solve a better one). Returns how it was taken."""
+    from fsw.estimation.magcal import D_TERMS
+
+    rng = np.random.default_rng(10_000 + seed)
+    S = np.asarray(host.soft_iron, float)
+    D = np.linalg.inv(0.5 * (S + S.T)) - np.eye(3)
+    E = rng.normal(0.0, soft_sigma, (3, 3))
+    D = D + 0.5 * (E + E.T)
+    b = np.asarray(host.hard_iron_T, float) + rng.normal(0.0, hard_sigma_T, 3)
+    snap = {"theta_uT": [*(b * 1e6), *(D[i, j] for i, j in D_TERMS)], "b_T": list(b), "D": D.tolist(),
+            "cov": None, "published_at_s": 0.0, "drift_period_s": None, "state": 1}
+    how = calibration.restore(snap, None, 0.0)
+    calibration.cal.restored = 0  # the box's own, not a restart's: not dropped at the first misfit
+    return how
+
+
+def _score_estimate(tr: Trace, src, sim) -> None:
+    """The onboard estimate `src` at its latest sample against the truth then (NaN without one)."""
+    bank = getattr(src, "bank", None)
+    if bank is None or not bank.started:
+        for lst in (tr.est_yaw, tr.est_pitch, tr.err_yaw, tr.err_pitch, tr.err_rate_radps):
+            lst.append(math.nan)
+        tr.trusted.append(bool(src is not None and src.trusted))
+        return
+    R_bo, w_rel, _, _, _ = bank.orbital(bank.t_s)
+    R_true, w_true, _ = sim.attitude_orbital(sim.clock.true_s(bank.t_s))
+    ye, pe, _ = euler_zyx(R_bo)
+    yt, pt, _ = euler_zyx(R_true)
+    tr.est_yaw.append(ye)
+    tr.est_pitch.append(pe)
+    tr.err_yaw.append(_wrap(ye - yt))
+    tr.err_pitch.append(_wrap(pe - pt))
+    tr.err_rate_radps.append(float(np.linalg.norm(w_rel - w_true)))
+    tr.trusted.append(bool(src.trusted))
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def _sign(ch) -> int:
@@ -262,6 +366,13 @@ def report(r: BenchResult) -> str:
         row(f"yaw error after {r.settle_s:.0f} s [rad]", f"{d['yaw_err_max_rad']:.3f}", "<= 0.2"),
         row(f"pitch error after {r.settle_s:.0f} s [rad]", f"{d['pitch_err_max_rad']:.3f}", "<= 0.2"),
         row("within 0.2 rad from [s]", "never" if math.isnan(conv) else f"{conv:.0f}", "-"),
+        *([row("estimate RMS yaw / pitch [rad]", f"{d['att_err_rms_rad']['yaw']:.3f} / "
+                                                 f"{d['att_err_rms_rad']['pitch']:.3f}", "(truth)"),
+           row("estimate RMS rate [deg/s]", f"{d['rate_err_rms_dps']:.4f}", "(truth)"),
+           row("acting on the estimate from [s]", "never" if math.isnan(d["trusted_from_s"])
+               else f"{d['trusted_from_s']:.0f}", "-"),
+           row("decisions held (capsules closed)", f"{d['decisions_held']:d}", "-")]
+          if r.attitude == "estimate" else []),
         row("capsule openings pitch + yaw", f"{o['pitch']:d} + {o['yaw']:d}", "15 + 30"),
         row("magnet turns pitch + yaw", f"{tu['pitch']:d} + {tu['yaw']:d}", "35 + 25"),
         row("energy capsules + magnets [J]", f"{e['capsules']:.0f} + {e['magnets']:.0f}", "1053 + 702"),
@@ -311,12 +422,46 @@ def plot(r: BenchResult, path: str) -> None:
     d = r.as_dict()
     fig.suptitle(f"De-orbit kit, {r.scenario}, law {r.law}: {d['capsule_openings']['total']} openings, "
                  f"{d['magnet_turns']['total']} turns, {d['energy_J']['total']:.0f} J "
-                 f"(paper: 45, 60, 1755 J); attitude from simulation truth", fontsize=10)
+                 f"(paper: 45, 60, 1755 J); attitude from {r.attitude}", fontsize=10)
     fig.tight_layout()
     try:
         save_figure(fig, path, dpi=110)
     finally:
         plt.close(fig)
+
+
+SWEEP_STARTS_DEG = tuple(45.0 * k for k in range(8))
+RUN_KEYS = ("arg_lat0_deg", "seed", "yaw_err_max_rad", "pitch_err_max_rad", "within_0p2_rad", "converged_at_s",
+            "att_err_rms_rad", "att_err_rms_rad_max", "rate_err_rms_dps", "trusted_from_s", "decisions_held",
+            "interlock_violations", "safe_entries", "wall_s")
+
+
+def sweep(scenario_name: str = DEFAULT_SCENARIO, *, starts: int = 8, seeds: int = 5, attitude: str = "estimate",
+          out=None, **kwargs) -> dict:
+    """`starts` starts on the orbit × `seeds` seeds, one line each on `out` (default stdout); the
+    aggregates of the issue."""
+    out = out or sys.stdout
+    runs = []
+    for lat0 in SWEEP_STARTS_DEG[:starts]:
+        for seed in range(seeds):
+            d = run_bench(scenario_name, arg_lat0_deg=lat0, seed=seed, attitude=attitude, **kwargs).as_dict()
+            row_ = {k: d[k] for k in RUN_KEYS}
+            row_["energy_J"] = d["energy_J"]["total"]
+            runs.append(row_)
+            print(f"start {lat0:5.0f} deg seed {seed}: yaw {d['yaw_err_max_rad']:.3f} pitch "
+                  f"{d['pitch_err_max_rad']:.3f} rad, {row_['energy_J']:.0f} J, estimate RMS "
+                  f"{d['att_err_rms_rad_max']:.3f} rad, wall {d['wall_s']:.0f} s", file=out, flush=True)
+    energy = np.array([r["energy_J"] for r in runs])
+    est = np.array([r["att_err_rms_rad_max"] for r in runs], float)
+    res = {"scenario": scenario_name, "attitude_source": attitude, "runs": runs,
+           "fraction_within_0p2_rad": float(np.mean([r["within_0p2_rad"] for r in runs])),
+           "energy_J_mean": float(energy.mean()), "energy_J_max": float(energy.max()),
+           "att_err_rms_rad_max": float(np.nanmax(est)) if np.isfinite(est).any() else math.nan,
+           "paper": PAPER}
+    print(f"{len(runs)} runs, attitude {attitude}: within 0.2 rad {100 * res['fraction_within_0p2_rad']:.0f} %, "
+          f"energy mean {res['energy_J_mean']:.0f} J, max {res['energy_J_max']:.0f} J, worst estimate RMS "
+          f"{res['att_err_rms_rad_max']:.3f} rad", file=out)
+    return res
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -332,6 +477,15 @@ def main(argv: list[str] | None = None) -> int:
                     help="what produces M_theor: the receding-horizon choice (default) or the PD law")
     ap.add_argument("--fault", action="append", default=[], metavar="KIND:CH:T[:VALUE]",
                     help="inject a fault, e.g. stall:pitch:1500, stuck:yaw:900:0.5, switch:yaw:600:closed=1")
+    ap.add_argument("--attitude", choices=("estimate", "truth"), default="estimate",
+                    help="the controller's attitude: the box's own estimate (default) or the simulation truth")
+    ap.add_argument("--seed", type=int_range(0, 2**31 - 1), default=0,
+                    help="sensor noise and handed-over calibration errors (default 0)")
+    ap.add_argument("--sweep", action="store_true",
+                    help="the starts on the orbit x seeds (default 8 x 5 = 40 runs); JSON: runs and aggregates")
+    ap.add_argument("--starts", type=int_range(1, 8), default=8, metavar="N",
+                    help="--sweep: the first N of the 8 starts (arguments of latitude 0, 45, ..., 315 deg)")
+    ap.add_argument("--seeds", type=int_range(1, 100), default=5, metavar="N", help="--sweep: seeds 0..N-1")
     ap.add_argument("--json", metavar="FILE", help="write the numbers as JSON")
     ap.add_argument("--plot", metavar="FILE.png", help="write the figure")
     args = ap.parse_args(argv)
@@ -342,13 +496,24 @@ def main(argv: list[str] | None = None) -> int:
             check_plot_path(args.plot)
         except ValueError as e:
             ap.error(f"--plot {e}")
+    if args.sweep and args.plot:
+        ap.error("--plot is for one run, not --sweep")
     try:
         faults = [Fault.parse(f) for f in args.fault]
-        r = run_bench(args.scenario, duration_s=args.duration, rate_hz=args.rate, law=args.law, faults=faults,
-                      arg_lat0_deg=args.arg_lat0)
+        if args.sweep:
+            out = sweep(args.scenario, duration_s=args.duration, rate_hz=args.rate, law=args.law, faults=faults,
+                        attitude=args.attitude, starts=args.starts, seeds=args.seeds)
+        else:
+            r = run_bench(args.scenario, duration_s=args.duration, rate_hz=args.rate, law=args.law, faults=faults,
+                          arg_lat0_deg=args.arg_lat0, attitude=args.attitude, seed=args.seed)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    if args.sweep:
+        if args.json:
+            write_atomic(args.json, json.dumps(out, indent=2, default=float))
+            print(f"wrote {args.json}")
+        return 0
     print(report(r))
     if args.json:
         write_atomic(args.json, json.dumps(r.as_dict(), indent=2, default=float))

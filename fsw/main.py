@@ -159,12 +159,13 @@ def run(cfg: RunConfig, mag: MagBus, kit: KitLines | None = None, out=sys.stdout
         notes = []
         if kit is not None:
             from .deorbit.kit import DeorbitKit
+            from .deorbit.onboard_attitude import EstimatedAttitude
             from .drivers.gpiod_lines import GpiodLines
 
             lines = GpiodLines(kit.chip, kit.lines, burst_period_s=1.0 / DeorbitKit.rate_hz, debounce_s=kit.debounce_s)
-            apps.append(DeorbitKit(lines))
-            notes.append(f"de-orbit kit: {len(kit.lines)} lines on {kit.chip}; no attitude source on target "
-                         "(commands only)")
+            apps.append(DeorbitKit(lines, EstimatedAttitude(cfg.sigma_T)))
+            notes.append(f"de-orbit kit: {len(kit.lines)} lines on {kit.chip}; controller attitude from the "
+                         "onboard estimate (the design's spacecraft model)")
         flight = build_flight(cfg, source, sigma_b_T=cfg.sigma_T, sample_rate_hz=cfg.sample_rate_hz, apps=apps,
                               timeorbit=timeorbit)
         fsw = flight.fsw

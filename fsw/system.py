@@ -114,6 +114,10 @@ def build_flight(cfg: RunConfig, source: FieldSource, *, sigma_b_T: float, sampl
                          field=field, field_provider=timeorbit, adapt_sample_rate=cfg.adapt_sample_rate)
     if flown is not None:  # the orbit filters fly on the calibration's field, once it calibrates the samples
         flown.provider = CalibratedField(fsw.calibration.provider, fsw.calibration)
+    for app in fsw.apps.values():  # the de-orbit kit's attitude estimate: the same field, on the same condition
+        source = getattr(app, "attitude", None)
+        if source is not None and hasattr(source, "provider") and source.provider is None:
+            source.provider = CalibratedField(fsw.calibration.provider, fsw.calibration)
     notes = [f"mission key {key_fingerprint(key)}: commands must be signed, telemetry is signed" if key else
              "no mission key: commands that change state are refused"]
     if uplink is not link:

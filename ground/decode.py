@@ -165,6 +165,8 @@ class Decoder:
         self.kit_field: dict[int, object] = {}
         #: the flown filter's latest attitude and 1-σ (see `_attitude`)
         self.attitude: dict = {}
+        #: the de-orbit controller's latest inputs (DEBRIS_DEORBIT_ATTITUDE, see `_deorbit_attitude`)
+        self.deorbit_attitude: dict = {}
 
     # --- input -------------------------------------------------------------------------------
 
@@ -199,7 +201,23 @@ class Decoder:
                 self.kit_field[int(msg.channel)] = msg
             elif kind in ("ATTITUDE_QUATERNION", "DEBRIS_ATTITUDE_SIGMA"):
                 self._attitude(kind, msg)
+            elif kind == "DEBRIS_DEORBIT_ATTITUDE":
+                self._deorbit_attitude(msg)
         self.tick(now_s)
+
+    def _deorbit_attitude(self, msg) -> None:
+        """The de-orbit controller's inputs (yaw, pitch, roll w.r.t. the orbital frame, the rate relative to
+        it, their σ, where they come from and whether it is trusted), kept in ``deorbit_attitude`` (SI;
+        NaN: none yet)."""
+        source = mavlink.enums["DEBRIS_CONTROLLER_ATTITUDE"].get(msg.source)
+        if source is None:
+            self.invalid["DEBRIS_DEORBIT_ATTITUDE"] += 1
+            return
+        self.deorbit_attitude = {
+            "t_s": msg.time_usec * 1e-6, "yaw_rad": msg.yaw, "pitch_rad": msg.pitch, "roll_rad": msg.roll,
+            "rate_radps": f32(*msg.rate), "pointing_sigma_rad": f32(*msg.pointing_sigma),
+            "rate_sigma_radps": msg.rate_sigma, "hypotheses": msg.hypotheses, "held": msg.held,
+            "source": source.name.removeprefix("DEBRIS_CONTROLLER_ATTITUDE_").lower()}
 
     def _attitude(self, kind: str, msg) -> None:
         """The flown filter's attitude (ATTITUDE_QUATERNION: q body → ECI) and its 1-σ with the rate's and

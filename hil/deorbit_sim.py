@@ -140,15 +140,39 @@ def controller_config(sim: DeorbitSimulator, **overrides):
     return ControllerConfig(**fields)
 
 
-def build_kit(sim: DeorbitSimulator, controller=None, law: str = "mpc", **kit_options):
-    """The flight software's de-orbit kit for a SITL run: the emulator's lines, the truth attitude, and a
-    controller configured for the scenario with `law` (:func:`controller_config`) unless `controller` is
-    given."""
-    from fsw.deorbit.kit import DeorbitKit
+ATTITUDE_SOURCES = ("truth", "estimate")
 
+
+def build_kit(sim: DeorbitSimulator, controller=None, law: str = "mpc", attitude: str = "truth",
+              sigma_b_T: float = 1.5e-6, **kit_options):
+    """The flight software's de-orbit kit for a SITL run: the emulator's lines, the controller's attitude
+    from `attitude` ("truth": :class:`TruthAttitude`; "estimate": the box's own,
+    `fsw.deorbit.onboard_attitude.EstimatedAttitude` with the sensor's σ `sigma_b_T` and the spacecraft as
+    the box knows it, :func:`box_spacecraft`), and a controller configured for the scenario with `law`
+    (:func:`controller_config`) unless `controller` is given."""
+    from fsw.deorbit.kit import DeorbitKit
+    from fsw.deorbit.onboard_attitude import EstimatedAttitude
+
+    if attitude not in ATTITUDE_SOURCES:
+        raise ValueError(f"attitude source must be one of {ATTITUDE_SOURCES}, got {attitude!r}")
+    controller = controller or controller_config(sim, law=law)
+    source = (TruthAttitude(sim) if attitude == "truth" else
+              EstimatedAttitude(sigma_b_T, box_spacecraft(sim.spec, controller.inertia_kgm2)))
     kit_options.setdefault("magnets", box_magnets(sim.spec))
-    return DeorbitKit(sim.kit, TruthAttitude(sim), controller=controller or controller_config(sim, law=law),
-                      **kit_options)
+    return DeorbitKit(sim.kit, source, controller=controller, **kit_options)
+
+
+def box_spacecraft(spec: DeorbitSpec, inertia_kgm2):
+    """The spacecraft as the box knows it (`fsw.estimation.orbital_attitude.SpacecraftModel`): the design's
+    sail, body area, drag coefficient and centre of pressure from the scenario, the controller's inertia
+    (the design value: identifying it is a later phase of the mission), and for the density the
+    exponential model the scenario names (the box's guess; here the same as the simulated atmosphere)."""
+    from fsw.estimation.orbital_attitude import SpacecraftModel
+
+    return SpacecraftModel(tuple(inertia_kgm2), spec.sail_area_m2, spec.body_area_m2, spec.drag_coefficient,
+                           tuple(spec.cp_offset_m), density_kgm3=spec.density_kgm3,
+                           density_ref_alt_km=spec.density_ref_alt_km,
+                           density_scale_height_km=spec.density_scale_height_km)
 
 
 def box_magnets(spec: DeorbitSpec):

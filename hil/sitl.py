@@ -210,7 +210,7 @@ def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, 
                                    **(ident_options or {})))
     if scn.deorbit is not None:
         from .deorbit_sim import build_kit
-        onboard.append(build_kit(sim, **(kit_options or {})))
+        onboard.append(build_kit(sim, **{"sigma_b_T": sigma_b, **(kit_options or {})}))
     flight = build_flight(r, driver, sigma_b_T=sigma_b, sample_rate_hz=rate_hz, truth=box_truth(sim), apps=onboard,
                           link=link, uplink=uplink, key=key, clock=clock, run_id=run_id, field=field,
                           timeorbit=timeorbit)

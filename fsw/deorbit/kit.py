@@ -5,9 +5,13 @@ and the plans; while the controller runs, a decision is taken at the start of ea
 (`ControllerConfig.period_s`) from the attitude source, and turned into pulses of the sequencer.
 
 Attitude: the controller needs the attitude w.r.t. the orbital frame, the rate relative to it, the
-field in body axes and a forecast of the field along the orbit. The box has no attitude sensor of its
-own for that yet: in SITL and in the benchmark these come from the simulator's truth (as lapkhanov2019
-assumes perfect attitude knowledge); `AttitudeSource` is the seam for an onboard estimate.
+field in body axes and a forecast of the field along the orbit, from an `AttitudeSource`: the box's own
+estimate (`fsw.deorbit.onboard_attitude.EstimatedAttitude`, fed here with every calibrated,
+kit-compensated sample and the dipole the sequencer has unscreened), or in SITL and the benchmark the
+simulator's truth for comparison (as lapkhanov2019 assumes). A source that has no attitude it trusts
+returns None: the kit then holds both capsules closed for that period and counts it
+(`decisions_without_attitude`); the reason goes out as STATUSTEXT when it changes, the controller's
+inputs as DEBRIS_DEORBIT_ATTITUDE at 1 Hz.
 
 Ground commands (COMMAND_LONG, dialect `debris.xml`), each a handler `(msg, now_s) -> MAV_RESULT` with
 `msg.param1..param7`:
@@ -33,6 +37,8 @@ from dataclasses import dataclass, replace
 from typing import Callable, Protocol
 
 
+import numpy as np
+
 from fsw.drivers.capsule import CapsuleTiming
 from fsw.drivers.gpio import DigitalLines
 from fsw.drivers.stepper import STEP_DEG, StepperLimits
@@ -41,6 +47,7 @@ from fsw.telemetry.dialect import mavlink
 from .controller import AttitudeInput, ChannelCommand, ControllerConfig, DiscreteController
 from .energy import EnergyLedger
 from .kit_field import DESIGN, KitFieldModel, MagnetGeometry
+from .onboard_attitude import report_of
 from .sequencer import Event, KitMode, Outcome, Sequencer, SequencerConfig
 
 MAV_RESULT_OF = {
@@ -58,7 +65,10 @@ MAX_PERIOD_S = 3600.0
 
 
 class AttitudeSource(Protocol):
-    """Where the controller's attitude comes from; `description` is shown with the results."""
+    """Where the controller's attitude comes from; `description` is shown with the results. Optional:
+    ``observe(t_s, b_T, dipole_body_Am2)`` (each calibrated, kit-compensated sample with the kit's
+    dipole from then on), ``report()`` (an `onboard_attitude.AttitudeReport` for telemetry) and
+    ``reason`` (why there is no attitude)."""
 
     description: str
 
@@ -143,6 +153,10 @@ class DeorbitKit:
         self.attitude = attitude
         self.next_decision_s = math.inf
         self.decisions_without_attitude = 0
+        self.last_input: AttitudeInput | None = None
+        self.hold_reason = ""
+        self._hold_reason_sent = ""
+        self._magnets = magnets
         self.pulses: list[PulseRecord] | None = [] if keep_pulses else None
         self.handlers: dict[int, Callable] = {
             mavlink.MAV_CMD_DEBRIS_CAPSULE: self.cmd_capsule,
@@ -169,6 +183,8 @@ class DeorbitKit:
         """A due controller decision first (so that a pulse ending now can be extended rather than
         closed and reopened), then the sequencer: drivers, plans, interlock monitor."""
         seq = self.sequencer
+        if sample is not None and hasattr(self.attitude, "observe"):
+            self.attitude.observe(sample.t_s, sample.b_T, self.known_dipole_body_Am2())
         if seq.mode is KitMode.RUNNING:
             if math.isinf(self.next_decision_s):
                 self.next_decision_s = now_s
@@ -182,11 +198,14 @@ class DeorbitKit:
     def _decide(self, now_s: float) -> None:
         seq = self.sequencer
         att = self.attitude.attitude(now_s) if self.attitude is not None else None
+        self.last_input = att
         if att is None:
             self.decisions_without_attitude += 1
+            self.hold_reason = getattr(self.attitude, "reason", "") or "no attitude source"
             for i in range(2):
                 seq.end_pulse(i, now_s)
             return
+        self.hold_reason = ""
         chans = seq.channels
         cmds = self.controller.decide(now_s, att, acting=tuple(c.acting for c in chans),
                                       polarity=tuple(c.polarity for c in chans))
@@ -214,9 +233,14 @@ class DeorbitKit:
                         mavlink.MAV_SEVERITY_WARNING if event.what in ("refused", "recovery") or
                         (event.what == "mode" and event.new == "SAFE") else mavlink.MAV_SEVERITY_INFO)
             tlm.statustext(event.text(), severity)
+        if self.hold_reason != self._hold_reason_sent:
+            self._hold_reason_sent = self.hold_reason
+            tlm.statustext(f"deorbit: capsules held closed: {self.hold_reason}" if self.hold_reason else
+                           "deorbit: controller acting on a trusted attitude", mavlink.MAV_SEVERITY_INFO)
         if now_s >= self._next_status_s:
             self._next_status_s = max(self._next_status_s + self.STATUS_PERIOD_S, now_s)
             tlm.deorbit_status(now_s, self.status(now_s))
+            tlm.deorbit_attitude(now_s, self.attitude_report(), self.decisions_without_attitude)
         if now_s >= self._next_field_tlm_s:
             self._next_field_tlm_s = max(self._next_field_tlm_s + self.field_tlm_every_s, now_s)
             self.sensor_field.telemetry(now_s, tlm)
@@ -238,6 +262,25 @@ class DeorbitKit:
             polarity=pair(lambda c: int(c.stepper.polarity)),
             fault=pair(lambda c: int(c.fault | c.stepper.fault | c.capsule.fault) & 0xFF),
             controller_state=int(self.sequencer.mode))
+
+    def known_dipole_body_Am2(self) -> np.ndarray:
+        """The kit's unscreened dipole in body axes as the sequencer knows it: each channel acting
+        (capsule opening or open) with its polarity, along its magnet's home axis (polarity −1: half a
+        turn about the shaft) [A·m²]."""
+        p = np.zeros(3)
+        for ch, mag in zip(self.sequencer.channels, self._magnets):
+            if ch.acting:
+                p += ch.acting * mag.moment_Am2 * np.asarray(mag.home_axis, float)
+        return p
+
+    def attitude_report(self):
+        """The controller's inputs for DEBRIS_DEORBIT_ATTITUDE: the source's own report, or (a source
+        without one: the truth) the attitude of the last decision with zero σ."""
+        if hasattr(self.attitude, "report"):
+            return self.attitude.report()
+        src = (mavlink.DEBRIS_CONTROLLER_ATTITUDE_NONE if self.last_input is None
+               else mavlink.DEBRIS_CONTROLLER_ATTITUDE_TRUTH)
+        return report_of(self.last_input, src)
 
     def energy(self) -> EnergyLedger:
         return self.sequencer.energy()

@@ -2943,6 +2943,20 @@ enums["MAV_CMD"][54030].param[7] = """Reserved (default:0)"""
 MAV_CMD_ENUM_END = 54031
 enums["MAV_CMD"][54031] = EnumEntry("MAV_CMD_ENUM_END", """""")
 
+# DEBRIS_CONTROLLER_ATTITUDE
+enums["DEBRIS_CONTROLLER_ATTITUDE"] = Enum()
+enums["DEBRIS_CONTROLLER_ATTITUDE"].bitmask = False
+DEBRIS_CONTROLLER_ATTITUDE_NONE = 0
+enums["DEBRIS_CONTROLLER_ATTITUDE"][0] = EnumEntry("DEBRIS_CONTROLLER_ATTITUDE_NONE", """No attitude yet (no field along the orbit, no calibrated sample): capsules held closed.""")
+DEBRIS_CONTROLLER_ATTITUDE_UNTRUSTED = 1
+enums["DEBRIS_CONTROLLER_ATTITUDE"][1] = EnumEntry("DEBRIS_CONTROLLER_ATTITUDE_UNTRUSTED", """The onboard estimate runs but is not trusted yet (sigma, consistency, hypotheses): capsules held closed.""")
+DEBRIS_CONTROLLER_ATTITUDE_TRUSTED = 2
+enums["DEBRIS_CONTROLLER_ATTITUDE"][2] = EnumEntry("DEBRIS_CONTROLLER_ATTITUDE_TRUSTED", """The onboard estimate is trusted: the controller acts on it.""")
+DEBRIS_CONTROLLER_ATTITUDE_TRUTH = 3
+enums["DEBRIS_CONTROLLER_ATTITUDE"][3] = EnumEntry("DEBRIS_CONTROLLER_ATTITUDE_TRUTH", """Simulation truth (SITL and benchmarks only).""")
+DEBRIS_CONTROLLER_ATTITUDE_ENUM_END = 4
+enums["DEBRIS_CONTROLLER_ATTITUDE"][4] = EnumEntry("DEBRIS_CONTROLLER_ATTITUDE_ENUM_END", """""")
+
 # HL_FAILURE_FLAG
 enums["HL_FAILURE_FLAG"] = Enum()
 enums["HL_FAILURE_FLAG"].bitmask = True
@@ -6643,6 +6657,7 @@ MAVLINK_MSG_ID_DEBRIS_TLE = 54021
 MAVLINK_MSG_ID_DEBRIS_MAGCAL = 54040
 MAVLINK_MSG_ID_DEBRIS_KIT_FIELD = 54050
 MAVLINK_MSG_ID_DEBRIS_ATTITUDE_SIGMA = 54055
+MAVLINK_MSG_ID_DEBRIS_DEORBIT_ATTITUDE = 54065
 MAVLINK_MSG_ID_SYS_STATUS = 1
 MAVLINK_MSG_ID_SYSTEM_TIME = 2
 MAVLINK_MSG_ID_PING = 4
@@ -7591,6 +7606,56 @@ class MAVLink_debris_attitude_sigma_message(MAVLink_message):
 # Define name on the class for backwards compatibility (it is now msgname).
 # Done with setattr to hide the class variable from mypy.
 setattr(MAVLink_debris_attitude_sigma_message, "name", mavlink_msg_deprecated_name_property())
+
+
+class MAVLink_debris_deorbit_attitude_message(MAVLink_message):
+    """
+    The de-orbit controller's inputs: the attitude w.r.t. the orbital
+    frame (x along the velocity, z to nadir; yaw, pitch, roll ZYX),
+    the body rate relative to that frame, and their 1-sigma, as the
+    controller sees them (at 1 Hz with DEBRIS_DEORBIT_STATUS).
+    """
+
+    id = MAVLINK_MSG_ID_DEBRIS_DEORBIT_ATTITUDE
+    msgname = "DEBRIS_DEORBIT_ATTITUDE"
+    fieldnames = ["time_usec", "yaw", "pitch", "roll", "rate", "pointing_sigma", "rate_sigma", "source", "hypotheses", "held"]
+    ordered_fieldnames = ["time_usec", "yaw", "pitch", "roll", "rate", "pointing_sigma", "rate_sigma", "held", "source", "hypotheses"]
+    fieldtypes = ["uint64_t", "float", "float", "float", "float", "float", "float", "uint8_t", "uint8_t", "uint32_t"]
+    fielddisplays_by_name: Dict[str, str] = {}
+    fieldenums_by_name: Dict[str, str] = {"source": "DEBRIS_CONTROLLER_ATTITUDE"}
+    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "yaw": "rad", "pitch": "rad", "roll": "rad", "rate": "rad/s", "pointing_sigma": "rad", "rate_sigma": "rad/s"}
+    native_format = bytearray(b"<QffffffIBB")
+    orders = [0, 1, 2, 3, 4, 5, 6, 8, 9, 7]
+    lengths = [1, 1, 1, 1, 3, 2, 1, 1, 1, 1]
+    array_lengths = [0, 0, 0, 0, 3, 2, 0, 0, 0, 0]
+    crc_extra = 226
+    unpacker = struct.Struct("<Qfff3f2ffIBB")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(self, time_usec: int, yaw: float, pitch: float, roll: float, rate: Sequence[float], pointing_sigma: Sequence[float], rate_sigma: float, source: int, hypotheses: int, held: int):
+        MAVLink_message.__init__(self, MAVLink_debris_deorbit_attitude_message.id, MAVLink_debris_deorbit_attitude_message.msgname)
+        self._fieldnames = MAVLink_debris_deorbit_attitude_message.fieldnames
+        self._instance_field = MAVLink_debris_deorbit_attitude_message.instance_field
+        self._instance_offset = MAVLink_debris_deorbit_attitude_message.instance_offset
+        self.time_usec = time_usec
+        self.yaw = yaw
+        self.pitch = pitch
+        self.roll = roll
+        self.rate = rate
+        self.pointing_sigma = pointing_sigma
+        self.rate_sigma = rate_sigma
+        self.source = source
+        self.hypotheses = hypotheses
+        self.held = held
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.yaw, self.pitch, self.roll, self.rate[0], self.rate[1], self.rate[2], self.pointing_sigma[0], self.pointing_sigma[1], self.rate_sigma, self.held, self.source, self.hypotheses), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_debris_deorbit_attitude_message, "name", mavlink_msg_deprecated_name_property())
 
 
 class MAVLink_sys_status_message(MAVLink_message):
@@ -17681,6 +17746,7 @@ mavlink_map: Dict[int, Type[MAVLink_message]] = {
     MAVLINK_MSG_ID_DEBRIS_MAGCAL: MAVLink_debris_magcal_message,
     MAVLINK_MSG_ID_DEBRIS_KIT_FIELD: MAVLink_debris_kit_field_message,
     MAVLINK_MSG_ID_DEBRIS_ATTITUDE_SIGMA: MAVLink_debris_attitude_sigma_message,
+    MAVLINK_MSG_ID_DEBRIS_DEORBIT_ATTITUDE: MAVLink_debris_deorbit_attitude_message,
     MAVLINK_MSG_ID_SYS_STATUS: MAVLink_sys_status_message,
     MAVLINK_MSG_ID_SYSTEM_TIME: MAVLink_system_time_message,
     MAVLINK_MSG_ID_PING: MAVLink_ping_message,
@@ -18890,6 +18956,50 @@ class MAVLink(object):
 
         """
         self.send(self.debris_attitude_sigma_encode(time_usec, attitude_sigma, rate_sigma, filter, flags, handovers), force_mavlink1=force_mavlink1)
+
+    def debris_deorbit_attitude_encode(self, time_usec: int, yaw: float, pitch: float, roll: float, rate: Sequence[float], pointing_sigma: Sequence[float], rate_sigma: float, source: int, hypotheses: int, held: int) -> MAVLink_debris_deorbit_attitude_message:
+        """
+        The de-orbit controller's inputs: the attitude w.r.t. the orbital
+        frame (x along the velocity, z to nadir; yaw, pitch, roll
+        ZYX), the body rate relative to that frame, and their 1-sigma,
+        as the controller sees them (at 1 Hz with
+        DEBRIS_DEORBIT_STATUS).
+
+        time_usec                 : Loop time. [us] (type:uint64_t)
+        yaw                       : Yaw of the sail normal w.r.t. the flight direction (NaN: none). [rad] (type:float)
+        pitch                     : Pitch of the sail normal (NaN: none). [rad] (type:float)
+        roll                      : Roll about the sail normal (NaN: none). [rad] (type:float)
+        rate                      : Body rate relative to the orbital frame, body axes (NaN: none). [rad/s] (type:float)
+        pointing_sigma            : 1-sigma of the sail normal's pointing error about body y and z (0: truth; NaN: none). [rad] (type:float)
+        rate_sigma                : Largest 1-sigma of the rate per axis (0: truth; NaN: none). [rad/s] (type:float)
+        source                    : Source and trust. (type:uint8_t, values:DEBRIS_CONTROLLER_ATTITUDE)
+        hypotheses                : Attitude hypotheses the onboard filter still runs (0 for truth). (type:uint8_t)
+        held                      : Controller decisions taken with the capsules held closed for want of a trusted attitude. (type:uint32_t)
+
+        """
+        return MAVLink_debris_deorbit_attitude_message(time_usec, yaw, pitch, roll, rate, pointing_sigma, rate_sigma, source, hypotheses, held)
+
+    def debris_deorbit_attitude_send(self, time_usec: int, yaw: float, pitch: float, roll: float, rate: Sequence[float], pointing_sigma: Sequence[float], rate_sigma: float, source: int, hypotheses: int, held: int, force_mavlink1: bool = False) -> None:
+        """
+        The de-orbit controller's inputs: the attitude w.r.t. the orbital
+        frame (x along the velocity, z to nadir; yaw, pitch, roll
+        ZYX), the body rate relative to that frame, and their 1-sigma,
+        as the controller sees them (at 1 Hz with
+        DEBRIS_DEORBIT_STATUS).
+
+        time_usec                 : Loop time. [us] (type:uint64_t)
+        yaw                       : Yaw of the sail normal w.r.t. the flight direction (NaN: none). [rad] (type:float)
+        pitch                     : Pitch of the sail normal (NaN: none). [rad] (type:float)
+        roll                      : Roll about the sail normal (NaN: none). [rad] (type:float)
+        rate                      : Body rate relative to the orbital frame, body axes (NaN: none). [rad/s] (type:float)
+        pointing_sigma            : 1-sigma of the sail normal's pointing error about body y and z (0: truth; NaN: none). [rad] (type:float)
+        rate_sigma                : Largest 1-sigma of the rate per axis (0: truth; NaN: none). [rad/s] (type:float)
+        source                    : Source and trust. (type:uint8_t, values:DEBRIS_CONTROLLER_ATTITUDE)
+        hypotheses                : Attitude hypotheses the onboard filter still runs (0 for truth). (type:uint8_t)
+        held                      : Controller decisions taken with the capsules held closed for want of a trusted attitude. (type:uint32_t)
+
+        """
+        self.send(self.debris_deorbit_attitude_encode(time_usec, yaw, pitch, roll, rate, pointing_sigma, rate_sigma, source, hypotheses, held), force_mavlink1=force_mavlink1)
 
     def sys_status_encode(self, onboard_control_sensors_present: int, onboard_control_sensors_enabled: int, onboard_control_sensors_health: int, load: int, voltage_battery: int, current_battery: int, battery_remaining: int, drop_rate_comm: int, errors_comm: int, errors_count1: int, errors_count2: int, errors_count3: int, errors_count4: int, onboard_control_sensors_present_extended: int = 0, onboard_control_sensors_enabled_extended: int = 0, onboard_control_sensors_health_extended: int = 0) -> MAVLink_sys_status_message:
         """

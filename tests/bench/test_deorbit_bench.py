@@ -17,7 +17,7 @@ KEYS = ("yaw_err_max_rad", "pitch_err_max_rad", "capsule_openings", "magnet_turn
 
 @pytest.fixture(scope="module")
 def short_run():
-    return run_bench(duration_s=2500.0, settle_s=2200.0)
+    return run_bench(duration_s=2500.0, settle_s=2200.0, attitude="truth")
 
 
 def test_short_closed_loop_converges_from_60_and_45_degrees(short_run):
@@ -58,7 +58,7 @@ def test_pulses_follow_eq5_and_eq6(short_run):
 
 
 def test_a_stalled_stepper_ends_in_safe_mode_and_the_loop_runs_on():
-    r = run_bench(duration_s=700.0, settle_s=600.0, faults=[Fault(0.0, 0, "stall", 1.0)])
+    r = run_bench(duration_s=700.0, settle_s=600.0, faults=[Fault(0.0, 0, "stall", 1.0)], attitude="truth")
     d = r.as_dict()
     seq = r.kit.sequencer
     assert seq.mode is KitMode.SAFE and d["safe_entries"] == 1 and d["recoveries"] == 1
@@ -71,7 +71,7 @@ def test_a_stalled_stepper_ends_in_safe_mode_and_the_loop_runs_on():
 
 
 def test_a_shutter_stuck_half_open_ends_safe_with_the_fault_reported():
-    r = run_bench(duration_s=400.0, settle_s=300.0, faults=[Fault(0.0, 1, "stuck", 0.5)])
+    r = run_bench(duration_s=400.0, settle_s=300.0, faults=[Fault(0.0, 1, "stuck", 0.5)], attitude="truth")
     d = r.as_dict()
     assert r.kit.sequencer.mode is KitMode.SAFE and d["fault_bits"][1] & FAULT_SHUTTER_STUCK
     assert d["interlock_violations"] == 0 and d["interlock_violations_truth"] == 0
@@ -79,7 +79,7 @@ def test_a_shutter_stuck_half_open_ends_safe_with_the_fault_reported():
 
 
 def test_the_papers_pd_law_runs_too():
-    r = run_bench(duration_s=400.0, settle_s=300.0, law="paper")
+    r = run_bench(duration_s=400.0, settle_s=300.0, law="paper", attitude="truth")
     d = r.as_dict()
     assert d["law"] == "paper" and d["interlock_violations"] == 0
 
@@ -94,11 +94,12 @@ def test_fault_specification_parsing():
 
 def test_command_line_writes_json_and_plot(tmp_path, capsys):
     js, png = tmp_path / "bench.json", tmp_path / "bench.png"
-    assert deorbit.main(["--duration", "300", "--json", str(js), "--plot", str(png)]) == 0
+    assert deorbit.main(["--duration", "300", "--attitude", "truth", "--json", str(js), "--plot", str(png)]) == 0
     out = capsys.readouterr().out
     assert "lapkhanov2019" in out and "simulation truth" in out and "1755" in out
     d = json.loads(js.read_text())
     assert all(k in d for k in KEYS) and d["duration_s"] == 300.0
+    assert d["attitude"] == "truth" and d["decisions_held"] == 0 and d["trusted_from_s"] == 0.0
     assert png.stat().st_size > 10_000
     assert deorbit.main(["--fault", "melt:pitch:1"]) == 2
 

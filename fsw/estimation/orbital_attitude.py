@@ -1,0 +1,403 @@
+"""The attitude w.r.t. the orbital frame from the magnetometer alone: a multiplicative EKF on attitude and rate
+driven by the environment's torques and the de-orbit kit's own known moments.
+
+Why it works with one vector sensor. A field sample gives the attitude about two axes only (the rotation
+about B is unseen). What makes the third observable over time is the dynamics: gravity gradient and the
+sail's weathervane moment depend on the attitude, the kit's moments M = p × B are known (the sequencer
+knows which capsule is open with which polarity), and the field turns in the orbital frame by about two
+turns an orbit, so the unseen axis changes. A filter that propagates Euler's equations with these torques
+sees a wrong rotation about B as a growing misfit of later samples.
+
+State and frames. Nominal q (body → inertial, scalar first as in `rotations`), ω (inertial rate, body
+axes); error δx = (δθ, δω), the true attitude R = R̂ exp([δθ]ₓ) (body-frame error, as in
+`attitude_kalman.AttitudeRateKalman`, whose measurement model and update this shares). The outputs are in
+the orbital frame o (x_o along the velocity, z_o nadir, y_o = z_o × x_o): R_bo = R_oiᵀ R(q) and
+ω_rel = ω − R(q)ᵀ ω_oi with ω_oi = r × v / |r|². The body-frame error's y and z components are exactly
+the sail normal's pointing error about body y and z (what the controller acts on), so their σ is the
+pointing σ the controller's trust gate reads.
+
+Dynamics (:func:`torque_body_Nm`): J ω̇ = −ω × Jω + M_gg + M_aero + p × B with
+M_gg = 3μ/r³ · r̂ × J r̂, M_aero = r_cp × F for a flat sail plus body in free molecular flow
+(F = −½ρ|v|²C_d(S_sail|n·v̂| + S_body) v̂, the air at rest in inertial space), p the kit's unscreened
+dipoles reported by the sequencer and B = R(q)ᵀ B_I. The model is the box's `SpacecraftModel`: its
+inertia (the design value until the identification supplies one), sail and density guess. Integration:
+RK4 with the orbit position, velocity and field held over the step (≤ 2 s); error transition
+Φ = I + Fh + (Fh)²/2 with ∂M/∂δθ by central differences.
+
+Start (:class:`OrbitalAttitudeBank`): the first sample fixes two axes; `hypotheses` attitudes evenly
+spaced about B, each at rest in the orbital frame (σ `sigma_rate0_radps`), run side by side; their
+cumulative negative log-likelihoods pick one (the others are dropped once they trail by
+`drop_nll`). A start from a tumble is not this filter's job (the rate filters find that rate first).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from .rotations import quat_aligning, quat_exp, quat_mul, quat_to_dcm, skew, so3_exp
+
+MU_EARTH_M3S2 = 3.986004418e14
+R_EARTH_M = 6378137.0
+UT_PER_T = 1e6
+
+
+@dataclass(frozen=True)
+class SpacecraftModel:
+    """What the box knows of the spacecraft it is bolted to (SI, body axes about the centre of mass).
+
+    Density: an exponential atmosphere ρ0·exp(−(h − h0)/H) at the orbit's altitude — by default Vallado's
+    Table 8-4 band for 600-700 km at mean solar activity (the box cannot measure density; its error is
+    process noise on the rate)."""
+
+    inertia_kgm2: tuple = (17.995, 20.711, 15.269)  # diagonal (3,) or full (3, 3)
+    sail_area_m2: float = 5.0
+    body_area_m2: float = 0.58
+    drag_coefficient: float = 2.2
+    cp_offset_m: tuple[float, float, float] = (-0.12, 0.0, 0.0)
+    sail_normal_body: tuple[float, float, float] = (1.0, 0.0, 0.0)
+    density_kgm3: float = 1.454e-13
+    density_ref_alt_km: float = 600.0
+    density_scale_height_km: float = 71.835
+
+    def J(self) -> np.ndarray:
+        j = np.asarray(self.inertia_kgm2, float)
+        return np.diag(j) if j.shape == (3,) else j
+
+    def density_at_kgm3(self, r_m: float) -> float:
+        h_km = (r_m - R_EARTH_M) * 1e-3
+        return self.density_kgm3 * math.exp(-(h_km - self.density_ref_alt_km) / self.density_scale_height_km)
+
+
+@dataclass(frozen=True)
+class Inputs:
+    """The known inputs over a propagation step (inertial axes): position, velocity, the field along the
+    orbit, and the kit's dipole in body axes."""
+
+    r_eci_m: np.ndarray
+    v_eci_mps: np.ndarray
+    b_eci_T: np.ndarray
+    dipole_body_Am2: np.ndarray
+
+
+@dataclass
+class OrbitalAttitudeTuning:
+    """Noise and start settings (SI).
+
+    accel_psd: spectral density of the unmodelled angular acceleration [(rad/s²)²/Hz] (density and
+      inertia errors, the shutters' ramps, the magnets' real moment): (3.5e-7 rad/s²)² over 100 s of
+      correlation by default (chosen on recorded closed-loop runs: smaller values make the estimate
+      overconfident about yaw after the pulses).
+    field_sigma_T: the onboard field model's error per axis, added to the sensor's noise.
+    sigma_bias0_T, bias_psd_T2_per_s: the sample's slowly varying error in body axes (what the host
+      calibration leaves, the hard iron's thermal drift, the kit's field the compensation misses), a
+      random walk from σ `sigma_bias0_T`; when the kit's dipole changes (a capsule opens or closes, a
+      magnet turns), `kit_change_bias_sigma_T` more per axis (what the kit-field model misses changes with
+      the channels' states).
+    """
+
+    accel_psd: float = (3.5e-7) ** 2 * 100.0
+    field_sigma_T: float = 0.3e-6
+    sigma_bias0_T: float = 2e-6
+    bias_psd_T2_per_s: float = (1e-6) ** 2 / 1000.0
+    kit_change_bias_sigma_T: float = 1e-6
+    sigma_angle0_rad: float = 0.05  # perpendicular to B at the first sample (plus the sample's noise)
+    sigma_about_b0_rad: float = 0.5  # about B, per hypothesis
+    sigma_rate0_radps: float = 1e-3
+    hypotheses: int = 8
+    drop_nll: float = 25.0
+    max_step_s: float = 2.0
+    max_gap_s: float = 600.0
+    decide_after_s: float = 1200.0  # then only the best hypothesis runs on
+
+
+# --- pure functions ----------------------------------------------------------------------------------
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a × b of two 3-vectors (np.cross costs ten times more per call on single vectors)."""
+    return np.array((a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]))
+
+
+def orbital_frame(r_eci_m: np.ndarray, v_eci_mps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(R_oi with columns x_o, y_o, z_o in inertial axes, ω_oi in inertial axes)."""
+    z = -r_eci_m / np.linalg.norm(r_eci_m)
+    x = v_eci_mps - np.dot(v_eci_mps, z) * z
+    x = x / np.linalg.norm(x)
+    return np.column_stack((x, _cross(z, x), z)), _cross(r_eci_m, v_eci_mps) / float(r_eci_m @ r_eci_m)
+
+
+def torque_body_Nm(R_bi: np.ndarray, u: Inputs, model: SpacecraftModel, J: np.ndarray) -> np.ndarray:
+    """Gravity gradient + the sail's aerodynamic moment + the kit's p × B, body axes, at attitude R_bi."""
+    r_b = R_bi.T @ u.r_eci_m
+    r = math.sqrt(float(r_b @ r_b))
+    rh = r_b / r
+    m = (3.0 * MU_EARTH_M3S2 / r ** 3) * _cross(rh, J @ rh)
+    v_b = R_bi.T @ u.v_eci_mps
+    speed = math.sqrt(float(v_b @ v_b))
+    if speed > 0.0 and model.density_kgm3 > 0.0:
+        vh = v_b / speed
+        area = model.sail_area_m2 * abs(float(np.dot(model.sail_normal_body, vh))) + model.body_area_m2
+        force = -0.5 * model.density_at_kgm3(r) * speed * speed * model.drag_coefficient * area * vh
+        m = m + _cross(np.asarray(model.cp_offset_m, float), force)
+    return m + _cross(u.dipole_body_Am2, R_bi.T @ u.b_eci_T)
+
+
+def _wdot(R_bi: np.ndarray, w: np.ndarray, u: Inputs, model: SpacecraftModel, J: np.ndarray,
+          Jinv: np.ndarray) -> np.ndarray:
+    return Jinv @ (torque_body_Nm(R_bi, u, model, J) - _cross(w, J @ w))
+
+
+def transition(R_bi: np.ndarray, w: np.ndarray, h: float, u: Inputs, model: SpacecraftModel, J: np.ndarray,
+               Jinv: np.ndarray) -> np.ndarray:
+    """Φ (9×9) of the error (δθ, δω, δβ) over `h`: I + Fh + (Fh)²/2 with F_θθ = −[ω]ₓ, F_θω = I,
+    F_ωω = J⁻¹([Jω]ₓ − [ω]ₓJ), F_ωθ = J⁻¹ ∂M/∂δθ (central differences: gravity gradient, sail, p × B)."""
+    F = np.zeros((9, 9))
+    F[:3, :3] = -skew(w)
+    F[:3, 3:6] = np.eye(3)
+    F[3:6, 3:6] = Jinv @ (skew(J @ w) - skew(w) @ J)
+    eps = 1e-4
+    for i in range(3):
+        d = np.zeros(3)
+        d[i] = eps
+        mp = torque_body_Nm(R_bi @ so3_exp(d), u, model, J)
+        mm = torque_body_Nm(R_bi @ so3_exp(-d), u, model, J)
+        F[3:6, i] = Jinv @ (mp - mm) / (2.0 * eps)
+    Fh = F * h
+    return np.eye(9) + Fh + 0.5 * Fh @ Fh
+
+
+def predict(q: np.ndarray, w: np.ndarray, P: np.ndarray, dt_s: float, u: Inputs, model: SpacecraftModel,
+            tuning: "OrbitalAttitudeTuning") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(q, ω, P) propagated by `dt_s` with the inputs `u` held: the midpoint rule (RK2) in steps of at
+    most `tuning.max_step_s` (the rates here are ~10⁻³ rad/s: a step turns the body by milliradians);
+    the bias (the last three states) is a random walk and keeps its value."""
+    if dt_s <= 0.0:
+        return q, w, P
+    J = model.J()
+    Jinv = np.linalg.inv(J)
+    n = max(1, int(math.ceil(dt_s / tuning.max_step_s)))
+    h = dt_s / n
+    qa, qb = tuning.accel_psd, tuning.bias_psd_T2_per_s * UT_PER_T ** 2
+    Q = np.zeros((9, 9))
+    Q[:3, :3] = qa * h ** 3 / 3.0 * np.eye(3)
+    Q[:3, 3:6] = Q[3:6, :3] = qa * h ** 2 / 2.0 * np.eye(3)
+    Q[3:6, 3:6] = qa * h * np.eye(3)
+    Q[6:, 6:] = qb * h * np.eye(3)
+    for _ in range(n):
+        R = quat_to_dcm(q)
+        Phi = transition(R, w, h, u, model, J, Jinv)
+        P = Phi @ P @ Phi.T + Q
+        k1 = _wdot(R, w, u, model, J, Jinv)
+        wm = w + 0.5 * h * k1
+        qm = quat_mul(q, quat_exp(0.5 * h * w))
+        k2 = _wdot(quat_to_dcm(qm), wm, u, model, J, Jinv)
+        q = quat_mul(q, quat_exp(h * wm))
+        q = q / np.linalg.norm(q)
+        w = w + h * k2
+    return q, w, 0.5 * (P + P.T)
+
+
+def update(q: np.ndarray, w: np.ndarray, beta_uT: np.ndarray, P: np.ndarray, z_body_T: np.ndarray,
+           b_eci_T: np.ndarray, sigma_T: float):
+    """One field sample, z = R(q)ᵀ B_I + β + v: (q, ω, β [µT], P, NIS, the sample's negative
+    log-likelihood). Units inside µT (as `attitude_kalman`)."""
+    z = np.asarray(z_body_T, float) * UT_PER_T
+    h = quat_to_dcm(q).T @ (np.asarray(b_eci_T, float) * UT_PER_T)
+    H = np.zeros((3, 9))
+    H[:, :3] = skew(h)
+    H[:, 6:] = np.eye(3)
+    Rm = (sigma_T * UT_PER_T) ** 2 * np.eye(3)
+    y = z - h - beta_uT
+    S = H @ P @ H.T + Rm
+    K = np.linalg.solve(S, H @ P).T
+    dx = K @ y
+    IKH = np.eye(9) - K @ H
+    P = IKH @ P @ IKH.T + K @ Rm @ K.T
+    nis = float(y @ np.linalg.solve(S, y))
+    nll = 0.5 * (nis + math.log(max(float(np.linalg.det(S)), 1e-300)))
+    q = quat_mul(q, quat_exp(dx[:3]))
+    return q / np.linalg.norm(q), w + dx[3:6], beta_uT + dx[6:], 0.5 * (P + P.T), nis, nll
+
+
+def start_state(z_body_T: np.ndarray, b_eci_T: np.ndarray, omega_oi_eci: np.ndarray, angle_about_b_rad: float,
+                tuning: OrbitalAttitudeTuning, sigma_T: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A hypothesis from the first sample: aligned with the field, turned by `angle_about_b_rad` about it,
+    at rest in the orbital frame; (q, ω, P)."""
+    q = quat_aligning(np.asarray(z_body_T, float), np.asarray(b_eci_T, float), angle_about_b_rad)
+    w = quat_to_dcm(q).T @ omega_oi_eci
+    bh = np.asarray(z_body_T, float) / np.linalg.norm(z_body_T)
+    s_perp2 = tuning.sigma_angle0_rad ** 2 + (math.hypot(sigma_T, tuning.sigma_bias0_T)
+                                              / float(np.linalg.norm(z_body_T))) ** 2
+    P = np.zeros((9, 9))
+    P[:3, :3] = s_perp2 * (np.eye(3) - np.outer(bh, bh)) + tuning.sigma_about_b0_rad ** 2 * np.outer(bh, bh)
+    P[3:6, 3:6] = tuning.sigma_rate0_radps ** 2 * np.eye(3)
+    P[6:, 6:] = (tuning.sigma_bias0_T * UT_PER_T) ** 2 * np.eye(3)
+    return q, w, P
+
+
+# --- the stateful bank -------------------------------------------------------------------------------
+
+@dataclass
+class Member:
+    q: np.ndarray
+    w: np.ndarray
+    P: np.ndarray
+    beta_uT: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    nll: float = 0.0
+    nis: float = 0.0
+    angle0_rad: float = 0.0
+
+
+@dataclass
+class OrbitalAttitudeBank:
+    """The filter one sample at a time: `update(t_s, b_T, dipole_body_Am2)` with the calibrated, kit-free
+    sample and the kit's dipole since the previous sample; `best` the member of least cumulative NLL.
+
+    `inputs_at(t_s)` gives the orbit's position, velocity and field at a time (:class:`OrbitInputs`)."""
+
+    sigma_b_T: float
+    inputs_at: Callable[[float], tuple[np.ndarray, np.ndarray, np.ndarray]]
+    model: SpacecraftModel = field(default_factory=SpacecraftModel)
+    tuning: OrbitalAttitudeTuning = field(default_factory=OrbitalAttitudeTuning)
+    members: list = field(default_factory=list)
+    t_s: float = math.nan
+    t_start_s: float = math.nan
+    samples: int = 0
+    restarts: int = 0
+    _dipole: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    @property
+    def sigma_T(self) -> float:
+        return math.hypot(self.sigma_b_T, self.tuning.field_sigma_T)
+
+    @property
+    def started(self) -> bool:
+        return bool(self.members)
+
+    @property
+    def best(self) -> Member | None:
+        return min(self.members, key=lambda m: m.nll) if self.members else None
+
+    def reset(self) -> None:
+        self.members = []
+        self.t_s = math.nan
+
+    def update(self, t_s: float, b_T: np.ndarray, dipole_body_Am2: np.ndarray | None = None) -> None:
+        b = np.asarray(b_T, float)
+        if not np.all(np.isfinite(b)):
+            return
+        r, v, b_eci = self.inputs_at(t_s)
+        if not self.members or t_s - self.t_s > self.tuning.max_gap_s or t_s <= self.t_s:
+            if self.members:
+                self.restarts += 1
+            self._start(t_s, b, r, v, b_eci)
+        else:
+            # the inputs held over the step: the orbit at its middle, the dipole that acted since the last sample
+            tm = 0.5 * (self.t_s + t_s)
+            rm, vm, bm = self.inputs_at(tm)
+            u = Inputs(rm, vm, bm, self._dipole)
+            dt = t_s - self.t_s
+            for m in self.members:
+                m.q, m.w, m.P = predict(m.q, m.w, m.P, dt, u, self.model, self.tuning)
+                m.q, m.w, m.beta_uT, m.P, m.nis, nll = update(m.q, m.w, m.beta_uT, m.P, b, b_eci, self.sigma_T)
+                m.nll += nll
+            best = min(self.members, key=lambda m: m.nll)
+            if t_s - self.t_start_s >= self.tuning.decide_after_s:
+                self.members = [best]
+            else:
+                self.members = [m for m in self.members if m.nll - best.nll <= self.tuning.drop_nll]
+        self.t_s = t_s
+        self.samples += 1
+        if dipole_body_Am2 is not None:
+            p = np.asarray(dipole_body_Am2, float)
+            if np.any(p != self._dipole):  # the kit's field at the sensor changes with it
+                jump = (self.tuning.kit_change_bias_sigma_T * UT_PER_T) ** 2
+                for m in self.members:
+                    m.P[6:, 6:] += jump * np.eye(3)
+            self._dipole = p.copy()
+
+    def spread_rad(self) -> float:
+        """The largest angle between the best hypothesis's sail normal (body x) and another's [rad]."""
+        best = self.best
+        if best is None:
+            return math.nan
+        x0 = quat_to_dcm(best.q)[:, 0]
+        return max((math.acos(max(-1.0, min(1.0, float(quat_to_dcm(m.q)[:, 0] @ x0)))) for m in self.members),
+                   default=0.0)
+
+    def _start(self, t_s: float, b: np.ndarray, r: np.ndarray, v: np.ndarray, b_eci: np.ndarray) -> None:
+        _, w_oi = orbital_frame(r, v)
+        n = max(1, int(self.tuning.hypotheses))
+        self.members = []
+        for k in range(n):
+            angle = 2.0 * math.pi * k / n
+            q, w, P = start_state(b, b_eci, w_oi, angle, self.tuning, self.sigma_T)
+            q, w, beta, P, nis, _ = update(q, w, np.zeros(3), P, b, b_eci, self.sigma_T)
+            self.members.append(Member(q, w, P, beta, 0.0, nis, angle))
+        self.t_start_s = t_s
+
+    def orbital(self, t_s: float, member: Member | None = None):
+        """(R_bo, ω_rel body axes, σ of the pointing error about body y and z [rad], σ of ω [rad/s] per axis)
+        of `member` (default the best) propagated to `t_s` without a sample; None before the start."""
+        m = member or self.best
+        if m is None:
+            return None
+        q, w, P = m.q, m.w, m.P
+        if t_s > self.t_s:
+            r, v, b_eci = self.inputs_at(0.5 * (self.t_s + t_s))
+            q, w, P = predict(q, w, P, t_s - self.t_s, Inputs(r, v, b_eci, self._dipole), self.model, self.tuning)
+        r, v, _ = self.inputs_at(t_s)
+        R_oi, w_oi = orbital_frame(r, v)
+        R_bi = quat_to_dcm(q)
+        R_bo = R_oi.T @ R_bi
+        w_rel = w - R_bi.T @ w_oi
+        sd = np.sqrt(np.maximum(np.diag(P), 0.0))
+        return R_bo, w_rel, (float(sd[1]), float(sd[2])), sd[3:6].copy(), q
+
+
+class OrbitInputs:
+    """`inputs_at(t_s)` for the bank from an onboard field along the orbit (an
+    `onboard_field.OnboardOrbitField` or `InterpolatedOrbitField`): position (SGP4 or the circular orbit),
+    velocity by a central difference of positions 1 s apart, and B_I(t)."""
+
+    def __init__(self, field) -> None:
+        self.field = field
+        self._position = orbit_position_fn(field)
+
+    def __call__(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        r3 = np.asarray(self._position(np.array([t_s - 1.0, t_s, t_s + 1.0])), float)
+        return r3[1], 0.5 * (r3[2] - r3[0]), np.asarray(self.field.b_eci_T(t_s), float)
+
+
+def orbit_position_fn(field) -> Callable[[np.ndarray], np.ndarray]:
+    """Positions (N, 3) [m, inertial] at box times (N,) along the orbit a field is computed on: a TLE's
+    (SGP4 at the field's UTC) or a circular orbit's (`field_motion.CircularOrbitModel`)."""
+    sat, utc_of = getattr(field, "sat", None), getattr(field, "utc_of", None)
+    if sat is not None and utc_of is not None:
+        def tle_position(t):
+            days = np.asarray(utc_of(np.asarray(t, float)), float) / 86400.0
+            whole = np.floor(days)
+            err, r_km, _ = sat.sgp4_array(whole + 2440587.5, days - whole)
+            if np.any(err):
+                raise ValueError(f"SGP4 error codes {sorted(set(err[err != 0].tolist()))}")
+            return r_km * 1e3
+        return tle_position
+    for obj in (field, getattr(field, "orbit_field", None)):
+        orbit = getattr(obj, "orbit", None)
+        if orbit is not None and hasattr(orbit, "position_eci_m"):
+            return orbit.position_eci_m
+    raise ValueError("the field along the orbit does not say where the orbit is")
+
+
+def orbital_field_forecast(inputs: OrbitInputs) -> Callable[[np.ndarray], np.ndarray]:
+    """times (N,) -> the field along the orbit in orbital axes (N, 3) [T]: the controller's forecast."""
+    def forecast(t_s):
+        t = np.atleast_1d(np.asarray(t_s, float))
+        out = np.empty((t.size, 3))
+        for k, tk in enumerate(t):
+            r, v, b = inputs(float(tk))
+            out[k] = orbital_frame(r, v)[0].T @ b
+        return out
+    return forecast

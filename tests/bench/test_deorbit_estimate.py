@@ -1,0 +1,52 @@
+"""The de-orbit closed loop on the box's own attitude estimate (bench.deorbit's default): the estimate's
+yaw and pitch against the simulation truth, no pulse before it is trusted, the benchmark's JSON keys and
+the sweep's aggregates."""
+import json
+import math
+
+import pytest
+
+from bench import deorbit
+from bench.deorbit import run_bench
+
+pytestmark = pytest.mark.bench
+
+
+@pytest.mark.slow
+def test_the_estimate_follows_the_truth_and_the_controller_waits_for_it():
+    r = run_bench(duration_s=2400.0, settle_s=1800.0, attitude="estimate")
+    d = r.as_dict()
+    assert d["attitude"] == "estimate" and "onboard estimate" in d["attitude_source"]
+    # yaw and pitch of the estimate against the truth, from 1,800 s on
+    assert d["att_err_rms_rad"]["yaw"] < 0.1 and d["att_err_rms_rad"]["pitch"] < 0.1
+    assert d["att_err_rms_rad_max"] == max(d["att_err_rms_rad"].values())
+    assert d["rate_err_rms_dps"] < 0.02
+    # the trust gate's minimum run (900 s): the first nine decisions held the capsules closed
+    assert d["decisions_held"] >= 9 and d["trusted_from_s"] >= 900.0
+    assert all(p.t_s >= d["trusted_from_s"] - 1.0 for p in r.kit.pulses if p.polarity)
+    assert d["interlock_violations"] == 0 and d["safe_entries"] == 0
+
+
+def test_the_sweep_writes_the_aggregates(tmp_path, capsys):
+    js = tmp_path / "sweep.json"
+    assert deorbit.main(["--sweep", "--starts", "2", "--seeds", "1", "--duration", "15", "--attitude", "truth",
+                         "--json", str(js)]) == 0
+    d = json.loads(js.read_text())
+    assert d["attitude_source"] == "truth" and len(d["runs"]) == 2
+    assert [r["arg_lat0_deg"] for r in d["runs"]] == [0.0, 45.0]
+    for key in ("fraction_within_0p2_rad", "energy_J_mean", "energy_J_max", "att_err_rms_rad_max"):
+        assert key in d
+    assert d["energy_J_max"] >= d["energy_J_mean"] >= 0.0
+    assert d["fraction_within_0p2_rad"] == 0.0  # 15 s from yaw 60°, pitch 45°: not there yet
+    assert math.isnan(d["att_err_rms_rad_max"])  # the truth has no estimation error
+    assert "2 runs, attitude truth" in capsys.readouterr().out
+
+
+def test_a_short_run_on_the_estimate_reports_its_keys():
+    r = run_bench(duration_s=30.0, settle_s=10.0, attitude="estimate", seed=3)
+    d = r.as_dict()
+    for key in ("attitude_source", "att_err_rms_rad_max", "rate_err_rms_dps", "trusted_from_s", "decisions_held"):
+        assert key in d
+    assert d["seed"] == 3 and d["decisions_held"] == 1 and math.isnan(d["trusted_from_s"])
+    assert d["capsule_openings"]["total"] == 0  # never trusted in 30 s: capsules held closed
+    assert math.isfinite(d["att_err_rms_rad"]["yaw"])

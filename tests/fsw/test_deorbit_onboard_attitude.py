@@ -1,0 +1,147 @@
+"""The de-orbit controller on the box's own estimate: no pulse on an attitude it cannot trust (the kit
+holds both capsules closed, counts the period and says why), the trust gate's conditions, the known
+dipole the estimate is given, and the controller's inputs in DEBRIS_DEORBIT_ATTITUDE."""
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from fsw.deorbit.kit import DeorbitKit
+from fsw.deorbit.onboard_attitude import EstimatedAttitude, TrustGate
+from fsw.estimation.field_motion import CircularOrbitModel, DipoleModel, OrbitField
+from fsw.estimation.orbital_attitude import OrbitInputs, orbital_frame
+from fsw.estimation.rotations import quat_from_dcm
+from fsw.host_calibration import FixedField
+from fsw.telemetry.dialect import mavlink
+from fsw.telemetry.telemetry import Telemetry
+from hil.deorbit_kit import DeorbitKitEmulator
+from support import Capture
+
+pytestmark = pytest.mark.fsw
+DT = 0.1
+
+
+class Untrusted:
+    description = "never trusted"
+    reason = "pointing sigma 0.300 rad > 0.1"
+
+    def attitude(self, now_s):
+        return None
+
+
+def start_controller(kit, t):
+    msg = SimpleNamespace(command=mavlink.MAV_CMD_DEBRIS_CONTROLLER, param1=1, param2=0, param3=0, param4=0,
+                          param5=0, param6=0, param7=0)
+    return kit.handle_command(msg, t)
+
+
+def test_no_pulse_on_an_untrusted_attitude_capsules_held_closed_and_reported():
+    emu = DeorbitKitEmulator()
+    kit = DeorbitKit(emu, Untrusted())
+    cap = Capture()
+    tlm = Telemetry(cap)
+    t = 0.0
+    for ch in (0, 1):
+        kit.sequencer.request_home(ch, t)
+    for _ in range(30):
+        t = round(t + DT, 9)
+        emu.advance_to(t)
+        kit.tick(t)
+    assert start_controller(kit, t) == mavlink.MAV_RESULT_ACCEPTED
+    for _ in range(int(350 / DT)):  # four controller periods
+        t = round(t + DT, 9)
+        emu.advance_to(t)
+        kit.tick(t)
+        kit.telemetry(t, tlm)
+    assert kit.decisions_without_attitude == 4 and kit.controller.decisions == 0
+    assert all(c.openings == 0 and c.shutter == 0.0 for c in emu.channels)  # never unscreened
+    assert kit.hold_reason == Untrusted.reason
+    msgs = cap.messages()
+    texts = [m.text for m in msgs if m.get_type() == "STATUSTEXT"]
+    assert sum("capsules held closed: pointing sigma" in x for x in texts) == 1  # once, when it changed
+    att = [m for m in msgs if m.get_type() == "DEBRIS_DEORBIT_ATTITUDE"]
+    assert att and att[-1].held == 4 and att[-1].source == mavlink.DEBRIS_CONTROLLER_ATTITUDE_NONE
+    assert math.isnan(att[-1].yaw)
+
+
+def test_the_known_dipole_follows_the_open_capsules_and_polarity():
+    emu = DeorbitKitEmulator()
+    kit = DeorbitKit(emu)
+    t = 0.0
+
+    def run(seconds):
+        nonlocal t
+        for _ in range(int(round(seconds / DT))):
+            t = round(t + DT, 9)
+            emu.advance_to(t)
+            kit.tick(t)
+
+    seq = kit.sequencer
+    seq.request_home(0, t)
+    seq.request_home(1, t)
+    run(3.0)
+    assert np.all(kit.known_dipole_body_Am2() == 0.0)  # both screened
+    assert seq.request_turn(0, 100, t).accepted  # the pitch magnet half a turn: polarity −1
+    run(10.0)
+    assert seq.request_capsule(0, True, t).accepted and seq.request_capsule(1, True, t).accepted
+    run(5.0)
+    # pitch magnet along body z (turned: −z), yaw magnet along body y, 15 A·m² each (the design)
+    assert kit.known_dipole_body_Am2() == pytest.approx([0.0, 15.0, -15.0])
+    # the emulator's truth agrees
+    assert emu.dipole_body_Am2() == pytest.approx([0.0, 15.0, -15.0], abs=1e-6)
+
+
+def _estimate():
+    """An estimate fed 120 samples of a body at rest in the orbital frame (yaw = pitch = roll = 0)."""
+    orbit = CircularOrbitModel(600e3, 97.8)
+    fld = OrbitField(orbit, DipoleModel(2025.0), era0_rad=0.0)
+    inputs = OrbitInputs(fld)
+    src = EstimatedAttitude(1.5e-6, gate=TrustGate(), provider=FixedField(fld))
+    for t in np.arange(0.0, 120.0):
+        r, v, b_eci = inputs(float(t))
+        R_oi, _ = orbital_frame(r, v)  # body = orbital frame
+        src.observe(float(t), R_oi.T @ b_eci, np.zeros(3))
+    return src, R_oi
+
+
+def test_the_trust_gate_needs_time_sigma_fit_and_agreeing_hypotheses():
+    src, R_oi = _estimate()
+    assert src.attitude(119.0) is None and "running" in src.reason and not src.trusted
+    # the same estimate judged after its minimum run: the hypotheses about B still disagree
+    src.bank.t_start_s = -1e4
+    assert src.attitude(119.0) is None
+    assert "sigma" in src.reason or "disagree" in src.reason
+    # one hypothesis, put on the truth, with a small covariance: trusted, and the attitude it gives is right
+    best = src.bank.best
+    best.q = quat_from_dcm(R_oi)
+    best.P = np.diag([1e-4] * 3 + [1e-10] * 3 + [0.01] * 3)
+    src.bank.members = [best]
+    src.nis_mean = 3.0
+    att = src.attitude(119.0)
+    assert att is not None and src.trusted and src.reason == ""
+    assert att.R_bo == pytest.approx(np.eye(3), abs=1e-3)
+    assert att.b_orbital_forecast(np.array([200.0, 300.0])).shape == (2, 3)
+    rep = src.report()
+    assert rep.source == mavlink.DEBRIS_CONTROLLER_ATTITUDE_TRUSTED and rep.hypotheses == 1
+    # once trusted, a σ between the limit and twice the limit keeps the trust (no flapping) ...
+    best.P[1, 1] = 0.15 ** 2
+    assert src.attitude(119.0) is not None and src.trusted
+    # ... but is not enough to gain it
+    src.trusted = False
+    assert src.attitude(119.0) is None and "pointing sigma" in src.reason
+    best.P[1, 1] = 1e-4
+    assert src.attitude(119.0) is not None
+    # samples that do not fit: not trusted
+    src.nis_mean = 50.0
+    assert src.attitude(119.0) is None and "do not fit" in src.reason
+    src.nis_mean = 3.0
+    best.P[2, 2] = 0.3 ** 2  # pointing σ about body z 0.3 rad
+    assert src.attitude(119.0) is None and "pointing sigma" in src.reason
+
+
+def test_without_a_field_along_the_orbit_there_is_no_estimate():
+    src = EstimatedAttitude(1.5e-6)
+    src.observe(0.0, np.array([20e-6, 0.0, 0.0]), np.zeros(3))
+    assert src.bank is None and src.attitude(0.0) is None and "no orbit" in src.reason
+    assert src.report().source == mavlink.DEBRIS_CONTROLLER_ATTITUDE_NONE
