@@ -67,6 +67,9 @@ MISFIT_SCALED = ("smoother", "euler", "auto")
 METHODS = ("boer", "boer-printed", "derivative", "kotelnikov", "kotelnikov-paper", "kalman", "kalman-orbit",
            "kalman-euler", "kalman-mm", "smoother", "euler", "auto")
 PERPENDICULAR = ("boer", "boer-printed")
+#: methods that take the field as fixed in inertial space whether or not a field model is given (they do
+#: not use it): their σ is widened by the field's turning either way
+FIELD_BLIND = ("boer", "boer-printed", "derivative", "kotelnikov", "kotelnikov-paper", "kalman")
 #: samples a method needs for its first estimate: two for a difference, three for a second one (and for
 #: the full vector of the filters and smoothers, which ΔB of one step does not fix)
 MIN_SAMPLES = {m: 2 if m in PERPENDICULAR or m.startswith("kalman") else 3 for m in METHODS}
@@ -116,7 +119,8 @@ def estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, fie
 
     Without a field model (`field` None) every method takes the field as fixed in inertial space and
     its σ is widened by the field's own turning, `field_turn_radps` (default: low Earth orbit's, 0.13 °/s;
-    0 for a laboratory's fixed field): `fsw.estimation.rate_formulas.widen_for_field_turn`. A record
+    0 for a laboratory's fixed field; so is the σ of the methods that never use a model,
+    :data:`FIELD_BLIND`, when one is given): `fsw.estimation.rate_formulas.widen_for_field_turn`. A record
     whose |B| varies beyond the noise (:func:`field_error_rel` > 0.5 %: an uncalibrated host) has the σ
     of every method whose σ is the noise's alone (not the smoothers', which scale with their misfit)
     widened by that share of |ω| (`rate_formulas.widen_for_field_error`)."""
@@ -126,7 +130,7 @@ def estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, fie
         s = rf.widen_for_field_error(s, w, eps)
         notes["sigma_widened_field_error"] = (f"|B| varies {100 * eps:.2g} % beyond the noise (host iron "
                                               "uncalibrated?): σ + that share of |ω|")
-    if field is None and field_turn_radps > 0:
+    if (field is None or method in FIELD_BLIND) and field_turn_radps > 0:
         s = rf.widen_for_field_turn(s, b, field_turn_radps)
         notes["sigma_widened"] = f"field taken as fixed: +{math.degrees(field_turn_radps):.3g} °/s field turn ⊥B"
     return w, s, notes
