@@ -53,7 +53,7 @@ from fsw.estimation import kotelnikov as ko
 from fsw.estimation import rate_formulas as rf
 from fsw.estimation import rate_kalman as rk
 from fsw.estimation.tle import TleError, parse_tle
-from ground import kit_field
+from ground import angle_sum, kit_field
 from ground import magcal as gm
 from ground import smoother as sm
 from ground.field import recording_field, scenario_field, tle_field
@@ -159,16 +159,24 @@ def _estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, fi
     if method == "kalman":
         w, s, _ = rk.kalman_rate(t, b, sigma_b_T)
         return w, s, notes
-    if method == "kalman-euler" and inertia_kgm2 is None:  # shape unknown: the parallel-hypothesis acquisition
-        w, s, _ = fb.euler_acquisition_rate(t, b, sigma_b_T, field_eci_T=sm.tabulated(field, t))
-        return w, s, notes
-    if method == "kalman-mm":
-        w, s, _ = fb.rate_model_bank_rate(t, b, sigma_b_T, field_eci_T=sm.tabulated(field, t))
-        return w, s, notes
-    if method in ("kalman-orbit", "kalman-euler"):
-        w, s, _ = ak.attitude_kalman_rate(t, b, sigma_b_T, field_eci_T=sm.tabulated(field, t),
-                                          estimate_inertia=method == "kalman-euler" and inertia_kgm2 is None,
-                                          inertia_kgm2=inertia_kgm2 if method == "kalman-euler" else None)
+    if method in ("kalman-orbit", "kalman-euler", "kalman-mm"):
+        fld = sm.tabulated(field, t)
+        if method == "kalman-euler" and inertia_kgm2 is None:  # shape unknown: the parallel-hypothesis acquisition
+            def make(angle):
+                return fb.EulerAcquisitionKalman(sigma_b_T, field_eci_T=fld, angle_about_b_rad=angle)
+        elif method == "kalman-mm":
+            def make(angle):
+                return fb.RateModelBank(sigma_b_T, field_eci_T=fld, angle_about_b_rad=angle)
+        else:
+            def make(angle):
+                return ak.AttitudeRateKalman(sigma_b_T, field_eci_T=fld,
+                                             inertia_kgm2=inertia_kgm2 if method == "kalman-euler" else None,
+                                             angle_about_b_rad=angle)
+        if fld is None:  # the attitude relative to the first sample: no angle about B to choose
+            w, s, _ = rk.run_stream(make(0.0), t, b, sigma_b_T)
+            return w, s, notes
+        w, s, more = angle_sum.angle_sum_rate(make, t, b, sigma_b_T)
+        notes.update(more)
         return w, s, notes
     if method in ("smoother", "euler", "auto"):
         model = {"smoother": "random_walk", "euler": "euler", "auto": "auto"}[method]
