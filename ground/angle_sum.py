@@ -33,7 +33,7 @@ ANGLES = 6
 def mixture(nll, w, var, c: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Gaussian sum of M hypotheses at N samples: `nll` (M,) or (M, N) negative log-likelihoods, `w` and
     `var` (M, N, 3) their estimates and variances (NaN: no estimate there, left out). Returns the mean
-    (N, 3), the variance (N, 3) and the weights (M, N) (see the module docstring)."""
+    (N, 3), the variance (N, 3) about it and the weights (M, N) (see the module docstring)."""
     w_all = np.asarray(w, float)
     var_all = np.clip(np.asarray(var, float), 0.0, None)
     m, n = w_all.shape[:2]

@@ -180,7 +180,8 @@ def rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_
     With a field model the attitude about B is weakly fixed (by the field's slow turning only): the
     smoothed pass is run from each of the `angles` starting angles and the passes are combined as a
     Gaussian sum weighted by their likelihoods (`ground.angle_sum`): ω the mixture's mean, σ its spread
-    with each pass's own; q, χ² and `angle_about_b_rad` are the likeliest pass's.
+    with each pass's own; q, χ², `angle_about_b_rad` and ``info["w_pass_radps"]`` are the likeliest
+    pass's (an attitude and a rate that belong together: the batch fit starts from them).
     """
     t = np.asarray(t_s, float)
     b = np.asarray(b_T, float)
@@ -227,7 +228,7 @@ def rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_
         w_s, var, wt = angle_sum.mixture([p[0].nll for p in passes], [p[2][:, :3] for p in passes],
                                          [c * np.einsum("kii->ki", p[3][:, 3:6, 3:6]) for p in passes], c)
         sig = np.sqrt(var)
-        mix = {"angle_weights": wt[:, 0].tolist()}
+        mix = {"angle_weights": wt[:, 0].tolist(), "w_pass_radps": x_s[:, :3].copy()}
     chi2 = _chi2(t, b, sigma_b_T * noise[2], q_s, x_s, field_eci_T)
     return Smoothed(t, w_s, unobserved_sigma(sig, b, sigma_b_T), q_s, "smoother",
                     chi2 / max(3 * len(t) - 6, 1), info={"kappa": noise[0], "rate_accel_radps2": noise[1],
@@ -332,7 +333,7 @@ def euler_fit(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T
         beta = rot.quat_to_dcm(init.q[0]) @ (b[0] * rk.UT_PER_T)
         kf.set_nominal(t[0], np.array([1.0, 0.0, 0.0, 0.0]), init.w_radps[0], beta_uT=beta, euler=True)
     else:
-        kf.set_nominal(t[0], init.q[0], init.w_radps[0], euler=True)
+        kf.set_nominal(t[0], init.q[0], init.info.get("w_pass_radps", init.w_radps)[0], euler=True)
     z = b * rk.UT_PER_T
     sb = sigma_b_T * rk.UT_PER_T
     nn = kf.n
