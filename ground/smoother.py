@@ -180,8 +180,9 @@ def rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_
     With a field model the attitude about B is weakly fixed (by the field's slow turning only): the
     smoothed pass is run from each of the `angles` starting angles and the passes are combined as a
     Gaussian sum weighted by their likelihoods (`ground.angle_sum`): ω the mixture's mean, σ its spread
-    with each pass's own; q, χ², `angle_about_b_rad` and ``info["w_pass_radps"]`` are the likeliest
-    pass's (an attitude and a rate that belong together: the batch fit starts from them).
+    with each pass's own; q, χ², `angle_about_b_rad` and ``info["w_pass_radps"]`` are those of the pass
+    from the angle the backward search chose (an attitude and a rate that belong together: the batch
+    fit starts from them).
     """
     t = np.asarray(t_s, float)
     b = np.asarray(b_T, float)
@@ -221,9 +222,9 @@ def rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_
         passes = [_smoothed_pass(t, b, sigma_b_T, field_eci_T, noise, runs[noise] if g == angle else
                                  _forward(tr, br, sigma_b_T, fr, noise, g), g)
                   for g in (2 * math.pi * a / angles for a in range(angles))]
-        best = min(range(len(passes)), key=lambda i: passes[i][0].nll)
-        kf, q_s, x_s, P_s = passes[best]
-        angle = kf.angle_about_b_rad
+        # the pass from the angle the backward search chose (as before the sum): its attitude and rate
+        # belong together, and the batch fit starts from them
+        kf, q_s, x_s, P_s = next(p for p in passes if p[0].angle_about_b_rad == angle)
         c = variance_scale(kf.log)
         w_s, var, wt = angle_sum.mixture([p[0].nll for p in passes], [p[2][:, :3] for p in passes],
                                          [c * np.einsum("kii->ki", p[3][:, 3:6, 3:6]) for p in passes], c)
