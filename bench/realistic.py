@@ -16,6 +16,7 @@ The two cases of issue 15's "never confidently wrong" (:data:`CASES`):
   1 s steps, 0.3 µT, 10 min.
 
     python -m bench.realistic slow_heavy rec.csv      # the record as a CSV (format v1, with the truth)
+    python -m bench.realistic slow_heavy --score --seeds 2 --json s.json   # every method's error and coverage
 """
 from __future__ import annotations
 
@@ -155,15 +156,66 @@ def simulate(case: Case | str, seed: int = 0, *, random_attitude: bool = True) -
     return Record(t_box, b_meas, b_true, w, q, sim.box_tle, sim.utc0, case, seed)
 
 
+#: the ground tool's methods scored by :func:`score` (`python -m bench.realistic CASE --score`)
+SCORED = ("boer", "kalman", "kalman-orbit", "kalman-euler", "kalman-mm", "smoother", "auto")
+
+
+def score(case: Case | str, seeds=(0,), methods=SCORED, fields=("tle", "none")) -> list[dict]:
+    """Each method of `ground.estimate` on the seeded records of `case`, with the box's TLE (``tle``, as
+    ``--tle … --utc0 …``) and without an orbit (``none``): full-vector RMS error (Boer: ⊥B) in °/s and
+    the share of components within 1-σ (`ground.estimate.score`), one dict per (seed, field, method)."""
+    from ground import estimate as ge
+    rows = []
+    for seed in seeds:
+        rec = simulate(case, seed)
+        r = rec.recording()
+        sigma = ge.noise_estimate_T(r.b_T)
+        for fld in fields:
+            field = rec.field() if fld == "tle" else None
+            for m in methods:
+                w, s, _ = ge.estimate(m, r.t_s, r.b_T, sigma, field=field)
+                sc = ge.score(r, w, m in ge.PERPENDICULAR, s)
+                rows.append({"case": rec.case.name, "seed": seed, "field": fld, "method": m,
+                             "rms_dps": sc.get("full_rms_dps", sc["perp_rms_dps"]),
+                             "coverage_1sigma": sc["coverage_1sigma"]})
+    return rows
+
+
 def main(argv=None) -> int:
+    import json
+
     from fsw.argtypes import ArgumentParser, check_paths_or_exit, int_range
     from ground.recording import write_recording
 
     ap = ArgumentParser(prog="python -m bench.realistic", description=__doc__.splitlines()[0])
     ap.add_argument("case", choices=sorted(CASES))
-    ap.add_argument("output", help="recording to write (CSV, format v1, with the true rate as reference)")
+    ap.add_argument("output", nargs="?", help="recording to write (CSV, format v1, with the true rate as reference)")
     ap.add_argument("--seed", type=int_range(0), default=0)
+    ap.add_argument("--score", action="store_true", help="instead: each ground.estimate method's RMS error and "
+                                                         "1-σ coverage, with the TLE and without an orbit")
+    ap.add_argument("--seeds", type=int_range(1), default=1, help="--score: seeds 0 … N−1 (default 1)")
+    ap.add_argument("--methods", default=",".join(SCORED), help="--score: comma-separated methods")
+    ap.add_argument("--json", metavar="FILE", help="--score: the rows as JSON")
     args = ap.parse_args(argv)
+    if args.score:
+        from ground.estimate import METHODS
+        methods = [m for m in args.methods.split(",") if m]
+        bad = [m for m in methods if m not in METHODS]
+        if bad or not methods:
+            ap.error(f"--methods: unknown {', '.join(bad) or '(none)'}; choose from {', '.join(METHODS)}")
+        check_paths_or_exit(ap, inputs={}, outputs={"--json": args.json})
+        rows = score(args.case, range(args.seeds), methods)
+        print("case        seed field method         RMS °/s  1-σ covers")
+        for r in rows:
+            print(f"{r['case']:11s} {r['seed']:4d} {r['field']:5s} {r['method']:13s} {r['rms_dps']:8.3f}  "
+                  f"{100 * r['coverage_1sigma']:5.1f} %")
+        if args.json:
+            with open(args.json, "w") as f:
+                json.dump(rows, f, indent=1)
+            print(f"wrote {args.json}")
+        return 0
+    if args.output is None:
+        ap.error("give OUTPUT (the recording to write) or --score")
     check_paths_or_exit(ap, inputs={}, outputs={"output": args.output})
     rec = simulate(args.case, args.seed)
     write_recording(args.output, rec.recording())

@@ -53,7 +53,7 @@ from fsw.estimation import kotelnikov as ko
 from fsw.estimation import rate_formulas as rf
 from fsw.estimation import rate_kalman as rk
 from fsw.estimation.tle import TleError, parse_tle
-from ground import kit_field
+from ground import angle_sum, kit_field
 from ground import magcal as gm
 from ground import smoother as sm
 from ground.field import recording_field, scenario_field, tle_field
@@ -67,6 +67,9 @@ MISFIT_SCALED = ("smoother", "euler", "auto")
 METHODS = ("boer", "boer-printed", "derivative", "kotelnikov", "kotelnikov-paper", "kalman", "kalman-orbit",
            "kalman-euler", "kalman-mm", "smoother", "euler", "auto")
 PERPENDICULAR = ("boer", "boer-printed")
+#: methods that take the field as fixed in inertial space whether or not a field model is given (they do
+#: not use it): their σ is widened by the field's turning either way
+FIELD_BLIND = ("boer", "boer-printed", "derivative", "kotelnikov", "kotelnikov-paper", "kalman")
 #: samples a method needs for its first estimate: two for a difference, three for a second one (and for
 #: the full vector of the filters and smoothers, which ΔB of one step does not fix)
 MIN_SAMPLES = {m: 2 if m in PERPENDICULAR or m.startswith("kalman") else 3 for m in METHODS}
@@ -116,7 +119,8 @@ def estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, fie
 
     Without a field model (`field` None) every method takes the field as fixed in inertial space and
     its σ is widened by the field's own turning, `field_turn_radps` (default: low Earth orbit's, 0.13 °/s;
-    0 for a laboratory's fixed field): `fsw.estimation.rate_formulas.widen_for_field_turn`. A record
+    0 for a laboratory's fixed field; so is the σ of the methods that never use a model,
+    :data:`FIELD_BLIND`, when one is given): `fsw.estimation.rate_formulas.widen_for_field_turn`. A record
     whose |B| varies beyond the noise (:func:`field_error_rel` > 0.5 %: an uncalibrated host) has the σ
     of every method whose σ is the noise's alone (not the smoothers', which scale with their misfit)
     widened by that share of |ω| (`rate_formulas.widen_for_field_error`)."""
@@ -126,7 +130,7 @@ def estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, fie
         s = rf.widen_for_field_error(s, w, eps)
         notes["sigma_widened_field_error"] = (f"|B| varies {100 * eps:.2g} % beyond the noise (host iron "
                                               "uncalibrated?): σ + that share of |ω|")
-    if field is None and field_turn_radps > 0:
+    if (field is None or method in FIELD_BLIND) and field_turn_radps > 0:
         s = rf.widen_for_field_turn(s, b, field_turn_radps)
         notes["sigma_widened"] = f"field taken as fixed: +{math.degrees(field_turn_radps):.3g} °/s field turn ⊥B"
     return w, s, notes
@@ -155,16 +159,24 @@ def _estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, fi
     if method == "kalman":
         w, s, _ = rk.kalman_rate(t, b, sigma_b_T)
         return w, s, notes
-    if method == "kalman-euler" and inertia_kgm2 is None:  # shape unknown: the parallel-hypothesis acquisition
-        w, s, _ = fb.euler_acquisition_rate(t, b, sigma_b_T, field_eci_T=sm.tabulated(field, t))
-        return w, s, notes
-    if method == "kalman-mm":
-        w, s, _ = fb.rate_model_bank_rate(t, b, sigma_b_T, field_eci_T=sm.tabulated(field, t))
-        return w, s, notes
-    if method in ("kalman-orbit", "kalman-euler"):
-        w, s, _ = ak.attitude_kalman_rate(t, b, sigma_b_T, field_eci_T=sm.tabulated(field, t),
-                                          estimate_inertia=method == "kalman-euler" and inertia_kgm2 is None,
-                                          inertia_kgm2=inertia_kgm2 if method == "kalman-euler" else None)
+    if method in ("kalman-orbit", "kalman-euler", "kalman-mm"):
+        fld = sm.tabulated(field, t)
+        if method == "kalman-euler" and inertia_kgm2 is None:  # shape unknown: the parallel-hypothesis acquisition
+            def make(angle):
+                return fb.EulerAcquisitionKalman(sigma_b_T, field_eci_T=fld, angle_about_b_rad=angle)
+        elif method == "kalman-mm":
+            def make(angle):
+                return fb.RateModelBank(sigma_b_T, field_eci_T=fld, angle_about_b_rad=angle)
+        else:
+            def make(angle):
+                return ak.AttitudeRateKalman(sigma_b_T, field_eci_T=fld,
+                                             inertia_kgm2=inertia_kgm2 if method == "kalman-euler" else None,
+                                             angle_about_b_rad=angle)
+        if fld is None:  # the attitude relative to the first sample: no angle about B to choose
+            w, s, _ = rk.run_stream(make(0.0), t, b, sigma_b_T)
+            return w, s, notes
+        w, s, more = angle_sum.angle_sum_rate(make, t, b, sigma_b_T)
+        notes.update(more)
         return w, s, notes
     if method in ("smoother", "euler", "auto"):
         model = {"smoother": "random_walk", "euler": "euler", "auto": "auto"}[method]

@@ -6,9 +6,10 @@ fixed in inertial space otherwise (laboratory recordings):
 
 - :func:`rts_smooth` — fixed-interval Rauch–Tung–Striebel smoother (Rauch, Tung & Striebel 1965;
   Bar-Shalom et al. 2001 §8.6) over the multiplicative EKF with ω a random walk. Works for any
-  motion; the strength of the random walk (κ, the scale of the torque-free |ω̇| ≤ κ|ω|²) and, with a
-  field model, the initial angle about B are chosen by maximum likelihood over a small grid, and the
-  pass is repeated from the smoothed start (re-linearisation).
+  motion; the strength of the random walk (κ, the scale of the torque-free |ω̇| ≤ κ|ω|²) is chosen by
+  maximum likelihood over a small grid, the pass is repeated from the smoothed start
+  (re-linearisation), and with a field model the passes from several initial angles about B are
+  combined as a Gaussian sum (`ground.angle_sum`: the samples barely fix that angle).
 - :func:`euler_fit` — output-error fit of the torque-free Euler equations and the kinematics to the
   whole record (batch nonlinear least squares, Gauss–Newton / Levenberg–Marquardt): parameters are
   the attitude and rate at the first sample, the inertia shape ln(J₂/J₁), ln(J₃/J₁) (torque-free
@@ -45,6 +46,7 @@ from fsw.estimation import filter_banks as fb
 from fsw.estimation.rate_formulas import unobserved_sigma
 from fsw.estimation import rate_kalman as rk
 from fsw.estimation import rotations as rot
+from ground import angle_sum
 
 FieldFn = Callable[[float], np.ndarray]
 SHAPE_SIGMA_FLOOR = 0.01  # 1-σ floor of ln(J₂/J₁), ln(J₃/J₁) carried into the Euler RTS smoother
@@ -174,6 +176,13 @@ def rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_
     the samples say little about ω along B (a slow motion:
     B barely turns in the body): that component then falls back to zero with the process's stationary
     spread instead of wandering off.
+
+    With a field model the attitude about B is weakly fixed (by the field's slow turning only): the
+    smoothed pass is run from each of the `angles` starting angles and the passes are combined as a
+    Gaussian sum weighted by their likelihoods (`ground.angle_sum`): ω the mixture's mean, σ its spread
+    with each pass's own; q, χ², `angle_about_b_rad` and ``info["w_pass_radps"]`` are those of the pass
+    from the angle the backward search chose (an attitude and a rate that belong together: the batch
+    fit starts from them).
     """
     t = np.asarray(t_s, float)
     b = np.asarray(b_T, float)
@@ -204,9 +213,35 @@ def rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_
                 n[i] = x
             return tuple(n)
         noise = min((with_(v) for v in values), key=nll)
-    back = runs[noise]
-    # the backward estimate at t₀ as the forward start; its covariance (block-diagonal, reversed rate
-    # sign irrelevant there) inflated tenfold, so that the samples it has seen weigh only a tenth again
+    if fr is None:
+        kf, q_s, x_s, P_s = _smoothed_pass(t, b, sigma_b_T, field_eci_T, noise, runs[noise], angle)
+        c = variance_scale(kf.log)
+        sig = np.sqrt(c * np.clip(np.einsum("kii->ki", P_s[:, 3:6, 3:6]), 0.0, None))
+        w_s, mix = x_s[:, :3].copy(), {}
+    else:  # every starting angle about B, as a Gaussian sum (ground.angle_sum)
+        passes = [_smoothed_pass(t, b, sigma_b_T, field_eci_T, noise, runs[noise] if g == angle else
+                                 _forward(tr, br, sigma_b_T, fr, noise, g), g)
+                  for g in (2 * math.pi * a / angles for a in range(angles))]
+        # the pass from the angle the backward search chose (as before the sum): its attitude and rate
+        # belong together, and the batch fit starts from them
+        kf, q_s, x_s, P_s = next(p for p in passes if p[0].angle_about_b_rad == angle)
+        c = variance_scale(kf.log)
+        w_s, var, wt = angle_sum.mixture([p[0].nll for p in passes], [p[2][:, :3] for p in passes],
+                                         [c * np.einsum("kii->ki", p[3][:, 3:6, 3:6]) for p in passes], c)
+        sig = np.sqrt(var)
+        mix = {"angle_weights": wt[:, 0].tolist(), "w_pass_radps": x_s[:, :3].copy()}
+    chi2 = _chi2(t, b, sigma_b_T * noise[2], q_s, x_s, field_eci_T)
+    return Smoothed(t, w_s, unobserved_sigma(sig, b, sigma_b_T), q_s, "smoother",
+                    chi2 / max(3 * len(t) - 6, 1), info={"kappa": noise[0], "rate_accel_radps2": noise[1],
+                                                          "sigma_factor": noise[2], "rate_tau_s": noise[3],
+                                                          "angle_about_b_rad": angle,
+                                                          "nll": kf.nll, "variance_scale": c, **mix})
+
+
+def _smoothed_pass(t, b, sigma_b_T, field_eci_T, noise, back, angle):
+    """The forward filter started from a backward pass's end at t₀ and its RTS pass: (filter, q, x, P).
+    The backward estimate's covariance (block-diagonal, the reversed rate's sign irrelevant there) is
+    inflated tenfold, so that the samples it has seen weigh only a tenth again."""
     P0 = np.zeros_like(back.P)
     for blk in (slice(0, 3), slice(3, 6), slice(6, back.n)):
         P0[blk, blk] = 10.0 * back.P[blk, blk]
@@ -214,15 +249,7 @@ def rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_
     if field_eci_T is None:
         start["beta_uT"] = back.beta
     kf = _forward(t, b, sigma_b_T, field_eci_T, noise, angle, start=start, store=True)
-    q_s, x_s, P_s = rts(kf.log)
-    c = variance_scale(kf.log)
-    sig = np.sqrt(c * np.clip(np.einsum("kii->ki", P_s[:, 3:6, 3:6]), 0.0, None))
-    chi2 = _chi2(t, b, sigma_b_T * noise[2], q_s, x_s, field_eci_T)
-    return Smoothed(t, x_s[:, :3].copy(), unobserved_sigma(sig, b, sigma_b_T), q_s, "smoother",
-                    chi2 / max(3 * len(t) - 6, 1), info={"kappa": noise[0], "rate_accel_radps2": noise[1],
-                                                          "sigma_factor": noise[2], "rate_tau_s": noise[3],
-                                                          "angle_about_b_rad": angle,
-                                                          "nll": kf.nll, "variance_scale": c})
+    return (kf, *rts(kf.log))
 
 
 def _chi2(t, b, sigma_b_T, q, x, field_eci_T) -> float:
@@ -307,7 +334,7 @@ def euler_fit(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T
         beta = rot.quat_to_dcm(init.q[0]) @ (b[0] * rk.UT_PER_T)
         kf.set_nominal(t[0], np.array([1.0, 0.0, 0.0, 0.0]), init.w_radps[0], beta_uT=beta, euler=True)
     else:
-        kf.set_nominal(t[0], init.q[0], init.w_radps[0], euler=True)
+        kf.set_nominal(t[0], init.q[0], init.info.get("w_pass_radps", init.w_radps)[0], euler=True)
     z = b * rk.UT_PER_T
     sb = sigma_b_T * rk.UT_PER_T
     nn = kf.n

@@ -62,3 +62,20 @@ def test_realistic_host_case_has_the_hosts_iron():
     assert 8e-6 < np.linalg.norm(resid.mean(axis=0)) < 20e-6
     assert rec.t_s[0] == pytest.approx(2.0)
     assert math.degrees(float(np.linalg.norm(rec.w_true_radps[0]))) == pytest.approx(10.2, abs=0.5)
+
+
+def test_score_rows_per_seed_field_and_method(capsys):
+    """`bench.realistic --score`: each method's RMS error and 1-σ coverage with the TLE and without an orbit;
+    an unknown method is a usage error (exit 2)."""
+    case = realistic.Case("short", inertia_kgm2=realistic.CASES["slow_heavy"].inertia_kgm2, rate_dps=1.0,
+                          duration_s=60.0, host=False)
+    rows = realistic.score(case, seeds=(0,), methods=("boer", "kalman"))
+    assert [(r["field"], r["method"]) for r in rows] == [("tle", "boer"), ("tle", "kalman"),
+                                                         ("none", "boer"), ("none", "kalman")]
+    for r in rows:
+        assert 0.0 <= r["coverage_1sigma"] <= 1.0 and 0.0 < r["rms_dps"] < 10.0
+    # kalman never uses the field model: the same estimate and σ with the TLE as without
+    assert rows[1]["rms_dps"] == rows[3]["rms_dps"] and rows[1]["coverage_1sigma"] == rows[3]["coverage_1sigma"]
+    with pytest.raises(SystemExit) as e:
+        realistic.main(["slow_heavy", "--score", "--methods", "nope"])
+    assert e.value.code == 2 and "unknown nope" in capsys.readouterr().err
