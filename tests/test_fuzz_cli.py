@@ -331,6 +331,7 @@ RUN_OPTIONS = {
     "--sigma-uT": Opt(floats(0, 1000, lo_open=True)),
     "--max-sample-tlm-hz": Opt(floats(0.01, 1000)),
     "--rate-filter": Opt(choices(("euler", "mm", "orbit", "fixed"))),
+    "--fixed-sample-rate": flag(),
     "--quiet": flag(),
 }
 
@@ -357,6 +358,7 @@ SPECS: list[Tool] = [
         "--speed": Opt(floats(0)),
         "--seed": Opt(ints(0)),
         "--ident-inertia-guess": Opt(floats(0, lo_open=True)),
+        "--work-clock": Opt(choices(("cpu", "wall"))),
         **RUN_OPTIONS,
     }, stubs=["fsw.system:FlightSoftware"]),
     Tool("ground.replay", ground.replay.main, {
@@ -509,6 +511,11 @@ SPECS: list[Tool] = [
         "--rate": Opt(floats(1, 100)),
         "--arg-lat0": Opt(floats()),
         "--law": Opt(choices(["mpc", "paper"])),
+        "--attitude": Opt(choices(["estimate", "truth"])),
+        "--seed": Opt(ints(0, 2**31 - 1)),
+        "--sweep": flag(),
+        "--starts": Opt(ints(1, 8)),
+        "--seeds": Opt(ints(1, 100)),
         "--fault": Opt([("stall:pitch:1500", True), ("stuck:yaw:900:0.5", True), ("switch:yaw:600:closed=1", True),
                         ("gpio:1:10", True), ("", False), ("bogus", False), ("stall:pitch", False),
                         ("stall:roll:10", False), ("stall:pitch:nan", False), ("stall:pitch:inf", False),
