@@ -104,6 +104,24 @@ class StubSource:
         return True
 
 
+class SteadySource:
+    """A steady field (creeping by 10 nT a sample), one sample a second: the flight software's source for
+    tests of its commands and services."""
+
+    def __init__(self):
+        self.b_body_T = np.array([20e-6, -10e-6, 30e-6])
+        self.sample_time_s = math.nan
+        self._next = 0.0
+
+    def update(self, now_s):
+        if now_s + 1e-9 < self._next:
+            return False
+        self.sample_time_s = self._next
+        self.b_body_T = self.b_body_T + 1e-8
+        self._next += 1.0
+        return True
+
+
 #: the Unix time of the first record of `good_tlog`
 WALL0 = 1_750_000_000.0
 

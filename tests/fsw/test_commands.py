@@ -19,7 +19,7 @@ from fsw.telemetry.telemetry import Telemetry
 from ground import command as ground_command
 from ground.command import GroundLink, Session, parse_params, resolve_command
 from hil.faults import FaultyLink
-from support import free_udp_port
+from support import SteadySource, free_udp_port
 
 KEY = bytes(range(100, 132))
 T0 = unix_to_timestamp(1_750_000_000.0)
@@ -114,23 +114,6 @@ def test_parameter_helpers():
 
 
 # --- the uplink inside the flight software ------------------------------------------------------
-class Source:
-    """A steady field: samples every second."""
-
-    def __init__(self):
-        self.b_body_T = np.array([20e-6, -10e-6, 30e-6])
-        self.sample_time_s = math.nan
-        self._next = 0.0
-
-    def update(self, now_s):
-        if now_s + 1e-9 < self._next:
-            return False
-        self.sample_time_s = self._next
-        self.b_body_T = self.b_body_T + 1e-8
-        self._next += 1.0
-        return True
-
-
 class Box:
     """Flight software on an in-memory link, a ground station at the other end."""
 
@@ -138,7 +121,7 @@ class Box:
         self.link = FaultyLink(np.random.default_rng(0), src_system=FSW_SYSID, src_component=FSW_COMPID)
         tlm = Telemetry(self.link, store=StoreForward() if store else None, key=key,
                         clock=SigningClock(epoch=T0, clock_set=True))
-        self.fsw = FlightSoftware(Source(), tlm, rate_hz=10, sigma_b_T=1e-7, sample_rate_hz=1.0,
+        self.fsw = FlightSoftware(SteadySource(), tlm, rate_hz=10, sigma_b_T=1e-7, sample_rate_hz=1.0,
                                   uplink=self.link, key=key)
         self.runs = []
         self.fsw.commands.register(R.MAV_CMD_USER_1, lambda m, t: self.runs.append(m.param1))

@@ -219,13 +219,9 @@ def test_the_hand_over_at_the_first_calibrated_sample_starts_from_the_rate_befor
     assert rms < 1.0 and rms < math.degrees(np.sqrt(np.mean(np.sum((fixed[late] - w[late]) ** 2, axis=1))))
 
 
-def test_the_shape_trial_costs_a_bounded_number_of_updates_a_sample_at_a_high_sample_rate(monkeypatch):
-    """A 20 Hz sensor on a 20 Hz loop (one tick's background work a sample): the shape trial takes samples
-    0.5 s apart and, when the ticks cannot keep up, catches up by two rounds of its hypotheses a sample —
-    no sample's update does more than that (a 50 Hz sensor once made one tick run ~25,000 filter updates,
-    a 27 s stall); and the Euler filter is still chosen and follows the tumble."""
-    sigma = math.hypot(0.5e-6, CHIP_NOISE_T)
-    scn, t, b, bt, w, q = tumble(2, 10.0, 0.05, 0.5e-6, 90.0)
+def count_updates(monkeypatch) -> list[int]:
+    """Count the attitude filters' updates (all of them: the publishing filter's and its hypotheses') in
+    `calls[0]`."""
     calls = [0]
     update = fb.AttitudeRateKalman.update
 
@@ -234,6 +230,17 @@ def test_the_shape_trial_costs_a_bounded_number_of_updates_a_sample_at_a_high_sa
         return update(self, *args, **kw)
 
     monkeypatch.setattr(fb.AttitudeRateKalman, "update", counted)
+    return calls
+
+
+def test_the_shape_trial_costs_a_bounded_number_of_updates_a_sample_at_a_high_sample_rate(monkeypatch):
+    """A 20 Hz sensor on a 20 Hz loop (one tick's background work a sample): the shape trial takes samples
+    0.5 s apart and, when the ticks cannot keep up, catches up by two rounds of its hypotheses a sample —
+    no sample's update does more than that (a 50 Hz sensor once made one tick run ~25,000 filter updates,
+    a 27 s stall); and the Euler filter is still chosen and follows the tumble."""
+    sigma = math.hypot(0.5e-6, CHIP_NOISE_T)
+    scn, t, b, bt, w, q = tumble(2, 10.0, 0.05, 0.5e-6, 90.0)
+    calls = count_updates(monkeypatch)
     kf = FlownFilter(sigma, "euler", Switch(InterpolatedOrbitField(field_model(scn)), lambda ts: True))
     most, w_est = 0, np.full((len(t), 3), np.nan)
     for k in range(len(t)):
@@ -317,14 +324,7 @@ def test_the_hypotheses_about_the_field_run_in_the_background_work_not_in_the_sa
     step doubled at 50 Hz)."""
     sigma = math.hypot(0.5e-6, CHIP_NOISE_T)
     scn, t, b, bt, w, q = tumble(2, 10.0, 0.02, 0.5e-6, 60.0)
-    calls = [0]
-    update = fb.AttitudeRateKalman.update
-
-    def counted(self, *args, **kw):
-        calls[0] += 1
-        return update(self, *args, **kw)
-
-    monkeypatch.setattr(fb.AttitudeRateKalman, "update", counted)
+    calls = count_updates(monkeypatch)
     kf = FlownFilter(sigma, "euler", Switch(InterpolatedOrbitField(field_model(scn)), lambda ts: True))
     in_sample, in_work, running, behind = [], 0, 0, 0
     for k in range(len(t)):

@@ -1,7 +1,6 @@
 """MAVLink services through the real uplink path (flight software on an in-memory radio link, a ground
 station at the other end): what ground software asks, what the box answers, signed and unsigned, and
 what a flood of requests costs."""
-import math
 import struct
 
 import numpy as np
@@ -15,28 +14,12 @@ from fsw.telemetry.store_forward import StoreForward
 from fsw.telemetry.telemetry import Telemetry
 from ground.command import GroundLink
 from hil.faults import FaultyLink
+from support import SteadySource
 
 KEY = bytes(range(100, 132))
 T0 = unix_to_timestamp(1_750_000_000.0)
 R = mavlink
 RATE_HZ = 10
-
-
-class Source:
-    """A steady field: a sample every second."""
-
-    def __init__(self):
-        self.b_body_T = np.array([20e-6, -10e-6, 30e-6])
-        self.sample_time_s = math.nan
-        self._next = 0.0
-
-    def update(self, now_s):
-        if now_s + 1e-9 < self._next:
-            return False
-        self.sample_time_s = self._next
-        self.b_body_T = self.b_body_T + 1e-8
-        self._next += 1.0
-        return True
 
 
 class Box:
@@ -45,7 +28,7 @@ class Box:
     def __init__(self, key=KEY):
         self.link = FaultyLink(np.random.default_rng(0), src_system=FSW_SYSID, src_component=FSW_COMPID)
         tlm = Telemetry(self.link, store=StoreForward(), key=key, clock=SigningClock(epoch=T0, clock_set=True))
-        self.fsw = FlightSoftware(Source(), tlm, rate_hz=RATE_HZ, sigma_b_T=1e-7, sample_rate_hz=1.0,
+        self.fsw = FlightSoftware(SteadySource(), tlm, rate_hz=RATE_HZ, sigma_b_T=1e-7, sample_rate_hz=1.0,
                                   uplink=self.link, key=key)
         self.runs = []
         self.fsw.commands.register(R.MAV_CMD_USER_1, lambda m, t: self.runs.append((m.param1, m.param5)))
