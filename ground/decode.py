@@ -797,10 +797,11 @@ def main(argv: list[str] | None = None) -> int:
                                                   "authentic ones; sign the requests for missing samples")
     ap.add_argument("--no-resend", action="store_true",
                     help="do not ask the box again for numbered samples that did not arrive")
-    ap.add_argument("--archive", metavar="FILE",
+    archiving = ap.add_mutually_exclusive_group()
+    archiving.add_argument("--archive", metavar="FILE",
                     help=f"archive every intact frame in this SQLite file (ground.archive); default for a live "
                          f"link: {default_path()}, for a .tlog: none")
-    ap.add_argument("--no-archive", action="store_true", help="do not archive the frames")
+    archiving.add_argument("--no-archive", action="store_true", help="do not archive the frames")
     ap.add_argument("--uplink", metavar="URL", type=link_url,
                     help="send the requests for missing samples on this link (the box's --uplink) instead of "
                          "back on URL")

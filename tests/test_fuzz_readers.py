@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from hypothesis import strategies as st
+from pymavlink.generator.mavcrc import x25crc
 from support import tiers
 
 from fsw.commands import CommandRouter
@@ -725,6 +726,19 @@ def noise(rng: np.random.Generator, kind: str) -> bytes:
                     for _ in range(n // 14 + 1))
 
 
+def whole_frame_at(data: bytes, at: int) -> bool:
+    """A MAVLink 2 frame starts at `at`, all of it there and its CRC right (checked with pymavlink's x25)."""
+    if at + 10 > len(data) or data[at] != 0xFD:
+        return False
+    end = at + 12 + data[at + 1]
+    msg = mavlink.mavlink_map.get(int.from_bytes(data[at + 7:at + 10], "little"))
+    if msg is None or end + (13 if data[at + 2] & 1 else 0) > len(data):
+        return False
+    crc = x25crc(data[at + 1:end - 2])
+    crc.accumulate([msg.crc_extra])
+    return crc.crc == data[end - 2] | data[end - 1] << 8
+
+
 @st.composite
 def uplink_streams(draw):
     """(chunks of bytes in arrival order, tags of the genuine commands): genuine signed COMMAND_LONGs
@@ -775,8 +789,11 @@ def uplink_streams(draw):
         pieces.append(f)
     data = b"".join(pieces)
     # a frame whose lost end is what happens to follow it (the next frame's 0xFD when its signature's last
-    # byte was 0xFD, noise) arrives whole: genuine after all
-    genuine = sorted(genuine + [tag for tag, at, lost in ends if data.startswith(lost, at)])
+    # byte was 0xFD, noise) arrives whole: genuine after all — unless a whole frame (its CRC right) starts
+    # there, inside the completed one's signature block: by design the box takes that next frame, not the
+    # one it would cut (fsw.telemetry.framing)
+    genuine = sorted(genuine + [tag for tag, at, lost in ends
+                                if data.startswith(lost, at) and not whole_frame_at(data, at)])
     cuts = sorted(set(draw(st.lists(st.integers(0, len(data)), max_size=8))) | {0, len(data)})
     return [data[a:b] for a, b in zip(cuts, cuts[1:])], genuine
 
