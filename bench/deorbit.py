@@ -54,7 +54,7 @@ from fsw.deorbit.kit import DeorbitKit
 from fsw.files import write_atomic
 from fsw.system import NullLink
 from fsw.telemetry.dialect import mavlink
-from ground.plot import check_plot_path, save_figure
+from ground.plot import check_plot_path_or_exit, save_figure
 
 from hil import scenario as scenarios
 from hil import sitl
@@ -491,11 +491,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     scenario_file = args.scenario if Path(args.scenario).is_file() else None
     check_paths_or_exit(ap, inputs={"--scenario": scenario_file}, outputs={"--json": args.json, "--plot": args.plot})
-    if args.plot:
-        try:
-            check_plot_path(args.plot)
-        except ValueError as e:
-            ap.error(f"--plot {e}")
+    check_plot_path_or_exit(ap, args.plot)
     if args.sweep and args.plot:
         ap.error("--plot is for one run, not --sweep")
     try:

@@ -325,12 +325,9 @@ def main(argv=None) -> int:
             ap.error(f"--tle: {e}")
     check_paths_or_exit(ap, inputs={"input": args.input, "--scenario": args.scenario, "--magcal": args.magcal},
                         outputs={"--rates": args.rates, "--plot": args.plot})
-    if args.plot:
-        from ground.plot import check_plot_path
-        try:
-            check_plot_path(args.plot)
-        except ValueError as e:
-            ap.error(f"--plot {e}")
+    from ground.plot import check_plot_path_or_exit
+
+    check_plot_path_or_exit(ap, args.plot)
     try:
         rec, kit_line = kit_field.take_out(read_recording(args.input), raw=args.kit_raw)
         print(kit_line)

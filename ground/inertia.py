@@ -62,7 +62,7 @@ from fsw.files import write_atomic
 from . import kit_field
 from . import magcal as gm
 from .field import LEO_FIELD_TURN_DPS, recording_field, scenario_field
-from .plot import check_plot_path, save_figure
+from .plot import check_plot_path_or_exit, save_figure
 from .recording import Recording, RecordingError, read_recording
 
 #: metadata keys of the orbit (recording ``# key: value`` lines)
@@ -346,11 +346,7 @@ def check_cli_paths(ap: argparse.ArgumentParser, input_path: str, output_path: s
     check_paths_or_exit(ap, inputs={"input": input_path, "--scenario": args.scenario,
                                     "--magcal": getattr(args, "magcal", None)},
                         outputs={output_label: output_path, "--plot": args.plot})
-    if args.plot:
-        try:
-            check_plot_path(args.plot)
-        except ValueError as e:
-            ap.error(f"--plot {e}")
+    check_plot_path_or_exit(ap, args.plot)
 
 
 def run_cli(input_path: str, output_path: str, args) -> int:

@@ -22,6 +22,15 @@ def check_plot_path(path) -> str:
     return suffix
 
 
+def check_plot_path_or_exit(ap, path, option: str = "--plot") -> None:
+    """`check_plot_path` at a tool's start: a path matplotlib cannot write is the parser's usage error."""
+    if path:
+        try:
+            check_plot_path(path)
+        except ValueError as e:
+            ap.error(f"{option} {e}")
+
+
 def save_figure(fig, path, **kwargs) -> None:
     """`fig.savefig` to `path` atomically (`fsw.files.atomic_file`), in the format of its suffix."""
     with atomic_file(path, "wb") as f:

@@ -160,12 +160,9 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     check_paths_or_exit(ap, inputs={"--activity-file": args.activity_file, "--deorbit-json": args.deorbit_json},
                         outputs={"--json": args.json, "--plot": args.plot})
-    if args.plot:
-        from ground.plot import check_plot_path
-        try:
-            check_plot_path(args.plot)
-        except ValueError as e:
-            ap.error(f"--plot {e}")
+    from ground.plot import check_plot_path_or_exit
+
+    check_plot_path_or_exit(ap, args.plot)
     from tqdm import tqdm
 
     if args.paper_table:
