@@ -37,10 +37,9 @@ from typing import Callable
 
 import numpy as np
 
+from .field_motion import A_WGS84_M, MU_EARTH_M3S2
 from .rotations import quat_aligning, quat_exp, quat_mul, quat_to_dcm, skew, so3_exp
 
-MU_EARTH_M3S2 = 3.986004418e14
-R_EARTH_M = 6378137.0
 UT_PER_T = 1e6
 
 
@@ -67,7 +66,7 @@ class SpacecraftModel:
         return np.diag(j) if j.shape == (3,) else j
 
     def density_at_kgm3(self, r_m: float) -> float:
-        h_km = (r_m - R_EARTH_M) * 1e-3
+        h_km = (r_m - A_WGS84_M) * 1e-3
         return self.density_kgm3 * math.exp(-(h_km - self.density_ref_alt_km) / self.density_scale_height_km)
 
 

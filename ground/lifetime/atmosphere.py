@@ -25,8 +25,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fsw.estimation.field_motion import A_WGS84_M
+
 #: heights are r − R_EARTH_M: the WGS84 equatorial radius
-R_EARTH_M = 6378137.0
+R_EARTH_M = A_WGS84_M
 ALT_GRID_KM = np.arange(100.0, 1501.0, 10.0)
 F107_RANGE_SFU = (60.0, 300.0)
 AP_RANGE = (0.0, 400.0)

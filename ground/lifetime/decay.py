@@ -25,12 +25,12 @@ from typing import Callable
 
 import numpy as np
 
+from fsw.estimation.field_motion import MU_EARTH_M3S2, OMEGA_EARTH_RADPS
+
 from . import activity as act
 from .atmosphere import ALT_GRID_KM, R_EARTH_M, density_kgm3, log_density_profile, log_density_profiles
 
-MU_M3S2 = 3.986004418e14
 J2 = 1.08262668e-3
-OMEGA_EARTH_RADPS = 7.292115e-5
 DAY_S = 86400.0
 YEAR_DAYS = 365.25
 REENTRY_KM = 120.0
@@ -98,13 +98,13 @@ def rates(a_m: float, e: float, cos_i: float, b_m2kg: float, rho: Callable[[np.n
     """Orbit-averaged (da/dt m/s, de/dt 1/s) under drag (module docstring)."""
     one = 1.0 - e * _COS_E
     r = a_m * one
-    v2 = MU_M3S2 * (2.0 / r - 1.0 / a_m)
+    v2 = MU_EARTH_M3S2 * (2.0 / r - 1.0 / a_m)
     v = np.sqrt(v2)
-    h = math.sqrt(MU_M3S2 * a_m * (1.0 - e * e))
+    h = math.sqrt(MU_EARTH_M3S2 * a_m * (1.0 - e * e))
     f = 1.0 - OMEGA_EARTH_RADPS * h * cos_i / v2
     a_t = -0.5 * rho((r - R_EARTH_M) / 1e3) * b_m2kg * v2 * f * f
     w = one / _NODES                                   # dM = (1 − e cos E) dE
-    da = float(np.dot(w, 2.0 * a_m * a_m * v * a_t / MU_M3S2))
+    da = float(np.dot(w, 2.0 * a_m * a_m * v * a_t / MU_EARTH_M3S2))
     cos_nu = (_COS_E - e) / one
     de = float(np.dot(w, 2.0 * (e + cos_nu) * a_t / v))
     return da, de
@@ -112,7 +112,7 @@ def rates(a_m: float, e: float, cos_i: float, b_m2kg: float, rho: Callable[[np.n
 
 def j2_rates_radps(a_m: float, e: float, inclination_deg: float) -> tuple[float, float]:
     """Secular dΩ/dt, dω/dt (rad/s) of J2."""
-    n = math.sqrt(MU_M3S2 / a_m ** 3)
+    n = math.sqrt(MU_EARTH_M3S2 / a_m ** 3)
     k = n * J2 * (R_EARTH_M / (a_m * (1 - e * e))) ** 2
     c = math.cos(math.radians(inclination_deg))
     return -1.5 * k * c, 0.75 * k * (5 * c * c - 1)

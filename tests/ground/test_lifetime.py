@@ -16,7 +16,7 @@ from ground.lifetime import atmosphere as atm
 from ground.lifetime import paper
 from ground.lifetime.__main__ import main
 from ground.lifetime.craft import Craft, CraftError
-from ground.lifetime.decay import MU_M3S2, OMEGA_EARTH_RADPS, Orbit, decay, j2_rates_radps, rates
+from ground.lifetime.decay import MU_EARTH_M3S2, OMEGA_EARTH_RADPS, Orbit, decay, j2_rates_radps, rates
 
 ROOT = Path(__file__).resolve().parents[2]
 TLE = ["1 99991U 25001A   25182.50000000  .00000000  00000-0  10000-3 0    05",
@@ -29,16 +29,17 @@ def test_circular_rate_is_king_hele():
     """e = 0, equatorial, no rotation factor at i = 90°: da/dt = −ρ B √(μ a), de/dt = 0."""
     a, rho0, b = atm.R_EARTH_M + 600e3, 1e-13, 0.05
     da, de = rates(a, 0.0, 0.0, b, lambda h: np.full_like(h, rho0))
-    assert da == pytest.approx(-rho0 * b * math.sqrt(MU_M3S2 * a), rel=1e-12)
+    assert da == pytest.approx(-rho0 * b * math.sqrt(MU_EARTH_M3S2 * a), rel=1e-12)
     assert abs(de) < 1e-20
 
 
 def test_rotating_atmosphere_factor():
     """Prograde equatorial circular orbit: the air moves with it, drag × (1 − ω r / v)²."""
     a, rho0, b = atm.R_EARTH_M + 600e3, 1e-13, 0.05
-    v = math.sqrt(MU_M3S2 / a)
+    v = math.sqrt(MU_EARTH_M3S2 / a)
     da, _ = rates(a, 0.0, 1.0, b, lambda h: np.full_like(h, rho0))
-    assert da == pytest.approx(-rho0 * b * math.sqrt(MU_M3S2 * a) * (1 - OMEGA_EARTH_RADPS * a / v) ** 2, rel=1e-9)
+    assert da == pytest.approx(-rho0 * b * math.sqrt(MU_EARTH_M3S2 * a) * (1 - OMEGA_EARTH_RADPS * a / v) ** 2,
+                               rel=1e-9)
 
 
 @pytest.mark.parametrize("e", [0.002, 0.01, 0.03])
@@ -51,8 +52,8 @@ def test_eccentric_rates_match_king_hele_series(e):
     da, de = rates(a, e, 0.0, b, lambda h: rho_p * np.exp(-(h - hp) / H))
     x = a * e / (H * 1e3)
     i0, i1, i2 = iv(0, x), iv(1, x), iv(2, x)
-    da_kh = -b * rho_p * math.sqrt(MU_M3S2 * a) * math.exp(-x) * (i0 + 2 * e * i1 + 0.75 * e * e * (i0 + i2))
-    de_kh = -b * rho_p * math.sqrt(MU_M3S2 / a) * math.exp(-x) * (i1 + 0.5 * e * (i0 + i2))
+    da_kh = -b * rho_p * math.sqrt(MU_EARTH_M3S2 * a) * math.exp(-x) * (i0 + 2 * e * i1 + 0.75 * e * e * (i0 + i2))
+    de_kh = -b * rho_p * math.sqrt(MU_EARTH_M3S2 / a) * math.exp(-x) * (i1 + 0.5 * e * (i0 + i2))
     assert da == pytest.approx(da_kh, rel=2e-3)
     assert de == pytest.approx(de_kh, rel=2e-2)
 
