@@ -64,7 +64,7 @@ from .host_calibration import FixedField, HostCalibration
 from . import sample_rate
 from .percentiles import percentile_pair
 from .sample_queue import SampleQueue
-from .scheduler import Scheduler, Task
+from .scheduler import Scheduler, Task, robust_mean
 from .telemetry.dialect import mavlink
 from .telemetry.sample_store import Resender, SampleStore
 from .telemetry.services import Services
@@ -227,7 +227,7 @@ class FlightSoftware:
         #: (loop time, from Hz, to Hz) of each change of the sample rate
         self.rate_changes: list[tuple[float, float, float]] = []
         self._max_sample_tlm_hz = max_sample_tlm_hz
-        self._tlm_every = max(1, int(np.ceil((sample_rate_hz or rate_hz) / max_sample_tlm_hz)))
+        self._set_tlm_every()
         self.gate = SampleGate(sigma_b_T, 1.0 / (sample_rate_hz or rate_hz))
         self.tlm_samples = 0  # samples handed to telemetry
         self._next_attitude_s = -np.inf
@@ -323,7 +323,7 @@ class FlightSoftware:
     def _register_params(self, sample_rate_hz: float) -> None:
         def set_tlm_hz(hz: float) -> None:
             self._max_sample_tlm_hz = hz
-            self._tlm_every = max(1, int(np.ceil(self.sample_rate_hz / hz)))
+            self._set_tlm_every()
 
         self.params.register("TLM_SAMPLE_HZ", lambda: self.sample_rate_hz / self._tlm_every, set_tlm_hz, 0.01, 1000.0)
         rs = self.resender
@@ -332,6 +332,10 @@ class FlightSoftware:
         if store is not None:
             self.params.register("SF_REPLAY_BPS", lambda: store.replay_bytes_per_s,
                                  lambda v: setattr(store, "replay_bytes_per_s", v), 0.0, 1e6)
+
+    def _set_tlm_every(self) -> None:
+        """Every how many samples one goes out on the link: at most `_max_sample_tlm_hz` at the rate in force."""
+        self._tlm_every = max(1, int(np.ceil(self.sample_rate_hz / self._max_sample_tlm_hz)))
 
     def _sample_request(self, msg, now_s: float, authenticated: bool) -> None:
         """DEBRIS_SAMPLE_REQUEST: queue the range for the resender (signed only, with a mission key: the
@@ -517,9 +521,7 @@ class FlightSoftware:
             t0 = sched.elapsed_s()
             send, args = out.popleft()
             send(*args)
-            cost = sched.elapsed_s() - t0
-            self._frame_cost_s = cost if not self._frame_cost_s else self._frame_cost_s + (
-                min(cost, 2.0 * self._frame_cost_s) - self._frame_cost_s) / 32.0
+            self._frame_cost_s = robust_mean(self._frame_cost_s, sched.elapsed_s() - t0)
             if not sched.fits(self._frame_cost_s):
                 break
 
@@ -538,11 +540,10 @@ class FlightSoftware:
         self.tlm.heartbeat()
         self._sys_status(self._link_counters())
 
-    def _sys_status(self, link: dict, mean_us: float | None = None) -> None:
+    def _sys_status(self, link: dict) -> None:
         drv = self.driver
         healthy = (drv is None or int(drv.state) == mavlink.DEBRIS_MAG_STATE_MEASURE) and not self.gate.rejecting
-        if mean_us is None:
-            mean_us = self.scheduler.stats.window_mean_s() * 1e6
+        mean_us = self.scheduler.stats.window_mean_s() * 1e6
         self.tlm.sys_status(mag_healthy=healthy,
                             load_permille=int(mean_us * 1e-3 / self.scheduler.period_s),
                             errors_comm=(drv.bus_errors if drv else 0) + self.tlm.send_errors,
@@ -593,7 +594,7 @@ class FlightSoftware:
         was = self.sample_rate_hz
         self.sample_rate_hz = self.source.set_sample_rate(rate)
         self.gate.sample_period_s = 1.0 / self.sample_rate_hz
-        self._tlm_every = max(1, int(np.ceil(self.sample_rate_hz / self._max_sample_tlm_hz)))
+        self._set_tlm_every()
         self.rate_changes.append((now_s, was, self.sample_rate_hz))
         self.tlm.statustext(f"mag rate {was:g}->{self.sample_rate_hz:g} Hz: load {budget.work_share(was):.2f}",
                             mavlink.MAV_SEVERITY_WARNING)

@@ -38,10 +38,6 @@ class SampleQueue:
     def __len__(self) -> int:
         return self.depth
 
-    @property
-    def full(self) -> bool:
-        return self.depth >= self.capacity
-
     def push(self, t_s: float, b_T: np.ndarray) -> bool:
         """Queue a sample (copied); False, and counted in `dropped`, when the queue is full."""
         if self.depth >= self.capacity:

@@ -87,10 +87,15 @@ class LoopStats:
         self.samples += 1
         self.window_samples += 1
         self.window_sample_work_s += work_s
-        if self.samples == 1:
-            self.sample_cost_s = work_s
-        else:  # a pass the OS preempted counts as at most twice the estimate: a rare long one barely moves it
-            self.sample_cost_s += (min(work_s, 2.0 * self.sample_cost_s) - self.sample_cost_s) / 32.0
+        self.sample_cost_s = work_s if self.samples == 1 else robust_mean(self.sample_cost_s, work_s)
+
+
+def robust_mean(mean_s: float, x_s: float) -> float:
+    """A measured cost's running mean: exponentially weighted (1/32), each measurement counted as at most twice
+    the mean so far (a pass the OS preempted barely moves it); the first measurement starts it."""
+    if not mean_s:
+        return x_s
+    return mean_s + (min(x_s, 2.0 * mean_s) - mean_s) / 32.0
 
 
 class Scheduler:

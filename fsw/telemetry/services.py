@@ -336,6 +336,6 @@ class Services:
     # --- each tick --------------------------------------------------------------------------------------
     def tick(self, now_s: float) -> None:
         """The messages the box can make at once, set faster than their own rate: sent when their slot is due."""
-        for mid, st in self.rates.streams.items():
-            if st.interval_s > 0 and now_s >= st.next_s and mid in self.producers:
+        for mid in self.rates.streams:
+            if mid in self.producers and self.rates.faster_than_own(mid, now_s):
                 self.producers[mid](now_s)  # through Telemetry's gate, which records the slot
