@@ -311,9 +311,7 @@ def hand_over_calibration(calibration, host, *, seed: int = 0, hard_sigma_T: flo
     b = np.asarray(host.hard_iron_T, float) + rng.normal(0.0, hard_sigma_T, 3)
     snap = {"theta_uT": [*(b * 1e6), *(D[i, j] for i, j in D_TERMS)], "b_T": list(b), "D": D.tolist(),
             "cov": None, "published_at_s": 0.0, "drift_period_s": None, "state": 1}
-    how = calibration.restore(snap, None, 0.0)
-    calibration.cal.restored = 0  # the box's own, not a restart's: not dropped at the first misfit
-    return how
+    return calibration.restore(snap, None, 0.0, restart=False)  # the box's own: not dropped at the first misfit
 
 
 def _score_estimate(tr: Trace, src, sim) -> None:

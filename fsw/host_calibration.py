@@ -225,10 +225,10 @@ class HostCalibration:
         """The applied calibration to keep (`fsw.estimation.magcal.MagCal.snapshot`; None before one)."""
         return self.cal.snapshot()
 
-    def restore(self, snap: dict, shift_s: float | None, t_s: float = 0.0) -> str:
+    def restore(self, snap: dict, shift_s: float | None, t_s: float = 0.0, *, restart: bool = True) -> str:
         """A snapshot from before a restart applied from the next sample and flagged (DEBRIS_MAGCAL's
         `restored`), then judged by the new samples (`MagCal.restore`; ValueError if not one)."""
         period = snap.get("drift_period_s")
         if self.cal.drift_period_s is not None and isinstance(period, (int, float)) and period > 0:
             self.cal.drift_period_s = float(period)  # the drift's terms were solved on that period
-        return self.cal.restore(snap, shift_s, t_s)
+        return self.cal.restore(snap, shift_s, t_s, restart=restart)

@@ -646,7 +646,7 @@ class MagCal:
                 "published_at_s": self.published_at_s, "drift_period_s": self.drift_period_s,
                 "state": int(self.state)}
 
-    def restore(self, snap: dict, shift_s: float | None, t_s: float = 0.0) -> str:
+    def restore(self, snap: dict, shift_s: float | None, t_s: float = 0.0, *, restart: bool = True) -> str:
         """Take a :meth:`snapshot` from before a restart as the last good calibration, applied from the
         next sample (`t_s`: the loop's time now) and judged like a new one: the first stretch of new
         samples it does not fit drops it (`restored` 2, counted in `restored_dropped`), a solution from
@@ -654,8 +654,9 @@ class MagCal:
         the old time base's value at the new one's 0 (from the UTC on board before and after), with which
         the drift's terms keep their phase; None: the drift's terms are dropped (a constant hard iron, b
         as published, its σ grown by the drift's amplitude per axis: the hard iron may be anywhere on its
-        cycle). Returns how it was taken;
-        ValueError when the snapshot is not one this calibration can take."""
+        cycle). `restart` False: a calibration the box made itself earlier in the same mission (handed from
+        one phase to the next), applied and judged as its own, not flagged nor dropped at the first misfit.
+        Returns how it was taken; ValueError when the snapshot is not one this calibration can take."""
         theta = np.asarray(snap["theta_uT"], float)
         b = np.asarray(snap["b_T"], float)
         D = np.asarray(snap["D"], float)
@@ -695,5 +696,5 @@ class MagCal:
         self.rate_T_per_s = rate(th, t_s, self.drift_period_s) / UT_PER_T
         self.published += 1
         self.state = int(snap["state"]) if snap.get("state") in (CONVERGED, UNCERTAIN) else UNCERTAIN
-        self.restored = RESTORED
+        self.restored = RESTORED if restart else NOT_RESTORED
         return how

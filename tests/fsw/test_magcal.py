@@ -136,3 +136,20 @@ def test_bad_samples_are_not_taken():
     assert not cal.update(np.array([np.nan, 0, 0]), 40e-6, 0.0)
     assert not cal.update(np.array([1e-5, 0, 0]), 0.0, 1.0)
     assert cal.samples == 0
+
+
+def test_a_calibration_handed_over_within_the_mission_is_the_boxs_own_not_a_restarts():
+    """`restore(..., restart=False)`: the calibration an earlier phase left is applied as the box's own
+    (not flagged RESTORED, so not dropped at the first stretch it misfits); a restart's is flagged."""
+    b_T = np.array([12e-6, -20e-6, 8e-6])
+    D = np.array([[0.03, 0.01, 0.0], [0.01, -0.02, 0.005], [0.0, 0.005, 0.01]])
+    snap = {"theta_uT": [*(b_T * 1e6), *(D[i, j] for i, j in mc.D_TERMS)], "b_T": list(b_T), "D": D.tolist(),
+            "cov": None, "published_at_s": 0.0, "drift_period_s": None, "state": mc.CONVERGED}
+    for restart, flag in ((True, mc.RESTORED), (False, mc.NOT_RESTORED)):
+        cal = mc.MagCal(SIGMA_T)
+        cal.restore(snap, None, 0.0, restart=restart)
+        assert cal.restored == flag
+        np.testing.assert_allclose(cal.calibration.b_T, b_T, atol=1e-15)
+        # applied: the host's hard iron and soft iron taken out of a sample measured through them
+        b_true = np.array([20e-6, -5e-6, 40e-6])
+        np.testing.assert_allclose(cal.apply(np.linalg.solve(np.eye(3) + D, b_true) + b_T), b_true, atol=1e-12)
