@@ -71,16 +71,8 @@ def run_one(rate_hz: float, *, slowdown: float, duration_s: float, loop_rate_hz:
         def timer():
             return slowdown * time.thread_time()
     sched.work_timer = timer
-    period = sched.period_s
-    works = []
-    t, k = s.t0_s, 0
     try:
-        while t < s.t0_s + duration_s:
-            s.advance(t)
-            work = fsw.tick(t)
-            works.append(work)
-            k += 1
-            t = max(s.t0_s + k * period, t + work)   # late: the next tick starts when this one ends
+        works = s.run_as_on_target(duration_s)
     finally:
         s.flight.close()
     w = np.array(works) * 1e6

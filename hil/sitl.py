@@ -102,6 +102,24 @@ class Sitl:
         if settle is not None:  # the chip's measurements done by now: the world's work, outside the tick
             settle()
 
+    def run_as_on_target(self, duration_s: float, after_tick=None) -> list[float]:
+        """`duration_s` of the box's time in lockstep, ticks timed as on target: a tick starts on its
+        period's grid or, when the previous one ran late (its work measured by the scheduler's work timer),
+        as soon as it ended, so a late loop lets the chip overwrite samples. `after_tick()` after each.
+        Returns each tick's work (s)."""
+        period = self.fsw.scheduler.period_s
+        works: list[float] = []
+        t, k = self.t0_s, 0
+        while t < self.t0_s + duration_s:
+            self.advance(t)
+            work = self.fsw.tick(t)
+            works.append(work)
+            k += 1
+            t = max(self.t0_s + k * period, t + work)
+            if after_tick is not None:
+                after_tick()
+        return works
+
     def truth(self, box_t_s: float | None = None):
         """The simulator's truth at the box's time `box_t_s` (default: now)."""
         return box_truth(self.sim)(box_t_s)

@@ -145,10 +145,6 @@ class _LongView:
         return "COMMAND_INT"
 
 
-def _as_long(msg) -> _LongView:
-    return _LongView(msg)
-
-
 def _param_id(raw) -> str:
     if isinstance(raw, (bytes, bytearray)):
         return bytes(raw).split(b"\x00", 1)[0].decode("ascii", errors="replace")
@@ -415,7 +411,7 @@ class Uplink:
             if kind == "COMMAND_INT" and self.router.long_only(msg.command):
                 result, param2 = mavlink.MAV_RESULT_COMMAND_LONG_ONLY, 0
             else:
-                result = self.router.handle(msg if kind == "COMMAND_LONG" else _as_long(msg), now_s,
+                result = self.router.handle(msg if kind == "COMMAND_LONG" else _LongView(msg), now_s,
                                             authenticated=authenticated)
                 param2 = self.router.result_param2
             self._answer(msg, mavlink.MAVLink_command_ack_message(

@@ -50,19 +50,14 @@ def build(cost_per_sample_s: float, *, adapt: bool = True, seconds: float = 4.5)
                 fn(now)
                 clock.t_s += 5e-6
             task.fn = cheap
-    period = fsw.scheduler.period_s
-    t, k = s.t0_s, 0
-    produced_after_change = None
-    while t < s.t0_s + seconds:
-        s.advance(t)
-        start = clock.t_s
-        fsw.tick(t)
-        work = clock.t_s - start
-        k += 1
-        t = max(s.t0_s + k * period, t + work)   # the next tick: on the grid, or late when this one overran
-        if fsw.rate_changes and produced_after_change is None:
-            produced_after_change = s.sim.sensor.overwritten
-    return s, link, produced_after_change
+    seen = []
+
+    def after_tick():
+        if fsw.rate_changes and not seen:
+            seen.append(s.sim.sensor.overwritten)
+
+    s.run_as_on_target(seconds, after_tick)
+    return s, link, seen[0] if seen else None
 
 
 def test_sample_queue_fifo_and_its_bound_counted():
