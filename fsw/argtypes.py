@@ -1,4 +1,4 @@
-"""Command-line argument types shared by the tools: numbers that are finite and in range, link URLs
+"""Command-line argument types shared by the tools: numbers that are finite and in range, ISO 8601 times, link URLs
 whose port exists, the output-path check of `fsw.files` as an argparse error, and the parser every
 tool builds (:class:`ArgumentParser`).
 
@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import math
 import re
+from datetime import datetime
 from typing import Callable
 
 from .files import PathError, check_paths
@@ -99,6 +100,14 @@ class ArgumentParser(argparse.ArgumentParser):
             self._check_value(action, value)
             return value
         return super()._get_values(action, arg_strings)
+
+
+def iso_time(text: str) -> datetime:
+    """argparse type of --utc0: an ISO 8601 date and time."""
+    try:
+        return datetime.fromisoformat(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an ISO 8601 time: {text!r} (e.g. 2025-06-15T12:00:00)") from None
 
 
 def check_paths_or_exit(ap: argparse.ArgumentParser, inputs=(), outputs=()) -> None:

@@ -44,7 +44,7 @@ from datetime import datetime
 
 import numpy as np
 
-from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float
+from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, iso_time
 from fsw.config import MAX_SIGMA_UT
 from fsw.estimation import attitude_kalman as ak
 from fsw.estimation import field_check as fc
@@ -255,14 +255,6 @@ def inertia_tensor(text: str) -> np.ndarray:
         raise argparse.ArgumentTypeError(f"principal moments {', '.join(f'{m:g}' for m in moments)} kg·m² "
                                          "violate the triangle inequality (no body has them)")
     return tensor
-
-
-def iso_time(text: str) -> datetime:
-    """argparse type of --utc0: an ISO 8601 date and time."""
-    try:
-        return datetime.fromisoformat(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an ISO 8601 time: {text!r} (e.g. 2025-06-15T12:00:00)") from None
 
 
 def check_samples(rec: Recording, method: str) -> None:

@@ -15,7 +15,7 @@ from datetime import datetime
 import math
 
 from fsw.estimation import field_motion as fm
-from fsw.estimation.onboard_field import flight_field
+from fsw.estimation.onboard_field import field_from_metadata, flight_field
 from fsw.estimation.rate_formulas import LEO_FIELD_TURN_RADPS
 
 #: how fast the field's direction turns in inertial space along a low orbit: about twice the orbital rate
@@ -58,7 +58,7 @@ def recording_field(metadata: dict, *, scenario: str | None = None, tle: tuple[s
         if not (md.get("tle_line1") and md.get("tle_line2")):
             raise ValueError("--utc0 without --tle needs the recording's TLE (tle_line1, tle_line2 in its metadata)")
         md["utc0"] = utc0.isoformat()
-    f = fm.field_from_metadata(md)
+    f = field_from_metadata(md)
     if f is None:
         return None, ("no orbit (none given, none in the recording's metadata): the field's direction assumed "
                       "fixed in inertial space")

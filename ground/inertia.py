@@ -50,7 +50,7 @@ from typing import Callable
 
 import numpy as np
 
-from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range
+from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range, iso_time
 from fsw.config import MAX_SIGMA_UT
 from fsw.estimation import euler_fit as ef
 from fsw.estimation import field_check as fc
@@ -313,8 +313,6 @@ def main(argv: list[str] | None = None) -> int:
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
     """The options of the inertia fit (shared with ``python -m ground.estimate --inertia``)."""
-    from .estimate import iso_time
-
     ap.add_argument("--scenario", metavar="NAME|FILE",
                     help="take the orbit (field model) and the truth from a SITL scenario")
     ap.add_argument("--tle", nargs=2, metavar=("LINE1", "LINE2"), help="the field along a TLE's orbit (with --utc0)")

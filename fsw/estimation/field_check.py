@@ -96,10 +96,10 @@ def check(b_T: np.ndarray, source: str, *, t_s: np.ndarray | None = None,
 def check_recording(b_T: np.ndarray, source: str, t_s: np.ndarray, metadata: dict | None = None, *,
                     field: Callable[[np.ndarray], np.ndarray] | None = None) -> list[str]:
     """:func:`check` with the field model ``field``, else the one of the recording's orbit metadata
-    (`field_motion.field_from_metadata`); metadata that cannot be used is a warning, not an error."""
+    (`onboard_field.field_from_metadata`); metadata that cannot be used is a warning, not an error."""
     notes = []
     if field is None and metadata:
-        from .field_motion import field_from_metadata
+        from .onboard_field import field_from_metadata
         try:
             field = field_from_metadata(metadata)
         except ValueError as e:

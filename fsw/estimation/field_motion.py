@@ -87,7 +87,7 @@ class TleOrbitModel:
         from .tle import parse_tle
         self.sat = parse_tle(line1, line2).satrec()  # TleError (a ValueError) for two lines that are not a TLE
         self.jd0, self.fr0 = jday(*utc0)
-        self.era0_rad = _gmst_rad(self.jd0 + self.fr0)
+        self.era0_rad = gmst_rad(self.jd0 + self.fr0)
 
     def position_eci_m(self, t_s) -> np.ndarray:
         t = np.atleast_1d(np.asarray(t_s, float))
@@ -100,7 +100,7 @@ class TleOrbitModel:
         return r[0] if np.ndim(t_s) == 0 else r
 
 
-def _gmst_rad(jd_ut1):
+def gmst_rad(jd_ut1):
     """Greenwich mean sidereal time (IAU 1982, as in Vallado), radians (a float, or an array for an array)."""
     tu = (np.asarray(jd_ut1, float) - 2451545.0) / 36525.0
     g = (67310.54841 + (876600.0 * 3600.0 + 8640184.812866) * tu + 0.093104 * tu ** 2
@@ -109,7 +109,7 @@ def _gmst_rad(jd_ut1):
     return float(rad) if rad.ndim == 0 else rad
 
 
-def _rot_z(v: np.ndarray, angle) -> np.ndarray:
+def rot_z(v: np.ndarray, angle) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
     x, y, z = v[..., 0], v[..., 1], v[..., 2]
     return np.stack((c * x - s * y, s * x + c * y, z + 0.0 * c), axis=-1)
@@ -130,8 +130,8 @@ class OrbitField:
     def b_eci_T(self, t_s) -> np.ndarray:
         t = np.asarray(t_s, float)
         theta = self.era0_rad + OMEGA_EARTH_RADPS * t
-        r_ecef = _rot_z(self.orbit.position_eci_m(t), -theta)
-        return _rot_z(self.field.b_ecef_T(r_ecef), theta)
+        r_ecef = rot_z(self.orbit.position_eci_m(t), -theta)
+        return rot_z(self.field.b_ecef_T(r_ecef), theta)
 
     __call__ = b_eci_T
 
@@ -141,37 +141,3 @@ class OrbitField:
         a = a / np.linalg.norm(a, axis=-1, keepdims=True)
         b = b / np.linalg.norm(b, axis=-1, keepdims=True)
         return np.linalg.norm(np.cross(a, b), axis=-1) / dt_s
-
-
-def field_from_metadata(md: dict) -> OrbitField | None:
-    """The field along the orbit of a recording's metadata (recording-format.md): a TLE
-    (``tle_line1``, ``tle_line2`` with ``utc0``) or a circular orbit (``orbit_altitude_km``,
-    ``orbit_inclination_deg``, ``orbit_raan_deg``, ``orbit_arg_lat0_deg``); IGRF-14 at the flight degree at
-    ``field_epoch_year`` (else the year of ``utc0``, else 2025). None when no orbit is given;
-    ValueError when one is given but cannot be used."""
-    from datetime import datetime
-
-    utc = None
-    if md.get("utc0"):
-        try:
-            utc = datetime.fromisoformat(md["utc0"])
-        except ValueError:
-            raise ValueError(f"utc0 {md['utc0']!r} is not ISO 8601") from None
-    try:
-        epoch = (float(md["field_epoch_year"]) if "field_epoch_year" in md
-                 else utc.year + (utc.timetuple().tm_yday - 1) / 365.25 if utc else 2025.0)
-        if md.get("tle_line1") and md.get("tle_line2"):
-            if utc is None:
-                raise ValueError("a TLE needs utc0 (the UTC of t = 0)")
-            orbit = TleOrbitModel(md["tle_line1"], md["tle_line2"], (utc.year, utc.month, utc.day, utc.hour,
-                                                                     utc.minute, utc.second + utc.microsecond * 1e-6))
-        elif all(k in md for k in ("orbit_altitude_km", "orbit_inclination_deg", "orbit_raan_deg",
-                                   "orbit_arg_lat0_deg")):
-            orbit = CircularOrbitModel(float(md["orbit_altitude_km"]) * 1e3, float(md["orbit_inclination_deg"]),
-                                       float(md["orbit_raan_deg"]), float(md["orbit_arg_lat0_deg"]))
-        else:
-            return None
-        from .onboard_field import flight_field  # the box's model (it imports this module)
-        return flight_field(orbit, epoch)
-    except (TypeError, KeyError) as e:
-        raise ValueError(str(e)) from None

@@ -107,10 +107,10 @@ def _measure(repeats: int = 200) -> list[tuple[int, float, float, float]]:
     orbit over a day at 2026.0 (the README's table)."""
     import time
 
-    from .field_motion import A_WGS84_M, OMEGA_EARTH_RADPS, CircularOrbitModel, DipoleModel, _rot_z
+    from .field_motion import A_WGS84_M, OMEGA_EARTH_RADPS, CircularOrbitModel, DipoleModel, rot_z
     orbit = CircularOrbitModel(485e3, 97.5, 30.0, 0.0)
     t = np.arange(0.0, 86400.0, 20.0)
-    r_ecef = _rot_z(orbit.position_eci_m(t), -OMEGA_EARTH_RADPS * t)
+    r_ecef = rot_z(orbit.position_eci_m(t), -OMEGA_EARTH_RADPS * t)
     ref = IgrfModel(2026.0, MAX_DEGREE).b_ecef_T(r_ecef)
     one = np.array([A_WGS84_M + 485e3, 0.0, 0.0])
     rows = []

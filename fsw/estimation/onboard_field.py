@@ -22,7 +22,7 @@ from typing import Callable
 
 import numpy as np
 
-from .field_motion import OrbitField, _gmst_rad, _rot_z
+from .field_motion import CircularOrbitModel, OrbitField, TleOrbitModel, gmst_rad, rot_z
 from .igrf import FLIGHT_DEGREE, IgrfModel, unix_to_decimal_year
 
 _JD_UNIX_EPOCH = 2440587.5
@@ -112,8 +112,8 @@ class OnboardOrbitField(KnotField):
         err, r_km, _ = self.sat.sgp4_array(jd, fr)
         if np.any(err):
             raise ValueError(f"SGP4 error codes {sorted(set(err[err != 0].tolist()))}")
-        theta = _gmst_rad(jd + fr)
-        b = _rot_z(self.field.b_ecef_T(_rot_z(r_km * 1e3, -theta)), theta)
+        theta = gmst_rad(jd + fr)
+        b = rot_z(self.field.b_ecef_T(rot_z(r_km * 1e3, -theta)), theta)
         return b[0] if np.ndim(t_s) == 0 else b.reshape(np.shape(t_s) + (3,))
 
 class InterpolatedOrbitField(KnotField):
@@ -135,3 +135,36 @@ def affine_utc(mono0_s: float, utc0_s: float, drift: float = 0.0) -> Callable[[n
     def utc_of(t):
         return utc0_s + (np.asarray(t, float) - mono0_s) * (1.0 + d)
     return utc_of
+
+
+def field_from_metadata(md: dict) -> OrbitField | None:
+    """The field along the orbit of a recording's metadata (recording-format.md): a TLE
+    (``tle_line1``, ``tle_line2`` with ``utc0``) or a circular orbit (``orbit_altitude_km``,
+    ``orbit_inclination_deg``, ``orbit_raan_deg``, ``orbit_arg_lat0_deg``); IGRF-14 at the flight degree at
+    ``field_epoch_year`` (else the year of ``utc0``, else 2025). None when no orbit is given;
+    ValueError when one is given but cannot be used."""
+    from datetime import datetime
+
+    utc = None
+    if md.get("utc0"):
+        try:
+            utc = datetime.fromisoformat(md["utc0"])
+        except ValueError:
+            raise ValueError(f"utc0 {md['utc0']!r} is not ISO 8601") from None
+    try:
+        epoch = (float(md["field_epoch_year"]) if "field_epoch_year" in md
+                 else utc.year + (utc.timetuple().tm_yday - 1) / 365.25 if utc else 2025.0)
+        if md.get("tle_line1") and md.get("tle_line2"):
+            if utc is None:
+                raise ValueError("a TLE needs utc0 (the UTC of t = 0)")
+            orbit = TleOrbitModel(md["tle_line1"], md["tle_line2"], (utc.year, utc.month, utc.day, utc.hour,
+                                                                     utc.minute, utc.second + utc.microsecond * 1e-6))
+        elif all(k in md for k in ("orbit_altitude_km", "orbit_inclination_deg", "orbit_raan_deg",
+                                   "orbit_arg_lat0_deg")):
+            orbit = CircularOrbitModel(float(md["orbit_altitude_km"]) * 1e3, float(md["orbit_inclination_deg"]),
+                                       float(md["orbit_raan_deg"]), float(md["orbit_arg_lat0_deg"]))
+        else:
+            return None
+        return flight_field(orbit, epoch)
+    except (TypeError, KeyError) as e:
+        raise ValueError(str(e)) from None

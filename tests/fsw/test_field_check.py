@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from fsw.estimation import field_check as fc
-from fsw.estimation import field_motion as fm
+from fsw.estimation.onboard_field import field_from_metadata
 from ground import estimate as ge
 from ground import inertia as gi
 from ground.recording import Recording, write_recording
@@ -63,23 +63,23 @@ ORBIT = {"orbit_altitude_km": "485", "orbit_inclination_deg": "97.5", "orbit_raa
 
 
 def test_the_orbit_model_from_metadata_is_the_ground_tools_field():
-    f = fm.field_from_metadata(ORBIT)
+    f = field_from_metadata(ORBIT)
     g, _, _ = gi.field_model(None, ORBIT)                      # hil's model, as ground.inertia uses it
     t = np.linspace(0.0, 6000.0, 7)
     np.testing.assert_allclose(f(t), g(t), rtol=1e-9, atol=1e-15)
-    assert fm.field_from_metadata({"source": "lab"}) is None
+    assert field_from_metadata({"source": "lab"}) is None
     # a TLE: the same model as ground.estimate --tle L1 L2 --utc0 ISO
     from types import SimpleNamespace
     tle = SimpleNamespace(scenario=None, tle=(TLE1, TLE2), utc0="2026-11-21T12:00:00")
-    f = fm.field_from_metadata({"tle_line1": TLE1, "tle_line2": TLE2, "utc0": tle.utc0})
+    f = field_from_metadata({"tle_line1": TLE1, "tle_line2": TLE2, "utc0": tle.utc0})
     np.testing.assert_allclose(f(t), ge.field_from_args(tle)(t), rtol=1e-12)
     assert 18.0 < fc.median_uT(f(t)) < 65.0
     with pytest.raises(ValueError, match="utc0"):
-        fm.field_from_metadata({"tle_line1": "1 x", "tle_line2": "2 x"})
+        field_from_metadata({"tle_line1": "1 x", "tle_line2": "2 x"})
 
 
 def test_a_field_far_from_the_orbits_model_is_warned():
-    f = fm.field_from_metadata(ORBIT)
+    f = field_from_metadata(ORBIT)
     t = np.arange(0.0, 600.0, 5.0)
     rot = Rotation.from_rotvec(np.outer(t, W))
     b = rot.apply(f(t), inverse=True)                           # the model's field in a tumbling body

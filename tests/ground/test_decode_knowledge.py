@@ -10,7 +10,7 @@ from datetime import datetime
 import numpy as np
 import pytest
 
-from fsw.estimation import field_motion as fm
+from fsw.estimation.onboard_field import field_from_metadata
 from fsw.telemetry.dialect import mavlink
 from ground.decode import Decoder
 from ground.recorder import MAGCAL_RESTATE_S, Recorder
@@ -64,7 +64,7 @@ def test_what_the_box_knew_is_in_the_metadata_and_the_field_follows_from_it(tmp_
     line = next(x for x in dec.summary_text().splitlines() if x.startswith("what the box knew"))
     assert "UTC of t = 0 2026-11-27T12:00:00.250000Z (DEBRIS_TIME_ORBIT)" in line and "TLE 99999 (ok)" in line
     assert "calibration converged at t = 0 s, hard iron 6.0, -9.0, 4.0 µT" in line
-    field = fm.field_from_metadata(md)                               # the ground's field along that orbit
+    field = field_from_metadata(md)                               # the ground's field along that orbit
     assert field is not None and np.all(np.isfinite(field.b_eci_T(np.array([0.0, 60.0]))))
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from fsw.config import RunConfig
-from fsw.estimation import field_motion as fm
+from fsw.estimation.onboard_field import field_from_metadata
 from fsw.telemetry.dialect import mavlink
 from ground.decode import Decoder
 from ground.recorder import Recorder
@@ -49,7 +49,7 @@ def test_the_recording_of_a_sgp4_run_holds_the_box_s_tle_and_the_utc_of_its_t0(t
     assert datetime.fromisoformat(md["utc0"]).timestamp() == pytest.approx(utc0_true - 2.0, abs=1e-3)
     assert rec.t_s[0] >= 2.0
     # the ground's field from the metadata is the box's own field model along its TLE at its UTC
-    ground = fm.field_from_metadata(md)
+    ground = field_from_metadata(md)
     box = run.sitl.flight.timeorbit.field_now(run.loop.t_s)[0]
     t = np.array([10.0, 30.0, 60.0])
     np.testing.assert_allclose(ground.b_eci_T(t), box.b_eci_T(t), atol=5e-9)    # within 5 nT

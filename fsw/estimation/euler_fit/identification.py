@@ -134,7 +134,7 @@ def identify_steps(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, act
                                                              action.unknown_sigma_Nm))
     if any(b <= t[0] or a >= t[-1] for a, b in par.unknown_intervals):
         raise ValueError("an unknown-moment interval lies outside the record: nothing could fix its moment")
-    bounds = segment_bounds(n, segment_length(t, b_meas[0], opts))
+    bounds = segment_bounds(n, segment_length(t, b_meas[0], opts.segment_samples, opts.segment_angle_rad))
     G = len(bounds) - 1
     n_I = par.n
     th_I0 = np.array([par.from_p(p_guess, r) for r in range(R)])

@@ -3,15 +3,11 @@ chain of segment attitudes (:func:`retilt` also re-chains them between the multi
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..rotations import quat_aligning, quat_conj, quat_exp, quat_mul
 from .propagation import body_from_inertial
-
-if TYPE_CHECKING:
-    from .identification import FitOptions
 
 
 def retilt(q: np.ndarray, b_body: np.ndarray, b_inertial: np.ndarray) -> np.ndarray:
@@ -37,12 +33,12 @@ def turn_rate(t_s: np.ndarray, b_T: np.ndarray, k: int = 5) -> float:
     return float(np.median(np.arccos(c) / (t[k:] - t[:-k])))
 
 
-def segment_length(t_s: np.ndarray, b_T: np.ndarray, opts: "FitOptions") -> int:
-    """Samples per segment: about ``opts.segment_angle_rad`` of turn, within [8, opts.segment_samples]."""
+def segment_length(t_s: np.ndarray, b_T: np.ndarray, max_samples: int, angle_rad: float) -> int:
+    """Samples per segment: about ``angle_rad`` of turn of the field, within [8, ``max_samples``]."""
     dt = float(np.median(np.diff(t_s)))
     w = turn_rate(t_s, b_T)
-    L = opts.segment_samples if w <= 0 else int(round(opts.segment_angle_rad / (w * dt)))
-    return int(np.clip(L, 8, opts.segment_samples))
+    L = max_samples if w <= 0 else int(round(angle_rad / (w * dt)))
+    return int(np.clip(L, 8, max_samples))
 
 
 def initial_rates(t_s: np.ndarray, b_T: np.ndarray, bounds: np.ndarray) -> np.ndarray:
