@@ -110,3 +110,17 @@ def test_frames_arriving_while_the_copy_is_written_stay(archive, tmp_path, monke
     early = [r for r in ours if r[0] < CUT_US]
     assert out.frames == len(early) and (tmp_path / "old.tlog").read_bytes() == tlog_bytes(early)
     assert rows(path, 1) == [r for r in ours if r[0] >= CUT_US] + late
+
+
+def test_a_reader_sees_the_frames_all_there_or_all_gone(archive, tmp_path):
+    """A second station reading while the archive is pruned: its snapshot keeps every frame until it ends;
+    the next one has none of the pruned."""
+    path, ours, _ = archive
+    reader = open_reader(path)
+    reader.execute("BEGIN")
+    before = reader.execute("SELECT count(*) FROM frames WHERE sysid = 1").fetchone()[0]
+    out = prune(path, 1, CUT_US, None)
+    assert reader.execute("SELECT count(*) FROM frames WHERE sysid = 1").fetchone()[0] == before == len(ours)
+    reader.execute("COMMIT")
+    after = reader.execute("SELECT count(*), min(t_us) FROM frames WHERE sysid = 1").fetchone()
+    assert out.frames == len(ours) - after[0] > 0 and after[1] >= CUT_US

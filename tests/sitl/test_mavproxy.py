@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import queue
+import re
 import subprocess
 import sys
 import threading
@@ -22,6 +23,7 @@ pytestmark = [pytest.mark.sitl, pytest.mark.slow]  # ~40 s: MAVProxy's start, th
 ROOT = Path(__file__).resolve().parents[2]
 MAVPROXY = Path(sys.executable).with_name("mavproxy.py")
 PASSPHRASE = "tumbling-debris-2026"
+DIALECT = os.environ.get("TEST_MAVPROXY_DIALECT", "debris")   # (another: to see what it changes)
 WAIT_S = 120.0      # for each answer (a loaded machine: MAVProxy alone takes ~10 s to start)
 
 
@@ -73,7 +75,7 @@ def test_stock_mavproxy_sees_lists_signs_and_commands_the_box(tmp_path):
                             "--link", f"udpout:127.0.0.1:{port}"], cwd=ROOT, env=env,
                            stdout=subprocess.DEVNULL, stderr=(tmp_path / "box.err").open("w"))
     mavproxy = subprocess.Popen([sys.executable, str(MAVPROXY), f"--master=udpin:127.0.0.1:{port}",
-                                 "--dialect", "debris", "--no-state", "--nowait"],
+                                 f"--dialect={DIALECT}", "--no-state", "--nowait"],
                                 cwd=tmp_path, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                 stderr=subprocess.STDOUT, text=True, bufsize=1)
     console = Console(mavproxy)
@@ -101,6 +103,11 @@ def test_stock_mavproxy_sees_lists_signs_and_commands_the_box(tmp_path):
             .endswith("SET_MESSAGE_INTERVAL: ACCEPTED")
         console.send("long NAV_TAKEOFF")                     # what the box cannot do: said, not silence
         assert console.expect("Got COMMAND_ACK: NAV_TAKEOFF").endswith("NAV_TAKEOFF: UNSUPPORTED")
+        # with the dialect MAVProxy counts every frame's sequence number: no loss on a local link (without
+        # it, the DEBRIS_ messages it cannot decode read as lost)
+        console.send("link")
+        status = re.search(r"\((\d+) packets, .*, (\d+) lost, ([\d.]+)% loss", console.expect("% loss"))
+        assert status is not None and int(status[1]) > 10 and int(status[2]) == 0, status
     finally:
         for proc in (mavproxy, box):
             proc.kill()
