@@ -28,8 +28,8 @@ _NUMPY = {"Q": "u8", "q": "i8", "I": "u4", "i": "i4", "H": "u2", "h": "i2", "B":
 
 
 class Sample:
-    """A decoded sample message: its fields as attributes, its header (read from its frame) and bytes
-    through pymavlink's accessors."""
+    """A decoded message: its fields as attributes, its header (read from its frame) and bytes through
+    pymavlink's accessors (without fields: a frame the export only counts)."""
 
     def __init__(self, frame: bytes, msg_type: str, msgid: int, fields: dict) -> None:
         self.__dict__.update(fields)

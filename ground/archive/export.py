@@ -72,38 +72,6 @@ def export_tlog(conn: sqlite3.Connection, sysid: int, path: str | os.PathLike, f
     return out
 
 
-class _Unread:
-    """A frame the recordings do not use, seen by the decoder's link accounting as itself (source, sequence
-    number, message id and type from its header; its bytes) without being decoded."""
-
-    __slots__ = ("frame", "_type")
-
-    def __init__(self, frame: bytes, msg_type: str) -> None:
-        self.frame, self._type = frame, msg_type
-
-    def get_type(self) -> str:
-        return self._type
-
-    def get_msgbuf(self) -> bytes:
-        return self.frame
-
-    def _at(self, v2: int, v1: int) -> int:
-        return self.frame[v2 if self.frame[0] == 0xFD else v1]
-
-    def get_seq(self) -> int:
-        return self._at(4, 2)
-
-    def get_srcSystem(self) -> int:
-        return self._at(5, 3)
-
-    def get_srcComponent(self) -> int:
-        return self._at(6, 4)
-
-    def get_msgId(self) -> int:
-        f = self.frame
-        return f[7] | f[8] << 8 | f[9] << 16 if f[0] == 0xFD else f[5]
-
-
 #: the messages the recordings are made of (`ground.decode.Decoder.handle`); every other frame only
 #: counts in the link accounting, so it is not decoded (the rows and metadata are the same)
 _RECORDED = SAMPLE_MESSAGES | KNOWLEDGE_MESSAGES | {"DEBRIS_LOOP_STATUS", "DEBRIS_SAMPLE_STORE"}
@@ -117,7 +85,7 @@ def export_recordings(conn: sqlite3.Connection, sysid: int, csv: str | os.PathLi
     its recordings (`csv`) and rate estimates of `method` (`rates_csv`); `protect`: files the recorder's extra files
     (other runs) may never take the name of. The sample messages are decoded in bulk, `CHUNK` frames at a time
     (`ground.archive.bulk`); frames of messages the recordings do not use go to the decoder's link accounting and
-    clock only (`_Unread`): the same files, at a fraction of the time."""
+    clock only (a `Sample` without fields: its header): the same files, at a fraction of the time."""
     recorder = Recorder(csv, rates_csv, protect=protect)
     decoder = Decoder(method=method, origin=origin, recorder=recorder, rounded=True)
     decode = Deframer().decode
@@ -139,7 +107,7 @@ def export_recordings(conn: sqlite3.Connection, sysid: int, csv: str | os.PathLi
             elif msgid in recorded or msgid not in names:
                 handle(_rounded(decode(frame)), now_s)
             else:
-                on_frame(_Unread(frame, names[msgid]), now_s)
+                on_frame(Sample(frame, names[msgid], msgid, {}), now_s)   # its header, undecoded
                 tick(now_s)
         n += len(chunk)
         out.last_us = chunk[-1][0]
