@@ -115,6 +115,17 @@ def f32(*values: float) -> tuple[float, ...]:
     return tuple(float(str(np.float32(v))) for v in values)
 
 
+def _as_given(*values: float) -> tuple[float, ...]:
+    return values
+
+
+#: the float fields of the sample messages the decoder reads through `f32` (`Decoder(rounded=True)`:
+#: they come rounded, `ground.archive.bulk`)
+F32_FIELDS = {"DEBRIS_MAG_SAMPLE": ("mag",), "HIGHRES_IMU": ("xmag", "ymag", "zmag"),
+              "DEBRIS_RATE_ESTIMATE": ("wx", "wy", "wz", "sx", "sy", "sz"),
+              "DEBRIS_SIM_STATE": ("wx", "wy", "wz", "mx", "my", "mz")}
+
+
 class Decoder:
     """Stateful decoding of a telemetry stream; feed it every message pymavlink returns."""
 
@@ -122,18 +133,21 @@ class Decoder:
                  source: tuple[int, int] | None = None,
                  on_line: Callable[[str], None] | None = None, origin: str = "",
                  line_period_s: float = 1.0, key: bytes | None = None,
-                 recorder: Recorder | None = None, requests: GroundLink | None = None) -> None:
+                 recorder: Recorder | None = None, requests: GroundLink | None = None,
+                 rounded: bool = False) -> None:
         """`method`: the DEBRIS_RATE_METHOD exported and shown; `source`: (sysid, compid) to record
         from, None = every source (the first to send samples is the one shown); `on_line`: receives
         the live line about every `line_period_s` of `now_s`; `origin`: the link, for the CSVs'
         ``# source:``; `key`: verify signatures with this mission key (`now_s` is then Unix time, or 0
         when unknown); `recorder`: writes the recordings as they settle (`ground.recorder`);
         `requests`: where to send DEBRIS_SAMPLE_REQUEST for missing numbered samples (None: they are
-        waited for a while, then given up)."""
+        waited for a while, then given up); `rounded`: the sample messages' `F32_FIELDS` are float32's
+        shortest decimals already (decoded in bulk by `ground.archive.bulk`)."""
         if method not in METHOD_NAMES:
             raise ValueError(f"unknown DEBRIS_RATE_METHOD {method}")
         self.method = method
         self.only = source
+        self._f32 = _as_given if rounded else f32
         self.source = source
         self.on_line = on_line
         self.origin = origin
@@ -292,7 +306,7 @@ class Decoder:
         if stream is None:
             return
         if kind in ("DEBRIS_MAG_SAMPLE", "HIGHRES_IMU"):
-            b = f32(*msg.mag) if kind == "DEBRIS_MAG_SAMPLE" else f32(msg.xmag, msg.ymag, msg.zmag)
+            b = self._f32(*msg.mag) if kind == "DEBRIS_MAG_SAMPLE" else self._f32(msg.xmag, msg.ymag, msg.zmag)
             if not all(map(math.isfinite, b)):
                 self.invalid[kind] += 1
                 return
@@ -314,7 +328,7 @@ class Decoder:
             return
         if kind == "DEBRIS_RATE_ESTIMATE":
             if msg.method == self.method:
-                w, sigma = f32(msg.wx, msg.wy, msg.wz), f32(msg.sx, msg.sy, msg.sz)
+                w, sigma = self._f32(msg.wx, msg.wy, msg.wz), self._f32(msg.sx, msg.sy, msg.sz)
                 if not all(map(math.isfinite, w + sigma)) or min(sigma) < 0:
                     self.invalid[kind] += 1
                     return
@@ -322,7 +336,7 @@ class Decoder:
                 if not msg.flags & mavlink.DEBRIS_ESTIMATE_FLAGS_NO_ESTIMATE:
                     self._last_est = w
         else:
-            w, m = f32(msg.wx, msg.wy, msg.wz), f32(msg.mx, msg.my, msg.mz)
+            w, m = self._f32(msg.wx, msg.wy, msg.wz), self._f32(msg.mx, msg.my, msg.mz)
             if not all(map(math.isfinite, w + m)):
                 self.invalid[kind] += 1
                 return
@@ -332,7 +346,9 @@ class Decoder:
     def tick(self, now_s: float) -> None:
         """Emit the live line when one is due, ask for missing samples and write what has settled (call
         also when nothing arrives)."""
-        if self._next_line_s is None:
+        if self.on_line is None:
+            pass  # nobody to tell: the line is not made
+        elif self._next_line_s is None:
             self._next_line_s = now_s + self.line_period_s
         elif now_s >= self._next_line_s:
             self._next_line_s = max(self._next_line_s + self.line_period_s, now_s)

@@ -484,7 +484,25 @@ def _row_lines(path: PathLike, groups: Sequence[_Group], table: np.ndarray, firs
         row = r - (previous_t is not None)
         raise RecordingError(path, first_row_line + row, names[0],
                              f"time {t[r]!r} not after the previous row's {t[r - 1]!r}")
-    return [",".join([_format_exact(row[0]), *map(_format, row[1:])]) for row in table.tolist()]
+    return _lines(table)
+
+
+#: finite values above this may round to inf at 15 digits: `_format` takes them one by one
+_NEAR_MAX = 1.7976931348623e308
+
+
+def _lines(table: np.ndarray) -> list[str]:
+    """The rows as `_format_exact` (time) and `_format` (the rest) write them, one %-format a row (the
+    same text: %r is repr, %.15g writes NaN as nan and ±inf as inf), rows with a value near the float
+    limit one value at a time."""
+    rows = table.tolist()
+    fmt = "%r" + ",%.15g" * (table.shape[1] - 1)
+    lines = [fmt % tuple(row) for row in rows]
+    with np.errstate(invalid="ignore"):
+        near = np.isfinite(table[:, 1:]) & (np.abs(table[:, 1:]) > _NEAR_MAX)
+    for r in np.flatnonzero(near.any(axis=1)):
+        lines[r] = ",".join([_format_exact(rows[r][0]), *map(_format, rows[r][1:])])
+    return lines
 
 
 class _Appender:

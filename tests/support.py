@@ -301,3 +301,25 @@ def box_frames(seconds: float, sysid: int = FSW_SYSID, compid: int = FSW_COMPID,
         send(mavlink.MAVLink_debris_sim_state_message(box_us, 0.1, 0.2, 0.3, [1, 0, 0, 0], *b, 0.0, 0.01, 0.0),
              wall_us)
     return out
+
+
+def pymavlink_with_debris(directory) -> Path:
+    """A directory to put first on PYTHONPATH that holds pymavlink as installed (its files linked) with the
+    project's bindings added as the dialect ``debris`` (dialects/v20/debris.py): what a user's own
+    pymavlink looks like after ``cp fsw/telemetry/mavlink_debris.py <pymavlink>/dialects/v20/debris.py``
+    (docs/ground.md), without touching the installed one."""
+    import os
+    import shutil
+
+    import pymavlink
+
+    src, root = Path(pymavlink.__file__).parent, Path(directory)
+    dst = root / "pymavlink"
+    (dst / "dialects" / "v20").mkdir(parents=True)
+    for sub, skip in (("", {"dialects"}), ("dialects", {"v20"}), ("dialects/v20", set())):
+        for entry in (src / sub).iterdir():
+            if entry.name not in skip and entry.name != "__pycache__":
+                os.symlink(entry, dst / sub / entry.name)
+    shutil.copy(Path(__file__).resolve().parents[1] / "fsw/telemetry/mavlink_debris.py",
+                dst / "dialects/v20/debris.py")
+    return root

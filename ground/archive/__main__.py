@@ -3,6 +3,7 @@
     python -m ground.archive list [--archive FILE] [--gap S]
     python -m ground.archive export --box SYSID [--from T] [--to T] [--csv FILE] [--rates-csv FILE]
                                     [--method M] [--tlog FILE] [--archive FILE]
+    python -m ground.archive prune --box SYSID --before T (--tlog FILE | --discard) [--archive FILE]
 
 ``list``: every source (sysid/compid), its stretches of reception (split where nothing came for more
 than ``--gap`` seconds, default 60) with their UTC times and frame counts.
@@ -14,6 +15,11 @@ received; ``--csv`` / ``--rates-csv`` (of ``--method``): the recordings `ground.
 (`ground.archive.export`). Output paths are checked first (`fsw.files.check_paths`: none may be the
 archive). Nothing in the interval: said, nothing written, exit status 1. The archive is read as one
 snapshot, so exporting while a station writes is safe.
+
+``prune``: box SYSID's frames received before ``--before`` deleted from the archive, never silently: with
+``--tlog FILE`` they are first written there (as ``export --tlog``), ``--discard`` says they may go without a
+copy; one of the two is required. It says how many frames it deleted and their first and last time
+(`ground.archive.retention`: a station may write the archive meanwhile).
 """
 from __future__ import annotations
 
@@ -26,6 +32,7 @@ from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_
 
 from ..decode import METHODS
 from .export import export_recordings, export_tlog
+from .retention import prune
 from .store import ArchiveError, default_path, open_reader, spans
 
 
@@ -64,7 +71,8 @@ def main(argv: list[str] | None = None) -> int:
     sub = ap.add_subparsers(dest="command", required=True)
     ls = sub.add_parser("list", help="sources, stretches of reception and frame counts")
     ex = sub.add_parser("export", help="an interval of one box as a .tlog and/or recordings")
-    for p in (ls, ex):
+    pr = sub.add_parser("prune", help="a box's frames before a time out of the archive (kept in a .tlog, or discarded)")
+    for p in (ls, ex, pr):
         p.add_argument("--archive", default=str(default_path()),
                        help=f"the archive (default {default_path()})")
     ls.add_argument("--gap", type=finite_float(0, min_exclusive=True), default=60.0, metavar="S",
@@ -78,6 +86,12 @@ def main(argv: list[str] | None = None) -> int:
     ex.add_argument("--method", choices=sorted(METHODS, key=METHODS.get), default="boer",
                     help="the onboard estimator of --rates-csv (default boer)")
     ex.add_argument("--tlog", help="the frames as received, as a .tlog")
+    pr.add_argument("--box", type=int_range(1, 255), required=True, metavar="SYSID", help="the box's system id")
+    pr.add_argument("--before", dest="before_us", type=_time_arg, required=True, metavar="T",
+                    help="frames received before this time (excluded): ISO 8601 UTC or seconds since 1970")
+    how = pr.add_mutually_exclusive_group()
+    how.add_argument("--tlog", help="write the frames deleted to this .tlog first")
+    how.add_argument("--discard", action="store_true", help="delete them without keeping a copy")
     args = ap.parse_args(argv)
     archive = args.archive
     inputs = {"--archive": archive, "the archive's journal": archive + "-wal", "the archive's index": archive + "-shm"}
@@ -88,10 +102,17 @@ def main(argv: list[str] | None = None) -> int:
             ap.error("export: --to must be after --from")
         check_paths_or_exit(ap, inputs=inputs,
                             outputs={"--csv": args.csv, "--rates-csv": args.rates_csv, "--tlog": args.tlog})
+    if args.command == "prune":
+        if not (args.tlog or args.discard):
+            ap.error("prune: give --tlog FILE to keep a copy of the frames deleted, or --discard")
+        check_paths_or_exit(ap, inputs=inputs, outputs={"--tlog": args.tlog})
     try:
         conn = open_reader(archive)
     except ArchiveError as e:
         ap.error(str(e))
+    if args.command == "prune":
+        conn.close()
+        return _prune(args)
     try:
         if args.command == "list":
             found = spans(conn, args.gap)
@@ -132,6 +153,21 @@ def _export(conn, args) -> int:
         done += out.written
     for what, path in done:
         print(f"wrote {what}: {path}")
+    return 0
+
+
+def _prune(args) -> int:
+    try:
+        out = prune(args.archive, args.box, args.before_us, args.tlog)
+    except ArchiveError as e:
+        print(f"ground.archive: {e}", file=sys.stderr)
+        return 1
+    if not out.frames:
+        print(f"no frames of box {args.box} before {_utc(args.before_us)} in {args.archive}: nothing deleted")
+        return 0
+    where = f"kept in {out.kept}" if out.kept else "discarded, no copy kept (--discard)"
+    print(f"deleted {out.frames} frames of box {args.box} received {_utc(out.first_us)} to {_utc(out.last_us)}: "
+          f"{where}")
     return 0
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import os
 import sqlite3
 import struct
+from itertools import islice
 from dataclasses import dataclass
 
 from fsw.files import atomic_file
@@ -22,8 +23,9 @@ from fsw.telemetry.framing import Deframer
 
 from fsw.telemetry.dialect import mavlink
 
-from ..decode import KNOWLEDGE_MESSAGES, SAMPLE_MESSAGES, Decoder
+from ..decode import F32_FIELDS, KNOWLEDGE_MESSAGES, SAMPLE_MESSAGES, Decoder, f32
 from ..recorder import Recorder
+from .bulk import LAYOUTS, Sample, decode_samples
 from .store import frames
 
 _STAMP = struct.Struct(">Q")
@@ -70,38 +72,6 @@ def export_tlog(conn: sqlite3.Connection, sysid: int, path: str | os.PathLike, f
     return out
 
 
-class _Unread:
-    """A frame the recordings do not use, seen by the decoder's link accounting as itself (source, sequence
-    number, message id and type from its header; its bytes) without being decoded."""
-
-    __slots__ = ("frame", "_type")
-
-    def __init__(self, frame: bytes, msg_type: str) -> None:
-        self.frame, self._type = frame, msg_type
-
-    def get_type(self) -> str:
-        return self._type
-
-    def get_msgbuf(self) -> bytes:
-        return self.frame
-
-    def _at(self, v2: int, v1: int) -> int:
-        return self.frame[v2 if self.frame[0] == 0xFD else v1]
-
-    def get_seq(self) -> int:
-        return self._at(4, 2)
-
-    def get_srcSystem(self) -> int:
-        return self._at(5, 3)
-
-    def get_srcComponent(self) -> int:
-        return self._at(6, 4)
-
-    def get_msgId(self) -> int:
-        f = self.frame
-        return f[7] | f[8] << 8 | f[9] << 16 if f[0] == 0xFD else f[5]
-
-
 #: the messages the recordings are made of (`ground.decode.Decoder.handle`); every other frame only
 #: counts in the link accounting, so it is not decoded (the rows and metadata are the same)
 _RECORDED = SAMPLE_MESSAGES | KNOWLEDGE_MESSAGES | {"DEBRIS_LOOP_STATUS", "DEBRIS_SAMPLE_STORE"}
@@ -113,29 +83,63 @@ def export_recordings(conn: sqlite3.Connection, sysid: int, csv: str | os.PathLi
                       protect=()) -> Exported:
     """Decode box `sysid`'s frames with from_us <= t < to_us through `ground.decode.Decoder` and write
     its recordings (`csv`) and rate estimates of `method` (`rates_csv`); `protect`: files the recorder's extra files
-    (other runs) may never take the name of. Frames of messages the recordings do not use go to the
-    decoder's link accounting and clock only (`_Unread`): the same files, at a fraction of the time."""
+    (other runs) may never take the name of. The sample messages are decoded in bulk, `CHUNK` frames at a time
+    (`ground.archive.bulk`); frames of messages the recordings do not use go to the decoder's link accounting and
+    clock only (a `Sample` without fields: its header): the same files, at a fraction of the time."""
     recorder = Recorder(csv, rates_csv, protect=protect)
-    decoder = Decoder(method=method, origin=origin, recorder=recorder)
+    decoder = Decoder(method=method, origin=origin, recorder=recorder, rounded=True)
     decode = Deframer().decode
     handle, on_frame, tick = decoder.handle, decoder.stats.on_frame, decoder.tick
     recorded = {msgid for msgid, cls in mavlink.mavlink_map.items() if cls.msgname in _RECORDED}
     names = {msgid: cls.msgname for msgid, cls in mavlink.mavlink_map.items()}
     out = Exported(decoder=decoder)
     n = 0
-    for t_us, msgid, frame in frames(conn, sysid, from_us, to_us, with_msgid=True):
+    rows = frames(conn, sysid, from_us, to_us, with_msgid=True)
+    while chunk := list(islice(rows, CHUNK)):
         if n == 0:
-            out.first_us = t_us
-        now_s = t_us * 1e-6
-        if msgid in recorded or msgid not in names:
-            handle(decode(frame), now_s)
-        else:
-            on_frame(_Unread(frame, names[msgid]), now_s)
-            tick(now_s)
-        n += 1
+            out.first_us = chunk[0][0]
+        samples = _bulk(chunk)
+        for i, (t_us, msgid, frame) in enumerate(chunk):
+            now_s = t_us * 1e-6
+            msg = samples.get(i)
+            if msg is not None:
+                handle(msg, now_s)
+            elif msgid in recorded or msgid not in names:
+                handle(_rounded(decode(frame)), now_s)
+            else:
+                on_frame(Sample(frame, names[msgid], msgid, {}), now_s)   # its header, undecoded
+                tick(now_s)
+        n += len(chunk)
+        out.last_us = chunk[-1][0]
     if n:
         decoder.finish()
-        out.last_us = t_us
     out.frames = n
     out.written = list(recorder.written)
     return out
+
+
+#: frames decoded in bulk at a time
+CHUNK = 20_000
+
+
+def _bulk(chunk: list[tuple]) -> dict[int, Sample]:
+    """The chunk's sample messages decoded in bulk, by their place in the chunk (those that fail a check:
+    left out, for pymavlink)."""
+    where: dict[int, list[int]] = {}
+    for i, (_, msgid, _) in enumerate(chunk):
+        if msgid in LAYOUTS:
+            where.setdefault(msgid, []).append(i)
+    out = {}
+    for msgid, places in where.items():
+        for i, msg in zip(places, decode_samples([chunk[i][2] for i in places], msgid)):
+            if msg is not None:
+                out[i] = msg
+    return out
+
+
+def _rounded(msg):
+    """A sample message pymavlink decoded, its `F32_FIELDS` rounded as `Decoder(rounded=True)` takes them."""
+    for name in F32_FIELDS.get(msg.get_type(), ()):
+        value = getattr(msg, name)
+        setattr(msg, name, f32(*value) if isinstance(value, list) else f32(value)[0])
+    return msg

@@ -39,3 +39,49 @@ def test_dialect_passes_mavgen_strict_units(tmp_path):
     assert 'units="N.m"' in bad.read_text()
     with pytest.raises(RuntimeError, match="N.m"):
         dialect.generate(tmp_path / "bad.py", bad)
+
+
+#: the project's range (docs/telemetry.md, "Message and command ids")
+PRIVATE = range(54000, 54100)
+
+
+def _registered_dialects():
+    """Every dialect XML pymavlink ships (MAVLink's registered dialects: mavlink/mavlink's
+    message_definitions), with the message ids and MAV_CMD values each defines."""
+    from pathlib import Path
+
+    from lxml import etree
+    import pymavlink.dialects.v20 as v20
+
+    for path in sorted(Path(v20.__file__).parent.glob("*.xml")):
+        tree = etree.parse(str(path))
+        msgs = {int(m.get("id")) for m in tree.iter("message")}
+        cmds = {int(e.get("value")): e for en in tree.iter("enum") if en.get("name") == "MAV_CMD"
+                for e in en.iter("entry")}
+        yield path.name, msgs, cmds
+
+
+def test_the_dialects_ids_are_in_a_range_no_registered_dialect_uses():
+    m = dialect.mavlink
+    ours = {i for i, cls in m.mavlink_map.items() if cls.msgname.startswith("DEBRIS_")}
+    our_cmds = {v for v, e in m.enums["MAV_CMD"].items() if e.name.startswith("MAV_CMD_DEBRIS_")}
+    assert ours and our_cmds and ours <= set(PRIVATE) and our_cmds <= set(PRIVATE)
+    seen = []
+    for name, msgs, cmds in _registered_dialects():
+        assert not msgs & set(PRIVATE) and not cmds.keys() & set(PRIVATE), name
+        seen.append(name)
+    assert {"common.xml", "ardupilotmega.xml", "ASLUAV.xml", "storm32.xml", "AVSSUAS.xml", "uAvionix.xml",
+            "cubepilot.xml", "csAirLink.xml", "icarous.xml", "development.xml"} <= set(seen)
+
+
+def test_protocol_version_is_in_no_included_dialect_so_the_box_refuses_it():
+    """PROTOCOL_VERSION (300) is not in the common.xml the dialect includes (deprecated 2025-11 and
+    removed; MAV_CMD_REQUEST_PROTOCOL_VERSION deprecated, replaced by MAV_CMD_REQUEST_MESSAGE): the box
+    cannot send it and answers its requests DENIED / UNSUPPORTED (tests/fsw/test_services.py). If a
+    pymavlink brings it back, the box should answer it: this test says so."""
+    m = dialect.mavlink
+    assert 300 not in m.mavlink_map, "PROTOCOL_VERSION is defined again: answer MAV_CMD_REQUEST_MESSAGE(300)"
+    dialects = {name: (msgs, cmds) for name, msgs, cmds in _registered_dialects()}
+    assert all(300 not in msgs for msgs, _ in dialects.values())
+    deprecated = dialects["common.xml"][1][m.MAV_CMD_REQUEST_PROTOCOL_VERSION].find("deprecated")
+    assert deprecated is not None and deprecated.get("replaced_by") == "MAV_CMD_REQUEST_MESSAGE"

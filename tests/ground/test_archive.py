@@ -20,7 +20,7 @@ from ground.archive.__main__ import utc_time_us
 from ground.archive.export import export_recordings
 from ground.archive.store import ArchiveFeed, spans
 from ground.tlog import read_tlog
-from support import box_frames, exit_status, free_udp_port
+from support import box_frames, exit_status, free_udp_port, pymavlink_with_debris
 
 ROOT = Path(__file__).resolve().parents[2]
 WALL0_US = 1_750_000_000_000_000       # 2025-06-15T15:06:40Z
@@ -116,22 +116,21 @@ def test_the_tlog_export_reads_back_with_the_project_decoder_and_stock_mavlogdum
     mavlogdump = Path(sys.executable).with_name("mavlogdump.py")
     if not mavlogdump.exists():
         pytest.skip("pymavlink's mavlogdump.py is not installed beside the interpreter")
-    # the stock tool, with the project's bindings where pymavlink looks for a dialect named "debris"
-    dialect_dir = tmp_path / "dialects"
-    dialect_dir.mkdir()
-    (dialect_dir / "debris.py").write_bytes((ROOT / "fsw/telemetry/mavlink_debris.py").read_bytes())
-    run = textwrap.dedent(f"""
-        import runpy, sys
-        import pymavlink.dialects.v20 as v20
-        v20.__path__.append({str(dialect_dir)!r})
-        sys.argv = ["mavlogdump.py", "--dialect", "debris", "--types", "DEBRIS_MAG_SAMPLE", {str(out)!r}]
-        runpy.run_path({str(mavlogdump)!r}, run_name="__main__")
-        """)
-    res = subprocess.run([sys.executable, "-c", run], capture_output=True, text=True, timeout=300,
-                         env=dict(os.environ, MAVLINK20="1"), cwd=tmp_path)
+    # the stock tool as a user runs it, the project's bindings installed as pymavlink's dialect "debris"
+    # (docs/ground.md), on an export made by the command line
+    exported = tmp_path / "cli.tlog"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(pymavlink_with_debris(tmp_path / "py")), str(ROOT)]))
+    made = subprocess.run([sys.executable, "-m", "ground.archive", "export", "--archive", str(d / "a.sqlite"),
+                           "--box", "1", "--tlog", str(exported)], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert made.returncode == 0, made.stderr
+    assert exported.read_bytes() == out.read_bytes()
+    res = subprocess.run([sys.executable, str(mavlogdump), "--dialect", "debris", "--types", "DEBRIS_MAG_SAMPLE",
+                          str(exported)], capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     lines = [ln for ln in res.stdout.splitlines() if "DEBRIS_MAG_SAMPLE" in ln]
     assert len(lines) == 600 and "seq : 599" in lines[-1]
+    assert "seq : 0," in lines[0] and "run_id : 4660" in lines[0]
 
 
 WRITER = textwrap.dedent("""
