@@ -78,7 +78,10 @@ function plot(canvas, lines, t_end, span) {
   g.setTransform(dpr, 0, 0, dpr, 0, 0);
   g.clearRect(0, 0, w, h);
   const L = 54, R = 8, T = 16, B = 20;
-  const t0 = t_end - span;
+  let first = Infinity;
+  for (const ln of lines) if (ln.rows.length) first = Math.min(first, ln.rows[0][0]);
+  const t0 = Math.max(t_end - span, Math.min(first, t_end - 1));
+  span = t_end - t0;
   let ymin = Infinity, ymax = -Infinity;
   const last = [];
   for (const ln of lines) {
@@ -161,6 +164,8 @@ function draw_box(id) {
   keep("inertia", ["inertia_kgm2"], d);
   d = plot(document.getElementById("p-sail"), axes3("sail_deg", ["yaw", "pitch"]), t_end, span);
   keep("sail", ["sail_deg"], d);
+  d = plot(document.getElementById("p-energy"), axes3("kit_energy_J", ["pitch channel", "yaw channel"]), t_end, span);
+  keep("energy", ["kit_energy_J"], d);
   d = plot(document.getElementById("p-backlog"), axes3("backlog_frames", ["buffered", "replayed", "dropped"]), t_end, span);
   keep("backlog", ["backlog_frames"], d);
 
