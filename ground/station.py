@@ -36,8 +36,8 @@ from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_
 from fsw.telemetry.signing import KeyFileError, load_key
 
 from .archive.store import ArchiveFeed, default_path
-from .decode import METHODS, sent_methods
 from .live_link import LiveLink
+from .web.boxview import RATE_METHOD_NAMES
 from .web.fleet import Fleet
 
 #: frames waiting between the links and the ingest thread
@@ -115,11 +115,15 @@ class Ingest:
             self.fleet.archive = {"frames": feed.frames, "error": feed.error, "lost": feed.lost}
 
     def stop(self) -> None:
+        """Stop reading; every frame read is still archived and handed to the fleet (the queue drained)."""
         self.stop_event.set()
         for th in self.threads[1:]:
-            th.join(timeout=5)
+            th.join()
         if self.threads:
-            self.threads[0].join(timeout=30)
+            waiting = self.queue.qsize()
+            if waiting > 10_000:
+                self.say(f"archiving the {waiting} frames still waiting")
+            self.threads[0].join()
         for link in self.links:
             link.close()
 
@@ -207,7 +211,7 @@ async def serve(fleet: Fleet, ingest: Ingest, host: str, port: int, *, duration_
 
 
 def main(argv: list[str] | None = None) -> int:
-    sent = sent_methods()
+    methods = {name: value for value, name in RATE_METHOD_NAMES.items()}
     ap = ArgumentParser(prog="python -m ground.station", description=__doc__.splitlines()[0])
     ap.add_argument("links", nargs="+", type=link_url, metavar="LINK",
                     help="pymavlink connection strings: udpin:0.0.0.0:14550, tcp:HOST:PORT, a serial device")
@@ -221,7 +225,7 @@ def main(argv: list[str] | None = None) -> int:
     archiving.add_argument("--archive", metavar="FILE",
                            help=f"archive every intact frame in this SQLite file (default {default_path()})")
     archiving.add_argument("--no-archive", action="store_true", help="do not archive the frames")
-    ap.add_argument("--method", choices=sorted(sent, key=sent.get), default="kalman",
+    ap.add_argument("--method", choices=sorted(methods, key=methods.get), default="kalman",
                     help="the onboard rate estimate plotted (default kalman: the flown filter)")
     ap.add_argument("--window", type=finite_float(0.5, 240), default=10.0, metavar="MIN",
                     help="minutes of telemetry the plots keep (default 10)")
@@ -251,7 +255,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyFileError as e:
         print(f"ground.station: {e}", file=sys.stderr)
         return 1
-    fleet = Fleet(keys, default_key, method=METHODS[args.method], window_s=args.window * 60.0)
+    fleet = Fleet(keys, default_key, method=methods[args.method], window_s=args.window * 60.0)
     try:
         ingest = Ingest(fleet, args.links, archive=archive, baud=args.baud)
     except (OSError, ValueError) as e:

@@ -8,7 +8,8 @@ the plots, the state and the events. Refused frames are counted by reason (unsig
 future): a frame signed with another box's key is a bad_signature of this box.
 
 Plots (`Series`): each is a ring of rows ``(t_s, v1, …)`` on the box's own time line (the flight software's
-time since it started), in display units (µT, °/s, deg, kg·m², J). Rows arrive at the box's rate (up to a
+time since it started), in display units (µT, °/s, deg, kg·m², J), rounded to `DIGITS` decimals (NaN as
+null) when published. Rows arrive at the box's rate (up to a
 kHz) and wait in ``pending``; at every publication (`Series.flush`, 4 Hz from the server) at most
 `POINTS_PER_FLUSH` of them, evenly spaced and always the newest, go into the ring and to the browsers.
 The ring keeps `window_s` of box time and never more than window × 4 Hz × `POINTS_PER_FLUSH` rows, so the
@@ -35,6 +36,8 @@ POINTS_PER_FLUSH = 3
 FLUSH_HZ = 4.0
 #: rows waiting between two publications before they are thinned
 MAX_PENDING = 4096
+#: decimals of the values published (µT, °/s, deg, kg·m², J: far below any sensor's noise)
+DIGITS = 4
 #: events kept (STATUSTEXT, COMMAND_ACK, the view's own notes)
 MAX_EVENTS = 200
 UT_PER_GAUSS = 100.0
@@ -102,6 +105,7 @@ class Series:
         if len(p) > POINTS_PER_FLUSH:
             n = len(p) - 1
             p = [p[round(i * n / (POINTS_PER_FLUSH - 1))] for i in range(POINTS_PER_FLUSH)]
+        p = [(r[0], *(_num(x, DIGITS) for x in r[1:])) for r in p]  # rounded for JSON when published
         self.ring.extend(p)
         if self.ring:
             oldest = self.ring[-1][0] - self.window_s
@@ -186,7 +190,7 @@ class BoxView:
         self.run_id = msg.run_id
         b = [x * UT_PER_GAUSS for x in msg.mag]
         if all(map(math.isfinite, b)):
-            self.series["field_uT"].add((msg.time_usec * 1e-6, *(_num(x, 4) for x in b)))
+            self.series["field_uT"].add((msg.time_usec * 1e-6, *b))
             self.state["field_norm_uT"] = _num(math.sqrt(sum(x * x for x in b)), 3)
 
     def _rate(self, msg, now_s):
@@ -194,22 +198,22 @@ class BoxView:
             return
         vals = (msg.wx, msg.wy, msg.wz, msg.sx, msg.sy, msg.sz)
         if all(map(math.isfinite, vals)):
-            self.series["rate_dps"].add((msg.time_usec * 1e-6, *(_num(v * DEG, 4) for v in vals)))
+            self.series["rate_dps"].add((msg.time_usec * 1e-6, *(v * DEG for v in vals)))
             self.state["rate_norm_dps"] = _num(math.sqrt(sum(v * v for v in vals[:3])) * DEG, 3)
 
     def _truth(self, msg, now_s):
         t = msg.time_usec * 1e-6
         w = (msg.wx, msg.wy, msg.wz)
         if all(map(math.isfinite, w)):
-            self.series["truth_rate_dps"].add((t, *(_num(v * DEG, 4) for v in w)))
+            self.series["truth_rate_dps"].add((t, *(v * DEG for v in w)))
             self.state["truth_rate_norm_dps"] = _num(math.sqrt(sum(v * v for v in w)) * DEG, 3)
         if all(map(math.isfinite, msg.q)) and any(msg.q):
-            self.series["truth_attitude_deg"].add((t, *(_num(a, 3) for a in euler_zyx_deg(tuple(msg.q)))))
+            self.series["truth_attitude_deg"].add((t, *euler_zyx_deg(tuple(msg.q))))
 
     def _attitude(self, msg, now_s):
         q = (msg.q1, msg.q2, msg.q3, msg.q4)
         if all(map(math.isfinite, q)) and any(q):
-            self.series["attitude_deg"].add((msg.time_boot_ms * 1e-3, *(_num(a, 3) for a in euler_zyx_deg(q))))
+            self.series["attitude_deg"].add((msg.time_boot_ms * 1e-3, *euler_zyx_deg(q)))
 
     def _attitude_sigma(self, msg, now_s):
         self.state["filter"] = _enum_name("DEBRIS_RATE_FILTER", msg.filter)
@@ -220,7 +224,7 @@ class BoxView:
         self.state["inertia"] = {"state": _enum_name("DEBRIS_IDENT_STATE", msg.state), "samples": int(msg.samples),
                                  "inertia_kgm2": [_num(x, 4) for x in i], "ci95_kgm2": [_num(x, 4) for x in c]}
         if msg.samples and all(map(math.isfinite, i[:3] + c[:3])):
-            self.series["inertia_kgm2"].add((msg.time_usec * 1e-6, *(_num(x, 4) for x in i[:3] + c[:3])))
+            self.series["inertia_kgm2"].add((msg.time_usec * 1e-6, *i[:3], *c[:3]))
 
     def _kit(self, msg, now_s):
         t = msg.time_usec * 1e-6
@@ -232,7 +236,7 @@ class BoxView:
             "capsule_openings": list(msg.capsule_openings), "magnet_turns": list(msg.magnet_turns),
             "faults": [f for f in msg.fault], "interlock_violations": int(msg.interlock_violations),
             "controller": _enum_name("DEBRIS_CONTROLLER_STATE", msg.controller_state)}
-        self.series["kit_energy_J"].add((t, *(_num(e, 3) for e in msg.energy)))
+        self.series["kit_energy_J"].add((t, *msg.energy))
         self.series["kit_steps"].add((t, *(float(s) for s in msg.steps_total)))
 
     def _sail(self, msg, now_s):
@@ -240,7 +244,7 @@ class BoxView:
         self.state["sail"] = {"yaw_deg": _num(yaw, 2), "pitch_deg": _num(pitch, 2), "held": int(msg.held),
                               "source": _enum_name("DEBRIS_CONTROLLER_ATTITUDE", msg.source)}
         if math.isfinite(yaw) and math.isfinite(pitch):
-            self.series["sail_deg"].add((msg.time_usec * 1e-6, _num(yaw, 3), _num(pitch, 3)))
+            self.series["sail_deg"].add((msg.time_usec * 1e-6, yaw, pitch))
 
     def _link(self, msg, now_s):
         self.state["box_link"] = {
