@@ -309,3 +309,44 @@ def test_bad_options_are_one_line_without_traceback(tmp_path, args, message, sta
     proc = subprocess.run([sys.executable, "-m", "ground.station", "udpin:127.0.0.1:1", "--no-archive", *args],
                           cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert proc.returncode == status and message in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_inertia_kit_sail_attitude_and_backlog_are_plotted_in_display_units():
+    fleet = Fleet()
+    mav = mavlink.MAVLink(None, srcSystem=4, srcComponent=191)
+    parser = mavlink.MAVLink(None)
+    half = math.radians(30.0) / 2  # 30° about z
+    nan = float("nan")
+    msgs = [
+        mavlink.MAVLink_debris_inertia_estimate_message(2_000_000, 120, [280.0, 270.0, 285.0, 0.1, 0.2, 0.3],
+                                                        [3.0, 2.5, 4.0, 0.1, 0.1, 0.1], [4.0] * 6,
+                                                        mavlink.DEBRIS_IDENT_STATE_TORQUE, 7),
+        mavlink.MAVLink_debris_deorbit_status_message(2_000_000, [10, -20], [400, 200], [1.5, 0.25], [2, 1],
+                                                      [1, 0], 0, [mavlink.DEBRIS_CAPSULE_STATE_OPEN,
+                                                                  mavlink.DEBRIS_CAPSULE_STATE_CLOSED],
+                                                      [mavlink.DEBRIS_MAGNET_STATE_IDLE,
+                                                       mavlink.DEBRIS_MAGNET_STATE_TURNING], [1, -1], [0, 2],
+                                                      mavlink.DEBRIS_CONTROLLER_STATE_RUNNING),
+        mavlink.MAVLink_debris_deorbit_attitude_message(2_000_000, math.radians(12.0), math.radians(-3.0), 0.0,
+                                                        [0.0] * 3, [0.01, 0.01], 0.001, 1, 4, 0),
+        mavlink.MAVLink_debris_deorbit_attitude_message(2_100_000, nan, nan, nan, [nan] * 3, [nan, nan], nan, 0, 0, 0),
+        mavlink.MAVLink_attitude_quaternion_message(2000, math.cos(half), 0.0, 0.0, math.sin(half), 0.0, 0.0, 0.0,
+                                                    [0.0] * 4),
+        mavlink.MAVLink_debris_link_status_message(2_000_000, 3, 1, 2, 0, 1, 57, 12, 0, 0),
+    ]
+    for m in msgs:
+        for msg in parser.parse_buffer(m.pack(mav)):
+            fleet.handle(msg, T0)
+    u = fleet.update(T0)["boxes"]["4"]
+    assert u["rows"]["inertia_kgm2"] == [[2.0, 280.0, 270.0, 285.0, 3.0, 2.5, 4.0]]
+    assert u["state"]["inertia"]["state"] == "torque" and u["state"]["inertia"]["samples"] == 120
+    assert u["rows"]["kit_energy_J"] == [[2.0, 1.5, 0.25]] and u["rows"]["kit_steps"] == [[2.0, 400.0, 200.0]]
+    kit = u["state"]["kit"]
+    assert kit["capsules"] == ["open", "closed"] and kit["magnets"] == ["idle", "turning"]
+    assert kit["pulses"] == [400, 200] and kit["faults"] == [0, 2] and kit["controller"] == "running"
+    assert u["rows"]["sail_deg"] == [[2.0, 12.0, -3.0]]  # the NaN one (no attitude) is not plotted
+    assert u["state"]["sail"]["yaw_deg"] is None
+    assert u["rows"]["attitude_deg"] == [[2.0, 0.0, 0.0, pytest.approx(30.0, abs=1e-3)]]
+    assert u["rows"]["backlog_frames"] == [[2.0, 57.0, 12.0, 0.0]]
+    assert u["state"]["box_link"]["uplink_rejected"] == 4 and u["state"]["box_link"]["link_up"] == 0
+    json.dumps(fleet.snapshot(T0), allow_nan=False)  # valid JSON: no NaN anywhere
