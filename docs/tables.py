@@ -376,11 +376,12 @@ def station_load(docs: Path) -> str:
     d = load(docs, "station_load.json")
     rows = []
     for r in d["runs"]:
+        per_frame_us = 1e6 * r["station_cpu_share"] / r["frames_per_s"]
         rows.append([f"{r['boxes']} × {num(r['sample_hz'], 0)}", num(r["frames_per_s"], 0),
                      f"{num(r['updates_per_s_min'], 2)}", f"{num(1e3 * r['latency_p50_s'], 0)} / "
                      f"{num(1e3 * r['latency_p99_s'], 0)} ms", f"{num(1e3 * r['wait_max_s'], 0)} ms",
-                     f"{num(100 * r['station_cpu_share'], 0)} % ({num(1e6 * r['station_cpu_share'] / r['frames_per_s'], 0)} µs "
-                     "a frame)", f"{num(r['station_rss_MB'], 0)} MB",
+                     f"{num(100 * r['station_cpu_share'], 0)} % ({num(per_frame_us, 0)} µs a frame)",
+                     f"{num(r['station_rss_MB'], 0)} MB",
                      f"{r['frames_archived']:,} / {r['frames_sent']:,}"])
     text = table(["boxes × samples/s", "frames/s", "updates/s per box (lowest)", "newest row's latency p50 / p99",
                   "oldest sample's wait, max", "station CPU (one core)", "memory", "archived / sent"], rows,

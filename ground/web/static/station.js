@@ -70,7 +70,7 @@ function nice_ticks(lo, hi, n) {
 }
 
 // lines: [{rows, col, color, dash, lo, hi (band columns: value ± k × rows[i][sigma]), sigma, k, label}]
-function plot(canvas, lines, t_end, span) {
+function plot(canvas, lines, t_end, span, empty = "no data yet") {
   const dpr = window.devicePixelRatio || 1;
   const w = canvas.clientWidth, h = canvas.clientHeight;
   if (canvas.width !== Math.round(w * dpr)) { canvas.width = Math.round(w * dpr); canvas.height = Math.round(h * dpr); }
@@ -95,7 +95,7 @@ function plot(canvas, lines, t_end, span) {
   }
   g.font = "11px system-ui, sans-serif";
   g.fillStyle = "#8796a8";
-  if (!isFinite(ymin)) { g.fillText("no data yet", L + 10, T + 20); return null; }
+  if (!isFinite(ymin)) { g.fillText(empty, L + 10, T + 20); return null; }
   if (ymax - ymin < 1e-9) { ymin -= 1; ymax += 1; }
   const pad = 0.06 * (ymax - ymin); ymin -= pad; ymax += pad;
   const X = t => L + (t - t0) / span * (w - L - R);
@@ -150,21 +150,25 @@ function draw_box(id) {
   const axes3 = (name, labels, extra = {}) => labels.map((lab, i) => ({ rows: rows(box, name), col: i + 1,
     color: AXES[i], label: lab, ...extra }));
   const keep = (plotname, names, drawn) => { if (drawn) names.forEach((n, i) => { if (drawn[i]) p[n] = drawn[i]; }); };
-  let d = plot(document.getElementById("p-field"), axes3("field_uT", ["Bx", "By", "Bz"]), t_end, span);
+  let d = plot(document.getElementById("p-field"), axes3("field_uT", ["Bx", "By", "Bz"]), t_end, span,
+    "no magnetometer samples yet");
   keep("field", ["field_uT"], d);
   const rate = axes3("rate_dps", ["ωx", "ωy", "ωz"]).map((l, i) => ({ ...l, sigma: i + 4, k: 1 }));
   const truth = axes3("truth_rate_dps", ["", "", ""], { dash: true });
   d = plot(document.getElementById("p-rate"), rate.concat(truth), t_end, span);
   keep("rate", ["rate_dps", null, null, "truth_rate_dps"], d);
   d = plot(document.getElementById("p-att"), axes3("attitude_deg", ["roll", "pitch", "yaw"])
-    .concat(axes3("truth_attitude_deg", ["", "", ""], { dash: true })), t_end, span);
+    .concat(axes3("truth_attitude_deg", ["", "", ""], { dash: true })), t_end, span,
+    "no attitude: the box flies the fixed-field filter until it has a UTC and a TLE");
   keep("att", ["attitude_deg", null, null, "truth_attitude_deg"], d);
   const inertia = axes3("inertia_kgm2", ["Ixx", "Iyy", "Izz"]).map((l, i) => ({ ...l, sigma: i + 4, k: 1 }));
-  d = plot(document.getElementById("p-inertia"), inertia, t_end, span);
+  d = plot(document.getElementById("p-inertia"), inertia, t_end, span, "no estimate: no identification experiment run");
   keep("inertia", ["inertia_kgm2"], d);
-  d = plot(document.getElementById("p-sail"), axes3("sail_deg", ["yaw", "pitch"]), t_end, span);
+  d = plot(document.getElementById("p-sail"), axes3("sail_deg", ["yaw", "pitch"]), t_end, span,
+    st.kit ? `no attitude for the controller (source: ${st.sail ? st.sail.source : "—"})` : "no de-orbit kit reported");
   keep("sail", ["sail_deg"], d);
-  d = plot(document.getElementById("p-energy"), axes3("kit_energy_J", ["pitch channel", "yaw channel"]), t_end, span);
+  d = plot(document.getElementById("p-energy"), axes3("kit_energy_J", ["pitch channel", "yaw channel"]), t_end, span,
+    "no de-orbit kit reported");
   keep("energy", ["kit_energy_J"], d);
   d = plot(document.getElementById("p-backlog"), axes3("backlog_frames", ["buffered", "replayed", "dropped"]), t_end, span);
   keep("backlog", ["backlog_frames"], d);
