@@ -23,22 +23,27 @@ bounds the memory: frames beyond it are counted as dropped (shown on the page), 
 """
 from __future__ import annotations
 
-import asyncio
-import queue
-import signal
-import sys
-import threading
-import time
-from pathlib import Path
-from typing import Callable
+if __name__ == "__main__":
+    from fsw.startup import interrupt_quietly
 
-from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range, link_url
-from fsw.telemetry.signing import KeyFileError, load_key
+    interrupt_quietly()
 
-from .archive.store import ArchiveFeed, default_path
-from .live_link import LiveLink
-from .web.boxview import RATE_METHOD_NAMES
-from .web.fleet import Fleet
+import asyncio  # noqa: E402
+import queue  # noqa: E402
+import signal  # noqa: E402
+import sys  # noqa: E402
+import threading  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Callable  # noqa: E402
+
+from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range, link_url  # noqa: E402
+from fsw.telemetry.signing import KeyFileError, load_key  # noqa: E402
+
+from .archive.store import ArchiveFeed, default_path  # noqa: E402
+from .live_link import LiveLink  # noqa: E402
+from .web.boxview import RATE_METHOD_NAMES  # noqa: E402
+from .web.fleet import Fleet  # noqa: E402
 
 #: frames waiting between the links and the ingest thread
 MAX_QUEUED = 200_000
@@ -174,6 +179,7 @@ async def serve(fleet: Fleet, ingest: Ingest, host: str, port: int, *, duration_
 
     from .web.server import WebView
 
+    ingest.start()  # the archive opened first: a failure stops the station before the page is served
     view = WebView(fleet)
     runner = web.AppRunner(view.app(), access_log=None)
     await runner.setup()
@@ -191,7 +197,6 @@ async def serve(fleet: Fleet, ingest: Ingest, host: str, port: int, *, duration_
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
-    ingest.start()
     start = loop.time()
     try:
         while not stop.is_set():
@@ -233,6 +238,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="stop after this many seconds")
     ap.add_argument("--quiet", action="store_true", help="no summary lines while running")
     args = ap.parse_args(argv)
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # modules loaded: Ctrl-C stops the station cleanly
     sysids = [s for s, _ in args.box]
     if len(set(sysids)) != len(sysids):
         ap.error("--box: a system id is given twice")
@@ -256,19 +262,24 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ground.station: {e}", file=sys.stderr)
         return 1
     fleet = Fleet(keys, default_key, method=methods[args.method], window_s=args.window * 60.0)
+
+    def say(line: str) -> None:
+        print(line, flush=True)
+
     try:
-        ingest = Ingest(fleet, args.links, archive=archive, baud=args.baud)
+        ingest = Ingest(fleet, args.links, archive=archive, baud=args.baud, say=say)
     except (OSError, ValueError) as e:
         print(f"ground.station: {e}", file=sys.stderr)
         return 1
     try:
-        asyncio.run(serve(fleet, ingest, *args.web, duration_s=args.duration, say=print, quiet=args.quiet))
+        asyncio.run(serve(fleet, ingest, *args.web, duration_s=args.duration, say=say, quiet=args.quiet))
     except (OSError, ValueError) as e:
         print(f"ground.station: {e}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         pass
     finally:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # every frame read is archived before the end
         ingest.stop()
     for line in summary_lines(fleet):
         print(line)
