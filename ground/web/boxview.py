@@ -287,11 +287,13 @@ class BoxView:
 
     def status(self) -> dict:
         """The box's state and counters (small: sent whole with every update that changed it)."""
-        src = self.stats.summary()["totals"]
+        sources = self.stats.sources.values()  # the counters only (summary() also scans sample times)
+        received, lost = sum(s.received + s.unknown for s in sources), sum(s.lost for s in sources)
         late = sum(s.late for s in self.series.values())
         return {**self.state, "frames": self.frames, "authentic": self.authentic, "last_rx_s": self.last_rx_s,
-                "link": {"received": src["received"], "lost": src["lost"], "duplicates": src["duplicates"],
-                         "loss_fraction": _num(src["loss_fraction"], 5), "late_not_plotted": late},
+                "link": {"received": received, "lost": lost, "duplicates": sum(s.duplicates for s in sources),
+                         "loss_fraction": _num(lost / (received + lost), 5) if received + lost else 0.0,
+                         "late_not_plotted": late},
                 "rejected": dict(self.rejected)}
 
     def update(self) -> dict | None:

@@ -44,7 +44,9 @@ class SyntheticBox:
     def _pack(self, msg, now_s: float) -> bytes:
         if self.signed:
             sign_ready(self.mav, self.clock, now_s)
-        return bytes(msg.pack(self.mav))
+        frame = bytes(msg.pack(self.mav))
+        self.mav.seq = (self.mav.seq + 1) % 256  # as MAVLink.send does: every frame its sequence number
+        return frame
 
     def frames(self, t_s: float, now_s: float | None = None) -> list[bytes]:
         """The frames of one sample at box time `t_s` (s), signed at Unix time `now_s` (default `t_s`)."""

@@ -350,3 +350,28 @@ def test_inertia_kit_sail_attitude_and_backlog_are_plotted_in_display_units():
     assert u["rows"]["backlog_frames"] == [[2.0, 57.0, 12.0, 0.0]]
     assert u["state"]["box_link"]["uplink_rejected"] == 4 and u["state"]["box_link"]["link_up"] == 0
     json.dumps(fleet.snapshot(T0), allow_nan=False)  # valid JSON: no NaN anywhere
+
+
+def test_loss_is_counted_from_sequence_numbers_per_box():
+    key = os.urandom(32)
+    fleet = Fleet({1: key})
+    box = SyntheticBox(1, key)
+    parser = mavlink.MAVLink(None)
+    sent = 0
+    for i in range(20):
+        for j, frame in enumerate(box.frames(i * 0.1, T0 + i * 0.1)):
+            sent += 1
+            if i % 5 == 2 and j == 0:  # every fifth sample's DEBRIS_MAG_SAMPLE lost on the way
+                continue
+            for msg in parser.parse_buffer(frame) or []:
+                fleet.handle(msg, T0 + i * 0.1)
+    link = fleet.update(T0)["boxes"]["1"]["state"]["link"]
+    assert link["lost"] == 4 and link["received"] == sent - 4
+    assert link["loss_fraction"] == pytest.approx(4 / sent, abs=1e-5)
+
+
+def test_a_fleet_in_sitl_one_run_per_system_id():
+    from hil import sitl
+
+    assert sitl.parse_args(["--system-id", "7"]).run.system_id == 7
+    assert sitl.parse_args([]).run.system_id == 1
