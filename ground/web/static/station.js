@@ -120,7 +120,9 @@ function plot(canvas, lines, t_end, span, empty = "no data yet") {
       g.closePath(); g.globalAlpha = 0.18; g.fillStyle = ln.color; g.fill(); g.globalAlpha = 1;
     }
     g.beginPath(); g.setLineDash(ln.dash ? [5, 4] : []); g.strokeStyle = ln.color; g.lineWidth = ln.dash ? 1.2 : 1.6;
-    rows.forEach((r, i) => i ? g.lineTo(X(r[0]), Y(r[ln.col])) : g.moveTo(X(r[0]), Y(r[ln.col])));
+    // an angle that wraps (±180°) is not joined across the wrap
+    rows.forEach((r, i) => i && !(ln.wrap && Math.abs(r[ln.col] - rows[i - 1][ln.col]) > ln.wrap / 2)
+      ? g.lineTo(X(r[0]), Y(r[ln.col])) : g.moveTo(X(r[0]), Y(r[ln.col])));
     if (rows.length === 1) g.arc(X(rows[0][0]), Y(rows[0][ln.col]), 2, 0, 7);
     g.stroke(); g.setLineDash([]);
   }
@@ -157,14 +159,14 @@ function draw_box(id) {
   const truth = axes3("truth_rate_dps", ["", "", ""], { dash: true });
   d = plot(document.getElementById("p-rate"), rate.concat(truth), t_end, span);
   keep("rate", ["rate_dps", null, null, "truth_rate_dps"], d);
-  d = plot(document.getElementById("p-att"), axes3("attitude_deg", ["roll", "pitch", "yaw"])
-    .concat(axes3("truth_attitude_deg", ["", "", ""], { dash: true })), t_end, span,
+  d = plot(document.getElementById("p-att"), axes3("attitude_deg", ["roll", "pitch", "yaw"], { wrap: 360 })
+    .concat(axes3("truth_attitude_deg", ["", "", ""], { dash: true, wrap: 360 })), t_end, span,
     "no attitude: the box flies the fixed-field filter until it has a UTC and a TLE");
   keep("att", ["attitude_deg", null, null, "truth_attitude_deg"], d);
   const inertia = axes3("inertia_kgm2", ["Ixx", "Iyy", "Izz"]).map((l, i) => ({ ...l, sigma: i + 4, k: 1 }));
   d = plot(document.getElementById("p-inertia"), inertia, t_end, span, "no estimate: no identification experiment run");
   keep("inertia", ["inertia_kgm2"], d);
-  d = plot(document.getElementById("p-sail"), axes3("sail_deg", ["yaw", "pitch"]), t_end, span,
+  d = plot(document.getElementById("p-sail"), axes3("sail_deg", ["yaw", "pitch"], { wrap: 360 }), t_end, span,
     st.kit ? `no attitude for the controller (source: ${st.sail ? st.sail.source : "—"})` : "no de-orbit kit reported");
   keep("sail", ["sail_deg"], d);
   d = plot(document.getElementById("p-energy"), axes3("kit_energy_J", ["pitch channel", "yaw channel"]), t_end, span,
