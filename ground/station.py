@@ -42,7 +42,7 @@ from fsw.telemetry.signing import KeyFileError, load_key  # noqa: E402
 
 from .archive.store import ArchiveFeed, default_path  # noqa: E402
 from .live_link import LiveLink  # noqa: E402
-from .web.boxview import RATE_METHOD_NAMES  # noqa: E402
+from .web.boxview import ONBOARD_METHODS, RATE_METHOD_NAMES  # noqa: E402
 from .web.fleet import Fleet  # noqa: E402
 
 #: frames waiting between the links and the ingest thread
@@ -216,7 +216,7 @@ async def serve(fleet: Fleet, ingest: Ingest, host: str, port: int, *, duration_
 
 
 def main(argv: list[str] | None = None) -> int:
-    methods = {name: value for value, name in RATE_METHOD_NAMES.items()}
+    methods = {name: value for value, name in RATE_METHOD_NAMES.items() if name in ONBOARD_METHODS}
     ap = ArgumentParser(prog="python -m ground.station", description=__doc__.splitlines()[0])
     ap.add_argument("links", nargs="+", type=link_url, metavar="LINK",
                     help="pymavlink connection strings: udpin:0.0.0.0:14550, tcp:HOST:PORT, a serial device")

@@ -45,6 +45,8 @@ DEG = 180.0 / math.pi
 
 RATE_METHOD_NAMES = {v: e.name.removeprefix("DEBRIS_RATE_METHOD_").lower()
                      for v, e in mavlink.enums["DEBRIS_RATE_METHOD"].items() if not e.name.endswith("_ENUM_END")}
+#: the estimators the box sends (fsw.flight.METHODS, which loads them: not imported here; a test keeps them equal)
+ONBOARD_METHODS = ("boer", "derivative", "kalman")
 
 
 def _enum_name(enum: str, value: int) -> str:

@@ -375,3 +375,9 @@ def test_a_fleet_in_sitl_one_run_per_system_id():
 
     assert sitl.parse_args(["--system-id", "7"]).run.system_id == 7
     assert sitl.parse_args([]).run.system_id == 1
+
+
+def test_the_methods_offered_are_the_ones_the_box_sends():
+    from fsw.flight import METHODS
+
+    assert set(boxview.ONBOARD_METHODS) == set(METHODS)
