@@ -109,9 +109,12 @@ class Ingest:
                     break
                 msg = None
             if msg is not None:
-                self.fleet.handle(msg, now_s)
                 if feed is not None and msg.get_type() != "BAD_DATA":
-                    feed.add(msg, now_s)
+                    feed.add(msg, now_s)  # archived first, whatever the view makes of it
+                try:
+                    self.fleet.handle(msg, now_s)
+                except Exception as e:  # noqa: BLE001 - a frame the view cannot take must not stop the station
+                    self.fleet.failed(msg, e, self.say)
             if feed is not None:
                 feed.tick()
                 self.fleet.archive = {"frames": feed.frames, "error": feed.error, "lost": feed.lost}

@@ -42,6 +42,8 @@ class Fleet:
         #: frames the station could not take in time (the ingest queue full), from `ground.station`
         self.dropped = 0
         self.archive: dict = {}
+        #: frames the view failed on, by message type and error (`failed`)
+        self.failures: Counter[str] = Counter()
 
     def _view(self, sysid: int) -> BoxView:
         key = self._keys.get(sysid, self._default_key)
@@ -73,13 +75,22 @@ class Fleet:
                 return
             box.handle(msg, now_s)
 
+    def failed(self, msg, error: Exception, say) -> None:
+        """A frame the view could not take (a fault of the view, not of the frame: it is archived): counted,
+        the first of each kind said, the station goes on."""
+        with self.lock:
+            kind = f"{msg.get_type()}: {type(error).__name__}"
+            if kind not in self.failures:
+                say(f"the view could not take a {kind} ({error}); counted, the station goes on")
+            self.failures[kind] += 1
+
     def _station(self) -> dict:
         link = self.link
         return {"frames": self.frames, "verified": self.verified, "boxes": sorted(self.boxes),
                 "other_frames": sum(self.other_frames.values()),
                 "other_systems": len(self.other_frames),
                 "garbage_bytes": link.garbage_bytes, "bad_crc": link.bad_crc, "malformed": link.malformed,
-                "dropped": self.dropped, "archive": dict(self.archive)}
+                "dropped": self.dropped, "view_failures": sum(self.failures.values()), "archive": dict(self.archive)}
 
     def update(self, now_s: float) -> dict:
         """The boxes' changes since the last update (published rows decimated, state, new events)."""

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import sys
 import time
 from importlib import resources
 from typing import Callable
@@ -64,6 +65,7 @@ class WebView:
         self.publish_period_s = publish_period_s
         self.clients: dict[web.WebSocketResponse, asyncio.Queue] = {}
         self.updates_sent = 0
+        self.publish_failures = 0
         self._task: asyncio.Task | None = None
 
     def app(self) -> web.Application:
@@ -124,10 +126,18 @@ class WebView:
     async def _publisher(self) -> None:
         loop = asyncio.get_running_loop()
         next_s = loop.time()
+        said = False
         while True:
             next_s += self.publish_period_s
             await asyncio.sleep(max(0.0, next_s - loop.time()))
-            self.publish()
+            try:
+                self.publish()
+            except Exception as e:  # noqa: BLE001 - the publications go on (and the failure is said once)
+                self.publish_failures += 1
+                if not said:
+                    print(f"ground.station: an update could not be made ({type(e).__name__}: {e}); counted",
+                          file=sys.stderr, flush=True)
+                    said = True
 
     async def _start(self, app) -> None:
         self._task = asyncio.create_task(self._publisher())

@@ -381,3 +381,35 @@ def test_the_methods_offered_are_the_ones_the_box_sends():
     from fsw.flight import METHODS
 
     assert set(boxview.ONBOARD_METHODS) == set(METHODS)
+
+
+def test_a_frame_the_view_fails_on_is_archived_counted_and_the_station_goes_on(tmp_path, monkeypatch):
+    import socket
+
+    from ground.station import Ingest
+
+    def broken(self, msg, now_s):
+        raise KeyError("a fault of the view")
+
+    monkeypatch.setitem(boxview.BoxView._HANDLERS, "STATUSTEXT", broken)
+    fleet = Fleet()
+    port = free_udp_port()
+    said = []
+    ingest = Ingest(fleet, [f"udpin:127.0.0.1:{port}"], archive=tmp_path / "a.sqlite", say=said.append)
+    ingest.start()
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=191)
+    box = SyntheticBox(1, None)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.sendto(mavlink.MAVLink_statustext_message(mavlink.MAV_SEVERITY_INFO, b"hello").pack(mav),
+                    ("127.0.0.1", port))
+        frames = box.frames(1.0, T0)
+        for frame in frames:
+            sock.sendto(frame, ("127.0.0.1", port))
+        deadline = time.monotonic() + 20
+        while fleet.frames < 1 + len(frames) and time.monotonic() < deadline:
+            time.sleep(0.05)
+    ingest.stop()
+    assert fleet.failures == {"STATUSTEXT: KeyError": 1} and len(said) == 1 and "goes on" in said[0]
+    assert fleet.update(T0)["boxes"]["1"]["rows"]["field_uT"][-1][0] == 1.0
+    with sqlite3.connect(tmp_path / "a.sqlite") as db:
+        assert db.execute("SELECT COUNT(*) FROM frames").fetchone()[0] == 1 + len(frames)

@@ -247,6 +247,7 @@ function render() {
     + (a.error ? ` (ARCHIVE FAILED: ${a.error})` : "") + (s.verified ? "" : "; signatures NOT verified")
     + (s.other_frames ? `; ${s.other_frames} frames of ${s.other_systems} other system ids` : "")
     + (s.dropped ? `; ${s.dropped} frames dropped (station overloaded)` : "")
+    + (s.view_failures ? `; ${s.view_failures} frames the view could not show (archived)` : "")
     + (s.bad_crc || s.garbage_bytes ? `; ${s.bad_crc} bad CRC, ${s.garbage_bytes} garbage bytes` : "");
   document.getElementById("nobox").hidden = ids.length > 0;
   document.getElementById("detail").hidden = station.selected === null;
