@@ -9,14 +9,15 @@ future): a frame signed with another box's key is a bad_signature of this box.
 
 Plots (`Series`): each is a ring of rows ``(t_s, v1, …)`` on the box's own time line (the flight software's
 time since it started), in display units (µT, °/s, deg, kg·m², J), rounded to `DIGITS` decimals (NaN as
-null) when published. Rows arrive at the box's rate (up to a
-kHz) and wait in ``pending``; at every publication (`Series.flush`, 4 Hz from the server) at most
-`POINTS_PER_FLUSH` of them, evenly spaced and always the newest, go into the ring and to the browsers.
-The ring keeps `window_s` of box time and never more than window × 4 Hz × `POINTS_PER_FLUSH` rows, so the
-memory per box is bounded whatever the telemetry rate (a few MB for ten minutes); ``pending`` is thinned
-(every other row) when it exceeds `MAX_PENDING`. Rows older than the ring's newest (resent samples,
-frames replayed after an outage: they are in the archive) are not plotted, and counted; a new run of
-the flight software (a new run_id in DEBRIS_MAG_SAMPLE) clears the plots.
+null) when published. Rows arrive at the box's rate (up to a kHz) and wait in ``pending``; at every
+publication (`Series.flush`, 4 Hz from the server) those at least `MIN_DT_S` of box time after the last one
+published go into the ring and to the browsers, and always the newest: ten rows a second of box time
+whatever the box's rate or the publications' jitter (a publication late by a second loses no detail). The
+ring keeps `window_s` of box time, at most window / `MIN_DT_S` + window × 4 Hz rows, so the memory per box
+is bounded whatever the telemetry rate (a few MB for ten minutes); ``pending`` is thinned (every other
+row) when it exceeds `MAX_PENDING`. Rows older than the ring's newest (resent samples, frames replayed
+after an outage: they are in the archive) are not plotted, and counted; a new run of the flight software
+(a new run_id in DEBRIS_MAG_SAMPLE) clears the plots.
 
 Nothing here holds a key: the view's JSON (`snapshot`, `update`) carries values, counters and names only.
 """
@@ -30,8 +31,8 @@ from fsw.telemetry.signing import Verdict, Verifier, unix_clock
 
 from ..link_stats import LinkStats
 
-#: rows of a series that go into the ring (and to the browsers) per publication
-POINTS_PER_FLUSH = 3
+#: rows published are at least this far apart in box time (the newest is always published too)
+MIN_DT_S = 0.1
 #: the expected publication rate (the ring's hard bound assumes it)
 FLUSH_HZ = 4.0
 #: rows waiting between two publications before they are thinned
@@ -80,7 +81,8 @@ class Series:
     def __init__(self, cols: tuple[str, ...], window_s: float) -> None:
         self.cols = cols
         self.window_s = window_s
-        self.ring: deque[tuple] = deque(maxlen=max(16, int(window_s * FLUSH_HZ * POINTS_PER_FLUSH)))
+        self.ring: deque[tuple] = deque(maxlen=max(16, int(window_s / MIN_DT_S + window_s * FLUSH_HZ)))
+        self._last_t = -math.inf  # box time of the last row published
         self.pending: list[tuple] = []
         self.late = 0
         self.reset = False
@@ -101,23 +103,31 @@ class Series:
             self.pending = self.pending[-2::-2][::-1] + [last]
 
     def flush(self) -> list[tuple]:
-        """The rows published now (at most POINTS_PER_FLUSH, evenly spaced, the newest included), kept in
+        """The rows published now (at least MIN_DT_S apart after the last published, and the newest), kept in
         the ring, which is trimmed to the window."""
         p, self.pending = self.pending, []
-        if len(p) > POINTS_PER_FLUSH:
-            n = len(p) - 1
-            p = [p[round(i * n / (POINTS_PER_FLUSH - 1))] for i in range(POINTS_PER_FLUSH)]
-        p = [(r[0], *(_num(x, DIGITS) for x in r[1:])) for r in p]  # rounded for JSON when published
-        self.ring.extend(p)
+        out = []
+        last = self._last_t
+        for r in p:
+            if r[0] >= last + MIN_DT_S:
+                out.append(r)
+                last = r[0]
+        if p and (not out or out[-1] is not p[-1]):
+            out.append(p[-1])  # the newest, always
+        if out:
+            self._last_t = max(last, out[-1][0])
+        out = [(r[0], *(_num(x, DIGITS) for x in r[1:])) for r in out]  # rounded for JSON when published
+        self.ring.extend(out)
         if self.ring:
             oldest = self.ring[-1][0] - self.window_s
             while self.ring[0][0] < oldest:
                 self.ring.popleft()
-        return p
+        return out
 
     def clear(self) -> None:
         self.ring.clear()
         self.pending.clear()
+        self._last_t = -math.inf
         self.reset = True
 
     def as_dict(self) -> dict:

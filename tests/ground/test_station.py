@@ -105,7 +105,9 @@ def test_websocket_sends_a_snapshot_then_updates_with_the_decoded_values():
     assert rows[-1][0] == pytest.approx(1.95)
     assert rows[-1][1:] == pytest.approx(box.field_at(1.95), abs=1e-3)
     new = upd["boxes"]["1"]["rows"]["field_uT"]
-    assert 1 <= len(new) <= boxview.POINTS_PER_FLUSH
+    t_new = [r[0] for r in new]  # 21 rows over 1 s of box time: 10 a second, the newest always
+    assert t_new[0] >= 1.95 + boxview.MIN_DT_S - 1e-9 and 9 <= len(new) <= 11
+    assert all(b - a >= boxview.MIN_DT_S - 1e-9 for a, b in zip(t_new[:-2], t_new[1:-1]))
     assert new[-1][0] == pytest.approx(3.0)  # the newest is always published
     assert new[-1][1:] == pytest.approx(box.field_at(3.0), abs=1e-3)
     rate = upd["boxes"]["1"]["rows"]["rate_dps"][-1]
@@ -190,20 +192,22 @@ def test_nothing_served_holds_a_key_or_passphrase(tmp_path):
 
 def test_rings_are_bounded_and_keep_the_newest_at_any_rate():
     s = boxview.Series(("v",), window_s=60.0)
-    n_flush = 0
-    for k in range(2000):  # 2000 publications of 1000 rows each: a kHz box for 500 s
-        for i in range(1000):
-            s.add((k * 0.25 + i * 0.00025, float(k * 1000 + i)))
+    for k in range(2000):  # 2000 publications of 250 rows each: a kHz box for 500 s
+        for i in range(250):
+            s.add((k * 0.25 + i * 0.001, float(k * 250 + i)))
         out = s.flush()
-        n_flush += 1
-        assert len(out) == boxview.POINTS_PER_FLUSH and out[-1][1] == k * 1000 + 999
-        assert len(s.pending) == 0
-    assert len(s.ring) <= s.ring.maxlen and s.ring[-1][0] - s.ring[0][0] <= 60.0
+        assert out[-1][1] == k * 250 + 249 and len(s.pending) == 0  # the newest always published
+        assert 2 <= len(out) <= 4  # 0.25 s of box time at 10 rows a second
+    t = [r[0] for r in s.ring]
+    assert t[-1] - t[0] <= 60.0 and len(t) == pytest.approx(60.0 / 0.25 * 3, rel=0.05)
+    assert len(s.ring) <= s.ring.maxlen
     s.add((0.0, 1.0))  # older than the newest: counted, not plotted
     assert s.late == 1 and s.flush() == []
     for i in range(3 * boxview.MAX_PENDING):  # a publication late: the waiting rows are thinned
-        s.add((1000.0 + i, float(i)))
+        s.add((1000.0 + i * 0.001, float(i)))
     assert len(s.pending) <= boxview.MAX_PENDING and s.pending[-1][1] == 3 * boxview.MAX_PENDING - 1
+    late = s.flush()  # and the rows of those 12 s are published 10 a second, as if on time
+    assert len(late) == pytest.approx(3 * boxview.MAX_PENDING * 0.001 / boxview.MIN_DT_S, rel=0.05)
 
 
 def test_a_new_run_of_the_flight_software_clears_the_plots():
