@@ -95,20 +95,23 @@ class Ingest:
     def _ingest(self, ready: threading.Event) -> None:
         try:
             self.feed = ArchiveFeed(self.archive_path, self.say) if self.archive_path is not None else None
-        except Exception as e:  # the archive cannot be opened: said by run(), nothing started
+        except Exception as e:  # the archive cannot be opened: raised by start(), nothing read yet
             self.error = e
             ready.set()
             return
         ready.set()
         feed = self.feed
-        while True:
+        done = False
+        while not done:
             try:
-                msg, now_s = self.queue.get(timeout=0.1)
+                batch = [self.queue.get(timeout=0.1)]
             except queue.Empty:
+                batch = []
                 if self.stop_event.is_set() and not any(t.is_alive() for t in self.threads[1:]):
-                    break
-                msg = None
-            if msg is not None:
+                    done = True  # the links have stopped: what they put last is taken below, then the end
+                    while not self.queue.empty():
+                        batch.append(self.queue.get_nowait())
+            for msg, now_s in batch:
                 if feed is not None and msg.get_type() != "BAD_DATA":
                     feed.add(msg, now_s)  # archived first, whatever the view makes of it
                 try:
