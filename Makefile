@@ -19,8 +19,14 @@ test: $(STAMP)
 	$(PY) -m ruff check .
 	$(PY) -m pytest -q -n 2 -m "not slow" --benchmark-disable $(ARGS)
 
-# long runs and the 10,000-case fuzz properties
-test-slow: $(STAMP)
+# stock MAVProxy for the slow tier's test against it (the `tools` extra)
+TOOLS := $(VENV)/.tools
+$(TOOLS): $(STAMP)
+	$(PY) -m pip install --quiet -c constraints.txt -e '.[test,tools]'
+	touch $(TOOLS)
+
+# long runs, the 10,000-case fuzz properties, stock MAVProxy against the box
+test-slow: $(TOOLS)
 	$(PY) -m pytest -q -n 2 -m slow --benchmark-disable $(ARGS)
 
 lint: $(STAMP)

@@ -41,6 +41,7 @@ from fsw.config import RunConfig, add_run_options, check_key_or_exit, check_loop
 from fsw.drivers.mmc5983ma import RECALIBRATION_PERIOD_S, Mmc5983ma  # noqa: E402
 from fsw.drivers.mmc5983ma_regs import Bandwidth, ContinuousFrequency  # noqa: E402
 from fsw.estimation.onboard_field import InterpolatedOrbitField  # noqa: E402
+from fsw.telemetry.dialect import FSW_SYSID  # noqa: E402
 from fsw.timeorbit import TimeOrbit  # noqa: E402
 from fsw.flight import FlightSoftware  # noqa: E402
 from fsw.runner import LoopResult, run_loop, run_program  # noqa: E402
@@ -393,6 +394,8 @@ def add_sitl_options(ap: argparse.ArgumentParser) -> None:
                     help="the loop's step time (overruns, the sample rate's budget) on this thread's CPU time "
                          "(default: the flight software's own work, whatever else the machine runs) or on the "
                          "wall clock (as on target)")
+    ap.add_argument("--system-id", type=int_range(1, 255), default=FSW_SYSID, metavar="ID",
+                    help=f"the box's MAVLink system id (default {FSW_SYSID}; a fleet in SITL: one run per id)")
     ap.add_argument("--ident-inertia-guess", type=finite_float(0, min_exclusive=True), default=100.0,
                     metavar="KGM2",
                     help="identification experiment: starting tensor = this × identity (default 100 kg.m^2)")
@@ -411,7 +414,7 @@ def parse_args(argv=None) -> SitlConfig:
         scenarios.load(args.scenario)
     except ValueError as e:
         ap.error(str(e))
-    return SitlConfig(run=run_config(args), scenario=args.scenario, seed=args.seed,
+    return SitlConfig(run=run_config(args, system_id=args.system_id), scenario=args.scenario, seed=args.seed,
                       ident_inertia_guess_kgm2=args.ident_inertia_guess, work_clock=args.work_clock)
 
 

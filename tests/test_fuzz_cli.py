@@ -48,6 +48,7 @@ import ground.inertia
 import ground.keys
 import ground.plot
 import ground.replay
+import ground.station
 import hil.pty_link
 import hil.sim
 import hil.sitl
@@ -359,8 +360,27 @@ SPECS: list[Tool] = [
         "--seed": Opt(ints(0)),
         "--ident-inertia-guess": Opt(floats(0, lo_open=True)),
         "--work-clock": Opt(choices(("cpu", "wall"))),
+        "--system-id": Opt(ints(1, 255)),
         **RUN_OPTIONS,
     }, stubs=["fsw.system:FlightSoftware"]),
+    Tool("ground.station", ground.station.main, {
+        "--baud": Opt(ints(1)),
+        "--key": Opt(KEY, role="in"),
+        "--box": Opt([("1:{files}/good.key", True), ("7:{files}/good.key", True), ("0:{files}/good.key", False),
+                      ("256:{files}/good.key", False), ("1:{files}/open.key", False), ("1:{files}/missing.key", False),
+                      ("1", False), ("x:{files}/good.key", False), ("1:", False), ("", False)], repeat=True),
+        "--web": Opt([("127.0.0.1:0", True), ("localhost:8080", True), ("[::1]:0", True), ("8080", False),
+                      ("127.0.0.1:99999", False), ("127.0.0.1:x", False), (":80", False), ("", False)]),
+        "--archive": Opt(OUT, role="out"),
+        "--no-archive": flag(),
+        "--method": Opt(choices(["boer", "derivative", "kalman"])),
+        "--window": Opt(floats(0.5, 240)),
+        "--duration": Opt(floats(0, lo_open=True)),
+        "--quiet": flag(),
+    }, positionals=[("links", Opt([("udpin:127.0.0.1:{port}", True), ("udpin:127.0.0.1:99999", False), ("", False),
+                                   ("{files}/good.tlog", False), ("udpin:nohost", False), ("/dev/nosuch", None)],
+                                  role="in", required=True))],
+        stubs=["ground.station:Fleet"]),
     Tool("ground.replay", ground.replay.main, {
         "--rates-out": Opt(OUT, role="out"),
         "--kit-raw": flag(),
