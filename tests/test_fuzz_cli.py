@@ -292,7 +292,7 @@ def _keys_judge(v, chosen):
 
 def _accuracy_judge(v, chosen):
     if "--real" in chosen:
-        return _without(chosen, "--rows", "--methods", "--runs", "--record-samples", "--warmup-s", "--jobs",
+        return _without(chosen, "--rows", "--methods", "--runs", "--record-samples", "--warmup-s", "--workers",
                         "--quick", "--seed")
     if "--quick" in chosen:  # two rows of its own, one short run each
         return _without(chosen, "--rows", "--runs", "--record-samples", "--warmup-s")
@@ -476,7 +476,7 @@ SPECS: list[Tool] = [
         "--seed": Opt(ints(0)),
         "--record-samples": Opt(ints(3)),
         "--warmup-s": Opt(floats(0)),
-        "--jobs": Opt(ints(1, 256)),
+        "--workers": Opt(ints(1, 1024)),
         "--rows": Opt([("", True), ("undirected", True), ("zzz", False)] + TEXT[1:]),
         "--methods": Opt([("", True), ("boer", True), ("kalman,smoother", True), ("nosuch", False),
                           ("boer,nosuch", False), (",", None)]),
@@ -486,7 +486,7 @@ SPECS: list[Tool] = [
         "--max-s": Opt(floats(0, lo_open=True)),
         "--world": Opt(choices(["dipole", "igrf", "both"])),
         "--host-drift": Opt(choices(["untracked", "tracked"])),
-    }, stubs=["bench.accuracy:run_benchmark", "bench.accuracy:real_recordings"], judge=_accuracy_judge),
+    }, stubs=["bench.campaign.options:execute", "bench.accuracy:real_recordings"], judge=_accuracy_judge),
     Tool("bench.inertia", bench.inertia.main, {
         "--json": Opt(OUT, role="out"),
         "--runs": Opt(ints(2)),
