@@ -693,7 +693,7 @@ def real_markdown(rows: list[dict]) -> str:
 def main(argv=None) -> int:
     ap = ArgumentParser(prog="python -m bench.accuracy", description=__doc__.splitlines()[0])
     ap.add_argument("--json", metavar="FILE", help="write every number (per row and method) as JSON")
-    ap.add_argument("--runs", type=int_range(1), default=3, help="Monte-Carlo runs per row (default 3)")
+    ap.add_argument("--runs", type=int_range(1, 1000), default=3, help="Monte-Carlo runs per row (default 3)")
     ap.add_argument("--seed", type=int_range(0), default=2024, help="base seed (default 2024)")
     ap.add_argument("--record-samples", type=int_range(3), default=120, help="scored samples per run (default 120)")
     ap.add_argument("--warmup-s", type=finite_float(0), default=300.0, help="onboard filters' warm-up (default 300 s)")
@@ -721,7 +721,8 @@ def main(argv=None) -> int:
         real = sorted(p for p in Path(args.real).glob("*.csv") if p.is_file())
         if not real:
             ap.error(f"--real {args.real}: no recordings (*.csv) in it")
-    check_paths_or_exit(ap, inputs=[("--real", p) for p in real], outputs={"--json": args.json})
+    check_paths_or_exit(ap, inputs=[("--real", p) for p in real],
+                        outputs={"--json": args.json, **campaign_options.outputs(args)})
     if args.real is not None:
         try:
             rows = real_recordings(real, max_s=args.max_s)

@@ -222,6 +222,12 @@ def flag() -> Opt:
 
 #: --magcal and --estimate-magcal (which needs the recording's orbit and enough of a tumble: the tool decides),
 #: --no-magcal (not the recording's calibration): one of them at most
+# every Monte-Carlo benchmark's (bench.campaign.options); the judge: _campaign_judge
+CAMPAIGN_OPTIONS = {"--workers": Opt(ints(1, 1024)),
+                    "--scheduler": Opt([("tcp://127.0.0.1:8786", True), ("tcp://[::1]:1", True),
+                                        ("127.0.0.1:8786", False), ("", False)]),
+                    "--results": Opt(OUT, role="out"), "--rerun": Opt([("r1", True), ("a/b#0", True)]),
+                    "--no-progress": flag()}
 MAGCAL_OPTIONS = {"--magcal": Opt(MAGCAL, role="in"), "--estimate-magcal": Opt([("", None)], nargs=0),
                   "--no-magcal": flag()}
 
@@ -304,6 +310,15 @@ def _inertia_bench_judge(v, chosen):
         return _without(chosen, "--duration", "--fits", "--runs", "--no-linear", "--shape-data", "--quick")
     if "--quick" in chosen:
         return _without(chosen, "--duration")
+    return v
+
+
+def _campaign_judge(v, chosen):
+    """bench.campaign.options: --workers sizes a local cluster (not with --scheduler); --rerun needs --results."""
+    if v and "--scheduler" in chosen and "--workers" in chosen:
+        return False
+    if v and "--rerun" in chosen and "--results" not in chosen:
+        return False
     return v
 
 
@@ -472,11 +487,11 @@ SPECS: list[Tool] = [
     }, stubs=["bench.soak:run"]),
     Tool("bench.accuracy", bench.accuracy.main, {
         "--json": Opt(OUT, role="out"),
-        "--runs": Opt(ints(1)),
+        "--runs": Opt(ints(1, 1000)),
         "--seed": Opt(ints(0)),
         "--record-samples": Opt(ints(3)),
         "--warmup-s": Opt(floats(0)),
-        "--workers": Opt(ints(1, 1024)),
+        **CAMPAIGN_OPTIONS,
         "--rows": Opt([("", True), ("undirected", True), ("zzz", False)] + TEXT[1:]),
         "--methods": Opt([("", True), ("boer", True), ("kalman,smoother", True), ("nosuch", False),
                           ("boer,nosuch", False), (",", None)]),
@@ -486,7 +501,8 @@ SPECS: list[Tool] = [
         "--max-s": Opt(floats(0, lo_open=True)),
         "--world": Opt(choices(["dipole", "igrf", "both"])),
         "--host-drift": Opt(choices(["untracked", "tracked"])),
-    }, stubs=["bench.campaign.options:execute", "bench.accuracy:real_recordings"], judge=_accuracy_judge),
+    }, stubs=["bench.campaign.options:execute", "bench.accuracy:real_recordings"],
+        judge=lambda v, chosen: _campaign_judge(_accuracy_judge(v, chosen), chosen)),
     Tool("bench.inertia", bench.inertia.main, {
         "--json": Opt(OUT, role="out"),
         "--runs": Opt(ints(2)),

@@ -52,7 +52,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("campaign", metavar="FILE.toml", help="the campaign file (scenarios: " + ", ".join(SCENARIOS) + ")")
     options.add_arguments(ap)
     args = ap.parse_args(argv)
-    options.check(ap, args, inputs={"campaign": args.campaign})
+    options.check(ap, args)
+    check_paths_or_exit(ap, inputs={"campaign": args.campaign}, outputs=options.outputs(args))
     try:
         camp = cf.load(args.campaign)
     except cf.CampaignFileError as e:

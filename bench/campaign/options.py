@@ -13,7 +13,7 @@ from collections.abc import Callable
 
 from bench.campaign.runner import CampaignError, default_workers, rerun, run_campaign
 from bench.campaign.runs import Run
-from fsw.argtypes import check_paths_or_exit, int_range
+from fsw.argtypes import int_range
 
 _ADDRESS = re.compile(r"^(tcp|tls|inproc|ucx|ws|wss)://\S+$")
 
@@ -39,18 +39,22 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def check(ap: argparse.ArgumentParser, args: argparse.Namespace, inputs=()) -> None:
-    """The campaign options' usage errors (exit status 2)."""
+def outputs(args: argparse.Namespace) -> dict:
+    """The campaign's output (the results file), for the benchmark's check_paths_or_exit with its own."""
+    return {"--results": args.results}
+
+
+def check(ap: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """The campaign options' usage errors (exit status 2); the results file's path is checked by the benchmark
+    with its other outputs (`outputs`)."""
     if args.scheduler and args.workers is not None:
         ap.error("--workers sizes the local cluster; with --scheduler the cluster's own workers run the campaign")
     if args.rerun is not None and args.results is None:
         ap.error("--rerun needs the --results FILE that holds the run")
-    if args.results is not None:
-        check_paths_or_exit(ap, inputs=inputs, outputs={"--results": args.results})
 
 
 def execute(ap: argparse.ArgumentParser, args: argparse.Namespace, fn: Callable, runs: list[Run], config: dict,
-            *, name: str, on_result: Callable | None = None) -> list | int:
+            *, name: str, on_result: Callable | None = None, elapsed_s: dict | None = None) -> list | int:
     """The campaign of `runs` as the options ask: the results in the order of `runs`, or, for --rerun or a
     failure, the exit status (the message printed)."""
     try:
@@ -60,7 +64,7 @@ def execute(ap: argparse.ArgumentParser, args: argparse.Namespace, fn: Callable,
             return 0 if same else 1
         return run_campaign(fn, runs, config=config, name=name, workers=args.workers, scheduler=args.scheduler,
                             results=args.results, progress=not args.no_progress and sys.stderr.isatty(),
-                            on_result=on_result)
+                            on_result=on_result, elapsed_s=elapsed_s)
     except CampaignError as e:
         print(f"{ap.prog}: {e}", file=sys.stderr)
         return 1

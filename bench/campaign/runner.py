@@ -84,7 +84,8 @@ def _progress(total: int, done: int, name: str, show: bool):
 
 def run_campaign(fn: Callable, runs: list[Run], *, config: dict, name: str = "campaign", workers: int | None = None,
                  scheduler: str | None = None, results=None, progress: bool = True, retries: int = 2,
-                 in_process: bool | None = None, on_result: Callable[[Run, dict], None] | None = None) -> list:
+                 in_process: bool | None = None, on_result: Callable[[Run, dict], None] | None = None,
+                 elapsed_s: dict | None = None) -> list:
     """Every run of `runs` through `fn(run) -> result`; the results, in the order of `runs`.
 
     `fn` must be picklable (a module-level function, or functools.partial of one). `config`: whatever, besides
@@ -92,6 +93,7 @@ def run_campaign(fn: Callable, runs: list[Run], *, config: dict, name: str = "ca
     file is continued). `results`: the Parquet file that keeps every run (runs already in it are not run
     again); without it the results live in memory only. `in_process`: run here rather than on a cluster
     (default: when one worker and no scheduler). `on_result(run, result)`: called as each run completes.
+    `elapsed_s`: a dict filled with each run's time in its task (seconds, by id; stored runs: as stored).
     Raises CampaignError when a run fails for good (the others completed and stored)."""
     ids = [r.id for r in runs]
     if len(set(ids)) != len(ids):
@@ -143,6 +145,8 @@ def run_campaign(fn: Callable, runs: list[Run], *, config: dict, name: str = "ca
         bar.close()
         if store:
             store.consolidate(ids)
+    if elapsed_s is not None:
+        elapsed_s.update({rid: r["elapsed_s"] for rid, r in rows.items()})
     if failures:
         raise CampaignError(f"{len(failures)} run(s) failed ({len(runs) - len(failures)} stored): " + failures[0])
     return [rs.decode(rows[r.id]["result"]) for r in runs]
