@@ -322,6 +322,14 @@ def _campaign_judge(v, chosen):
     return v
 
 
+def _deorbit_judge(v, chosen):
+    """One run (no --sweep) keeps no results file and re-runs nothing."""
+    v = _campaign_judge(v, chosen)
+    if v and "--sweep" not in chosen and ("--results" in chosen or "--rerun" in chosen):
+        return False
+    return v
+
+
 def _without(chosen, *names):
     """The verdict on the values without `names` (options the tool does not use in this mode)."""
     return verdict({k: x for k, x in chosen.items() if k not in names})
@@ -484,7 +492,8 @@ SPECS: list[Tool] = [
         "--scenario": Opt(SCENARIO, role="in"),
         "--rate": Opt(floats(0, 1000, lo_open=True)),
         "--quiet": flag(),
-    }, stubs=["bench.soak:run"]),
+        **CAMPAIGN_OPTIONS,
+    }, stubs=["bench.soak:run"], judge=_campaign_judge),
     Tool("bench.accuracy", bench.accuracy.main, {
         "--json": Opt(OUT, role="out"),
         "--runs": Opt(ints(1, 1000)),
@@ -539,7 +548,8 @@ SPECS: list[Tool] = [
                        repeat=True),
         "--json": Opt(OUT, role="out"),
         "--plot": Opt(PNG, role="out"),
-    }, stubs=["fsw.system:FlightSoftware"]),
+        **CAMPAIGN_OPTIONS,
+    }, stubs=["fsw.system:FlightSoftware", "bench.campaign.options:execute"], judge=_deorbit_judge),
     Tool("hil.pty_link", hil.pty_link.main, {
         "--scenario": Opt(SCENARIO, role="in"),
         "--seed": Opt(ints(0)),

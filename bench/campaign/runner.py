@@ -92,7 +92,8 @@ def run_campaign(fn: Callable, runs: list[Run], *, config: dict, name: str = "ca
     the runs' own seeds and parameters, decides the results (stored with them, and checked when a results
     file is continued). `results`: the Parquet file that keeps every run (runs already in it are not run
     again); without it the results live in memory only. `in_process`: run here rather than on a cluster
-    (default: when one worker and no scheduler). `on_result(run, result)`: called as each run completes.
+    (default: without a scheduler, when one worker or one run to do). `on_result(run, result)`: called as each
+    run completes.
     `elapsed_s`: a dict filled with each run's time in its task (seconds, by id; stored runs: as stored).
     Raises CampaignError when a run fails for good (the others completed and stored)."""
     ids = [r.id for r in runs]
@@ -120,7 +121,7 @@ def run_campaign(fn: Callable, runs: list[Run], *, config: dict, name: str = "ca
     bar = _progress(len(runs), len(runs) - len(todo), name, progress)
     try:
         if in_process is None:
-            in_process = scheduler is None and (workers or default_workers()) == 1
+            in_process = scheduler is None and min(workers or default_workers(), len(todo)) <= 1
         if todo and in_process:
             for run in todo:
                 done(run, execute(fn, run))
