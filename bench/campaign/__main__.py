@@ -4,6 +4,7 @@
     python -m bench.campaign campaigns/tumble_dispersed.toml --scheduler tcp://HOST:8786 --results out.parquet
     python -m bench.campaign campaigns/tumble_dispersed.toml --results out.parquet --rerun r00007
     python -m bench.campaign report out.parquet [--plot out.png] [--json out.json]
+    python -m bench.campaign scaling campaigns/calibration_hosts.toml [--runs N]   # docs/campaigns.md's figures
 """
 from __future__ import annotations
 
@@ -43,10 +44,28 @@ def _report_main(argv: list[str]) -> int:
     return 0
 
 
+def _scaling_main(argv: list[str]) -> int:
+    from bench.campaign import scaling
+    from fsw.argtypes import int_range
+    ap = ArgumentParser(prog="python -m bench.campaign scaling", description=scaling.__doc__.splitlines()[0])
+    ap.add_argument("campaign", metavar="FILE.toml")
+    ap.add_argument("--runs", type=int_range(2, 100000), default=None, help="its first N runs (default all)")
+    ap.add_argument("--tasks", type=int_range(1, 100000), default=200, help="empty tasks at once (default 200)")
+    args = ap.parse_args(argv)
+    try:
+        cf.load(args.campaign)
+    except cf.CampaignFileError as e:
+        ap.error(str(e))
+    scaling.main(args.campaign, args.runs, args.tasks)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["report"]:
         return _report_main(argv[1:])
+    if argv[:1] == ["scaling"]:
+        return _scaling_main(argv[1:])
     ap = ArgumentParser(prog="python -m bench.campaign", description=__doc__.splitlines()[0],
                         epilog="python -m bench.campaign report FILE.parquet: the table of a results file")
     ap.add_argument("campaign", metavar="FILE.toml", help="the campaign file (scenarios: " + ", ".join(SCENARIOS) + ")")
