@@ -528,8 +528,10 @@ SPECS: list[Tool] = [
         "--world": Opt(choices(["ideal", "realistic"])),
         "--crb": Opt([("900", True), ("900,1800", True), ("", False), ("nan", False), ("0", False), ("a", False),
                       ("900,", False)]),
-    }, stubs=["bench.inertia:bench_scenario", "bench.inertia:truth_record", "bench.inertia:crb_table"],
-        judge=_inertia_bench_judge),
+        **CAMPAIGN_OPTIONS,
+    }, stubs=["bench.inertia:bench_scenario", "bench.inertia:truth_record", "bench.inertia:crb_table",
+              "bench.campaign.options:execute"],
+        judge=lambda v, chosen: _campaign_judge(_inertia_bench_judge(v, chosen), chosen)),
     Tool("bench.deorbit", bench.deorbit.main, {
         "--scenario": Opt(DEORBIT_SCENARIO, role="in"),
         "--duration": Opt(floats(0, lo_open=True)),
