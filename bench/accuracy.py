@@ -2,10 +2,15 @@
 sedelnikov2024 Table 3.
 
     python -m bench.accuracy                       # the full table, 3 runs per row (~17 min on 1 core)
-    python -m bench.accuracy --runs 20 --jobs 2 --json acc.json   # the README's (~55 min on 2 cores)
+    python -m bench.accuracy --runs 20 --json acc.json   # docs/rate-estimation.md's table (TIME on 2 cores)
+    python -m bench.accuracy --runs 20 --results acc.parquet   # kept run by run: resumable, --rerun ID
     python -m bench.accuracy --quick               # two rows, one run each: a smoke test
     python -m bench.accuracy --rows orbital --methods smoother   # a subset of rows; boer + the ground smoothers
-    python -m bench.accuracy --world igrf --runs 20 --jobs 2 --json acc_igrf.json   # the IGRF-truth rows
+    python -m bench.accuracy --world igrf --runs 20 --json acc_igrf.json   # the IGRF-truth rows
+
+Every run is a task of a campaign (bench.campaign, docs/campaigns.md): on a local cluster of a worker per core
+by default (``--workers N``), on a Dask cluster with ``--scheduler tcp://HOST:8786``; run r of a row is seeded
+by the row's position and r, so the table does not depend on the number of workers.
 
 Rows: mode × sampling step (1 s, 3 s) × noise (0.5 µT, the paper's 1.5 µT) × body.
 

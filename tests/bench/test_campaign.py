@@ -153,3 +153,58 @@ def test_the_embedded_local_cluster_runs_a_campaign():
     runs = _runs(4)
     got = run_campaign(draws, runs, config=CONFIG, workers=2, progress=False)
     assert all(_same(a, b) for a, b in zip(got, run_campaign(draws, runs, config=CONFIG, workers=1, progress=False)))
+
+
+PROBE = """name = "probe-test"
+scenario = "probe"
+runs = 6
+seed = 3
+figures = ["x"]
+[fixed]
+payload_floats = 4
+[disperse]
+mean = {dist = "uniform", low = 10.0, high = 20.0}
+"""
+
+
+def test_a_campaign_file_runs_resumes_reruns_and_reports(tmp_path, capsys):
+    from bench.campaign import campaign_file as cf
+    from bench.campaign.__main__ import main
+    f = tmp_path / "probe.toml"
+    f.write_text(PROBE)
+    camp = cf.load(f)
+    runs = camp.run_specs()
+    assert [r.id for r in runs] == [f"r{i:05d}" for i in range(6)]
+    means = [r.params["mean"] for r in runs]
+    assert all(10.0 <= m <= 20.0 for m in means) and len(set(means)) == 6
+    assert camp.run_specs() == runs                       # the draws are the campaign's, not the moment's
+    out = tmp_path / "probe.parquet"
+    assert main([str(f), "--workers", "1", "--results", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "6 runs of probe" in text and "| x | 6 |" in text
+    assert main([str(f), "--results", str(out), "--rerun", "r00004"]) == 0
+    assert "matches the stored row bit for bit" in capsys.readouterr().out
+    assert main(["report", str(out)]) == 0
+    table = capsys.readouterr().out
+    xs = pq.read_table(out).column("r.x").to_numpy()
+    assert f"| x | 6 | {np.mean(xs):.4g} |" in table      # the report is the file's
+
+
+@pytest.mark.parametrize("text, says", [
+    ('scenario = "nope"\nruns = 1', "scenario must be one of"),
+    ('scenario = "probe"\nruns = 0', "runs must be"),
+    ('scenario = "probe"\nruns = 1\nbogus = 1', "unknown key(s) bogus"),
+    ('scenario = "probe"\nruns = 1\n[disperse]\nmean = {dist = "normal", mean = 0.0}', "normal takes mean, sd"),
+    ('scenario = "probe"\nruns = 1\n[disperse]\nmean = {dist = "uniform", low = 2.0, high = 1.0}', "low < high"),
+    ('scenario = "probe"\nruns = 1\n[fixed]\nspeed = 3', "has no parameter(s) speed"),
+    ('scenario = "probe"\nruns = [', "not TOML"),
+])
+def test_a_bad_campaign_file_is_a_one_line_usage_error(tmp_path, capsys, text, says):
+    from bench.campaign.__main__ import main
+    f = tmp_path / "bad.toml"
+    f.write_text(text)
+    with pytest.raises(SystemExit) as e:
+        main([str(f), "--workers", "1"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert says in err and "Traceback" not in err
