@@ -1,7 +1,8 @@
 """The per-run results file: Parquet through pyarrow, one row a run.
 
-Columns: ``run_id``, ``seed`` (the run's seed entropy), ``params`` (its parameters as canonical JSON),
-``result`` (what the run returned, as JSON with numpy arrays base64-encoded: exact, every float64 bit kept),
+Columns: ``run_id``, ``seed`` (the run's seed entropy, a JSON list of integers), ``params`` (its parameters as
+canonical JSON), ``result`` (what the run returned, as JSON with numpy arrays base64-encoded: exact, every
+float64 bit kept),
 ``p.<name>`` and ``r.<name>`` (the scalar parameters and scalar results again as typed columns, for tables
 and plots in any Parquet reader), and ``elapsed_s`` and ``worker`` (where and how long it ran: the only
 columns that differ between two runs of a campaign). The file's metadata holds the campaign's configuration;
@@ -77,7 +78,7 @@ def _scalar(v) -> bool:
 
 def row(run: Run, result, *, elapsed_s: float, worker: str) -> dict:
     """The results file's row of `run` that returned `result`."""
-    out = {"run_id": run.id, "seed": list(run.seed), "params": run.params_json(), "result": encode(result),
+    out = {"run_id": run.id, "seed": run.seed_json(), "params": run.params_json(), "result": encode(result),
            "elapsed_s": float(elapsed_s), "worker": worker}
     out.update({f"p.{k}": (v.item() if isinstance(v, np.generic) else v) for k, v in run.params.items() if _scalar(v)})
     if isinstance(result, dict):
@@ -123,9 +124,9 @@ class ResultsFile:
         """Refuse stored rows whose run, by the same id, has another seed or other parameters."""
         for run in runs:
             r = stored.get(run.id)
-            if r is not None and (list(r["seed"]) != list(run.seed) or r["params"] != run.params_json()):
+            if r is not None and (r["seed"] != run.seed_json() or r["params"] != run.params_json()):
                 raise ResultsError(f"{self.path}: run {run.id} was stored with seed {r['seed']} and parameters "
-                                   f"{r['params']}, this campaign has {list(run.seed)} and {run.params_json()}; "
+                                   f"{r['params']}, this campaign has {run.seed_json()} and {run.params_json()}; "
                                    "give another --results file")
 
     def _write(self, path: Path, rows: list[dict]) -> None:

@@ -24,8 +24,12 @@ class Run:
     def __post_init__(self):
         if not self.id:
             raise ValueError("a run needs an id")
-        if not all(isinstance(s, int) and 0 <= s < 2 ** 63 for s in self.seed):
-            raise ValueError(f"run {self.id}: the seed must be integers in [0, 2^63): {self.seed!r}")
+        if not self.seed or not all(isinstance(s, int) and s >= 0 for s in self.seed):
+            raise ValueError(f"run {self.id}: the seed must be non-negative integers: {self.seed!r}")
+
+    def seed_json(self) -> str:
+        """The seed as JSON (a list of integers of any size): what the results file stores and compares."""
+        return json.dumps(list(self.seed))
 
     def params_json(self) -> str:
         """The parameters as canonical JSON (sorted keys): what the results file stores and compares."""
