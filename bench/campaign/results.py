@@ -4,8 +4,8 @@ Columns: ``run_id``, ``seed`` (the run's seed entropy, a JSON list of integers),
 canonical JSON), ``result`` (what the run returned, as JSON with numpy arrays base64-encoded: exact, every
 float64 bit kept),
 ``p.<name>`` and ``r.<name>`` (the scalar parameters and scalar results again as typed columns, for tables
-and plots in any Parquet reader), and ``elapsed_s`` and ``worker`` (where and how long it ran: the only
-columns that differ between two runs of a campaign). The file's metadata holds the campaign's configuration;
+and plots in any Parquet reader), and ``elapsed_s``, ``cpu_s`` and ``worker`` (how long, on which worker:
+the only columns that differ between two runs of a campaign). The file's metadata holds the campaign's configuration;
 a results file is only ever continued by the same campaign.
 
 Appending: a Parquet file is written whole (its footer last), so each completed run is written at once as
@@ -76,10 +76,10 @@ def _scalar(v) -> bool:
     return isinstance(v, (bool, int, float, str, np.bool_, np.integer, np.floating)) and not isinstance(v, bytes)
 
 
-def row(run: Run, result, *, elapsed_s: float, worker: str) -> dict:
+def row(run: Run, result, *, elapsed_s: float, worker: str, cpu_s: float = float("nan")) -> dict:
     """The results file's row of `run` that returned `result`."""
     out = {"run_id": run.id, "seed": run.seed_json(), "params": run.params_json(), "result": encode(result),
-           "elapsed_s": float(elapsed_s), "worker": worker}
+           "elapsed_s": float(elapsed_s), "cpu_s": float(cpu_s), "worker": worker}
     out.update({f"p.{k}": (v.item() if isinstance(v, np.generic) else v) for k, v in run.params.items() if _scalar(v)})
     if isinstance(result, dict):
         out.update({f"r.{k}": (v.item() if isinstance(v, np.generic) else v) for k, v in result.items()

@@ -39,15 +39,15 @@ def default_workers() -> int:
 
 def execute(fn: Callable, run: Run) -> dict:
     """Run `run` (on a worker, or here); its results-file row."""
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.thread_time()
     result = fn(run)
-    elapsed = time.perf_counter() - t0
+    elapsed, cpu = time.perf_counter() - t0, time.thread_time() - c0
     try:
         from distributed import get_worker
         worker = get_worker().address
     except (ImportError, ValueError):
         worker = "local"
-    return rs.row(run, result, elapsed_s=elapsed, worker=worker)
+    return rs.row(run, result, elapsed_s=elapsed, cpu_s=cpu, worker=worker)
 
 
 @contextlib.contextmanager

@@ -60,6 +60,9 @@ def scaling(path, runs: int | None = None) -> dict:
                                             workers=workers, in_process=False, results=f, progress=False)
             out[f"wall_s_{workers}_workers"] = time.perf_counter() - t0
             out["parquet_bytes_per_run"] = f.stat().st_size / len(specs)
+            table = rs.read(f)[1]
+            out[f"run_cpu_s_mean_{workers}_workers"] = float(sum(table.column("cpu_s").to_pylist()) / len(specs))
+            out[f"run_wall_s_mean_{workers}_workers"] = float(sum(table.column("elapsed_s").to_pylist()) / len(specs))
     out["speed_up"] = out["wall_s_1_workers"] / out["wall_s_2_workers"]
     out["identical"] = all(rs.encode(a) == rs.encode(b) for a, b in zip(results[1], results[2]))
     out["result_bytes_per_run"] = sum(len(rs.encode(r)) for r in results[1]) / len(specs)
