@@ -2,7 +2,7 @@
 sedelnikov2024 Table 3.
 
     python -m bench.accuracy                       # the full table, 3 runs per row (~17 min on 1 core)
-    python -m bench.accuracy --runs 20 --json acc.json   # docs/rate-estimation.md's table (TIME on 2 cores)
+    python -m bench.accuracy --runs 20 --json acc.json   # docs/rate-estimation.md's table (~46 min on 2 cores)
     python -m bench.accuracy --runs 20 --results acc.parquet   # kept run by run: resumable, --rerun ID
     python -m bench.accuracy --quick               # two rows, one run each: a smoke test
     python -m bench.accuracy --rows orbital --methods smoother   # a subset of rows; boer + the ground smoothers

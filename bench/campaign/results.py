@@ -87,6 +87,11 @@ def row(run: Run, result, *, elapsed_s: float, worker: str, cpu_s: float = float
     return out
 
 
+def _seed_text(stored) -> str:
+    """A stored seed as JSON text (files written before the seed became text hold a list of integers)."""
+    return stored if isinstance(stored, str) else json.dumps(list(stored))
+
+
 class ResultsFile:
     """The results file at `path` of the campaign configured by `config` (a JSON-able dict: whatever,
     besides the runs' own seeds and parameters, decides the results)."""
@@ -124,7 +129,7 @@ class ResultsFile:
         """Refuse stored rows whose run, by the same id, has another seed or other parameters."""
         for run in runs:
             r = stored.get(run.id)
-            if r is not None and (r["seed"] != run.seed_json() or r["params"] != run.params_json()):
+            if r is not None and (_seed_text(r["seed"]) != run.seed_json() or r["params"] != run.params_json()):
                 raise ResultsError(f"{self.path}: run {run.id} was stored with seed {r['seed']} and parameters "
                                    f"{r['params']}, this campaign has {run.seed_json()} and {run.params_json()}; "
                                    "give another --results file")
