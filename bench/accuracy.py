@@ -554,12 +554,14 @@ def run_benchmark(rows: list[Row], runs: int = 3, seed: int = 2024, record_sampl
                            on_result=progress, **opts)
     out = tabulate(rows, runs, per_run, config)
     out["config"]["seed"] = seed
+    progress.rest(out)
     return out
 
 
 def _row_progress(rows: list[Row], runs: int, methods, log):
-    """on_result for the campaign: a row's line when its last run completes."""
-    t0, got = time.monotonic(), {}
+    """on_result for the campaign: a row's line when its last run completes; its `rest(bench)` logs the rows
+    whose runs were (some or all) in the results file already."""
+    t0, got, logged = time.monotonic(), {}, set()
     by_key = {row.key: row for row in rows}
 
     def on_result(run: Run_, result: dict) -> None:
@@ -567,7 +569,14 @@ def _row_progress(rows: list[Row], runs: int, methods, log):
         got.setdefault(key, {})[run.params["run"]] = result
         if len(got[key]) == runs:
             log(_progress(pool_row(by_key[key], [got[key][r] for r in range(runs)], methods), t0))
+            logged.add(key)
             del got[key]
+
+    def rest(bench: dict) -> None:
+        for res in bench["rows"]:
+            if res["key"] not in logged:
+                log(_progress(res, t0))
+    on_result.rest = rest
     return on_result
 
 
@@ -758,12 +767,14 @@ def main(argv=None) -> int:
             wanted |= set(GROUND)  # computed together ("auto" chooses among them)
         methods = tuple(m for m in METHODS if m == "boer" or m in wanted)
     specs, config = campaign(rows, runs, args.seed, rec, warm, methods)
+    progress = _row_progress(rows, runs, methods, print)
     per_run = campaign_options.execute(ap, args, task(config), specs, {**config, "seed": args.seed},
-                                       name="accuracy", on_result=_row_progress(rows, runs, methods, print))
+                                       name="accuracy", on_result=progress)
     if isinstance(per_run, int):  # --rerun, or a run that failed
         return per_run
     bench = tabulate(rows, runs, per_run, config)
     bench["config"]["seed"] = args.seed
+    progress.rest(bench)
     print()
     print(markdown(bench))
     print()
