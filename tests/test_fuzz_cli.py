@@ -493,7 +493,7 @@ SPECS: list[Tool] = [
         "--rate": Opt(floats(0, 1000, lo_open=True)),
         "--quiet": flag(),
         **CAMPAIGN_OPTIONS,
-    }, stubs=["bench.soak:run"], judge=_campaign_judge),
+    }, stubs=["bench.soak:run", "bench.campaign.options:execute"], judge=_campaign_judge),
     Tool("bench.accuracy", bench.accuracy.main, {
         "--json": Opt(OUT, role="out"),
         "--runs": Opt(ints(1, 1000)),
