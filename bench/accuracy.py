@@ -2,10 +2,15 @@
 sedelnikov2024 Table 3.
 
     python -m bench.accuracy                       # the full table, 3 runs per row (~17 min on 1 core)
-    python -m bench.accuracy --runs 20 --jobs 2 --json acc.json   # the README's (~55 min on 2 cores)
+    python -m bench.accuracy --runs 20 --json acc.json   # docs/rate-estimation.md's table (~46 min on 2 cores)
+    python -m bench.accuracy --runs 20 --results acc.parquet   # kept run by run: resumable, --rerun ID
     python -m bench.accuracy --quick               # two rows, one run each: a smoke test
     python -m bench.accuracy --rows orbital --methods smoother   # a subset of rows; boer + the ground smoothers
-    python -m bench.accuracy --world igrf --runs 20 --jobs 2 --json acc_igrf.json   # the IGRF-truth rows
+    python -m bench.accuracy --world igrf --runs 20 --json acc_igrf.json   # the IGRF-truth rows
+
+Every run is a task of a campaign (bench.campaign, docs/campaigns.md): on a local cluster of a worker per core
+by default (``--workers N``), on a Dask cluster with ``--scheduler tcp://HOST:8786``; run r of a row is seeded
+by the row's position and r, so the table does not depend on the number of workers.
 
 Rows: mode × sampling step (1 s, 3 s) × noise (0.5 µT, the paper's 1.5 µT) × body.
 
@@ -61,6 +66,7 @@ the random-walk RTS smoother; never one that another's σ excludes, σ widened w
 """
 from __future__ import annotations
 
+import functools
 import json
 import math
 import sys
@@ -79,6 +85,9 @@ from fsw.estimation import rate_kalman as rk
 from fsw.estimation import rotations as rot
 from fsw.files import write_atomic
 from ground import smoother as sm
+from bench.campaign import Run as Run_
+from bench.campaign import options as campaign_options
+from bench.campaign import run_campaign
 from bench.realistic import BoxField, HostResidual
 from hil import dynamics
 from hil.field import DipoleField, FieldAlongOrbit
@@ -147,11 +156,12 @@ def _igrf_world(rng, drift_tracked: bool = False):
 
 def simulate(mode: str, body: str, dt_s: float, sigma_T: float, rng: np.random.Generator, *,
              record_samples: int = 120, warmup_s: float = 300.0, world: str = "dipole",
-             drift_tracked: bool = False) -> Run:
+             drift_tracked: bool = False, inertia_kgm2=None, rate_range_dps=None) -> Run:
     """A seeded pass of `mode` for `body` sampled every `dt_s` with noise `sigma_T` (see the module docstring);
     `world` "dipole" (truth = the estimators' model) or "igrf" (the realistic truth of the IGRF rows;
-    `drift_tracked`: the box's calibration follows the hard iron's thermal drift)."""
-    lo, hi = MODES[mode]
+    `drift_tracked`: the box's calibration follows the hard iron's thermal drift); `inertia_kgm2` (3×3) instead of
+    the body's, `rate_range_dps` (lo, hi) instead of the mode's: a campaign's dispersions."""
+    lo, hi = MODES[mode] if rate_range_dps is None else rate_range_dps
     raan, u0 = rng.uniform(0, 360), rng.uniform(0, 360)
     host = None
     if world == "igrf":  # its own draws, from the node and phase drawn: the rest as the dipole row's run
@@ -170,7 +180,8 @@ def simulate(mode: str, body: str, dt_s: float, sigma_T: float, rng: np.random.G
         b_true, w, q = _orbital(t, truth_field.orbit, b_i, rate, rng)
         b_meas = _measure(b_true, sigma_T, rng)
     else:
-        b_true, w, b_meas, q = _tumble(t, BODIES[body], b_i, truth_field, rate, mode == "bdot", sigma_T, rng)
+        J = BODIES[body] if inertia_kgm2 is None else np.asarray(inertia_kgm2, float)
+        b_true, w, b_meas, q = _tumble(t, J, b_i, truth_field, rate, mode == "bdot", sigma_T, rng)
     if host is not None:  # the host's iron in, the box's calibration out (its residual stays)
         b_meas = host(b_meas, t)
     return Run(t, b_meas, b_true, w, slice(n_warm, n), est_field,
@@ -398,36 +409,60 @@ def all_rows(worlds=("dipole",), drift_tracked: bool = False) -> list[Row]:
             for dt in (1.0, 3.0) for s in (0.5, 1.5)]
 
 
+def row_seed(row: Row, seed: int) -> list[int]:
+    """A row's seed: `seed` and the row's position (the same in both worlds: an IGRF row's runs are the dipole
+    row's motions and noise in the other world); run r of the row is seeded row_seed + [r]."""
+    return [seed, list(MODES).index(row.mode), list(BODIES).index(row.body), int(row.dt_s),
+            int(round(10 * row.sigma_uT))]
+
+
+def run_one(row: Row, seed: list[int], record_samples: int, warmup_s: float, methods=METHODS,
+            **dispersed) -> dict:
+    """One Monte-Carlo run of a row, seeded `seed`: the per-run errors that run_row pools (`dispersed`: simulate's
+    inertia_kgm2, rate_range_dps)."""
+    rng = np.random.default_rng(seed)
+    run = simulate(row.mode, row.body, row.dt_s, row.sigma_uT * 1e-6, rng, record_samples=record_samples,
+                   warmup_s=warmup_s, world=row.world, drift_tracked=row.drift_tracked, **dispersed)
+    sigma_b = math.hypot(row.sigma_uT * 1e-6, CHIP_NOISE_T)
+    est = estimate(run, sigma_b, methods)
+    # a method that gave nothing on a run is counted, not left out of the pool
+    out = {"failed": [name for name in methods if name not in est],
+           "missing": {name: int(np.sum(~np.all(np.isfinite(est[name][0]), axis=1))) for name in methods
+                       if name in est},
+           "errors": errors(run, est), "rate_radps": np.linalg.norm(run.w_true_radps[run.record], axis=1)}
+    if row.mode == "orbital":  # the information limit of the random-walk model (see information_limit)
+        lim = information_limit(run, sigma_b)
+        run.meta["information_limit"] = {k: v for k, v in lim.items() if k != "sigma_along_b_radps"}
+    out["meta"] = run.meta
+    return out
+
+
 def run_row(row: Row, runs: int, seed: int, record_samples: int, warmup_s: float,
             methods=METHODS) -> dict:
-    """Monte-Carlo runs of a row (seed from the row's position and `seed`); the pooled statistics."""
+    """Monte-Carlo runs of a row (seed from the row's position and `seed`), here; the pooled statistics."""
+    return pool_row(row, [run_one(row, row_seed(row, seed) + [r], record_samples, warmup_s, methods)
+                          for r in range(runs)], methods)
+
+
+def pool_row(row: Row, per_run: list[dict], methods=METHODS) -> dict:
+    """The row's statistics from its runs (run_one's results, in the order of the runs)."""
     pooled: dict[str, dict[str, list]] = {m: {"perp": [], "full": [], "z": [], "cov_run": [], "failed": [],
                                               "missing": []} for m in methods}
     rates, meta = [], []
-    # the same seed in both worlds: an IGRF row's runs are the dipole row's motions and noise in the other world
-    row_seed = [seed, list(MODES).index(row.mode), list(BODIES).index(row.body), int(row.dt_s),
-                int(round(10 * row.sigma_uT))]
-    for r in range(runs):
-        rng = np.random.default_rng(row_seed + [r])
-        run = simulate(row.mode, row.body, row.dt_s, row.sigma_uT * 1e-6, rng, record_samples=record_samples,
-                       warmup_s=warmup_s, world=row.world, drift_tracked=row.drift_tracked)
-        sigma_b = math.hypot(row.sigma_uT * 1e-6, CHIP_NOISE_T)
-        est = estimate(run, sigma_b, methods)
-        for name in methods:  # a method that gave nothing on a run is counted, not left out of the pool
-            if name not in est:
+    runs = len(per_run)
+    for r, one in enumerate(per_run):
+        for name in methods:
+            if name in one["failed"]:
                 pooled[name]["failed"].append(r)
             else:
-                pooled[name]["missing"].append(int(np.sum(~np.all(np.isfinite(est[name][0]), axis=1))))
-        for name, d in errors(run, est).items():
+                pooled[name]["missing"].append(one["missing"][name])
+        for name, d in one["errors"].items():
             for k, v in d.items():
                 pooled[name][k].append(v)
             if "z" in d and d["z"].size:
                 pooled[name]["cov_run"].append(float(np.mean(d["z"] < 1.0)))
-        rates.append(np.linalg.norm(run.w_true_radps[run.record], axis=1))
-        if row.mode == "orbital":  # the information limit of the random-walk model (see information_limit)
-            lim = information_limit(run, sigma_b)
-            run.meta["information_limit"] = {k: v for k, v in lim.items() if k != "sigma_along_b_radps"}
-        meta.append(run.meta)
+        rates.append(one["rate_radps"])
+        meta.append(one["meta"])
     out = {"row": row.__dict__, "key": row.key, "runs": runs,
            "mean_rate_dps": math.degrees(float(np.mean(np.concatenate(rates)))), "methods": {}, "meta": meta}
     for name, d in pooled.items():
@@ -476,29 +511,73 @@ def coverage_spread(per_run: list[float], half_width: float = 0.10) -> dict:
             "runs_for_coverage_pm10": int(math.ceil((1.96 * sd / half_width) ** 2))}
 
 
-def run_benchmark(rows: list[Row], runs: int = 3, seed: int = 2024, record_samples: int = 120,
-                  warmup_s: float = 300.0, jobs: int = 1, log=print, methods=METHODS) -> dict:
-    args = [(row, runs, seed, record_samples, warmup_s, methods) for row in rows]
-    t0 = time.monotonic()
-    results = []
-    if jobs > 1:
-        import multiprocessing as mp
-        with mp.get_context("fork").Pool(jobs) as pool:
-            for res in pool.imap(_row_job, args):
-                results.append(res)
-                log(_progress(res, t0))
-    else:
-        for a in args:
-            res = _row_job(a)
-            results.append(res)
-            log(_progress(res, t0))
-    return {"config": {"runs": runs, "seed": seed, "record_samples": record_samples, "warmup_s": warmup_s,
-                       "modes": MODES, "bodies": {k: np.diag(v).tolist() for k, v in BODIES.items()}},
+def campaign(rows: list[Row], runs: int, seed: int, record_samples: int, warmup_s: float,
+             methods=METHODS) -> tuple[list[Run_], dict]:
+    """The table as a campaign (bench.campaign): run r of a row is run ``KEY#r``, seeded row_seed + [r]; and the
+    configuration that, with each run's seed and parameters, decides the results."""
+    specs = [Run_(f"{row.key}#{r}", tuple(row_seed(row, seed) + [r]), {**row.__dict__, "run": r})
+             for row in rows for r in range(runs)]
+    config = {"benchmark": "bench.accuracy", "record_samples": record_samples, "warmup_s": warmup_s,
+              "methods": list(methods)}
+    return specs, config
+
+
+def run_task(run: Run_, *, record_samples: int, warmup_s: float, methods: tuple) -> dict:
+    """A campaign's task: one run of a row (the row from the run's parameters)."""
+    p = {k: v for k, v in run.params.items() if k != "run"}
+    return run_one(Row(**p), list(run.seed), record_samples, warmup_s, methods)
+
+
+def task(config: dict):
+    """run_task with the campaign's configuration (picklable: it goes to the workers)."""
+    return functools.partial(run_task, record_samples=config["record_samples"], warmup_s=config["warmup_s"],
+                             methods=tuple(config["methods"]))
+
+
+def tabulate(rows: list[Row], runs: int, per_run: list[dict], config: dict) -> dict:
+    """The benchmark's dict (rows pooled, targets) from the campaign's results, in campaign() order."""
+    results = [pool_row(row, per_run[i * runs:(i + 1) * runs], tuple(config["methods"])) for i, row in enumerate(rows)]
+    return {"config": {"runs": runs, "seed": None, "record_samples": config["record_samples"],
+                       "warmup_s": config["warmup_s"], "modes": MODES,
+                       "bodies": {k: np.diag(v).tolist() for k, v in BODIES.items()}},
             "rows": results, "targets": targets(results)}
 
 
-def _row_job(a):
-    return run_row(*a)
+def run_benchmark(rows: list[Row], runs: int = 3, seed: int = 2024, record_samples: int = 120,
+                  warmup_s: float = 300.0, log=print, methods=METHODS, **campaign_options) -> dict:
+    """The table through the campaign runner (`campaign_options`: run_campaign's workers, scheduler, results,
+    progress; default one worker: here)."""
+    specs, config = campaign(rows, runs, seed, record_samples, warmup_s, methods)
+    progress = _row_progress(rows, runs, methods, log)
+    opts = {"workers": 1, "progress": False, **campaign_options}
+    per_run = run_campaign(task(config), specs, config={**config, "seed": seed}, name="accuracy",
+                           on_result=progress, **opts)
+    out = tabulate(rows, runs, per_run, config)
+    out["config"]["seed"] = seed
+    progress.rest(out)
+    return out
+
+
+def _row_progress(rows: list[Row], runs: int, methods, log):
+    """on_result for the campaign: a row's line when its last run completes; its `rest(bench)` logs the rows
+    whose runs were (some or all) in the results file already."""
+    t0, got, logged = time.monotonic(), {}, set()
+    by_key = {row.key: row for row in rows}
+
+    def on_result(run: Run_, result: dict) -> None:
+        key = run.id.rsplit("#", 1)[0]
+        got.setdefault(key, {})[run.params["run"]] = result
+        if len(got[key]) == runs:
+            log(_progress(pool_row(by_key[key], [got[key][r] for r in range(runs)], methods), t0))
+            logged.add(key)
+            del got[key]
+
+    def rest(bench: dict) -> None:
+        for res in bench["rows"]:
+            if res["key"] not in logged:
+                log(_progress(res, t0))
+    on_result.rest = rest
+    return on_result
 
 
 def _progress(res, t0) -> str:
@@ -628,11 +707,10 @@ def real_markdown(rows: list[dict]) -> str:
 def main(argv=None) -> int:
     ap = ArgumentParser(prog="python -m bench.accuracy", description=__doc__.splitlines()[0])
     ap.add_argument("--json", metavar="FILE", help="write every number (per row and method) as JSON")
-    ap.add_argument("--runs", type=int_range(1), default=3, help="Monte-Carlo runs per row (default 3)")
+    ap.add_argument("--runs", type=int_range(1, 1000), default=3, help="Monte-Carlo runs per row (default 3)")
     ap.add_argument("--seed", type=int_range(0), default=2024, help="base seed (default 2024)")
     ap.add_argument("--record-samples", type=int_range(3), default=120, help="scored samples per run (default 120)")
     ap.add_argument("--warmup-s", type=finite_float(0), default=300.0, help="onboard filters' warm-up (default 300 s)")
-    ap.add_argument("--jobs", type=int_range(1, 256), default=1, help="worker processes (default 1)")
     ap.add_argument("--rows", default="", help="only rows whose key contains this text (e.g. 'undirected')")
     ap.add_argument("--methods", default="",
                     help="comma-separated subset of " + ",".join(METHODS) + " (boer always; default all)")
@@ -646,7 +724,9 @@ def main(argv=None) -> int:
     ap.add_argument("--real", metavar="DIR", help="instead: the table on the real recordings (*.csv) in DIR")
     ap.add_argument("--max-s", type=finite_float(0, min_exclusive=True), default=None,
                     help="with --real: only the first S seconds of each")
+    campaign_options.add_arguments(ap)
     args = ap.parse_args(argv)
+    campaign_options.check(ap, args)
     real = []
     if args.real is not None:
         from pathlib import Path
@@ -655,7 +735,8 @@ def main(argv=None) -> int:
         real = sorted(p for p in Path(args.real).glob("*.csv") if p.is_file())
         if not real:
             ap.error(f"--real {args.real}: no recordings (*.csv) in it")
-    check_paths_or_exit(ap, inputs=[("--real", p) for p in real], outputs={"--json": args.json})
+    check_paths_or_exit(ap, inputs=[("--real", p) for p in real],
+                        outputs={"--json": args.json, **campaign_options.outputs(args)})
     if args.real is not None:
         try:
             rows = real_recordings(real, max_s=args.max_s)
@@ -685,7 +766,15 @@ def main(argv=None) -> int:
         if wanted & set(GROUND):
             wanted |= set(GROUND)  # computed together ("auto" chooses among them)
         methods = tuple(m for m in METHODS if m == "boer" or m in wanted)
-    bench = run_benchmark(rows, runs, args.seed, rec, warm, args.jobs, methods=methods)
+    specs, config = campaign(rows, runs, args.seed, rec, warm, methods)
+    progress = _row_progress(rows, runs, methods, print)
+    per_run = campaign_options.execute(ap, args, task(config), specs, {**config, "seed": args.seed},
+                                       name="accuracy", on_result=progress)
+    if isinstance(per_run, int):  # --rerun, or a run that failed
+        return per_run
+    bench = tabulate(rows, runs, per_run, config)
+    bench["config"]["seed"] = args.seed
+    progress.rest(bench)
     print()
     print(markdown(bench))
     print()

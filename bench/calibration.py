@@ -44,13 +44,15 @@ magnetics will have: ``B_meas = S B_true + h(t)``).
 """
 from __future__ import annotations
 
+import functools
 import json
 import math
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from bench.campaign import Run, run_campaign
+from bench.campaign import options as campaign_options
 from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range
 from fsw.estimation import field_motion as fm
 from fsw.estimation import magcal as mc
@@ -174,13 +176,51 @@ def run_host(seed: int, t: np.ndarray, b_eci: np.ndarray, b_model_mag: np.ndarra
             "sigma_soft": sig[3:].tolist(), "chi2_dof": cal.chi2_dof, "samples": cal.samples}
 
 
-def run_bench(hosts: int = 20, seed: int = 1, orbits: float = 1.0, noise_uT: float = 1.5, rate_hz: float = 1.0,
-              drift_uT: float = 0.0, drift_model: bool = True) -> dict:
+@functools.lru_cache(maxsize=4)
+def _fields(orbits: float, rate_hz: float):
+    """The orbit's fields of a campaign (the same for every host: computed once per worker process)."""
     period = CircularOrbit(ALTITUDE_M, INCLINATION_DEG).period_s
-    t, b_eci, b_mag, model_err = orbit_fields(orbits * period, rate_hz)
-    t0 = time.process_time()
-    rows = [run_host(seed + k, t, b_eci, b_mag, noise_uT, drift_uT, period, drift_model) for k in range(hosts)]
-    cpu = time.process_time() - t0
+    return period, orbit_fields(orbits * period, rate_hz)
+
+
+def campaign(hosts: int, seed: int, orbits: float, noise_uT: float, rate_hz: float, drift_uT: float,
+             drift_model: bool, kit_runs: int = 0, kit_duration_s: float = 1800.0) -> tuple[list[Run], dict]:
+    """The benchmark as a campaign (bench.campaign): host ``hostS`` and kit run ``kitS`` seeded S = seed + k."""
+    runs = [Run(f"host{seed + k}", (seed + k,), {"kind": "host"}) for k in range(hosts)]
+    runs += [Run(f"kit{seed + k}", (seed + k,), {"kind": "kit"}) for k in range(kit_runs)]
+    config = {"benchmark": "bench.calibration", "orbits": orbits, "noise_uT": noise_uT, "sample_rate_hz": rate_hz,
+              "drift_uT": drift_uT, "drift_model": drift_model, "kit_duration_s": kit_duration_s}
+    return runs, config
+
+
+def run_task(run: Run, *, orbits: float, noise_uT: float, sample_rate_hz: float, drift_uT: float,
+             drift_model: bool, kit_duration_s: float, **_) -> dict:
+    """A campaign's task: one host (run_host) or one kit run (run_kit)."""
+    if run.params["kind"] == "kit":
+        return run_kit(run.seed[0], kit_duration_s)
+    period, (t, b_eci, b_mag, _) = _fields(orbits, sample_rate_hz)
+    return run_host(run.seed[0], t, b_eci, b_mag, noise_uT, drift_uT, period, drift_model)
+
+
+def task(config: dict):
+    return functools.partial(run_task, **{k: v for k, v in config.items() if k != "benchmark"})
+
+
+def run_bench(hosts: int = 20, seed: int = 1, orbits: float = 1.0, noise_uT: float = 1.5, rate_hz: float = 1.0,
+              drift_uT: float = 0.0, drift_model: bool = True, **campaign_options) -> dict:
+    """The hosts' figures (`campaign_options`: bench.campaign.run_campaign's; default: in this process)."""
+    runs, config = campaign(hosts, seed, orbits, noise_uT, rate_hz, drift_uT, drift_model)
+    elapsed: dict = {}
+    rows = run_campaign(task(config), runs, config=config, name="calibration",
+                        **{"workers": 1, "progress": False, **campaign_options}, elapsed_s=elapsed)
+    return summary(rows, seed, orbits, noise_uT, rate_hz, drift_uT, drift_model, sum(elapsed.values()))
+
+
+def summary(rows: list[dict], seed: int, orbits: float, noise_uT: float, rate_hz: float, drift_uT: float,
+            drift_model: bool, cpu: float) -> dict:
+    """The benchmark's figures from the hosts' runs (in seed order); `cpu`: their time in the tasks."""
+    hosts = len(rows)
+    period, (_, _, _, model_err) = _fields(orbits, rate_hz)
     ratios = np.abs(np.array([r["error_over_sigma"] for r in rows]))
     conv = [r["convergence_s"] for r in rows if r["convergence_s"] is not None]
     resid = max(max(r["residual_uT_rms"]) for r in rows)
@@ -363,12 +403,21 @@ def main(argv: list[str] | None = None) -> int:
                     help="length of each kit run (default 1800 s)")
     ap.add_argument("--quick", action="store_true", help="4 hosts and one kit run of 900 s (a smoke run)")
     ap.add_argument("--json", metavar="FILE", help="write the figures as JSON")
+    campaign_options.add_arguments(ap)
     args = ap.parse_args(argv)
-    check_paths_or_exit(ap, outputs={"--json": args.json})
-    r = run_bench(4 if args.quick else args.hosts, args.seed, args.orbits, args.noise_uT, args.sample_rate,
-                  args.drift_uT, not args.constant_host)
+    campaign_options.check(ap, args)
+    check_paths_or_exit(ap, outputs={"--json": args.json, **campaign_options.outputs(args)})
+    hosts = 4 if args.quick else args.hosts
     kit_runs, kit_duration = (1, 900.0) if args.quick else (args.kit_runs, args.kit_duration)
-    r.update(kit_summary([run_kit(args.seed + k, kit_duration) for k in range(kit_runs)]))
+    runs, config = campaign(hosts, args.seed, args.orbits, args.noise_uT, args.sample_rate, args.drift_uT,
+                            not args.constant_host, kit_runs, kit_duration)
+    elapsed: dict = {}
+    got = campaign_options.execute(ap, args, task(config), runs, config, name="calibration", elapsed_s=elapsed)
+    if isinstance(got, int):  # --rerun, or a run that failed
+        return got
+    r = summary(got[:hosts], args.seed, args.orbits, args.noise_uT, args.sample_rate, args.drift_uT,
+                not args.constant_host, sum(elapsed[run.id] for run in runs[:hosts]))
+    r.update(kit_summary(got[hosts:]))
     print(report(r))
     if args.json:
         write_atomic(args.json, json.dumps(r, indent=2, default=float))

@@ -36,6 +36,7 @@ Figures 3-8: yaw, pitch, the control moments and the pulses of both channels).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import sys
@@ -46,6 +47,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from bench.campaign import Run, run_campaign
+from bench.campaign import options as campaign_options
 from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range
 from fsw.deorbit.controller import ControllerConfig, euler_zyx
 from fsw.deorbit.energy import PAPER_CAPSULES_J, PAPER_MAGNETS_J, PAPER_OPENINGS, PAPER_TOTAL_J, PAPER_TURNS
@@ -434,21 +437,43 @@ RUN_KEYS = ("arg_lat0_deg", "seed", "yaw_err_max_rad", "pitch_err_max_rad", "wit
             "interlock_violations", "safe_entries", "wall_s")
 
 
+def sweep_task(run: Run, *, scenario_name: str, attitude: str, **kwargs) -> dict:
+    """A campaign's task: one run of the sweep (its start on the orbit and seed from the run); the JSON's row
+    but the wall time (a run's result depends on its start and seed only)."""
+    d = run_bench(scenario_name, arg_lat0_deg=run.params["arg_lat0_deg"], seed=run.seed[0], attitude=attitude,
+                  **kwargs).as_dict()
+    row_ = {k: d[k] for k in RUN_KEYS if k != "wall_s"}
+    row_["energy_J"] = d["energy_J"]["total"]
+    return row_
+
+
 def sweep(scenario_name: str = DEFAULT_SCENARIO, *, starts: int = 8, seeds: int = 5, attitude: str = "estimate",
-          out=None, **kwargs) -> dict:
+          out=None, campaign=None, **kwargs) -> dict | int:
     """`starts` starts on the orbit × `seeds` seeds, one line each on `out` (default stdout); the
-    aggregates of the issue."""
+    aggregates of the issue. The runs are a campaign (bench.campaign): `campaign` = (parser, arguments) of
+    its options (default: in this process); an exit status instead for --rerun or a failed run."""
     out = out or sys.stdout
-    runs = []
-    for lat0 in SWEEP_STARTS_DEG[:starts]:
-        for seed in range(seeds):
-            d = run_bench(scenario_name, arg_lat0_deg=lat0, seed=seed, attitude=attitude, **kwargs).as_dict()
-            row_ = {k: d[k] for k in RUN_KEYS}
-            row_["energy_J"] = d["energy_J"]["total"]
-            runs.append(row_)
-            print(f"start {lat0:5.0f} deg seed {seed}: yaw {d['yaw_err_max_rad']:.3f} pitch "
-                  f"{d['pitch_err_max_rad']:.3f} rad, {row_['energy_J']:.0f} J, estimate RMS "
-                  f"{d['att_err_rms_rad_max']:.3f} rad, wall {d['wall_s']:.0f} s", file=out, flush=True)
+    specs = [Run(f"u{lat0:g}-s{seed}", (seed,), {"arg_lat0_deg": lat0}) for lat0 in SWEEP_STARTS_DEG[:starts]
+             for seed in range(seeds)]
+    config = {"benchmark": "bench.deorbit --sweep", "scenario": scenario_name, "attitude": attitude,
+              **{k: ([f.__dict__ for f in v] if k == "faults" else v) for k, v in kwargs.items()}}
+    fn = functools.partial(sweep_task, scenario_name=scenario_name, attitude=attitude, **kwargs)
+
+    def line(run: Run, d: dict) -> None:
+        print(f"start {d['arg_lat0_deg']:5.0f} deg seed {d['seed']}: yaw {d['yaw_err_max_rad']:.3f} pitch "
+              f"{d['pitch_err_max_rad']:.3f} rad, {d['energy_J']:.0f} J, estimate RMS "
+              f"{d['att_err_rms_rad_max']:.3f} rad", file=out, flush=True)
+    elapsed: dict = {}
+    if campaign is None:
+        runs = run_campaign(fn, specs, config=config, name="deorbit", workers=1, progress=False, on_result=line,
+                            elapsed_s=elapsed)
+    else:
+        runs = campaign_options.execute(*campaign, fn, specs, config, name="deorbit", on_result=line,
+                                        elapsed_s=elapsed)
+        if isinstance(runs, int):
+            return runs
+    for spec, r in zip(specs, runs):
+        r["wall_s"] = round(elapsed[spec.id], 2)
     energy = np.array([r["energy_J"] for r in runs])
     est = np.array([r["att_err_rms_rad_max"] for r in runs], float)
     res = {"scenario": scenario_name, "attitude_source": attitude, "runs": runs,
@@ -486,9 +511,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int_range(1, 100), default=5, metavar="N", help="--sweep: seeds 0..N-1")
     ap.add_argument("--json", metavar="FILE", help="write the numbers as JSON")
     ap.add_argument("--plot", metavar="FILE.png", help="write the figure")
+    campaign_options.add_arguments(ap)
     args = ap.parse_args(argv)
+    campaign_options.check(ap, args)
+    if not args.sweep and (args.results or args.rerun):
+        ap.error("--results and --rerun are for --sweep (one run has no campaign to keep)")
     scenario_file = args.scenario if Path(args.scenario).is_file() else None
-    check_paths_or_exit(ap, inputs={"--scenario": scenario_file}, outputs={"--json": args.json, "--plot": args.plot})
+    check_paths_or_exit(ap, inputs={"--scenario": scenario_file}, outputs={"--json": args.json, "--plot": args.plot,
+                                                                           **campaign_options.outputs(args)})
     check_plot_path_or_exit(ap, args.plot)
     if args.sweep and args.plot:
         ap.error("--plot is for one run, not --sweep")
@@ -496,7 +526,9 @@ def main(argv: list[str] | None = None) -> int:
         faults = [Fault.parse(f) for f in args.fault]
         if args.sweep:
             out = sweep(args.scenario, duration_s=args.duration, rate_hz=args.rate, law=args.law, faults=faults,
-                        attitude=args.attitude, starts=args.starts, seeds=args.seeds)
+                        attitude=args.attitude, starts=args.starts, seeds=args.seeds, campaign=(ap, args))
+            if isinstance(out, int):
+                return out
         else:
             r = run_bench(args.scenario, duration_s=args.duration, rate_hz=args.rate, law=args.law, faults=faults,
                           arg_lat0_deg=args.arg_lat0, attitude=args.attitude, seed=args.seed)

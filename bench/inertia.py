@@ -38,6 +38,7 @@ of 0.75 × the mean true moment (prior 1-σ 3 × that).
 from __future__ import annotations
 
 import argparse
+import functools
 import dataclasses
 import json
 import math
@@ -47,6 +48,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bench.campaign import Run
+from bench.campaign import options as campaign_options
 from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range
 from fsw.estimation import euler_fit as ef
 from fsw.estimation import inertia as inr
@@ -558,6 +561,32 @@ def crb_lines(table_: dict) -> str:
     return "\n".join(lines)
 
 
+def scenario_task(run: Run, *, runs: int, duration: str, world: str, linear: bool, fits: list,
+                  shape_from: str) -> dict:
+    """A campaign's task: one scenario's fits over its noise draws (seeded by the run's seed); the record's
+    length designed first when `duration` is "auto". The time taken is left out (a run's result depends on
+    its scenario and seed only)."""
+    name, seed = run.params["scenario"], run.seed[0]
+    design = truth = None
+    if duration == "auto":
+        longest = truth_record(name, RECORD_LADDER_S[-1], world=world)
+        design = design_record(longest)
+        length = design["chosen_s"]
+        truth = longest.prefix(length)
+        print(f"  {name}: record {length:g} s, the shortest with a shape bound <= "
+              f"{design['bound_pct']:.2f} % (" + ", ".join(
+                  f"{t['duration_s']:g} s: {max(t['crb_pct']):.2f} %" for t in design["tried"]) + ")",
+              file=sys.stderr, flush=True)
+    else:
+        length = float(duration)
+    r = bench_scenario(name, runs, seed, length, log=lambda m: print("  " + m, file=sys.stderr, flush=True),
+                       linear=linear, fits=tuple(fits), shape_from=shape_from, truth=truth, world=world)
+    if design is not None:
+        r["record_design"] = design
+    r.pop("seconds", None)
+    return r
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = ArgumentParser(prog="python -m bench.inertia", description=__doc__.splitlines()[0])
     ap.add_argument("--json", metavar="FILE", help="write all the numbers as JSON")
@@ -579,8 +608,10 @@ def main(argv: list[str] | None = None) -> int:
                          "or the longest torque-free interval alone")
     ap.add_argument("--crb", metavar="S,S,...",
                     help="only print the Cramér–Rao bound of the shape ratios for these record lengths [s]")
+    campaign_options.add_arguments(ap)
     args = ap.parse_args(argv)
-    check_paths_or_exit(ap, outputs={"--json": args.json})
+    campaign_options.check(ap, args)
+    check_paths_or_exit(ap, outputs={"--json": args.json, **campaign_options.outputs(args)})
     names = [s.strip() for s in args.scenarios.split(",") if s.strip()]
     if not names:
         ap.error(f"--scenarios {args.scenarios!r}: no scenario named")
@@ -610,36 +641,27 @@ def main(argv: list[str] | None = None) -> int:
         args.runs, args.duration = 3, "900"
     if args.duration != "auto":
         try:
-            fixed = finite_float(120)(args.duration)
+            finite_float(120)(args.duration)
         except argparse.ArgumentTypeError as e:
             ap.error(f"--duration (seconds or auto): {e}")
-    results = []
+    # a scenario is a campaign's run (bench.campaign): its noise draws are seeded by --seed as before
+    specs = [Run(name, (args.seed,), {"scenario": name}) for name in names]
+    config = {"benchmark": "bench.inertia", "runs": args.runs, "duration": args.duration, "world": args.world,
+              "linear": not args.no_linear, "fits": list(fits), "shape_from": args.shape_data}
+    fn = functools.partial(scenario_task, **{k: v for k, v in config.items() if k != "benchmark"})
+    elapsed: dict = {}
     try:
-        for name in names:
-            design = truth = None
-            if args.duration == "auto":
-                longest = truth_record(name, RECORD_LADDER_S[-1], world=args.world)
-                design = design_record(longest)
-                duration = design["chosen_s"]
-                truth = longest.prefix(duration)
-                print(f"  {name}: record {duration:g} s, the shortest with a shape bound <= "
-                      f"{design['bound_pct']:.2f} % (" + ", ".join(
-                          f"{t['duration_s']:g} s: {max(t['crb_pct']):.2f} %" for t in design["tried"]) + ")",
-                      file=sys.stderr, flush=True)
-            else:
-                duration = fixed
-            r = bench_scenario(name, args.runs, args.seed, duration,
-                               log=lambda m: print("  " + m, file=sys.stderr, flush=True),
-                               linear=not args.no_linear,
-                               fits=fits,
-                               shape_from=args.shape_data, truth=truth, world=args.world)
-            if design is not None:
-                r["record_design"] = design
-            print(table(r), flush=True)
-            results.append(r)
+        got = campaign_options.execute(ap, args, fn, specs, config, name="inertia", elapsed_s=elapsed,
+                                       on_result=lambda run, r: print(table(r), flush=True))
     except scenarios.ScenarioError as e:
         print(f"bench.inertia: {e}", file=sys.stderr)
         return 2
+    if isinstance(got, int):  # --rerun, or a scenario that failed
+        return got
+    results = []
+    for spec, r in zip(specs, got):
+        r["seconds"] = elapsed[spec.id]
+        results.append(r)
     print(targets(results))
     if args.json:
         write_atomic(args.json, json.dumps({"results": results}, indent=1, default=float))

@@ -160,25 +160,46 @@ def simulate(case: Case | str, seed: int = 0, *, random_attitude: bool = True) -
 SCORED = ("boer", "kalman", "kalman-orbit", "kalman-euler", "kalman-mm", "smoother", "auto")
 
 
-def score(case: Case | str, seeds=(0,), methods=SCORED, fields=("tle", "none")) -> list[dict]:
+def score(case: Case | str, seeds=(0,), methods=SCORED, fields=("tle", "none"), campaign=None) -> list[dict] | int:
     """Each method of `ground.estimate` on the seeded records of `case`, with the box's TLE (``tle``, as
     ``--tle … --utc0 …``) and without an orbit (``none``): full-vector RMS error (Boer: ⊥B) in °/s and
-    the share of components within 1-σ (`ground.estimate.score`), one dict per (seed, field, method)."""
+    the share of components within 1-σ (`ground.estimate.score`), one dict per (seed, field, method). A seed is
+    a campaign's run (bench.campaign): `campaign` = (parser, arguments) of its options (default: in this
+    process); an exit status instead for --rerun or a failed run."""
+    import functools
+
+    from bench.campaign import Run, run_campaign
+    from bench.campaign import options as campaign_options
+    name = case if isinstance(case, str) else case.name
+    specs = [Run(f"seed{seed}", (seed,), {}) for seed in seeds]
+    config = {"benchmark": "bench.realistic --score", "case": name, "methods": list(methods), "fields": list(fields)}
+    fn = functools.partial(score_seed, case=case, methods=tuple(methods), fields=tuple(fields))
+    if campaign is None:
+        got = run_campaign(fn, specs, config=config, name="realistic", workers=1, progress=False)
+    else:
+        got = campaign_options.execute(*campaign, fn, specs, config, name="realistic")
+        if isinstance(got, int):
+            return got
+    return [r for one in got for r in one["rows"]]
+
+
+def score_seed(run, *, case: Case | str, methods=SCORED, fields=("tle", "none")) -> dict:
+    """A campaign's task: the rows of one seed (the run's)."""
     from ground import estimate as ge
+    seed = run.seed[0]
     rows = []
-    for seed in seeds:
-        rec = simulate(case, seed)
-        r = rec.recording()
-        sigma = ge.noise_estimate_T(r.b_T)
-        for fld in fields:
-            field = rec.field() if fld == "tle" else None
-            for m in methods:
-                w, s, _ = ge.estimate(m, r.t_s, r.b_T, sigma, field=field)
-                sc = ge.score(r, w, m in ge.PERPENDICULAR, s)
-                rows.append({"case": rec.case.name, "seed": seed, "field": fld, "method": m,
-                             "rms_dps": sc.get("full_rms_dps", sc["perp_rms_dps"]),
-                             "coverage_1sigma": sc["coverage_1sigma"]})
-    return rows
+    rec = simulate(case, seed)
+    r = rec.recording()
+    sigma = ge.noise_estimate_T(r.b_T)
+    for fld in fields:
+        field = rec.field() if fld == "tle" else None
+        for m in methods:
+            w, s, _ = ge.estimate(m, r.t_s, r.b_T, sigma, field=field)
+            sc = ge.score(r, w, m in ge.PERPENDICULAR, s)
+            rows.append({"case": rec.case.name, "seed": seed, "field": fld, "method": m,
+                         "rms_dps": sc.get("full_rms_dps", sc["perp_rms_dps"]),
+                         "coverage_1sigma": sc["coverage_1sigma"]})
+    return {"rows": rows}
 
 
 def main(argv=None) -> int:
@@ -196,15 +217,20 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int_range(1), default=1, help="--score: seeds 0 … N−1 (default 1)")
     ap.add_argument("--methods", default=",".join(SCORED), help="--score: comma-separated methods")
     ap.add_argument("--json", metavar="FILE", help="--score: the rows as JSON")
+    from bench.campaign import options as campaign_options
+    campaign_options.add_arguments(ap)
     args = ap.parse_args(argv)
+    campaign_options.check(ap, args)
     if args.score:
         from ground.estimate import METHODS
         methods = [m for m in args.methods.split(",") if m]
         bad = [m for m in methods if m not in METHODS]
         if bad or not methods:
             ap.error(f"--methods: unknown {', '.join(bad) or '(none)'}; choose from {', '.join(METHODS)}")
-        check_paths_or_exit(ap, inputs={}, outputs={"--json": args.json})
-        rows = score(args.case, range(args.seeds), methods)
+        check_paths_or_exit(ap, inputs={}, outputs={"--json": args.json, **campaign_options.outputs(args)})
+        rows = score(args.case, range(args.seeds), methods, campaign=(ap, args))
+        if isinstance(rows, int):  # --rerun, or a failed run
+            return rows
         print("case        seed field method         RMS °/s  1-σ covers")
         for r in rows:
             print(f"{r['case']:11s} {r['seed']:4d} {r['field']:5s} {r['method']:13s} {r['rms_dps']:8.3f}  "
@@ -216,6 +242,8 @@ def main(argv=None) -> int:
         return 0
     if args.output is None:
         ap.error("give OUTPUT (the recording to write) or --score")
+    if args.results or args.rerun or args.scheduler or args.workers:
+        ap.error("--workers, --scheduler, --results and --rerun are for --score")
     check_paths_or_exit(ap, inputs={}, outputs={"output": args.output})
     rec = simulate(args.case, args.seed)
     write_recording(args.output, rec.recording())

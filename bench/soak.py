@@ -34,6 +34,7 @@ did not arrive (`ground.gaps`), so the target is 0 whatever the link did.
 """
 from __future__ import annotations
 
+import functools
 import json
 import math
 import sys
@@ -44,6 +45,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.campaign import Run
+from bench.campaign import options as campaign_options
 from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range
 from fsw.files import write_atomic
 from fsw.flight import FlightSoftware
@@ -517,6 +520,15 @@ def report(fig: dict) -> str:
     return "\n".join(lines)
 
 
+def soak_task(spec: Run, *, duration_s: float, scenario: str, rate_hz: float, progress=None) -> dict:
+    """A campaign's task: the soak seeded by the run's seed."""
+    return run(duration_s, seed=spec.seed[0], scenario=scenario, rate_hz=rate_hz, progress=progress)
+
+
+def _progress(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = ArgumentParser(prog="python -m bench.soak", description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=finite_float(120), default=3600.0, metavar="S",
@@ -528,15 +540,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rate", type=finite_float(0, 1000, min_exclusive=True), default=50.0, metavar="HZ",
                     help="loop rate (default 50)")
     ap.add_argument("--quiet", action="store_true", help="no progress lines")
+    campaign_options.add_arguments(ap)
     args = ap.parse_args(argv)
+    campaign_options.check(ap, args)
     scenario_file = args.scenario if Path(args.scenario).is_file() else None
-    check_paths_or_exit(ap, inputs={"--scenario": scenario_file}, outputs={"--json": args.json})
+    check_paths_or_exit(ap, inputs={"--scenario": scenario_file},
+                        outputs={"--json": args.json, **campaign_options.outputs(args)})
     try:
         scenarios.load(args.scenario)
     except scenarios.ScenarioError as e:
         ap.error(f"--scenario: {e}")
-    fig = run(args.duration, seed=args.seed, scenario=args.scenario, rate_hz=args.rate,
-              progress=None if args.quiet else (lambda s: print(s, file=sys.stderr, flush=True)))
+    # one run, as a campaign (bench.campaign): here by default, on a cluster with --scheduler, kept with --results
+    spec = Run(f"seed{args.seed}", (args.seed,), {})
+    config = {"benchmark": "bench.soak", "duration_s": args.duration, "scenario": args.scenario, "rate_hz": args.rate}
+    fn = functools.partial(soak_task, duration_s=args.duration, scenario=args.scenario, rate_hz=args.rate,
+                           progress=None if args.quiet else _progress)
+    got = campaign_options.execute(ap, args, fn, [spec], config, name="soak")
+    if isinstance(got, int):  # --rerun, or the run failed
+        return got
+    fig = got[0]
     print(report(fig))
     if args.json:
         write_atomic(args.json, json.dumps(fig, indent=1))  # never a half-written file

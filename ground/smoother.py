@@ -302,6 +302,18 @@ def euler_fit(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T
               first_window: int = 8, growth: float = 1.4, iterations: int = 10, starts_about_b: int = 24,
               wahba_rounds: int = 2,
               max_substep_rad: float = 0.25) -> Smoothed:
+    """Torque-free Euler + kinematics fitted to the whole record: :func:`_euler_minimum`, then the other minima
+    as good in σ (:meth:`_Minimum.finish`)."""
+    return _euler_minimum(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2, init=init,
+                          first_window=first_window, growth=growth, iterations=iterations,
+                          starts_about_b=starts_about_b, wahba_rounds=wahba_rounds,
+                          max_substep_rad=max_substep_rad).finish()
+
+
+def _euler_minimum(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
+                   inertia_kgm2: np.ndarray | None = None, init: Smoothed | None = None,
+                   first_window: int = 8, growth: float = 1.4, iterations: int = 10, starts_about_b: int = 24,
+                   wahba_rounds: int = 2, max_substep_rad: float = 0.25) -> "_Minimum":
     """Torque-free Euler + kinematics fitted to the whole record (see the module docstring).
 
     `init` gives the starting attitude and rate (default: :func:`rts_smooth`). With a field model the
@@ -374,32 +386,66 @@ def euler_fit(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T
             kf, cost = other, c
         cands.insert(0, (kf, cost))
     cands.sort(key=lambda kc: kc[1])
-    kf, cost = cands[0]
-    traj, cov, var, chi2, s2 = _local_solution(kf, t, z, sb, N, free, prior_w)
-    dof = max(3 * N - int(free.sum()), 1)
-    # other minima as good as this one within a few units of χ² (another attitude about B with a slightly
-    # different motion): the posterior has several modes, and the spread between them belongs in σ
-    modes = [(0.0, traj.w, var)]
-    for other, c in cands[1:]:
-        if not c - cost < MODE_SEARCH_DCHI2 * s2:
-            continue
-        other, c = _lm(other, t, z, sb, N, free, prior_w, iterations)
-        if not (np.isfinite(c) and c - cost < MODE_KEEP_DCHI2 * s2):
-            continue
-        o_traj, _, o_var, _, _ = _local_solution(other, t, z, sb, N, free, prior_w, s2)
-        if any(np.max(np.abs(o_traj.w - w_m) / np.sqrt(v + 1e-18)) < 0.3 for _, w_m, v in modes):
-            continue  # the same minimum again (within a third of its σ)
-        modes.append((max(c - cost, 0.0) / s2, o_traj.w, o_var))
-    weights = np.exp(-0.5 * np.array([d for d, _, _ in modes]))
-    weights /= weights.sum()
-    between = sum(wt * (w_m - traj.w) ** 2 for wt, (_, w_m, _) in zip(weights, modes))
-    sig = np.sqrt(sum(wt * v for wt, (_, _, v) in zip(weights, modes)) + between)
-    shape = kf.inertia_shape if kf.n_p else None
-    return Smoothed(t, traj.w, unobserved_sigma(sig, b, sigma_b_T), traj.q, "euler", chi2 / dof, shape,
-                    info={"s2": s2, "windows": windows, "cov_x0": cov, "beta_uT": kf.beta.copy(),
-                          "p": kf.p.copy(), "minima_chi2": [c for _, c in cands],
-                          "modes_dchi2": [d for d, _, _ in modes], "modes_weight": weights.tolist(),
-                          "modes_var_radps2": between})
+    return _Minimum(cands, t, z, sb, b, sigma_b_T, N, free, prior_w, windows, iterations)
+
+
+@dataclass
+class _Minimum:
+    """The batch fit's best minimum (its χ²/dof final), before the search for other minima as good (which
+    widens σ only): :func:`euler_fit_checked` compares two fits by χ²/dof and finishes only the one it keeps."""
+    cands: list            # (start, cost) best first
+    t: np.ndarray
+    z: np.ndarray
+    sb: float
+    b: np.ndarray
+    sigma_b_T: float
+    N: int
+    free: np.ndarray
+    prior_w: np.ndarray
+    windows: list
+    iterations: int
+    chi2_dof: float = math.nan
+
+    def __post_init__(self):
+        kf = self.cands[0][0]
+        self.local = _local_solution(kf, self.t, self.z, self.sb, self.N, self.free, self.prior_w)
+        self.chi2_dof = self.local[3] / max(3 * self.N - int(self.free.sum()), 1)
+
+    def finish(self) -> Smoothed:
+        """The fit's result, σ including the other minima as good as the best."""
+        t, z, sb, N, free, prior_w, iterations = self.t, self.z, self.sb, self.N, self.free, self.prior_w, \
+            self.iterations
+        cands = self.cands
+        kf, cost = cands[0]
+        traj, cov, var, chi2, s2 = self.local
+        # other minima as good as this one within a few units of χ² (another attitude about B with a slightly
+        # different motion): the posterior has several modes, and the spread between them belongs in σ
+        modes = [(0.0, traj.w, var)]
+        seen = [kf]  # starts polished, before and after: one that starts where another did ends where it did
+        for other, c in cands[1:]:
+            if not c - cost < MODE_SEARCH_DCHI2 * s2:
+                continue
+            if any(_same_start(other, s) for s in seen):
+                continue  # its polish would find a minimum already seen (most starts end in the best one)
+            seen.append(other)
+            other, c = _lm(other, t, z, sb, N, free, prior_w, iterations)
+            seen.append(other)
+            if not (np.isfinite(c) and c - cost < MODE_KEEP_DCHI2 * s2):
+                continue
+            o_traj, _, o_var, _, _ = _local_solution(other, t, z, sb, N, free, prior_w, s2)
+            if any(np.max(np.abs(o_traj.w - w_m) / np.sqrt(v + 1e-18)) < 0.3 for _, w_m, v in modes):
+                continue  # the same minimum again (within a third of its σ)
+            modes.append((max(c - cost, 0.0) / s2, o_traj.w, o_var))
+        weights = np.exp(-0.5 * np.array([d for d, _, _ in modes]))
+        weights /= weights.sum()
+        between = sum(wt * (w_m - traj.w) ** 2 for wt, (_, w_m, _) in zip(weights, modes))
+        sig = np.sqrt(sum(wt * v for wt, (_, _, v) in zip(weights, modes)) + between)
+        shape = kf.inertia_shape if kf.n_p else None
+        return Smoothed(t, traj.w, unobserved_sigma(sig, self.b, self.sigma_b_T), traj.q, "euler", self.chi2_dof,
+                        shape, info={"s2": s2, "windows": self.windows, "cov_x0": cov, "beta_uT": kf.beta.copy(),
+                                     "p": kf.p.copy(), "minima_chi2": [c for _, c in cands],
+                                     "modes_dchi2": [d for d, _, _ in modes], "modes_weight": weights.tolist(),
+                                     "modes_var_radps2": between})
 
 
 def _local_solution(kf, t, z, sb, n, free, prior_w, s2: float | None = None):
@@ -421,6 +467,13 @@ def _local_solution(kf, t, z, sb, n, free, prior_w, s2: float | None = None):
 
 def euler_fit_from_filter(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *,
                           field_eci_T: FieldFn | None = None) -> Smoothed | None:
+    """:func:`_minimum_from_filter`, finished (the other minima as good in σ); None where it gives none."""
+    m = _minimum_from_filter(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T)
+    return None if m is None else m.finish()
+
+
+def _minimum_from_filter(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *,
+                         field_eci_T: FieldFn | None = None) -> "_Reversed | None":
     """The batch fit of :func:`euler_fit` started from where the parallel-hypothesis Euler filter
     (:class:`fsw.estimation.filter_banks.EulerAcquisitionKalman`) ends, for the records where the random-walk
     start leads the fit astray (a 3 s step at 15–28 °/s: the random-walk smoother lags the turning ω).
@@ -444,7 +497,27 @@ def euler_fit_from_filter(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *,
     n = len(t)
     init = Smoothed(tr, np.tile(-kf.omega_radps, (n, 1)), np.tile(kf.sigma_radps, (n, 1)),
                     np.tile(kf.main.q, (n, 1)), "euler_acquisition")
-    rev = euler_fit(tr, b[::-1], sigma_b_T, field_eci_T=lambda s: field_eci_T(t_end - s), init=init)
+    rev = _euler_minimum(tr, b[::-1], sigma_b_T, field_eci_T=lambda s: field_eci_T(t_end - s), init=init)
+    return _Reversed(rev, t)
+
+
+@dataclass
+class _Reversed:
+    """A minimum of the fit in reversed time, finished and mapped back to forward time."""
+    rev: "_Minimum"
+    t: np.ndarray
+
+    @property
+    def chi2_dof(self) -> float:
+        return self.rev.chi2_dof
+
+    def finish(self) -> Smoothed:
+        rev, t = self.rev.finish(), self.t
+        return _to_forward_time(rev, t)
+
+
+def _to_forward_time(rev: Smoothed, t: np.ndarray) -> Smoothed:
+    """A reversed-time fit's result in forward time."""
     # the fit's state covariance is at t_N; only the shape's block (time-invariant) holds at t₀
     cov = np.zeros_like(rev.info["cov_x0"])
     cov[6:, 6:] = rev.info["cov_x0"][6:, 6:]
@@ -458,17 +531,21 @@ def euler_fit_checked(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, fie
                       chi2_accept: float = 1.5) -> Smoothed:
     """:func:`euler_fit`; when it does not explain the data (χ²/dof > `chi2_accept`) and the tensor is
     not known, again from the Euler filter's end (:func:`euler_fit_from_filter`), keeping the better."""
-    eu = euler_fit(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2, init=init)
+    # the two fits compared by their best minima's χ²/dof: only the one kept searches for other minima (the
+    # search, which widens σ only, polishes every start within 30·s² of the best: all of them on a fit that
+    # does not explain the data, most of the cost of the fit)
+    eu = _euler_minimum(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2, init=init)
     if inertia_kgm2 is not None or (np.isfinite(eu.chi2_dof) and eu.chi2_dof <= chi2_accept):
-        return eu
+        return eu.finish()
     try:
-        other = euler_fit_from_filter(t_s, b_T, sigma_b_T, field_eci_T=tabulated(field_eci_T, t_s))
+        other = _minimum_from_filter(t_s, b_T, sigma_b_T, field_eci_T=tabulated(field_eci_T, t_s))
+        if other is not None and np.isfinite(other.chi2_dof) and not other.chi2_dof >= eu.chi2_dof:
+            res = other.finish()
+            res.info["first_chi2_dof"] = eu.chi2_dof
+            return res
     except (RuntimeError, ValueError, np.linalg.LinAlgError):
-        other = None
-    if other is not None and np.isfinite(other.chi2_dof) and not other.chi2_dof >= eu.chi2_dof:
-        other.info["first_chi2_dof"] = eu.chi2_dof
-        return other
-    return eu
+        pass
+    return eu.finish()
 
 
 def _wahba_start(kf, t, z, field_eci_T, n) -> np.ndarray:

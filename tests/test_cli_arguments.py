@@ -376,7 +376,7 @@ def test_soak_refuses_numbers_it_cannot_use(capsys, option, value):
 @pytest.mark.parametrize("module", ["fsw.main", "hil.sitl", "hil.pty_link", "ground.decode", "ground.estimate",
                                     "ground.inertia", "ground.command", "ground.keys", "ground.replay",
                                     "ground.station", "bench.accuracy", "bench.inertia", "bench.deorbit", "bench.soak",
-                                    "bench.calibration", "bench.station_load"])
+                                    "bench.calibration", "bench.station_load", "bench.campaign.__main__"])
 def test_every_tool_explains_itself(module, capsys):
     """--help of every command-line tool: exit 0 and a usage line (a stray % in a help text breaks it)."""
     import importlib

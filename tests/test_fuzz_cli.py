@@ -223,6 +223,12 @@ def flag() -> Opt:
 
 #: --magcal and --estimate-magcal (which needs the recording's orbit and enough of a tumble: the tool decides),
 #: --no-magcal (not the recording's calibration): one of them at most
+# every Monte-Carlo benchmark's (bench.campaign.options); the judge: _campaign_judge
+CAMPAIGN_OPTIONS = {"--workers": Opt(ints(1, 1024)),
+                    "--scheduler": Opt([("tcp://127.0.0.1:8786", True), ("tcp://[::1]:1", True),
+                                        ("127.0.0.1:8786", False), ("", False)]),
+                    "--results": Opt(OUT, role="out"), "--rerun": Opt([("r1", True), ("a/b#0", True)]),
+                    "--no-progress": flag()}
 MAGCAL_OPTIONS = {"--magcal": Opt(MAGCAL, role="in"), "--estimate-magcal": Opt([("", None)], nargs=0),
                   "--no-magcal": flag()}
 
@@ -293,7 +299,7 @@ def _keys_judge(v, chosen):
 
 def _accuracy_judge(v, chosen):
     if "--real" in chosen:
-        return _without(chosen, "--rows", "--methods", "--runs", "--record-samples", "--warmup-s", "--jobs",
+        return _without(chosen, "--rows", "--methods", "--runs", "--record-samples", "--warmup-s", "--workers",
                         "--quick", "--seed")
     if "--quick" in chosen:  # two rows of its own, one short run each
         return _without(chosen, "--rows", "--runs", "--record-samples", "--warmup-s")
@@ -305,6 +311,23 @@ def _inertia_bench_judge(v, chosen):
         return _without(chosen, "--duration", "--fits", "--runs", "--no-linear", "--shape-data", "--quick")
     if "--quick" in chosen:
         return _without(chosen, "--duration")
+    return v
+
+
+def _campaign_judge(v, chosen):
+    """bench.campaign.options: --workers sizes a local cluster (not with --scheduler); --rerun needs --results."""
+    if v and "--scheduler" in chosen and "--workers" in chosen:
+        return False
+    if v and "--rerun" in chosen and "--results" not in chosen:
+        return False
+    return v
+
+
+def _deorbit_judge(v, chosen):
+    """One run (no --sweep) keeps no results file and re-runs nothing."""
+    v = _campaign_judge(v, chosen)
+    if v and "--sweep" not in chosen and ("--results" in chosen or "--rerun" in chosen):
+        return False
     return v
 
 
@@ -489,14 +512,15 @@ SPECS: list[Tool] = [
         "--scenario": Opt(SCENARIO, role="in"),
         "--rate": Opt(floats(0, 1000, lo_open=True)),
         "--quiet": flag(),
-    }, stubs=["bench.soak:run"]),
+        **CAMPAIGN_OPTIONS,
+    }, stubs=["bench.soak:run", "bench.campaign.options:execute"], judge=_campaign_judge),
     Tool("bench.accuracy", bench.accuracy.main, {
         "--json": Opt(OUT, role="out"),
-        "--runs": Opt(ints(1)),
+        "--runs": Opt(ints(1, 1000)),
         "--seed": Opt(ints(0)),
         "--record-samples": Opt(ints(3)),
         "--warmup-s": Opt(floats(0)),
-        "--jobs": Opt(ints(1, 256)),
+        **CAMPAIGN_OPTIONS,
         "--rows": Opt([("", True), ("undirected", True), ("zzz", False)] + TEXT[1:]),
         "--methods": Opt([("", True), ("boer", True), ("kalman,smoother", True), ("nosuch", False),
                           ("boer,nosuch", False), (",", None)]),
@@ -506,7 +530,8 @@ SPECS: list[Tool] = [
         "--max-s": Opt(floats(0, lo_open=True)),
         "--world": Opt(choices(["dipole", "igrf", "both"])),
         "--host-drift": Opt(choices(["untracked", "tracked"])),
-    }, stubs=["bench.accuracy:run_benchmark", "bench.accuracy:real_recordings"], judge=_accuracy_judge),
+    }, stubs=["bench.campaign.options:execute", "bench.accuracy:real_recordings"],
+        judge=lambda v, chosen: _campaign_judge(_accuracy_judge(v, chosen), chosen)),
     Tool("bench.inertia", bench.inertia.main, {
         "--json": Opt(OUT, role="out"),
         "--runs": Opt(ints(2)),
@@ -523,8 +548,10 @@ SPECS: list[Tool] = [
         "--world": Opt(choices(["ideal", "realistic"])),
         "--crb": Opt([("900", True), ("900,1800", True), ("", False), ("nan", False), ("0", False), ("a", False),
                       ("900,", False)]),
-    }, stubs=["bench.inertia:bench_scenario", "bench.inertia:truth_record", "bench.inertia:crb_table"],
-        judge=_inertia_bench_judge),
+        **CAMPAIGN_OPTIONS,
+    }, stubs=["bench.inertia:bench_scenario", "bench.inertia:truth_record", "bench.inertia:crb_table",
+              "bench.campaign.options:execute"],
+        judge=lambda v, chosen: _campaign_judge(_inertia_bench_judge(v, chosen), chosen)),
     Tool("bench.deorbit", bench.deorbit.main, {
         "--scenario": Opt(DEORBIT_SCENARIO, role="in"),
         "--duration": Opt(floats(0, lo_open=True)),
@@ -543,7 +570,8 @@ SPECS: list[Tool] = [
                        repeat=True),
         "--json": Opt(OUT, role="out"),
         "--plot": Opt(PNG, role="out"),
-    }, stubs=["fsw.system:FlightSoftware"]),
+        **CAMPAIGN_OPTIONS,
+    }, stubs=["fsw.system:FlightSoftware", "bench.campaign.options:execute"], judge=_deorbit_judge),
     Tool("hil.pty_link", hil.pty_link.main, {
         "--scenario": Opt(SCENARIO, role="in"),
         "--seed": Opt(ints(0)),

@@ -1,5 +1,6 @@
 """The accuracy benchmark (bench.accuracy): the simulated passes against independent truth, and a short
 form of the table (one run of two rows) as the CI check of the whole chain."""
+import json
 import math
 
 import numpy as np
@@ -96,3 +97,27 @@ def test_a_method_that_fails_on_a_run_is_counted_and_not_the_best(monkeypatch):
     assert m["kalman"]["failed_runs"] == [0] and m["kalman_orbit"]["failed_runs"] == []
     assert m["kalman_orbit"]["missing_samples"] == 1 and m["kalman"]["missing_samples"] == 0
     assert res["best_onboard"]["method"] == "kalman_orbit"
+
+
+@pytest.mark.slow
+def test_the_runs_on_two_workers_are_the_runs_here(tmp_path):
+    """Every run a campaign task (bench.campaign) on a local cluster of two worker processes: the row's pooled
+    statistics are those of the runs here, to the bit; the results file holds every run and resumes."""
+    row = acc.Row("undirected", "near_symmetric", 1.0, 0.5)
+    methods = ("boer", "kalman", "smoother", "euler", "euler_rts", "auto")
+    here = acc.run_row(row, runs=3, seed=11, record_samples=20, warmup_s=20.0, methods=methods)
+    res = tmp_path / "acc.parquet"
+    there = acc.run_benchmark([row], runs=3, seed=11, record_samples=20, warmup_s=20.0, log=lambda s: None,
+                              methods=methods, workers=2, results=res)
+    assert _text(there["rows"][0]) == _text(here)
+    seen = []
+    again = acc.run_benchmark([row], runs=4, seed=11, record_samples=20, warmup_s=20.0, log=seen.append,
+                              methods=methods, workers=2, results=res)
+    assert _text(again["rows"][0]) == _text(acc.run_row(row, runs=4, seed=11, record_samples=20, warmup_s=20.0,
+                                                        methods=methods))
+    assert len(seen) == 1 and row.key in seen[0]   # the row's line, its runs partly from the file
+
+
+def _text(res: dict) -> str:
+    """A row's statistics as the JSON the benchmark writes (NaN compares equal to NaN there)."""
+    return json.dumps(res, default=float, sort_keys=True)

@@ -15,7 +15,8 @@ KEYS = ("hosts", "residual_uT_rms_max", "field_model_error_uT_rms", "kit_residua
 
 def test_two_hosts_meet_the_target_and_the_json_has_the_keys(tmp_path, capsys):
     out = tmp_path / "cal.json"
-    assert calibration.main(["--hosts", "2", "--seed", "4", "--kit-runs", "0", "--json", str(out)]) == 0
+    argv = ["--hosts", "2", "--seed", "4", "--kit-runs", "0", "--workers", "1", "--json", str(out)]
+    assert calibration.main(argv) == 0
     r = json.loads(out.read_text())
     assert all(k in r for k in KEYS) and r["hosts"] == 2
     assert r["residual_uT_rms_max"] <= 0.3 < r["uncalibrated_uT_rms_max"]
@@ -25,8 +26,26 @@ def test_two_hosts_meet_the_target_and_the_json_has_the_keys(tmp_path, capsys):
     assert "residual after 1 orbit" in capsys.readouterr().out
 
 
+@pytest.mark.slow
+def test_two_workers_give_the_hosts_of_one_process_and_a_host_reruns_alone(tmp_path, capsys):
+    """The hosts as campaign tasks on a local cluster of two worker processes: the same JSON as in this process
+    (but the time taken), every host in the results file, one host re-run alone matching its row."""
+    argv = ["--hosts", "2", "--seed", "4", "--kit-runs", "0"]
+    here, there, res = tmp_path / "here.json", tmp_path / "there.json", tmp_path / "cal.parquet"
+    assert calibration.main(argv + ["--workers", "1", "--json", str(here)]) == 0
+    assert calibration.main(argv + ["--workers", "2", "--results", str(res), "--json", str(there)]) == 0
+    a, b = json.loads(here.read_text()), json.loads(there.read_text())
+    a.pop("cpu_s"), b.pop("cpu_s")
+    assert a == b
+    capsys.readouterr()
+    assert calibration.main(argv + ["--results", str(res), "--rerun", "host5"]) == 0
+    assert "matches the stored row bit for bit" in capsys.readouterr().out
+
+
 def test_the_command_line_refuses_what_it_cannot_use(tmp_path, capsys):
-    for argv in (["--hosts", "0"], ["--orbits", "nan"], ["--noise-uT", "-1"], ["--json", str(tmp_path / "no" / "x")]):
+    for argv in (["--hosts", "0"], ["--orbits", "nan"], ["--noise-uT", "-1"], ["--json", str(tmp_path / "no" / "x")],
+                 ["--rerun", "host1"], ["--workers", "2", "--scheduler", "tcp://127.0.0.1:1"],
+                 ["--scheduler", "127.0.0.1:8786"], ["--results", str(tmp_path / "r"), "--json", str(tmp_path / "r")]):
         assert exit_status(calibration.main, argv) == 2
     assert capsys.readouterr().out == ""
 

@@ -30,7 +30,7 @@ def test_the_estimate_follows_the_truth_and_the_controller_waits_for_it():
 def test_the_sweep_writes_the_aggregates(tmp_path, capsys):
     js = tmp_path / "sweep.json"
     assert deorbit.main(["--sweep", "--starts", "2", "--seeds", "1", "--duration", "15", "--attitude", "truth",
-                         "--json", str(js)]) == 0
+                         "--workers", "1", "--json", str(js)]) == 0
     d = json.loads(js.read_text())
     assert d["attitude_source"] == "truth" and len(d["runs"]) == 2
     assert [r["arg_lat0_deg"] for r in d["runs"]] == [0.0, 45.0]
