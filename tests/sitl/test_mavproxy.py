@@ -63,7 +63,8 @@ def after(line: str, label: str) -> str:
     return line.split(label, 1)[1].split()[0]
 
 
-@pytest.mark.skipif(not MAVPROXY.exists(), reason="MAVProxy is not installed (make test-slow installs it: pip install -e '.[tools]')")
+@pytest.mark.skipif(not MAVPROXY.exists(),
+                    reason="MAVProxy is not installed (make test-slow installs it: pip install -e '.[tools]')")
 def test_stock_mavproxy_sees_lists_signs_and_commands_the_box(tmp_path):
     key = tmp_path / "mission.key"
     made = subprocess.run([sys.executable, "-m", "ground.keys", "from-passphrase", str(key)], cwd=ROOT,
