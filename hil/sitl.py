@@ -198,14 +198,15 @@ def hand_over_time_and_orbit(scn: scenarios.Scenario, sim, r: RunConfig, t0_s: f
 
 def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, clock=None,
           run_id: int | None = None, ident: bool = True, ident_options: dict | None = None,
-          kit_options: dict | None = None) -> Sitl:
+          kit_options: dict | None = None, mission_options: dict | None = None) -> Sitl:
     """The simulator of `cfg.scenario` and the flight software on its emulated magnetometer.
 
     `link`, `uplink`, `key`, `clock`, `run_id`: as `fsw.system.build_flight` (the soak hands in its radio
     model and key). The applications: the identification experiment unless `ident` is False (a tug and a
     field model: SITL has both; `ident_options`: more of its `fsw.ident.IdentConfig`), and in a scenario
     with a [deorbit] table the de-orbit kit on the emulated lines (`kit_options`: for
-    `hil.deorbit_sim.build_kit`, e.g. the controller's law)."""
+    `hil.deorbit_sim.build_kit`, e.g. the controller's law); with a [mission] table the mission
+    (`hil.mission_sitl.build_mission`, `mission_options` for it) on the experiment and the kit."""
     r = cfg.run
     scn = cfg.scenario if isinstance(cfg.scenario, scenarios.Scenario) else scenarios.load(cfg.scenario)
     step = cfg.max_step_s or min(0.02, 1.0 / r.rate_hz)
@@ -228,10 +229,18 @@ def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, 
                                    **(ident_options or {})))
     if scn.deorbit is not None:
         from .deorbit_sim import build_kit
-        onboard.append(build_kit(sim, **{"sigma_b_T": sigma_b, **(kit_options or {})}))
+        mission_kit = {"attitude": "estimate"} if scn.mission is not None else {}  # on its own estimate
+        onboard.append(build_kit(sim, **{"sigma_b_T": sigma_b, **mission_kit, **(kit_options or {})}))
+    mission = None
+    if scn.mission is not None:  # the whole mission: the experiment's magnets are the kit's
+        from .mission_sitl import build_mission
+        mission = build_mission(scn, onboard, **(mission_options or {}))
+        onboard.append(mission)
     flight = build_flight(r, driver, sigma_b_T=sigma_b, sample_rate_hz=rate_hz, truth=box_truth(sim), apps=onboard,
                           link=link, uplink=uplink, key=key, clock=clock, run_id=run_id, field=field,
                           timeorbit=timeorbit)
+    if mission is not None:
+        mission.rates = flight.fsw.estimators["kalman"]  # the flown rate filter
     if cfg.work_clock == "cpu":  # a lockstep world loses nothing to the OS's preemption: the loop's own work
         flight.fsw.scheduler.work_timer = time.thread_time
     return Sitl(cfg, scn, sim, driver, flight, sigma_b, warning)
