@@ -36,7 +36,7 @@ import numpy as np
 from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range
 from fsw.config import RunConfig
 from fsw.deorbit.controller import euler_zyx
-from fsw.deorbit.mission import Phase
+from fsw.deorbit.mission import MissionConfig, Phase
 from fsw.files import write_atomic
 from fsw.system import NullLink
 from ground.plot import check_plot_path_or_exit, save_figure
@@ -46,8 +46,8 @@ from hil import scenario as scenarios
 from hil import sitl
 
 DEFAULT_SCENARIO = "amds_mission"
-DEFAULT_PARAMS = {"scenario": DEFAULT_SCENARIO, "duration_s": None, "rate_hz": 5.0, "rate_filter": "euler", "faults": (),
-                  "tumble_dps": (2.0, 5.0), "score_s": 1800.0, "trace": False}
+DEFAULT_PARAMS = {"scenario": DEFAULT_SCENARIO, "duration_s": None, "rate_hz": 5.0, "rate_filter": "euler",
+                  "faults": (), "tumble_dps": (2.0, 5.0), "score_s": 1800.0, "trace": False, "mission": {}}
 PHASES = tuple(p.name for p in Phase)
 
 
@@ -67,7 +67,8 @@ def seeded_scenario(scn: scenarios.Scenario, seed: int, tumble_dps=(2.0, 5.0)) -
 
 
 def run_one(seed: int, params: dict | None = None) -> dict:
-    """One mission from a tumble; `params` (see DEFAULT_PARAMS) override the defaults. A JSON-ready dict."""
+    """One mission from a tumble; `params` (see DEFAULT_PARAMS) override the defaults (`mission`: fields of
+    `fsw.deorbit.mission.MissionConfig`). A JSON-ready dict."""
     p = {**DEFAULT_PARAMS, **(params or {})}
     scn, tumble = seeded_scenario(scenarios.load(p["scenario"]), seed, p["tumble_dps"])
     if scn.mission is None:
@@ -77,13 +78,14 @@ def run_one(seed: int, params: dict | None = None) -> dict:
     step = 1.0 / rate_hz
     box = sitl.build(sitl.SitlConfig(RunConfig(rate_hz=rate_hz, buffer_frames=0, rate_filter=p["rate_filter"]),
                                       scenario=scn, seed=seed,
-                                      max_step_s=step), link=NullLink(), run_id=0)
+                                      max_step_s=step), link=NullLink(), run_id=0,
+                     mission_options={"config": MissionConfig(**p["mission"])})
     sim, fsw = box.sim, box.fsw
     hand_over_calibration(fsw.calibration, sim.host, seed=seed)
     mission, kit = fsw.apps["mission"], fsw.apps["deorbit"]
     faults = sorted((Fault.parse(f) if isinstance(f, str) else f for f in p["faults"]), key=lambda f: f.t_s)
-    trace = {k: [] for k in ("t_s", "phase", "rate_dps", "rate_est_dps", "rate_err_dps", "rate_sigma_dps", "yaw", "pitch", "est_yaw", "est_pitch",
-                             "pulse_pitch", "pulse_yaw", "energy_J")}
+    trace = {k: [] for k in ("t_s", "phase", "rate_dps", "rate_est_dps", "rate_err_dps", "rate_sigma_dps", "yaw",
+                             "pitch", "est_yaw", "est_pitch", "pulse_pitch", "pulse_yaw", "energy_J")}
     yaw_pitch = []
     rate_after_kit = 0.0
     n = int(round(duration * rate_hz))
@@ -115,7 +117,8 @@ def run_one(seed: int, params: dict | None = None) -> dict:
                            ("rate_sigma_dps", math.degrees(mission.rate_sigma_radps)), ("yaw", yaw), ("pitch", pitch),
                            ("est_yaw", rep.yaw_rad if rep else math.nan),
                            ("est_pitch", rep.pitch_rad if rep else math.nan),
-                           ("pulse_pitch", chs[0].shutter * _sign(chs[0])), ("pulse_yaw", chs[1].shutter * _sign(chs[1])),
+                           ("pulse_pitch", chs[0].shutter * _sign(chs[0])),
+                           ("pulse_yaw", chs[1].shutter * _sign(chs[1])),
                            ("energy_J", kit.energy().total_J)):
                 trace[key].append(float(v))
     wall = time.perf_counter() - wall0

@@ -131,7 +131,10 @@ class Sitl:
                  f"loop {r.rate_hz:g} Hz, sensor {1.0 / self.driver.sample_period_s:g} Hz, speed "
                  f"{'max' if r.speed == 0 else f'{r.speed:g}x'}, seed {self.cfg.seed}, link {r.link}"]
         kit = self.fsw.apps.get("deorbit")
-        if kit is not None:
+        if "mission" in self.fsw.apps:
+            lines.append("mission (fsw.deorbit.mission) from a tumble: TUMBLING -> RATES_KNOWN -> IDENTIFYING -> "
+                         "DETUMBLING -> STABILISING -> STABILISED; de-orbit kit emulated")
+        elif kit is not None:
             lines.append(f"de-orbit kit: emulated; controller attitude from {kit.attitude.description}")
         if not self.sim.clock.is_true:
             c = self.sim.clock
@@ -388,7 +391,16 @@ def run(cfg: SitlConfig, out: TextIO = sys.stdout, **build_options) -> SitlRun:
 
 
 def summary(r: SitlRun) -> str:
-    return flight_summary(r.fsw, r.loop, r.score.lines())
+    text = flight_summary(r.fsw, r.loop, r.score.lines())
+    m = r.fsw.apps.get("mission")
+    if m is not None:
+        seen = ", ".join(f"{old}->{new} at {t:.0f} s ({why})" for t, old, new, why in
+                         ((t, m.phase.__class__(a).name, m.phase.__class__(b).name, why)
+                          for t, a, b, why in m.transitions[1:]))
+        energy = ", ".join(f"{k} {v:.0f}" for k, v in m.energy_by_phase().items() if v)
+        text += (f"\nmission: {m.phase.name} ({m.reason_text}); {seen or 'no phase change'}; kit energy by phase "
+                 f"[J]: {energy or 'none'}")
+    return text
 
 
 def add_sitl_options(ap: argparse.ArgumentParser) -> None:
