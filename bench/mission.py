@@ -236,6 +236,28 @@ def plot(r: dict, path: str) -> None:
         plt.close(fig)
 
 
+def merge(ap, paths: list[str], out_path: str | None) -> int:
+    """The runs of several JSON files of this tool (e.g. two processes' seeds) aggregated into `out_path`."""
+    if not out_path:
+        ap.error("--merge needs --json")
+    if out_path in paths:
+        ap.error("--json must not be one of the --merge inputs")
+    runs, first = [], None
+    for path in paths:
+        try:
+            d = json.loads(Path(path).read_text(encoding="utf-8"))
+            runs += d["runs"]
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            print(f"error: {path}: not a bench.mission JSON ({e})", file=sys.stderr)
+            return 1
+        first = first or d
+    runs.sort(key=lambda r: r["seed"])
+    write_atomic(out_path, json.dumps({"scenario": first["scenario"], "params": first["params"], **aggregate(runs)},
+                                      indent=2, default=float))
+    print(f"wrote {out_path}: {len(runs)} runs")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = ArgumentParser(prog="python -m bench.mission", description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default=DEFAULT_SCENARIO, metavar="NAME|FILE")
@@ -246,12 +268,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rate", type=finite_float(1, 100), default=10.0, metavar="HZ", help="loop rate (default 10)")
     ap.add_argument("--fault", action="append", default=[], metavar="KIND:CH:T[:VALUE]",
                     help="a kit fault, as bench.deorbit's: stall:pitch:1500, stuck:yaw:900:0.5")
-    ap.add_argument("--json", metavar="FILE", help="write the runs and the aggregate figures")
+    ap.add_argument("--json", metavar="FILE", help="write the runs and the aggregate figures (after every run)")
+    ap.add_argument("--merge", nargs="+", metavar="JSON", default=None,
+                    help="no run: the runs of these JSON files (from this tool) aggregated into --json")
     ap.add_argument("--plot", metavar="FILE.png", help="the first seed's phases, rates, pulses, attitude")
     args = ap.parse_args(argv)
     scenario_file = args.scenario if Path(args.scenario).is_file() else None
     check_paths_or_exit(ap, inputs={"--scenario": scenario_file}, outputs={"--json": args.json, "--plot": args.plot})
     check_plot_path_or_exit(ap, args.plot)
+    if args.merge:
+        return merge(ap, args.merge, args.json)
     params = {"scenario": args.scenario, "duration_s": args.duration, "rate_hz": args.rate}
     runs = []
     try:
@@ -266,15 +292,17 @@ def main(argv: list[str] | None = None) -> int:
                 del r["trace"]
             runs.append(r)
             print(line(r), flush=True)
+            if args.json:
+                write_atomic(args.json, json.dumps({"scenario": args.scenario, "params": params, **aggregate(runs)},
+                                                   indent=2, default=float))
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    out = {"scenario": args.scenario, "params": {k: v for k, v in params.items()}, **aggregate(runs)}
+    out = {"scenario": args.scenario, "params": params, **aggregate(runs)}
     print(f"{len(runs)} runs: tensor error max {out['inertia_err_pct_max']:.2f} % of the largest moment, ci95 "
           f"coverage {100 * out['ci95_coverage']:.0f} %, stabilised {100 * out['fraction_stabilised']:.0f} %, "
           f"spun up {out['spun_up']}")
     if args.json:
-        write_atomic(args.json, json.dumps(out, indent=2, default=float))
         print(f"wrote {args.json}")
     return 0
 

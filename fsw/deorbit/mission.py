@@ -26,7 +26,8 @@ Phases, what the box does in each, and when it leaves (automatic):
 - SAFE: the kit's safe mode (capsules closed), no pulses; left only by command (the kit must be able to
   leave its safe mode: every capsule confirmed closed).
 
-Spin-up guard: while the kit detumbles, |ω| above `spin_up_factor` × its lowest value since the phase began
+Spin-up guard: while the kit detumbles, |ω| (smoothed over `spin_up_smoothing_s`: the estimate's own
+noise is a few tenths of a °/s on a tumble) above `spin_up_factor` × its lowest value since the phase began
 (and above that lowest value by `spin_up_margin_radps`) sends the mission to SAFE: the kit never spins the
 tumble up for long. The kit going to its own safe mode (a latched fault) sends the mission to SAFE with the
 kit's reason. After a restart the mission starts again in TUMBLING; an identified tensor kept across the
@@ -92,7 +93,8 @@ class MissionConfig:
     detumbled_hold_s: float = 300.0
     detumble_max_s: float = 6 * 3600.0
     spin_up_factor: float = 1.3
-    spin_up_margin_radps: float = math.radians(0.2)
+    spin_up_margin_radps: float = math.radians(0.5)
+    spin_up_smoothing_s: float = 300.0     # the guard watches |ω| smoothed over this (the estimate's noise)
     stabilised_rad: float = 0.2
     stabilised_hold_s: float = 1800.0
     status_period_s: float = 1.0
@@ -166,6 +168,7 @@ class Mission:
         self.attempts = 0
         self._held_since = math.nan
         self._min_rate = math.inf
+        self._smooth_rate, self._smooth_t = math.nan, math.nan
         self._next_status_s = -math.inf
         self._texts: list[str] = []
         self.omega_radps: np.ndarray | None = None
@@ -292,10 +295,16 @@ class Mission:
             return
         trusted = self.rate_sigma_radps <= self.law.config.max_rate_sigma_radps
         if trusted:
-            self._min_rate = min(self._min_rate, w)
-            if w > c.spin_up_factor * self._min_rate and w > self._min_rate + c.spin_up_margin_radps:
+            if math.isnan(self._smooth_rate):
+                self._smooth_rate, self._smooth_t = w, now_s
+            k = min(1.0, (now_s - self._smooth_t) / c.spin_up_smoothing_s)
+            self._smooth_rate += k * (w - self._smooth_rate)
+            self._smooth_t = now_s
+            ws = self._smooth_rate
+            self._min_rate = min(self._min_rate, ws)
+            if ws > c.spin_up_factor * self._min_rate and ws > self._min_rate + c.spin_up_margin_radps:
                 self._enter(now_s, Phase.SAFE, Reason.SPIN_UP,
-                            f"rate {math.degrees(w):.2f} dps up from {math.degrees(self._min_rate):.2f}")
+                            f"rate {math.degrees(ws):.2f} dps up from {math.degrees(self._min_rate):.2f}")
                 return
         if self._held(now_s, trusted and w <= c.detumbled_radps, c.detumbled_hold_s):
             self._enter(now_s, Phase.STABILISING, Reason.AUTOMATIC, f"rate {math.degrees(w):.3f} dps")
@@ -352,7 +361,7 @@ class Mission:
                 self.ident.cmd_stop(None, now_s)
             seq.enter_safe(now_s, f"mission: {self.reason_text}")
         elif phase is Phase.DETUMBLING:
-            self._min_rate = math.inf
+            self._min_rate, self._smooth_rate = math.inf, math.nan
             kit.attitude = None
             kit.law = self.law
             if seq.mode is not KitMode.RUNNING:

@@ -186,9 +186,14 @@ def test_detumbled_hands_over_to_the_controller_with_the_identified_tensor(box):
 def test_a_growing_tumble_sends_the_mission_to_safe(box):
     box.to_detumbling()
     box.rates.omega_radps = np.radians([1.0, 1.0, 1.0])
-    box.run(10.0)
-    box.rates.omega_radps = np.radians([1.6, 1.6, 1.6])   # |ω| 1.73 → 2.77 °/s
-    box.run(1.0)
+    box.run(1000.0)
+    box.rates.omega_radps = np.radians([1.4, -1.6, 1.4])   # |ω| 1.73 → 2.54 °/s for a moment: noise
+    box.run(20.0)
+    box.rates.omega_radps = np.radians([1.0, 1.0, 1.0])
+    box.run(60.0)
+    assert box.mission.phase is Phase.DETUMBLING
+    box.rates.omega_radps = np.radians([1.6, 1.6, 1.6])   # |ω| 1.73 → 2.77 °/s for good
+    box.run(600.0)
     assert box.mission.phase is Phase.SAFE and box.mission.reason is Reason.SPIN_UP
     assert box.kit.mode is KitMode.SAFE and box.kit.law is None
     box.run(5.0)
