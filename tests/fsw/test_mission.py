@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from fsw.deorbit.detumble import DetumbleLaw
+from fsw.deorbit.detumble import DetumbleLaw, rotate_about
 from fsw.deorbit.kit import DeorbitKit
 from fsw.deorbit.mission import KitMagnets, Mission, MissionConfig, Phase, Reason, ci95_pct
 from fsw.deorbit.onboard_attitude import EstimatedAttitude
@@ -26,6 +26,7 @@ pytestmark = pytest.mark.fsw
 DT = 0.5
 ACCEPTED, DENIED, FAILED = mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_DENIED, mavlink.MAV_RESULT_FAILED
 TRUE_P = np.array([22.5, 24.9, 12.2, 0.35, -0.25, 0.3])
+B0_T = np.array([20e-6, -10e-6, 30e-6])   # the samples: this field turning in the body with the set rate
 
 
 class Rates:
@@ -75,7 +76,8 @@ class Box:
         for _ in range(int(round(seconds / DT))):
             self.t = round(self.t + DT, 9)
             self.emu.advance_to(self.t)
-            s = SimpleNamespace(t_s=self.t, b_T=np.array([20e-6, -10e-6, 30e-6])) if sample else None
+            b = rotate_about(B0_T, -self.rates.omega_radps * self.t)
+            s = SimpleNamespace(t_s=self.t, b_T=b) if sample else None
             self.kit.tick(self.t)
             self.mission.tick(self.t, s)
             self.mission.telemetry(self.t, self.tlm)
@@ -256,3 +258,20 @@ def test_energy_is_booked_to_the_phase_it_was_spent_in(box):
     total = box.kit.energy().total_J
     assert sum(e.values()) == pytest.approx(total, abs=0.2)
     assert e["RATES_KNOWN"] > 0 and e["DETUMBLING"] > 0 and e["TUMBLING"] == 0.0
+
+
+@pytest.mark.parametrize("kind, value", [("stall", 1.0), ("stuck", 0.5)])
+def test_a_kit_fault_while_detumbling_ends_in_safe_with_the_reason_and_the_magnets_screened(box, kind, value):
+    """A stalled stepper (every pulse lost) or a capsule stuck half open: the sequencer's recovery fails,
+    the kit latches the fault and goes SAFE, the mission follows with the kit's reason; the magnets are
+    screened at the end (the truth: no dipole acting beyond what a stuck shutter leaves)."""
+    box.to_detumbling()
+    box.rates.omega_radps = np.radians([2.0, -2.5, 1.5])
+    box.emu.inject(0, kind, value)
+    box.run(600.0)
+    assert box.mission.phase is Phase.SAFE and box.mission.reason is Reason.KIT_SAFE
+    assert "pitch" in box.mission.reason_text or "fault" in box.mission.reason_text
+    assert box.kit.mode is KitMode.SAFE and box.kit.law is None
+    stuck = value if kind == "stuck" else 0.0
+    assert np.linalg.norm(box.emu.dipole_body_Am2()) <= 15.0 * stuck + 1e-9
+    assert box.kit.sequencer.channels[1].capsule.closed   # the healthy channel screened too
