@@ -265,7 +265,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--first-seed", type=int_range(0, 2**31 - 1), default=0, metavar="K")
     ap.add_argument("--duration", type=finite_float(0, min_exclusive=True), default=None, metavar="S",
                     help="default: the scenario's [mission] duration_s")
-    ap.add_argument("--rate", type=finite_float(1, 100), default=10.0, metavar="HZ", help="loop rate (default 10)")
+    ap.add_argument("--rate", type=finite_float(1, 100), default=DEFAULT_PARAMS["rate_hz"], metavar="HZ",
+                    help="loop rate (default 5 Hz)")
     ap.add_argument("--fault", action="append", default=[], metavar="KIND:CH:T[:VALUE]",
                     help="a kit fault, as bench.deorbit's: stall:pitch:1500, stuck:yaw:900:0.5")
     ap.add_argument("--json", metavar="FILE", help="write the runs and the aggregate figures (after every run)")
