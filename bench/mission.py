@@ -240,7 +240,7 @@ def merge(ap, paths: list[str], out_path: str | None) -> int:
     """The runs of several JSON files of this tool (e.g. two processes' seeds) aggregated into `out_path`."""
     if not out_path:
         ap.error("--merge needs --json")
-    if out_path in paths:
+    if Path(out_path).resolve() in {Path(x).resolve() for x in paths}:
         ap.error("--json must not be one of the --merge inputs")
     runs, first = [], None
     for path in paths:

@@ -46,3 +46,22 @@ def test_aggregate_figures():
 def test_bad_command_lines_exit_2(argv, capsys):
     assert exit_status(mission.main, argv) == 2
     assert "Traceback" not in capsys.readouterr().err
+
+
+def test_merge_aggregates_the_runs_of_several_files(tmp_path, capsys):
+    import json
+
+    run = {"seed": 3, "inertia_err_pct": 1.0, "ci95_covered": True, "stabilised": False, "spun_up": False,
+           "time_to_phase_s": {"TUMBLING": 0.0}, "interlock_violations": 0,
+           "energy_J_by_phase": {p: 1.0 for p in mission.PHASES}, "energy_J": 7.0}
+    for name, seed, err in (("a.json", 3, 1.0), ("b.json", 1, 2.0)):
+        (tmp_path / name).write_text(json.dumps({"scenario": "amds_mission", "params": {"rate_hz": 5.0},
+                                                 **mission.aggregate([{**run, "seed": seed,
+                                                                       "inertia_err_pct": err}])}))
+    out = tmp_path / "all.json"
+    assert mission.main(["--merge", str(tmp_path / "a.json"), str(tmp_path / "b.json"), "--json", str(out)]) == 0
+    d = json.loads(out.read_text())
+    assert [r["seed"] for r in d["runs"]] == [1, 3] and d["inertia_err_pct_max"] == 2.0
+    assert exit_status(mission.main, ["--merge", str(out), "--json", str(out)]) == 2   # never over an input
+    assert exit_status(mission.main, ["--merge", str(tmp_path / "none.json"), "--json", str(tmp_path / "x.json")]) == 1
+    assert "Traceback" not in capsys.readouterr().err
