@@ -155,9 +155,9 @@ class Mission:
         self.J_kgm2: np.ndarray | None = None  # the identified tensor (3, 3)
         self.ci95_pct = math.nan
         self.on_phase = on_phase
-        # the controller's attitude source waits for STABILISING (its filter needs the identified tensor)
-        self._attitude_template = kit.attitude
-        kit.attitude = None
+        # the controller's attitude source waits for STABILISING (its filter needs the identified tensor):
+        # taken off the kit at the first tick, after the flight software's composition gave it its field
+        self._attitude_template = None
         self.phase = Phase.TUMBLING
         self.reason = Reason.START
         self.reason_text = "start"
@@ -206,6 +206,7 @@ class Mission:
     # --- the loop ---------------------------------------------------------------------------------
     def tick(self, now_s: float, sample) -> None:
         if math.isnan(self.t_phase_s):
+            self._attitude_template, self.kit.attitude = self.kit.attitude, None
             self._enter(now_s, Phase.TUMBLING, Reason.START, "start")
         if sample is not None:
             self.law.update_field(sample.t_s, sample.b_T)

@@ -22,13 +22,14 @@ def test_the_mission_runs_in_sitl_and_the_ground_decodes_it():
     assert isinstance(ident.magnets, KitMagnets) and ident.magnets.kit is kit
     assert mission.rates is fsw.estimators["kalman"]
     assert {mavlink.MAV_CMD_DEBRIS_MISSION_PHASE, mavlink.MAV_CMD_DEBRIS_MISSION_SAFE} <= set(fsw.commands.registered())
-    assert kit.attitude is None            # the controller's filter waits for the identified tensor
     t = box.t0_s
     for _ in range(150):                   # 30 s
         t += 0.2
         box.advance(t)
         fsw.tick(t)
     assert mission.phase is Phase.TUMBLING and mission.omega_radps is not None
+    assert kit.attitude is None            # the controller's filter waits for the identified tensor...
+    assert mission._attitude_template.provider is not None   # ...with the field the composition gave it
     dec = Decoder()
     for i, msg in enumerate(link.messages()):
         dec.handle(msg, 1000.0 + i * 1e-3)
