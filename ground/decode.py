@@ -179,6 +179,9 @@ class Decoder:
         self.attitude: dict = {}
         #: the de-orbit controller's latest inputs (DEBRIS_DEORBIT_ATTITUDE, see `_deorbit_attitude`)
         self.deorbit_attitude: dict = {}
+        #: the mission's latest DEBRIS_MISSION_STATUS and every phase change seen (see `_mission_status`)
+        self.mission: dict = {}
+        self.mission_phases: list[tuple[float, str, str]] = []
 
     # --- input -------------------------------------------------------------------------------
 
@@ -215,7 +218,26 @@ class Decoder:
                 self._attitude(kind, msg)
             elif kind == "DEBRIS_DEORBIT_ATTITUDE":
                 self._deorbit_attitude(msg)
+            elif kind == "DEBRIS_MISSION_STATUS":
+                self._mission_status(msg)
         self.tick(now_s)
+
+    def _mission_status(self, msg) -> None:
+        """The mission's phase (DEBRIS_MISSION_STATUS): the latest kept in ``mission`` (SI, phase and reason
+        by name), each change of phase appended to ``mission_phases`` as (time, phase, reason)."""
+        phase = mavlink.enums["DEBRIS_MISSION_PHASE"].get(msg.phase)
+        reason = mavlink.enums["DEBRIS_MISSION_REASON"].get(msg.reason)
+        if phase is None or reason is None or not math.isfinite(msg.time_in_phase):
+            self.invalid["DEBRIS_MISSION_STATUS"] += 1
+            return
+        name = phase.name.removeprefix("DEBRIS_MISSION_PHASE_")
+        why = reason.name.removeprefix("DEBRIS_MISSION_REASON_").lower()
+        t = msg.time_usec * 1e-6
+        if not self.mission_phases or self.mission_phases[-1][1] != name:
+            self.mission_phases.append((t - msg.time_in_phase, name, why))
+        self.mission = {"t_s": t, "phase": name, "reason": why, "time_in_phase_s": msg.time_in_phase,
+                        "rate_radps": msg.rate, "rate_sigma_radps": msg.rate_sigma, "ci95_pct": msg.ci95_pct,
+                        "inertia_kgm2": f32(*msg.inertia), "energy_J": f32(*msg.energy)}
 
     def _deorbit_attitude(self, msg) -> None:
         """The de-orbit controller's inputs (yaw, pitch, roll w.r.t. the orbital frame, the rate relative to
@@ -539,6 +561,15 @@ class Decoder:
             out.append(f"flown rate filter: {a['filter']} ({a['handovers']} hand-overs from the fixed-field filter), "
                        f"{a.get('ATTITUDE_QUATERNION', 0)} ATTITUDE_QUATERNION; last {att}; "
                        f"rate 1-σ ({sr[0]:.2f} {sr[1]:.2f} {sr[2]:.2f}) deg/s")
+        if self.mission:
+            m = self.mission
+            seen = ", ".join(f"{name} at {t:.0f} s ({why})" for t, name, why in self.mission_phases)
+            names = ("tumbling", "rates known", "identifying", "detumbling", "stabilising", "stabilised", "safe")
+            energy = ", ".join(f"{n} {e:.0f}" for n, e in zip(names, m["energy_J"]) if e)
+            out.append(f"mission: {m['phase']} for {m['time_in_phase_s']:.0f} s ({m['reason']}); phases seen: {seen}; "
+                       f"rate {math.degrees(m['rate_radps']):.3f} deg/s, tensor diagonal "
+                       f"({', '.join(f'{x:.2f}' for x in m['inertia_kgm2'])}) kg.m^2, ci95 {m['ci95_pct']:.2f} % of "
+                       f"the largest; kit energy by phase [J]: {energy or 'none'}")
         if self.verifier is not None:
             refused = ", ".join(f"{k} {n}" for k, n in sorted(self.unauthenticated.items())) or "none"
             out.append(f"signatures: {self.verifier.counts[Verdict.OK]} frames verified; refused: {refused}")

@@ -22,6 +22,7 @@ description = "..."
 [sensor]   sample_rate_hz, bandwidth_hz (100/200/400/800), noise_uT, bridge_offset_uT
 [[torque]] start_s, duration_s, moment_Nm   (known applied moment, body axes, about the centre of mass)
 [deorbit]  optional, the de-orbit kit's closed loop (hil.deorbit_sim): see DeorbitSpec
+[mission]  optional, with [deorbit]: the whole mission (fsw.deorbit.mission): see MissionSpec
 ```
 """
 from __future__ import annotations
@@ -85,6 +86,18 @@ class DeorbitSpec:
 
 
 @dataclass(frozen=True)
+class MissionSpec:
+    """The optional [mission] table (with [deorbit]): the mission from a tumble (`fsw.deorbit.mission`).
+
+    `inertia_guess_kgm2`: the diagonal the box is told (a rough guess; the truth is [body]'s);
+    `duration_s`: how long SITL's benchmark runs the mission. The tumble is [deorbit]'s
+    `initial_rate_dps` (relative to the orbital frame)."""
+
+    inertia_guess_kgm2: tuple[float, float, float] = (17.995, 20.711, 15.269)
+    duration_s: float = 30000.0
+
+
+@dataclass(frozen=True)
 class Scenario:
     name: str
     description: str
@@ -106,6 +119,7 @@ class Scenario:
     bridge_offset_T: np.ndarray
     torques: tuple[TorquePulse, ...] = field(default_factory=tuple)
     deorbit: DeorbitSpec | None = None
+    mission: MissionSpec | None = None
     #: IGRF degree of the "igrf14" field model
     field_degree: int = 13
     #: the truth's TLE (two lines) and the UTC of t = 0 (naive, UTC); None: the circular orbit
@@ -134,7 +148,7 @@ _SCHEMA: dict[str, dict[str, type | tuple]] = {
     "sensor": {"sample_rate_hz": float, "bandwidth_hz": int, "noise_uT": float, "bridge_offset_uT": list},
 }
 _OPTIONAL = {("field", "model"): "igrf14", ("field", "degree"): 13}
-_TOP = {"name", "description", "source", "torque", "deorbit", "host", "clock", *_SCHEMA}
+_TOP = {"name", "description", "source", "torque", "deorbit", "mission", "host", "clock", *_SCHEMA}
 _BANDWIDTHS_HZ = (100, 200, 400, 800)
 _FIELD_MODELS = ("igrf14", "igrf14-dipole")
 _ORBIT_TLE_KEYS = ("tle", "utc0", "box_tle")
@@ -329,6 +343,25 @@ def load(name_or_path: str = DEFAULT_SCENARIO) -> Scenario:
             if np.linalg.norm(getattr(deorbit, k)) < 0.01:
                 fail(f"deorbit.{k}", "a magnet must sit at least 1 cm from the magnetometer")
 
+    mission = None
+    if "mission" in doc:
+        table = doc["mission"]
+        if not isinstance(table, dict):
+            fail("[mission]", "must be a table")
+        if deorbit is None:
+            fail("[mission]", "needs a [deorbit] table (the kit and the sail)")
+        kw = {}
+        for k, v in table.items():
+            if k not in MissionSpec.__dataclass_fields__:
+                fail(f"mission.{k}", f"unknown key (expected {sorted(MissionSpec.__dataclass_fields__)})")
+            vector = isinstance(getattr(MissionSpec, k), tuple)
+            a = _numbers(v, (3,) if vector else ())
+            if a is None or not np.all(a > 0):
+                fail(f"mission.{k}", ("expected 3 finite numbers > 0" if vector else "expected a finite number > 0")
+                     + f", got {v!r}")
+            kw[k] = tuple(float(x) for x in a) if vector else float(a)
+        mission = MissionSpec(**kw)
+
     return Scenario(
         name=str(doc.get("name", path.stem)), description=str(doc.get("description", "")),
         source=str(doc.get("source", "")), path=path, mass_kg=mass, inertia_kgm2=J,
@@ -339,8 +372,8 @@ def load(name_or_path: str = DEFAULT_SCENARIO) -> Scenario:
         field_model=sec["field"]["model"], epoch_year=sec["field"]["epoch_year"],
         sample_rate_hz=sensor["sample_rate_hz"], bandwidth_hz=sensor["bandwidth_hz"],
         noise_T=sensor["noise_uT"] * 1e-6, bridge_offset_T=vec("sensor", "bridge_offset_uT", (3,)) * 1e-6,
-        torques=tuple(pulses), deorbit=deorbit, field_degree=sec["field"]["degree"], tle=tle, utc0=utc0,
-        box_tle=box_tle, host=host, clock=clock,
+        torques=tuple(pulses), deorbit=deorbit, mission=mission, field_degree=sec["field"]["degree"],
+        tle=tle, utc0=utc0, box_tle=box_tle, host=host, clock=clock,
     )
 
 

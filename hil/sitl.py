@@ -132,7 +132,10 @@ class Sitl:
                  f"loop {r.rate_hz:g} Hz, sensor {1.0 / self.driver.sample_period_s:g} Hz, speed "
                  f"{'max' if r.speed == 0 else f'{r.speed:g}x'}, seed {self.cfg.seed}, link {r.link}"]
         kit = self.fsw.apps.get("deorbit")
-        if kit is not None:
+        if "mission" in self.fsw.apps:
+            lines.append("mission (fsw.deorbit.mission) from a tumble: TUMBLING -> RATES_KNOWN -> IDENTIFYING -> "
+                         "DETUMBLING -> STABILISING -> STABILISED; de-orbit kit emulated")
+        elif kit is not None:
             lines.append(f"de-orbit kit: emulated; controller attitude from {kit.attitude.description}")
         if not self.sim.clock.is_true:
             c = self.sim.clock
@@ -199,14 +202,15 @@ def hand_over_time_and_orbit(scn: scenarios.Scenario, sim, r: RunConfig, t0_s: f
 
 def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, clock=None,
           run_id: int | None = None, ident: bool = True, ident_options: dict | None = None,
-          kit_options: dict | None = None) -> Sitl:
+          kit_options: dict | None = None, mission_options: dict | None = None) -> Sitl:
     """The simulator of `cfg.scenario` and the flight software on its emulated magnetometer.
 
     `link`, `uplink`, `key`, `clock`, `run_id`: as `fsw.system.build_flight` (the soak hands in its radio
     model and key). The applications: the identification experiment unless `ident` is False (a tug and a
     field model: SITL has both; `ident_options`: more of its `fsw.ident.IdentConfig`), and in a scenario
     with a [deorbit] table the de-orbit kit on the emulated lines (`kit_options`: for
-    `hil.deorbit_sim.build_kit`, e.g. the controller's law)."""
+    `hil.deorbit_sim.build_kit`, e.g. the controller's law); with a [mission] table the mission
+    (`hil.mission_sitl.build_mission`, `mission_options` for it) on the experiment and the kit."""
     r = cfg.run
     scn = cfg.scenario if isinstance(cfg.scenario, scenarios.Scenario) else scenarios.load(cfg.scenario)
     step = cfg.max_step_s or min(0.02, 1.0 / r.rate_hz)
@@ -229,10 +233,18 @@ def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, 
                                    **(ident_options or {})))
     if scn.deorbit is not None:
         from .deorbit_sim import build_kit
-        onboard.append(build_kit(sim, **{"sigma_b_T": sigma_b, **(kit_options or {})}))
+        mission_kit = {"attitude": "estimate"} if scn.mission is not None else {}  # on its own estimate
+        onboard.append(build_kit(sim, **{"sigma_b_T": sigma_b, **mission_kit, **(kit_options or {})}))
+    mission = None
+    if scn.mission is not None:  # the whole mission: the experiment's magnets are the kit's
+        from .mission_sitl import build_mission
+        mission = build_mission(scn, onboard, **(mission_options or {}))
+        onboard.append(mission)
     flight = build_flight(r, driver, sigma_b_T=sigma_b, sample_rate_hz=rate_hz, truth=box_truth(sim), apps=onboard,
                           link=link, uplink=uplink, key=key, clock=clock, run_id=run_id, field=field,
                           timeorbit=timeorbit)
+    if mission is not None:
+        mission.rates = flight.fsw.estimators["kalman"]  # the flown rate filter
     if cfg.work_clock == "cpu":  # a lockstep world loses nothing to the OS's preemption: the loop's own work
         flight.fsw.scheduler.work_timer = time.thread_time
     return Sitl(cfg, scn, sim, driver, flight, sigma_b, warning)
@@ -380,7 +392,16 @@ def run(cfg: SitlConfig, out: TextIO = sys.stdout, **build_options) -> SitlRun:
 
 
 def summary(r: SitlRun) -> str:
-    return flight_summary(r.fsw, r.loop, r.score.lines())
+    text = flight_summary(r.fsw, r.loop, r.score.lines())
+    m = r.fsw.apps.get("mission")
+    if m is not None:
+        seen = ", ".join(f"{old}->{new} at {t:.0f} s ({why})" for t, old, new, why in
+                         ((t, m.phase.__class__(a).name, m.phase.__class__(b).name, why)
+                          for t, a, b, why in m.transitions[1:]))
+        energy = ", ".join(f"{k} {v:.0f}" for k, v in m.energy_by_phase().items() if v)
+        text += (f"\nmission: {m.phase.name} ({m.reason_text}); {seen or 'no phase change'}; kit energy by phase "
+                 f"[J]: {energy or 'none'}")
+    return text
 
 
 def add_sitl_options(ap: argparse.ArgumentParser) -> None:

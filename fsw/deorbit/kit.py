@@ -158,6 +158,9 @@ class DeorbitKit:
         self._hold_reason_sent = ""
         self._magnets = magnets
         self.pulses: list[PulseRecord] | None = [] if keep_pulses else None
+        #: another pulse law in place of the controller while the kit runs (the mission's detumbling,
+        #: `fsw.deorbit.detumble.DetumbleLaw`): its `period_s`, `decide(now_s, channels) -> [ChannelCommand]`
+        self.law = None
         self.handlers: dict[int, Callable] = {
             mavlink.MAV_CMD_DEBRIS_CAPSULE: self.cmd_capsule,
             mavlink.MAV_CMD_DEBRIS_MAGNET_TURN: self.cmd_magnet_turn,
@@ -189,8 +192,13 @@ class DeorbitKit:
             if math.isinf(self.next_decision_s):
                 self.next_decision_s = now_s
             if now_s + 1e-9 >= self.next_decision_s:
-                self.next_decision_s += self.controller.config.period_s
-                self._decide(now_s)
+                if self.law is not None:
+                    self.next_decision_s = max(self.next_decision_s + self.law.period_s, now_s)
+                    for cmd in self.law.decide(now_s, seq.channels):
+                        self._apply(cmd, now_s)
+                else:
+                    self.next_decision_s += self.controller.config.period_s
+                    self._decide(now_s)
         else:
             self.next_decision_s = math.inf
         seq.update(now_s)

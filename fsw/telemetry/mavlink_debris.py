@@ -478,6 +478,46 @@ enums["DEBRIS_CONTROLLER_STATE"][2] = EnumEntry("DEBRIS_CONTROLLER_STATE_SAFE", 
 DEBRIS_CONTROLLER_STATE_ENUM_END = 3
 enums["DEBRIS_CONTROLLER_STATE"][3] = EnumEntry("DEBRIS_CONTROLLER_STATE_ENUM_END", """""")
 
+# DEBRIS_MISSION_PHASE
+enums["DEBRIS_MISSION_PHASE"] = Enum()
+enums["DEBRIS_MISSION_PHASE"].bitmask = False
+DEBRIS_MISSION_PHASE_TUMBLING = 0
+enums["DEBRIS_MISSION_PHASE"][0] = EnumEntry("DEBRIS_MISSION_PHASE_TUMBLING", """Tumbling: the rates are being estimated.""")
+DEBRIS_MISSION_PHASE_RATES_KNOWN = 1
+enums["DEBRIS_MISSION_PHASE"][1] = EnumEntry("DEBRIS_MISSION_PHASE_RATES_KNOWN", """The rate estimate is trusted; the magnets are homed for the identification.""")
+DEBRIS_MISSION_PHASE_IDENTIFYING = 2
+enums["DEBRIS_MISSION_PHASE"][2] = EnumEntry("DEBRIS_MISSION_PHASE_IDENTIFYING", """The inertia is identified with the kit's magnets as the known torque.""")
+DEBRIS_MISSION_PHASE_DETUMBLING = 3
+enums["DEBRIS_MISSION_PHASE"][3] = EnumEntry("DEBRIS_MISSION_PHASE_DETUMBLING", """The kit's pulses damp the tumble (a B-dot-like law on the estimated rate).""")
+DEBRIS_MISSION_PHASE_STABILISING = 4
+enums["DEBRIS_MISSION_PHASE"][4] = EnumEntry("DEBRIS_MISSION_PHASE_STABILISING", """The de-orbit controller holds the sail to the flow with the identified tensor.""")
+DEBRIS_MISSION_PHASE_STABILISED = 5
+enums["DEBRIS_MISSION_PHASE"][5] = EnumEntry("DEBRIS_MISSION_PHASE_STABILISED", """The sail has stayed within the limit of the flow (the controller runs on).""")
+DEBRIS_MISSION_PHASE_SAFE = 6
+enums["DEBRIS_MISSION_PHASE"][6] = EnumEntry("DEBRIS_MISSION_PHASE_SAFE", """Safe: capsules closed, the mission waits for the ground.""")
+DEBRIS_MISSION_PHASE_ENUM_END = 7
+enums["DEBRIS_MISSION_PHASE"][7] = EnumEntry("DEBRIS_MISSION_PHASE_ENUM_END", """""")
+
+# DEBRIS_MISSION_REASON
+enums["DEBRIS_MISSION_REASON"] = Enum()
+enums["DEBRIS_MISSION_REASON"].bitmask = False
+DEBRIS_MISSION_REASON_START = 0
+enums["DEBRIS_MISSION_REASON"][0] = EnumEntry("DEBRIS_MISSION_REASON_START", """Start (or restart) of the flight software.""")
+DEBRIS_MISSION_REASON_AUTOMATIC = 1
+enums["DEBRIS_MISSION_REASON"][1] = EnumEntry("DEBRIS_MISSION_REASON_AUTOMATIC", """The phase's criterion was met.""")
+DEBRIS_MISSION_REASON_COMMANDED = 2
+enums["DEBRIS_MISSION_REASON"][2] = EnumEntry("DEBRIS_MISSION_REASON_COMMANDED", """A ground command.""")
+DEBRIS_MISSION_REASON_KIT_SAFE = 3
+enums["DEBRIS_MISSION_REASON"][3] = EnumEntry("DEBRIS_MISSION_REASON_KIT_SAFE", """The kit went to safe mode (a latched fault).""")
+DEBRIS_MISSION_REASON_SPIN_UP = 4
+enums["DEBRIS_MISSION_REASON"][4] = EnumEntry("DEBRIS_MISSION_REASON_SPIN_UP", """The tumble grew while the kit acted.""")
+DEBRIS_MISSION_REASON_TIMEOUT = 5
+enums["DEBRIS_MISSION_REASON"][5] = EnumEntry("DEBRIS_MISSION_REASON_TIMEOUT", """The phase took longer than its limit.""")
+DEBRIS_MISSION_REASON_IDENT_FAILED = 6
+enums["DEBRIS_MISSION_REASON"][6] = EnumEntry("DEBRIS_MISSION_REASON_IDENT_FAILED", """The identification did not reach its accuracy.""")
+DEBRIS_MISSION_REASON_ENUM_END = 7
+enums["DEBRIS_MISSION_REASON"][7] = EnumEntry("DEBRIS_MISSION_REASON_ENUM_END", """""")
+
 # DEBRIS_DEORBIT_FAULT
 enums["DEBRIS_DEORBIT_FAULT"] = Enum()
 enums["DEBRIS_DEORBIT_FAULT"].bitmask = True
@@ -2930,6 +2970,25 @@ enums["MAV_CMD"][54015].param[4] = """Reserved (default:0)"""
 enums["MAV_CMD"][54015].param[5] = """Reserved (default:0)"""
 enums["MAV_CMD"][54015].param[6] = """Reserved (default:0)"""
 enums["MAV_CMD"][54015].param[7] = """Reserved (default:0)"""
+MAV_CMD_DEBRIS_MISSION_PHASE = 54016
+enums["MAV_CMD"][54016] = EnumEntry("MAV_CMD_DEBRIS_MISSION_PHASE", """Put the mission in a phase (DEBRIS_MISSION_PHASE): DENIED for an unknown phase, FAILED when the phase cannot be entered now (no identified tensor for STABILISING, the kit in safe mode).""")
+enums["MAV_CMD"][54016].param[1] = """Phase to enter."""
+enums["MAV_CMD"][54016].label[1] = """Phase"""
+enums["MAV_CMD"][54016].param[2] = """Reserved (default:0)"""
+enums["MAV_CMD"][54016].param[3] = """Reserved (default:0)"""
+enums["MAV_CMD"][54016].param[4] = """Reserved (default:0)"""
+enums["MAV_CMD"][54016].param[5] = """Reserved (default:0)"""
+enums["MAV_CMD"][54016].param[6] = """Reserved (default:0)"""
+enums["MAV_CMD"][54016].param[7] = """Reserved (default:0)"""
+MAV_CMD_DEBRIS_MISSION_SAFE = 54017
+enums["MAV_CMD"][54017] = EnumEntry("MAV_CMD_DEBRIS_MISSION_SAFE", """Abort the mission to SAFE: the kit's capsules closed, its pulses stopped.""")
+enums["MAV_CMD"][54017].param[1] = """Reserved (default:0)"""
+enums["MAV_CMD"][54017].param[2] = """Reserved (default:0)"""
+enums["MAV_CMD"][54017].param[3] = """Reserved (default:0)"""
+enums["MAV_CMD"][54017].param[4] = """Reserved (default:0)"""
+enums["MAV_CMD"][54017].param[5] = """Reserved (default:0)"""
+enums["MAV_CMD"][54017].param[6] = """Reserved (default:0)"""
+enums["MAV_CMD"][54017].param[7] = """Reserved (default:0)"""
 MAV_CMD_DEBRIS_TLE_LOAD = 54030
 enums["MAV_CMD"][54030] = EnumEntry("MAV_CMD_DEBRIS_TLE_LOAD", """Check the TLE staged by DEBRIS_TLE (checksums, epoch against the onboard UTC and the age limit) and put it in force (kept across a restart). DENIED: not staged or CRC differs, bad format or checksum, epoch in the future or too old; TEMPORARILY_REJECTED: no onboard UTC yet.""")
 enums["MAV_CMD"][54030].param[1] = """CRC-32 of line1 + line2 (138 characters), its low 24 bits."""
@@ -6658,6 +6717,7 @@ MAVLINK_MSG_ID_DEBRIS_MAGCAL = 54040
 MAVLINK_MSG_ID_DEBRIS_KIT_FIELD = 54050
 MAVLINK_MSG_ID_DEBRIS_ATTITUDE_SIGMA = 54055
 MAVLINK_MSG_ID_DEBRIS_DEORBIT_ATTITUDE = 54065
+MAVLINK_MSG_ID_DEBRIS_MISSION_STATUS = 54066
 MAVLINK_MSG_ID_SYS_STATUS = 1
 MAVLINK_MSG_ID_SYSTEM_TIME = 2
 MAVLINK_MSG_ID_PING = 4
@@ -7656,6 +7716,54 @@ class MAVLink_debris_deorbit_attitude_message(MAVLink_message):
 # Define name on the class for backwards compatibility (it is now msgname).
 # Done with setattr to hide the class variable from mypy.
 setattr(MAVLink_debris_deorbit_attitude_message, "name", mavlink_msg_deprecated_name_property())
+
+
+class MAVLink_debris_mission_status_message(MAVLink_message):
+    """
+    The mission's phase (fsw.deorbit.mission) at 1 Hz: time in phase,
+    why it was entered, the tumble as estimated, the identification's
+    worst 95 % half-width, and the kit's energy per phase.
+    """
+
+    id = MAVLINK_MSG_ID_DEBRIS_MISSION_STATUS
+    msgname = "DEBRIS_MISSION_STATUS"
+    fieldnames = ["time_usec", "phase", "reason", "time_in_phase", "rate", "rate_sigma", "ci95_pct", "inertia", "energy"]
+    ordered_fieldnames = ["time_usec", "time_in_phase", "rate", "rate_sigma", "ci95_pct", "inertia", "energy", "phase", "reason"]
+    fieldtypes = ["uint64_t", "uint8_t", "uint8_t", "float", "float", "float", "float", "float", "float"]
+    fielddisplays_by_name: Dict[str, str] = {}
+    fieldenums_by_name: Dict[str, str] = {"phase": "DEBRIS_MISSION_PHASE", "reason": "DEBRIS_MISSION_REASON"}
+    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "time_in_phase": "s", "rate": "rad/s", "rate_sigma": "rad/s", "ci95_pct": "%"}
+    native_format = bytearray(b"<QffffffBB")
+    orders = [0, 7, 8, 1, 2, 3, 4, 5, 6]
+    lengths = [1, 1, 1, 1, 1, 3, 7, 1, 1]
+    array_lengths = [0, 0, 0, 0, 0, 3, 7, 0, 0]
+    crc_extra = 227
+    unpacker = struct.Struct("<Qffff3f7fBB")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(self, time_usec: int, phase: int, reason: int, time_in_phase: float, rate: float, rate_sigma: float, ci95_pct: float, inertia: Sequence[float], energy: Sequence[float]):
+        MAVLink_message.__init__(self, MAVLink_debris_mission_status_message.id, MAVLink_debris_mission_status_message.msgname)
+        self._fieldnames = MAVLink_debris_mission_status_message.fieldnames
+        self._instance_field = MAVLink_debris_mission_status_message.instance_field
+        self._instance_offset = MAVLink_debris_mission_status_message.instance_offset
+        self.time_usec = time_usec
+        self.phase = phase
+        self.reason = reason
+        self.time_in_phase = time_in_phase
+        self.rate = rate
+        self.rate_sigma = rate_sigma
+        self.ci95_pct = ci95_pct
+        self.inertia = inertia
+        self.energy = energy
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.time_in_phase, self.rate, self.rate_sigma, self.ci95_pct, self.inertia[0], self.inertia[1], self.inertia[2], self.energy[0], self.energy[1], self.energy[2], self.energy[3], self.energy[4], self.energy[5], self.energy[6], self.phase, self.reason), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_debris_mission_status_message, "name", mavlink_msg_deprecated_name_property())
 
 
 class MAVLink_sys_status_message(MAVLink_message):
@@ -17747,6 +17855,7 @@ mavlink_map: Dict[int, Type[MAVLink_message]] = {
     MAVLINK_MSG_ID_DEBRIS_KIT_FIELD: MAVLink_debris_kit_field_message,
     MAVLINK_MSG_ID_DEBRIS_ATTITUDE_SIGMA: MAVLink_debris_attitude_sigma_message,
     MAVLINK_MSG_ID_DEBRIS_DEORBIT_ATTITUDE: MAVLink_debris_deorbit_attitude_message,
+    MAVLINK_MSG_ID_DEBRIS_MISSION_STATUS: MAVLink_debris_mission_status_message,
     MAVLINK_MSG_ID_SYS_STATUS: MAVLink_sys_status_message,
     MAVLINK_MSG_ID_SYSTEM_TIME: MAVLink_system_time_message,
     MAVLINK_MSG_ID_PING: MAVLink_ping_message,
@@ -19000,6 +19109,44 @@ class MAVLink(object):
 
         """
         self.send(self.debris_deorbit_attitude_encode(time_usec, yaw, pitch, roll, rate, pointing_sigma, rate_sigma, source, hypotheses, held), force_mavlink1=force_mavlink1)
+
+    def debris_mission_status_encode(self, time_usec: int, phase: int, reason: int, time_in_phase: float, rate: float, rate_sigma: float, ci95_pct: float, inertia: Sequence[float], energy: Sequence[float]) -> MAVLink_debris_mission_status_message:
+        """
+        The mission's phase (fsw.deorbit.mission) at 1 Hz: time in phase, why
+        it was entered, the tumble as estimated, the identification's
+        worst 95 % half-width, and the kit's energy per phase.
+
+        time_usec                 : Loop time. [us] (type:uint64_t)
+        phase                     : Phase now. (type:uint8_t, values:DEBRIS_MISSION_PHASE)
+        reason                    : Why the phase was entered. (type:uint8_t, values:DEBRIS_MISSION_REASON)
+        time_in_phase             : Time since the phase was entered. [s] (type:float)
+        rate                      : Estimated |omega| (NaN: none). [rad/s] (type:float)
+        rate_sigma                : Largest 1-sigma of the rate estimate (NaN: none). [rad/s] (type:float)
+        ci95_pct                  : Worst 95 % half-width of the identified tensor, in % of its largest moment (NaN: none yet). [%] (type:float)
+        inertia                   : The tensor (kg.m^2)'s diagonal the mission uses (the guess until identified). (type:float)
+        energy                    : The kit's energy spent in each phase (J, DEBRIS_MISSION_PHASE order). (type:float)
+
+        """
+        return MAVLink_debris_mission_status_message(time_usec, phase, reason, time_in_phase, rate, rate_sigma, ci95_pct, inertia, energy)
+
+    def debris_mission_status_send(self, time_usec: int, phase: int, reason: int, time_in_phase: float, rate: float, rate_sigma: float, ci95_pct: float, inertia: Sequence[float], energy: Sequence[float], force_mavlink1: bool = False) -> None:
+        """
+        The mission's phase (fsw.deorbit.mission) at 1 Hz: time in phase, why
+        it was entered, the tumble as estimated, the identification's
+        worst 95 % half-width, and the kit's energy per phase.
+
+        time_usec                 : Loop time. [us] (type:uint64_t)
+        phase                     : Phase now. (type:uint8_t, values:DEBRIS_MISSION_PHASE)
+        reason                    : Why the phase was entered. (type:uint8_t, values:DEBRIS_MISSION_REASON)
+        time_in_phase             : Time since the phase was entered. [s] (type:float)
+        rate                      : Estimated |omega| (NaN: none). [rad/s] (type:float)
+        rate_sigma                : Largest 1-sigma of the rate estimate (NaN: none). [rad/s] (type:float)
+        ci95_pct                  : Worst 95 % half-width of the identified tensor, in % of its largest moment (NaN: none yet). [%] (type:float)
+        inertia                   : The tensor (kg.m^2)'s diagonal the mission uses (the guess until identified). (type:float)
+        energy                    : The kit's energy spent in each phase (J, DEBRIS_MISSION_PHASE order). (type:float)
+
+        """
+        self.send(self.debris_mission_status_encode(time_usec, phase, reason, time_in_phase, rate, rate_sigma, ci95_pct, inertia, energy), force_mavlink1=force_mavlink1)
 
     def sys_status_encode(self, onboard_control_sensors_present: int, onboard_control_sensors_enabled: int, onboard_control_sensors_health: int, load: int, voltage_battery: int, current_battery: int, battery_remaining: int, drop_rate_comm: int, errors_comm: int, errors_count1: int, errors_count2: int, errors_count3: int, errors_count4: int, onboard_control_sensors_present_extended: int = 0, onboard_control_sensors_enabled_extended: int = 0, onboard_control_sensors_health_extended: int = 0) -> MAVLink_sys_status_message:
         """

@@ -278,6 +278,13 @@ class Telemetry:
             [float(x) for x in a.pointing_sigma_rad], float(a.rate_sigma_radps), int(a.source),
             min(int(a.hypotheses), 255), min(int(held), 0xFFFFFFFF)))
 
+    def mission_status(self, t_s: float, phase: int, reason: int, time_in_phase_s: float, rate_radps: float,
+                       rate_sigma_radps: float, ci95_pct: float, inertia_kgm2, energy_J) -> None:
+        """DEBRIS_MISSION_STATUS (`fsw.deorbit.mission`): the phase, why, the tumble, the identification."""
+        self._send(mavlink.MAVLink_debris_mission_status_message(
+            usec(t_s), int(phase), int(reason), float(time_in_phase_s), float(rate_radps), float(rate_sigma_radps),
+            float(ci95_pct), [float(x) for x in inertia_kgm2], [float(x) for x in energy_J]))
+
     def kit_field(self, t_s: float, channel: int, *, scale: float, scale_sigma: float, field_T, innovation_T: float,
                   fit_rms_T: float, steps: int, ill_conditioned: int, outliers: int, flagged: int,
                   moving: bool) -> None:

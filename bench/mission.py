@@ -1,0 +1,314 @@
+"""The mission benchmark: `python -m bench.mission [--seeds N] [--json FILE] [--plot FILE.png]`.
+
+Scenario `hil/scenarios/amds_mission.toml`: the AMDS-like spacecraft with its de-orbit kit at 600 km,
+its tensor unknown to the box (the truth differs from the box's guess by +25 %, +20 %, −20 % on the
+diagonal, with small products). Each seed draws a tumble of 2–5 °/s about a random axis (relative to the
+orbital frame) and a random attitude, the sensor's noise and the host calibration's errors. Composed as
+SITL is (`hil.sitl.build`, lockstep, the flight software at `--rate` Hz on a null link), with the mission
+(`fsw.deorbit.mission`) driving everything automatically: TUMBLING → RATES_KNOWN → IDENTIFYING (the kit's
+magnets as the known torque) → DETUMBLING (the kit's pulses, `fsw.deorbit.detumble`) → STABILISING (the
+de-orbit controller on the onboard estimate with the identified tensor) → STABILISED.
+
+Per run (:func:`run_one`, the unit a campaign can distribute): the time each phase was entered, the
+kit's energy per phase, the identified tensor against the truth (`inertia_err_pct`: the largest
+component error in % of the largest true moment; `ci95_covered`: every component within its 95 %
+interval), `stabilised` (STABILISED reached and the true yaw and pitch within 0.2 rad over the last
+`score_s`), the largest true |ω| after the kit first acted against the tumble at the start
+(`spun_up`: above it by 10 %), and the final phase with its reason. The aggregate JSON has `runs`,
+`inertia_err_pct_max`, `ci95_coverage` (the fraction of runs whose six intervals all cover),
+`fraction_stabilised`, `time_to_phase_s` (mean and max per phase over the runs that reached it) and
+`energy_J_by_phase` (mean per phase).
+
+`--fault KIND:CH:T` injects a kit fault into the emulator (as `bench.deorbit`: stall, stuck, switch, gpio)
+at true time T.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range
+from fsw.config import RunConfig
+from fsw.deorbit.controller import euler_zyx
+from fsw.deorbit.mission import MissionConfig, Phase
+from fsw.files import write_atomic
+from fsw.system import NullLink
+from ground.plot import check_plot_path_or_exit, save_figure
+
+from bench.deorbit import Fault, _sign, hand_over_calibration
+from hil import scenario as scenarios
+from hil import sitl
+
+DEFAULT_SCENARIO = "amds_mission"
+DEFAULT_PARAMS = {"scenario": DEFAULT_SCENARIO, "duration_s": None, "rate_hz": 5.0, "rate_filter": "euler",
+                  "faults": (), "tumble_dps": (2.0, 5.0), "score_s": 1800.0, "trace": False, "mission": {}}
+PHASES = tuple(p.name for p in Phase)
+
+
+def seeded_scenario(scn: scenarios.Scenario, seed: int, tumble_dps=(2.0, 5.0)) -> tuple[scenarios.Scenario, float]:
+    """The scenario with seed `seed`'s tumble (|ω| uniform in `tumble_dps`, a random axis) and attitude
+    (yaw, pitch, roll uniform); seed 0 keeps the scenario's own. Returns it and |ω| in °/s."""
+    if seed == 0:
+        return scn, float(np.linalg.norm(scn.deorbit.initial_rate_dps))
+    rng = np.random.default_rng(20_000 + seed)
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    rate = float(rng.uniform(*tumble_dps))
+    ypr = (float(rng.uniform(-180, 180)), float(np.degrees(np.arcsin(rng.uniform(-1, 1)))),
+           float(rng.uniform(-180, 180)))
+    spec = dataclasses.replace(scn.deorbit, initial_rate_dps=tuple(float(x) for x in rate * axis), initial_ypr_deg=ypr)
+    return dataclasses.replace(scn, deorbit=spec), rate
+
+
+def run_one(seed: int, params: dict | None = None) -> dict:
+    """One mission from a tumble; `params` (see DEFAULT_PARAMS) override the defaults (`mission`: fields of
+    `fsw.deorbit.mission.MissionConfig`). A JSON-ready dict."""
+    p = {**DEFAULT_PARAMS, **(params or {})}
+    scn, tumble = seeded_scenario(scenarios.load(p["scenario"]), seed, p["tumble_dps"])
+    if scn.mission is None:
+        raise ValueError(f"scenario {scn.name!r} has no [mission] table")
+    duration = float(p["duration_s"] or scn.mission.duration_s)
+    rate_hz = float(p["rate_hz"])
+    step = 1.0 / rate_hz
+    box = sitl.build(sitl.SitlConfig(RunConfig(rate_hz=rate_hz, buffer_frames=0, rate_filter=p["rate_filter"]),
+                                      scenario=scn, seed=seed,
+                                      max_step_s=step), link=NullLink(), run_id=0,
+                     mission_options={"config": MissionConfig(**p["mission"])})
+    sim, fsw = box.sim, box.fsw
+    hand_over_calibration(fsw.calibration, sim.host, seed=seed)
+    mission, kit = fsw.apps["mission"], fsw.apps["deorbit"]
+    faults = sorted((Fault.parse(f) if isinstance(f, str) else f for f in p["faults"]), key=lambda f: f.t_s)
+    trace = {k: [] for k in ("t_s", "phase", "rate_dps", "rate_est_dps", "rate_err_dps", "rate_sigma_dps", "yaw",
+                             "pitch", "est_yaw", "est_pitch", "pulse_pitch", "pulse_yaw", "energy_J")}
+    yaw_pitch = []
+    rate_after_kit = 0.0
+    n = int(round(duration * rate_hz))
+    every = max(1, int(round(rate_hz)))
+    wall0 = time.perf_counter()
+    for k in range(n + 1):
+        t_box = box.t0_s + k * step
+        box.advance(t_box)
+        while faults and faults[0].t_s <= sim.t_s:
+            f = faults.pop(0)
+            sim.kit.inject(f.channel, f.kind, f.value)
+        fsw.tick(t_box)
+        if k % every:
+            continue
+        R_bo, _, _ = sim.attitude_orbital()
+        yaw, pitch, _ = euler_zyx(R_bo)
+        w_true = math.degrees(float(np.linalg.norm(sim.truth().omega_radps)))
+        if mission.phase in (Phase.DETUMBLING, Phase.STABILISING, Phase.STABILISED):
+            rate_after_kit = max(rate_after_kit, w_true)
+        yaw_pitch.append((sim.t_s, yaw, pitch))
+        if p["trace"]:
+            rep = kit.attitude.report() if kit.attitude is not None and hasattr(kit.attitude, "report") else None
+            chs = sim.kit.channels
+            for key, v in (("t_s", sim.t_s), ("phase", int(mission.phase)), ("rate_dps", w_true),
+                           ("rate_est_dps", math.degrees(mission.rate_radps)),
+                           ("rate_err_dps", math.degrees(float(np.linalg.norm(mission.omega_radps
+                                                                              - sim.truth().omega_radps)))
+                            if mission.omega_radps is not None else math.nan),
+                           ("rate_sigma_dps", math.degrees(mission.rate_sigma_radps)), ("yaw", yaw), ("pitch", pitch),
+                           ("est_yaw", rep.yaw_rad if rep else math.nan),
+                           ("est_pitch", rep.pitch_rad if rep else math.nan),
+                           ("pulse_pitch", chs[0].shutter * _sign(chs[0])),
+                           ("pulse_yaw", chs[1].shutter * _sign(chs[1])),
+                           ("energy_J", kit.energy().total_J)):
+                trace[key].append(float(v))
+    wall = time.perf_counter() - wall0
+    return _result(seed, tumble, scn, mission, kit, sim, yaw_pitch, rate_after_kit, duration, p, wall,
+                   trace if p["trace"] else None)
+
+
+def _result(seed, tumble, scn, mission, kit, sim, yaw_pitch, rate_after_kit, duration, p, wall, trace) -> dict:
+    J = np.asarray(scn.inertia_kgm2, float)
+    true6 = np.array([J[0, 0], J[1, 1], J[2, 2], J[0, 1], J[0, 2], J[1, 2]])
+    res = mission.ident.result
+    est = res.estimate if res is not None and res.final else None
+    if mission.J_kgm2 is not None:
+        Ji = mission.J_kgm2
+        id6 = np.array([Ji[0, 0], Ji[1, 1], Ji[2, 2], Ji[0, 1], Ji[0, 2], Ji[1, 2]])
+        ci = np.asarray(est.ci95, float) if est is not None else np.full(6, math.nan)
+        err = id6 - true6
+        err_pct = float(100 * np.max(np.abs(err)) / np.max(true6[:3]))
+        covered = bool(np.all(np.abs(err) <= ci))
+    else:
+        id6, ci, err_pct, covered = np.full(6, math.nan), np.full(6, math.nan), math.nan, False
+    entered: dict[str, float] = {}
+    for t, _, new, _ in mission.transitions:
+        entered.setdefault(Phase(new).name, float(t))
+    ypt = np.asarray(yaw_pitch)
+    last = ypt[:, 0] >= ypt[-1, 0] - p["score_s"]
+    within = bool(np.all(np.abs(ypt[last, 1:]) <= 0.2))
+    led = kit.energy()
+    return {
+        "seed": seed, "scenario": scn.name, "duration_s": duration, "tumble_dps": tumble,
+        "inertia_true": true6.tolist(), "inertia_id": id6.tolist(), "ci95": ci.tolist(),
+        "inertia_err_pct": err_pct, "ci95_covered": covered, "ci95_pct": mission.ci95_pct,
+        "ident_attempts": mission.attempts,
+        "time_to_phase_s": entered, "energy_J_by_phase": mission.energy_by_phase(),
+        "energy_J": round(led.total_J, 1), "capsule_openings": sum(c.openings for c in led.channels),
+        "magnet_turns": sum(c.turns for c in led.channels),
+        "final_phase": mission.phase.name, "final_reason": mission.reason_text,
+        "stabilised": bool(mission.phase is Phase.STABILISED and within),
+        "within_0p2_rad_at_end": within,
+        "yaw_pitch_end_rad": [float(ypt[-1, 1]), float(ypt[-1, 2])],
+        "rate_max_after_kit_dps": rate_after_kit, "spun_up": bool(rate_after_kit > 1.1 * tumble),
+        "interlock_violations": kit.sequencer.interlock_violations + sim.kit.interlock_violations,
+        "safe_entries": kit.sequencer.safe_entries, "faults": [f if isinstance(f, str) else f.__dict__
+                                                                for f in p["faults"]],
+        "detumble_decisions": mission.law.decisions, "detumble_held": mission.law.held,
+        "transitions": [[t, Phase(a).name, Phase(b).name, why] for t, a, b, why in mission.transitions],
+        "wall_s": round(wall, 1), **({"trace": trace} if trace is not None else {}),
+    }
+
+
+def aggregate(runs: list[dict]) -> dict:
+    """The figures over the runs (see the module docstring)."""
+    errs = np.array([r["inertia_err_pct"] for r in runs], float)
+    times = {}
+    for ph in PHASES:
+        ts = [r["time_to_phase_s"][ph] for r in runs if ph in r["time_to_phase_s"]]
+        if ts:
+            times[ph] = {"mean": float(np.mean(ts)), "max": float(np.max(ts)), "runs": len(ts)}
+    energy = {ph: float(np.mean([r["energy_J_by_phase"][ph] for r in runs])) for ph in PHASES}
+    return {
+        "runs": runs,
+        "inertia_err_pct_max": float(np.nanmax(errs)) if np.isfinite(errs).any() else math.nan,
+        "inertia_err_pct_mean": float(np.nanmean(errs)) if np.isfinite(errs).any() else math.nan,
+        "identified": int(np.isfinite(errs).sum()),
+        "ci95_coverage": float(np.mean([r["ci95_covered"] for r in runs])),
+        "fraction_stabilised": float(np.mean([r["stabilised"] for r in runs])),
+        "spun_up": int(sum(r["spun_up"] for r in runs)),
+        "time_to_phase_s": times, "energy_J_by_phase": energy,
+        "energy_J_mean": float(np.mean([r["energy_J"] for r in runs])),
+        "interlock_violations": int(sum(r["interlock_violations"] for r in runs)),
+    }
+
+
+def line(r: dict) -> str:
+    t = r["time_to_phase_s"]
+    return (f"seed {r['seed']:3d}: tumble {r['tumble_dps']:.2f} dps, tensor err {r['inertia_err_pct']:.2f} % "
+            f"(ci95 {r['ci95_pct']:.2f} %, covered {r['ci95_covered']}), detumbling at "
+            f"{t.get('DETUMBLING', math.nan):.0f} s, stabilising at {t.get('STABILISING', math.nan):.0f} s, "
+            f"stabilised at {t.get('STABILISED', math.nan):.0f} s, end {r['final_phase']} ({r['final_reason']}), "
+            f"{r['energy_J']:.0f} J, wall {r['wall_s']:.0f} s")
+
+
+def plot(r: dict, path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tr = r["trace"]
+    t = np.asarray(tr["t_s"])
+    fig, ax = plt.subplots(4, 1, figsize=(11, 11), sharex=True)
+    ax[0].plot(t, tr["phase"], drawstyle="steps-post", color="k")
+    ax[0].set_yticks(range(len(PHASES)), PHASES, fontsize=7)
+    ax[0].set_title(f"mission, seed {r['seed']}: phases (tumble {r['tumble_dps']:.1f} °/s, tensor error "
+                    f"{r['inertia_err_pct']:.2f} % of the largest moment, {r['energy_J']:.0f} J)")
+    ax[1].semilogy(t, np.maximum(tr["rate_dps"], 1e-3), label="|ω| truth")
+    ax[1].semilogy(t, np.maximum(np.nan_to_num(tr["rate_est_dps"], nan=1e-3), 1e-3), lw=0.8, label="|ω| estimated")
+    ax[1].set_ylabel("rate [°/s]")
+    ax[1].legend(fontsize=8)
+    ax[2].fill_between(t, tr["pulse_pitch"], step="post", color="tab:purple", lw=0, alpha=0.7, label="pitch magnet")
+    ax[2].fill_between(t, tr["pulse_yaw"], step="post", color="tab:orange", lw=0, alpha=0.5, label="yaw magnet")
+    ax[2].set_ylabel("opening × sign")
+    ax[2].legend(fontsize=8)
+    for key, est, c in (("yaw", "est_yaw", "tab:blue"), ("pitch", "est_pitch", "tab:red")):
+        ax[3].plot(t, tr[key], color=c, lw=0.8, label=f"{key} truth")
+        ax[3].plot(t, tr[est], color=c, lw=0.8, ls="--", label=f"{key} estimated")
+    ax[3].axhspan(-0.2, 0.2, color="tab:green", alpha=0.12)
+    ax[3].set_ylabel("[rad]")
+    ax[3].set_xlabel("time [s]")
+    ax[3].legend(fontsize=8, ncol=4)
+    fig.tight_layout()
+    try:
+        save_figure(fig, path, dpi=100)
+    finally:
+        plt.close(fig)
+
+
+def merge(ap, paths: list[str], out_path: str | None) -> int:
+    """The runs of several JSON files of this tool (e.g. two processes' seeds) aggregated into `out_path`."""
+    if not out_path:
+        ap.error("--merge needs --json")
+    if Path(out_path).resolve() in {Path(x).resolve() for x in paths}:
+        ap.error("--json must not be one of the --merge inputs")
+    runs, first = [], None
+    for path in paths:
+        try:
+            d = json.loads(Path(path).read_text(encoding="utf-8"))
+            runs += d["runs"]
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            print(f"error: {path}: not a bench.mission JSON ({e})", file=sys.stderr)
+            return 1
+        first = first or d
+    runs.sort(key=lambda r: r["seed"])
+    write_atomic(out_path, json.dumps({"scenario": first["scenario"], "params": first["params"], **aggregate(runs)},
+                                      indent=2, default=float))
+    print(f"wrote {out_path}: {len(runs)} runs")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = ArgumentParser(prog="python -m bench.mission", description=__doc__.splitlines()[0])
+    ap.add_argument("--scenario", default=DEFAULT_SCENARIO, metavar="NAME|FILE")
+    ap.add_argument("--seeds", type=int_range(1, 1000), default=10, metavar="N", help="seeds 0..N-1 (default 10)")
+    ap.add_argument("--first-seed", type=int_range(0, 2**31 - 1), default=0, metavar="K")
+    ap.add_argument("--duration", type=finite_float(0, min_exclusive=True), default=None, metavar="S",
+                    help="default: the scenario's [mission] duration_s")
+    ap.add_argument("--rate", type=finite_float(1, 100), default=DEFAULT_PARAMS["rate_hz"], metavar="HZ",
+                    help="loop rate (default 5 Hz)")
+    ap.add_argument("--fault", action="append", default=[], metavar="KIND:CH:T[:VALUE]",
+                    help="a kit fault, as bench.deorbit's: stall:pitch:1500, stuck:yaw:900:0.5")
+    ap.add_argument("--json", metavar="FILE", help="write the runs and the aggregate figures (after every run)")
+    ap.add_argument("--merge", nargs="+", metavar="JSON", default=None,
+                    help="no run: the runs of these JSON files (from this tool) aggregated into --json")
+    ap.add_argument("--plot", metavar="FILE.png", help="the first seed's phases, rates, pulses, attitude")
+    args = ap.parse_args(argv)
+    scenario_file = args.scenario if Path(args.scenario).is_file() else None
+    check_paths_or_exit(ap, inputs={"--scenario": scenario_file}, outputs={"--json": args.json, "--plot": args.plot})
+    check_plot_path_or_exit(ap, args.plot)
+    if args.merge:
+        return merge(ap, args.merge, args.json)
+    params = {"scenario": args.scenario, "duration_s": args.duration, "rate_hz": args.rate}
+    runs = []
+    try:
+        for f in args.fault:
+            Fault.parse(f)
+        params["faults"] = tuple(args.fault)
+        for i, seed in enumerate(range(args.first_seed, args.first_seed + args.seeds)):
+            r = run_one(seed, {**params, "trace": bool(args.plot) and i == 0})
+            if "trace" in r:
+                plot(r, args.plot)
+                print(f"wrote {args.plot}")
+                del r["trace"]
+            runs.append(r)
+            print(line(r), flush=True)
+            if args.json:
+                write_atomic(args.json, json.dumps({"scenario": args.scenario, "params": params, **aggregate(runs)},
+                                                   indent=2, default=float))
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    out = {"scenario": args.scenario, "params": params, **aggregate(runs)}
+    print(f"{len(runs)} runs: tensor error max {out['inertia_err_pct_max']:.2f} % of the largest moment, ci95 "
+          f"coverage {100 * out['ci95_coverage']:.0f} %, stabilised {100 * out['fraction_stabilised']:.0f} %, "
+          f"spun up {out['spun_up']}")
+    if args.json:
+        print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    from fsw.startup import exit_with
+
+    exit_with(main)

@@ -1,0 +1,415 @@
+"""The mission on the box's own estimates: tumbling → identified → detumbled → stabilised to the flow.
+
+An onboard application (`fsw.app.App`, "mission") that drives the identification experiment
+(`fsw.ident`) and the de-orbit kit (`fsw.deorbit.kit`) through the phases of DEBRIS_MISSION_PHASE.
+Every change is automatic on the criterion below, or commanded (signed MAV_CMD_DEBRIS_MISSION_PHASE
+54016 / MAV_CMD_DEBRIS_MISSION_SAFE 54017); each is reported as STATUSTEXT and in DEBRIS_MISSION_STATUS
+(1 Hz: phase, time in phase, reason, the tumble, the identification, the kit's energy per phase).
+
+Phases, what the box does in each, and when it leaves (automatic):
+
+- TUMBLING: the flown rate filter runs on the calibrated samples. → RATES_KNOWN when the rate's 1-σ
+  (largest axis) stays ≤ `rate_sigma_max_radps` for `rates_hold_s`.
+- RATES_KNOWN: both magnets homed (capsules closed). → IDENTIFYING when both are homed and the experiment
+  starts (or DETUMBLING at once with a tensor kept across a restart that meets the accuracy).
+- IDENTIFYING: the experiment (`fsw.ident`, source MAGNETS) with the kit's magnets as the known torque:
+  both capsules open at the homed polarity for `ident_torque_s` between free observations, M = p × B
+  with p as the sequencer reports it, the output-error fit. → DETUMBLING when the final fit's 95 %
+  half-widths are all ≤ `ident_ci95_frac` of the largest moment; else another attempt, SAFE after
+  `ident_attempts`.
+- DETUMBLING: the kit's pulses on `fsw.deorbit.detumble.DetumbleLaw`. → STABILISING when |ω| stays
+  ≤ `detumbled_radps` for `detumbled_hold_s`; SAFE on a spin-up or after `detumble_max_s`.
+- STABILISING: the de-orbit controller (`fsw.deorbit.controller`) on the onboard attitude estimate
+  (`fsw.deorbit.onboard_attitude`), both given the identified tensor. → STABILISED when the trusted
+  estimate's yaw and pitch stay within `stabilised_rad` for `stabilised_hold_s`.
+- STABILISED: the controller runs on.
+- SAFE: the kit's safe mode (capsules closed), no pulses; left only by command (the kit must be able to
+  leave its safe mode: every capsule confirmed closed).
+
+Spin-up guard: while the kit detumbles, |ω| (smoothed over `spin_up_smoothing_s`: the estimate's own
+noise is a few tenths of a °/s on a tumble) above `spin_up_factor` × its lowest value since the phase began
+(and above that lowest value by `spin_up_margin_radps`) sends the mission to SAFE: the kit never spins the
+tumble up for long. The kit going to its own safe mode (a latched fault) sends the mission to SAFE with the
+kit's reason. After a restart the mission starts again in TUMBLING; an identified tensor kept across the
+restart (`fsw.persist`) that meets the accuracy is used without a new experiment.
+
+Rates: `rates` is the flown rate filter (``omega_radps``, ``sigma_radps``, ``flags``), handed over by the
+composition. Time is the loop's `now_s`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from enum import IntEnum
+from types import SimpleNamespace
+from typing import Callable
+
+import numpy as np
+
+from fsw.commands import BadParam, int_param
+from fsw.ident import ABORTED, DONE, RUNNING
+from fsw.telemetry.dialect import mavlink
+
+from .controller import DiscreteController
+from .detumble import DetumbleConfig, DetumbleLaw
+from .kit import DeorbitKit
+from .sequencer import KitMode, Outcome
+
+
+class Phase(IntEnum):
+    """DEBRIS_MISSION_PHASE."""
+
+    TUMBLING = 0
+    RATES_KNOWN = 1
+    IDENTIFYING = 2
+    DETUMBLING = 3
+    STABILISING = 4
+    STABILISED = 5
+    SAFE = 6
+
+
+class Reason(IntEnum):
+    """DEBRIS_MISSION_REASON."""
+
+    START = 0
+    AUTOMATIC = 1
+    COMMANDED = 2
+    KIT_SAFE = 3
+    SPIN_UP = 4
+    TIMEOUT = 5
+    IDENT_FAILED = 6
+
+
+@dataclass(frozen=True)
+class MissionConfig:
+    rate_sigma_max_radps: float = math.radians(0.25)
+    rates_hold_s: float = 120.0
+    ident_free_s: float = 300.0
+    ident_torque_s: float = 1500.0
+    ident_after_s: float = 300.0
+    ident_ci95_frac: float = 0.03
+    ident_attempts: int = 2
+    detumbled_radps: float = math.radians(0.15)
+    detumbled_hold_s: float = 300.0
+    detumble_max_s: float = 6 * 3600.0
+    spin_up_factor: float = 1.3
+    spin_up_margin_radps: float = math.radians(0.5)
+    spin_up_smoothing_s: float = 300.0     # the guard watches |ω| smoothed over this (the estimate's noise)
+    stabilised_rad: float = 0.2
+    stabilised_hold_s: float = 1800.0
+    status_period_s: float = 1.0
+
+
+class KitMagnets:
+    """The kit as the identification experiment's magnets (`fsw.ident.Magnets`): both capsules opened at
+    the polarity the magnets are homed at, the dipole as the sequencer knows it."""
+
+    def __init__(self, kit: DeorbitKit) -> None:
+        self.kit = kit
+
+    def open(self, now_s: float) -> bool:
+        seq = self.kit.sequencer
+        outs = [seq.request_capsule(i, True, now_s) for i in range(len(seq.channels))]
+        return all(o.accepted for o in outs)
+
+    def close(self, now_s: float) -> None:
+        seq = self.kit.sequencer
+        for i in range(len(seq.channels)):
+            seq.request_capsule(i, False, now_s)
+
+    def dipole_body_Am2(self) -> np.ndarray:
+        return self.kit.known_dipole_body_Am2()
+
+
+def ci95_pct(estimate) -> float:
+    """The worst 95 % half-width of a tensor estimate (`fsw.estimation.inertia.InertiaEstimate` or the
+    fields of DEBRIS_INERTIA_ESTIMATE) in % of its largest moment."""
+    p = np.asarray(estimate["inertia"] if isinstance(estimate, dict) else estimate.p, float)
+    ci = np.asarray(estimate["ci95"] if isinstance(estimate, dict) else estimate.ci95, float)
+    big = float(np.max(p[:3]))
+    if not (big > 0 and np.all(np.isfinite(ci))) or not np.any(ci):
+        return math.nan
+    return 100.0 * float(np.max(ci)) / big
+
+
+def tensor_of(p6) -> np.ndarray:
+    """(3, 3) from Ixx, Iyy, Izz, Ixy, Ixz, Iyz."""
+    xx, yy, zz, xy, xz, yz = (float(v) for v in p6)
+    return np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+
+
+class Mission:
+    """The mission's phases over the kit `kit` and the experiment `ident`; `inertia_guess_kgm2` the
+    box's rough guess (3,) until the tensor is identified."""
+
+    name = "mission"
+    rate_hz = math.inf   # every sample (the detumbling law's field)
+    budget = 0.1
+
+    def __init__(self, kit: DeorbitKit, ident, *, inertia_guess_kgm2=(17.995, 20.711, 15.269),
+                 config: MissionConfig = MissionConfig(), detumble: DetumbleConfig | None = None,
+                 rates=None, on_phase: Callable[[float, Phase, Phase, str], None] | None = None) -> None:
+        self.kit, self.ident, self.cfg, self.rates = kit, ident, config, rates
+        self.law = DetumbleLaw(detumble or DetumbleConfig(), kit._magnets, np.diag(inertia_guess_kgm2))
+        self.inertia_guess = np.asarray(inertia_guess_kgm2, float)
+        self.J_kgm2: np.ndarray | None = None  # the identified tensor (3, 3)
+        self.ci95_pct = math.nan
+        self.on_phase = on_phase
+        # the controller's attitude source waits for STABILISING (its filter needs the identified tensor):
+        # taken off the kit at the first tick, after the flight software's composition gave it its field
+        self._attitude_template = None
+        self.phase = Phase.TUMBLING
+        self.reason = Reason.START
+        self.reason_text = "start"
+        self.t_phase_s = math.nan
+        self.energy_J = [0.0] * len(Phase)
+        self._energy_mark = self._kit_energy()
+        self.transitions: list[tuple[float, int, int, str]] = []
+        self.attempts = 0
+        self._held_since = math.nan
+        self._min_rate = math.inf
+        self._smooth_rate, self._smooth_t = math.nan, math.nan
+        self._next_status_s = -math.inf
+        self._texts: list[str] = []
+        self.omega_radps: np.ndarray | None = None
+        self.rate_sigma_radps = math.nan
+
+    # --- commands --------------------------------------------------------------------------------
+    def register(self, router) -> None:
+        router.register(mavlink.MAV_CMD_DEBRIS_MISSION_PHASE, self.cmd_phase, changes_state=True)
+        router.register(mavlink.MAV_CMD_DEBRIS_MISSION_SAFE, self.cmd_safe, changes_state=True)
+
+    def cmd_safe(self, msg, now_s: float) -> int:
+        self._enter(now_s, Phase.SAFE, Reason.COMMANDED, "ground command")
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    def cmd_phase(self, msg, now_s: float) -> int:
+        """MAV_CMD_DEBRIS_MISSION_PHASE: param1 the phase (IDENTIFYING: via RATES_KNOWN, which homes the
+        magnets first). FAILED: STABILISING/STABILISED without an identified tensor, or the kit refusing to
+        leave its safe mode (a capsule not confirmed closed)."""
+        try:
+            phase = Phase(int_param(getattr(msg, "param1", math.nan), 0, len(Phase) - 1, "phase"))
+        except BadParam:
+            return mavlink.MAV_RESULT_DENIED
+        if phase is Phase.SAFE:
+            return self.cmd_safe(msg, now_s)
+        if phase in (Phase.STABILISING, Phase.STABILISED) and self.J_kgm2 is None:
+            return mavlink.MAV_RESULT_FAILED
+        seq = self.kit.sequencer
+        if seq.mode is KitMode.SAFE and not seq.leave_safe(now_s).accepted:
+            return mavlink.MAV_RESULT_FAILED
+        if phase is Phase.IDENTIFYING:
+            phase = Phase.RATES_KNOWN
+        self._enter(now_s, phase, Reason.COMMANDED, "ground command")
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    # --- the loop ---------------------------------------------------------------------------------
+    def tick(self, now_s: float, sample) -> None:
+        if math.isnan(self.t_phase_s):
+            self._attitude_template, self.kit.attitude = self.kit.attitude, None
+            self._enter(now_s, Phase.TUMBLING, Reason.START, "start")
+        if sample is not None:
+            self.law.update_field(sample.t_s, sample.b_T)
+        self._read_rates()
+        if self.phase is not Phase.SAFE and self.kit.sequencer.mode is KitMode.SAFE:
+            why = self.kit.sequencer.last_safe_reason or "kit safe mode"
+            self._enter(now_s, Phase.SAFE, Reason.KIT_SAFE, why)
+            return
+        getattr(self, f"_in_{self.phase.name.lower()}")(now_s)
+
+    def _read_rates(self) -> None:
+        r = self.rates
+        if r is None or r.flags & getattr(r, "NO_ESTIMATE", 0):
+            self.omega_radps, self.rate_sigma_radps = None, math.nan
+            return
+        self.omega_radps = np.array(r.omega_radps, float)
+        self.rate_sigma_radps = float(np.max(r.sigma_radps))
+        self.law.update_rate(self.omega_radps, self.rate_sigma_radps)
+
+    @property
+    def rate_radps(self) -> float:
+        return math.nan if self.omega_radps is None else float(np.linalg.norm(self.omega_radps))
+
+    def _held(self, now_s: float, ok: bool, hold_s: float) -> bool:
+        """True once `ok` has held for `hold_s` in a row."""
+        if not ok:
+            self._held_since = math.nan
+            return False
+        if math.isnan(self._held_since):
+            self._held_since = now_s
+        return now_s - self._held_since >= hold_s
+
+    def _in_tumbling(self, now_s: float) -> None:
+        ok = self.rate_sigma_radps <= self.cfg.rate_sigma_max_radps
+        if self._held(now_s, ok, self.cfg.rates_hold_s):
+            self._enter(now_s, Phase.RATES_KNOWN, Reason.AUTOMATIC,
+                        f"rate sigma {math.degrees(self.rate_sigma_radps):.3f} dps")
+
+    def _in_rates_known(self, now_s: float) -> None:
+        restored = getattr(self.ident, "restored", None)
+        if self.J_kgm2 is None and restored is not None and ci95_pct(restored) <= 100 * self.cfg.ident_ci95_frac:
+            self._identified(restored["inertia"], ci95_pct(restored))
+            self._enter(now_s, Phase.DETUMBLING, Reason.AUTOMATIC, f"tensor kept, ci95 {self.ci95_pct:.1f} %")
+            return
+        seq = self.kit.sequencer
+        homed = all(ch.stepper.polarity != 0 and not ch.busy and not ch.stepper.moving for ch in seq.channels)
+        if not homed:
+            for i, ch in enumerate(seq.channels):
+                if ch.stepper.polarity == 0 and not ch.busy:
+                    seq.request_home(i, now_s)
+            return
+        msg = SimpleNamespace(param1=mavlink.DEBRIS_TORQUE_SOURCE_MAGNETS, param2=self.cfg.ident_free_s,
+                              param3=self.cfg.ident_torque_s, param4=self.cfg.ident_after_s, param5=0.0,
+                              param6=0.0, param7=0.0)
+        try:
+            result = self.ident.cmd_start(msg, now_s)
+        except BadParam as e:
+            self._say(f"mission: identification refused: {e}")
+            return
+        if result == mavlink.MAV_RESULT_ACCEPTED:
+            self.attempts += 1
+            self._enter(now_s, Phase.IDENTIFYING, Reason.AUTOMATIC, "magnets homed")
+
+    def _in_identifying(self, now_s: float) -> None:
+        if self.ident.state not in (DONE, ABORTED):
+            return
+        res = self.ident.result
+        pct = ci95_pct(res.estimate) if res is not None and res.final else math.nan
+        if pct <= 100 * self.cfg.ident_ci95_frac:
+            self._identified(res.estimate.p, pct)
+            self._enter(now_s, Phase.DETUMBLING, Reason.AUTOMATIC, f"tensor ci95 {pct:.1f} %")
+        elif self.attempts < self.cfg.ident_attempts:
+            self._say(f"mission: identification ci95 {pct:.1f} %, again")
+            self._enter(now_s, Phase.RATES_KNOWN, Reason.IDENT_FAILED, f"ci95 {pct:.1f} %")
+        else:
+            self._enter(now_s, Phase.SAFE, Reason.IDENT_FAILED, f"identification ci95 {pct:.1f} %")
+
+    def _identified(self, p6, pct: float) -> None:
+        self.J_kgm2 = tensor_of(p6)
+        self.ci95_pct = float(pct)
+        self.law.J_kgm2 = self.J_kgm2  # the detumbling law predicts ω with it
+
+    def _in_detumbling(self, now_s: float) -> None:
+        c, w = self.cfg, self.rate_radps
+        if now_s - self.t_phase_s > c.detumble_max_s:
+            self._enter(now_s, Phase.SAFE, Reason.TIMEOUT, f"still {math.degrees(w):.2f} dps")
+            return
+        trusted = self.rate_sigma_radps <= self.law.config.max_rate_sigma_radps
+        if trusted:
+            if math.isnan(self._smooth_rate):
+                self._smooth_rate, self._smooth_t = w, now_s
+            k = min(1.0, (now_s - self._smooth_t) / c.spin_up_smoothing_s)
+            self._smooth_rate += k * (w - self._smooth_rate)
+            self._smooth_t = now_s
+            ws = self._smooth_rate
+            self._min_rate = min(self._min_rate, ws)
+            if ws > c.spin_up_factor * self._min_rate and ws > self._min_rate + c.spin_up_margin_radps:
+                self._enter(now_s, Phase.SAFE, Reason.SPIN_UP,
+                            f"rate {math.degrees(ws):.2f} dps up from {math.degrees(self._min_rate):.2f}")
+                return
+        if self._held(now_s, trusted and w <= c.detumbled_radps, c.detumbled_hold_s):
+            self._enter(now_s, Phase.STABILISING, Reason.AUTOMATIC, f"rate {math.degrees(w):.3f} dps")
+
+    def _in_stabilising(self, now_s: float) -> None:
+        att = self.kit.attitude
+        rep = att.report() if att is not None and hasattr(att, "report") else None
+        ok = (rep is not None and getattr(att, "trusted", True) and abs(rep.yaw_rad) <= self.cfg.stabilised_rad
+              and abs(rep.pitch_rad) <= self.cfg.stabilised_rad)
+        if self._held(now_s, bool(ok), self.cfg.stabilised_hold_s):
+            self._enter(now_s, Phase.STABILISED, Reason.AUTOMATIC,
+                        f"yaw {rep.yaw_rad:+.2f} pitch {rep.pitch_rad:+.2f} rad")
+
+    def _in_stabilised(self, now_s: float) -> None:
+        pass
+
+    def _in_safe(self, now_s: float) -> None:
+        pass
+
+    # --- phase changes ------------------------------------------------------------------------------
+    def _kit_energy(self) -> float:
+        return float(self.kit.energy().total_J)
+
+    def _enter(self, now_s: float, phase: Phase, reason: Reason, why: str) -> None:
+        e = self._kit_energy()
+        if not math.isnan(self.t_phase_s):
+            self.energy_J[self.phase] += e - self._energy_mark
+        self._energy_mark = e
+        old = self.phase
+        self._leave(now_s, old, phase)
+        self.phase, self.reason, self.reason_text, self.t_phase_s = phase, reason, why, now_s
+        self._held_since = math.nan
+        self.transitions.append((now_s, int(old), int(phase), why))
+        self._say(f"mission {phase.name}: {why}")
+        self._start(now_s, phase)
+        if self.on_phase is not None:
+            self.on_phase(now_s, old, phase, why)
+
+    def _leave(self, now_s: float, old: Phase, new: Phase) -> None:
+        seq = self.kit.sequencer
+        if old is Phase.IDENTIFYING and new is not Phase.IDENTIFYING and self.ident.state in RUNNING:
+            self.ident.cmd_stop(None, now_s)
+        if old is Phase.DETUMBLING:
+            self.kit.law = None
+        if new in (Phase.TUMBLING, Phase.RATES_KNOWN, Phase.IDENTIFYING) and seq.mode is KitMode.RUNNING:
+            seq.stop_controller(now_s)
+            self.kit.law = None
+
+    def _start(self, now_s: float, phase: Phase) -> None:
+        kit, seq = self.kit, self.kit.sequencer
+        if phase is Phase.SAFE:
+            kit.law = None
+            if self.ident.state in RUNNING:
+                self.ident.cmd_stop(None, now_s)
+            seq.enter_safe(now_s, f"mission: {self.reason_text}")
+        elif phase is Phase.DETUMBLING:
+            self._min_rate, self._smooth_rate = math.inf, math.nan
+            kit.attitude = None
+            kit.law = self.law
+            if seq.mode is not KitMode.RUNNING:
+                out = seq.start_controller(now_s)
+                if out is not Outcome.STARTED:
+                    self._say(f"mission: kit refused to run: {out.name}")
+            kit.next_decision_s = now_s
+        elif phase is Phase.STABILISING:
+            self._hand_over(now_s)
+
+    def _hand_over(self, now_s: float) -> None:
+        """The controller and its attitude filter get the identified tensor; the controller drives the kit."""
+        kit, seq = self.kit, self.kit.sequencer
+        kit.law = None
+        J = self.J_kgm2 if self.J_kgm2 is not None else np.diag(self.inertia_guess)
+        cfg = kit.controller.config
+        kit.controller = DiscreteController(replace(cfg, inertia_kgm2=tuple(float(x) for x in np.diag(J))))
+        tpl = self._attitude_template
+        if tpl is not None and hasattr(tpl, "model"):
+            kit.attitude = type(tpl)(tpl.sigma_b_T, replace(tpl.model, inertia_kgm2=tuple(map(tuple, J))),
+                                     tpl.tuning, tpl.gate, tpl.provider)
+        else:
+            kit.attitude = tpl
+        if seq.mode is not KitMode.RUNNING:
+            seq.start_controller(now_s)
+        kit.next_decision_s = now_s
+
+    # --- telemetry ------------------------------------------------------------------------------------
+    def _say(self, text: str) -> None:
+        self._texts.append(text)
+        del self._texts[:-16]
+
+    def energy_by_phase(self) -> dict:
+        """{phase name: J} including the running phase's energy so far."""
+        e = list(self.energy_J)
+        if not math.isnan(self.t_phase_s):
+            e[self.phase] += self._kit_energy() - self._energy_mark
+        return {p.name: round(e[p], 1) for p in Phase}
+
+    def telemetry(self, now_s: float, tlm) -> None:
+        while self._texts:
+            text = self._texts.pop(0)
+            sev = mavlink.MAV_SEVERITY_WARNING if "SAFE" in text or "refused" in text else mavlink.MAV_SEVERITY_INFO
+            tlm.statustext(text, sev)
+        if now_s >= self._next_status_s and not math.isnan(self.t_phase_s):
+            self._next_status_s = max(self._next_status_s + self.cfg.status_period_s, now_s)
+            J = self.J_kgm2 if self.J_kgm2 is not None else np.diag(self.inertia_guess)
+            tlm.mission_status(now_s, int(self.phase), int(self.reason), now_s - self.t_phase_s, self.rate_radps,
+                               self.rate_sigma_radps, self.ci95_pct, np.diag(J),
+                               list(self.energy_by_phase().values()))

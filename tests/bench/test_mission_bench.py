@@ -1,0 +1,67 @@
+"""The mission benchmark (`bench.mission`): a short mission in the SITL composition (slow), the aggregate
+figures from runs, the command line's refusals. The full benchmark is `python -m bench.mission --seeds 10`."""
+import math
+
+import pytest
+
+from bench import mission
+from support import exit_status
+
+pytestmark = pytest.mark.bench
+
+
+@pytest.mark.slow
+def test_a_short_mission_identifies_with_the_kits_magnets():
+    """From the scenario's 3.5 °/s tumble, with a short experiment: the rates trusted, the magnets homed,
+    the experiment run on the kit's own magnets (capsules opened, energy booked to IDENTIFYING), its fit
+    finished; no interlock violation."""
+    r = mission.run_one(0, {"duration_s": 1500.0, "mission": {
+        "rates_hold_s": 60.0, "ident_free_s": 60.0, "ident_torque_s": 600.0, "ident_after_s": 60.0,
+        "ident_attempts": 1}})
+    t = r["time_to_phase_s"]
+    assert t["RATES_KNOWN"] < 900.0 and t["IDENTIFYING"] > t["RATES_KNOWN"]
+    assert r["energy_J_by_phase"]["IDENTIFYING"] >= 2 * 23.0   # two capsules opened by their motors
+    assert r["capsule_openings"] >= 2
+    assert r["interlock_violations"] == 0
+    if "DETUMBLING" in t or "SAFE" in t:   # the experiment's end: judged on its intervals
+        assert math.isfinite(r["ci95_pct"]) or r["final_phase"] == "SAFE"
+
+
+def test_aggregate_figures():
+    base = {"inertia_err_pct": 1.0, "ci95_covered": True, "stabilised": True, "spun_up": False,
+            "time_to_phase_s": {"TUMBLING": 0.0, "DETUMBLING": 3000.0}, "interlock_violations": 0,
+            "energy_J_by_phase": {p: 10.0 for p in mission.PHASES}, "energy_J": 70.0}
+    runs = [base, {**base, "inertia_err_pct": 2.5, "ci95_covered": False, "stabilised": False,
+                   "time_to_phase_s": {"TUMBLING": 0.0, "DETUMBLING": 5000.0}},
+            {**base, "inertia_err_pct": math.nan, "ci95_covered": False, "time_to_phase_s": {"TUMBLING": 0.0}}]
+    a = mission.aggregate(runs)
+    assert a["inertia_err_pct_max"] == 2.5 and a["identified"] == 2
+    assert a["ci95_coverage"] == pytest.approx(1 / 3) and a["fraction_stabilised"] == pytest.approx(2 / 3)
+    assert a["time_to_phase_s"]["DETUMBLING"] == {"mean": 4000.0, "max": 5000.0, "runs": 2}
+    assert a["energy_J_by_phase"]["SAFE"] == 10.0
+
+
+@pytest.mark.parametrize("argv", [["--seeds", "0"], ["--fault", "bogus"], ["--rate", "0"],
+                                  ["--scenario", "amds_deorbit", "--seeds", "1", "--duration", "1"]])
+def test_bad_command_lines_exit_2(argv, capsys):
+    assert exit_status(mission.main, argv) == 2
+    assert "Traceback" not in capsys.readouterr().err
+
+
+def test_merge_aggregates_the_runs_of_several_files(tmp_path, capsys):
+    import json
+
+    run = {"seed": 3, "inertia_err_pct": 1.0, "ci95_covered": True, "stabilised": False, "spun_up": False,
+           "time_to_phase_s": {"TUMBLING": 0.0}, "interlock_violations": 0,
+           "energy_J_by_phase": {p: 1.0 for p in mission.PHASES}, "energy_J": 7.0}
+    for name, seed, err in (("a.json", 3, 1.0), ("b.json", 1, 2.0)):
+        (tmp_path / name).write_text(json.dumps({"scenario": "amds_mission", "params": {"rate_hz": 5.0},
+                                                 **mission.aggregate([{**run, "seed": seed,
+                                                                       "inertia_err_pct": err}])}))
+    out = tmp_path / "all.json"
+    assert mission.main(["--merge", str(tmp_path / "a.json"), str(tmp_path / "b.json"), "--json", str(out)]) == 0
+    d = json.loads(out.read_text())
+    assert [r["seed"] for r in d["runs"]] == [1, 3] and d["inertia_err_pct_max"] == 2.0
+    assert exit_status(mission.main, ["--merge", str(out), "--json", str(out)]) == 2   # never over an input
+    assert exit_status(mission.main, ["--merge", str(tmp_path / "none.json"), "--json", str(tmp_path / "x.json")]) == 1
+    assert "Traceback" not in capsys.readouterr().err
