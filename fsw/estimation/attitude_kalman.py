@@ -157,9 +157,10 @@ class AttitudeKalmanTuning:
       its first large corrections as information (on a 1 °/s tumble its σ along B fell to 0.3 °/s while it
       was 2–5 °/s off, for a minute). In the random-walk phase the floor is `along_b_perp_factor` × the σ
       perpendicular to B over sin(sweep)^`along_b_sweep_power`, sweep the largest angle B has moved in the
-      body since the start; without a field model, plus `along_b_field_turn_rel` × `field_rate_radps` (the
-      field's unmodelled turn, which the filter reads as the body's rate ⊥B and carries along B as B
-      moves) over sin of B's angle to its direction low-passed over `along_b_memory_s`.
+      body since the start (none when the start took another filter's rate and covariance, which has seen
+      B move: the flown filter's hand-over); without a field model, plus `along_b_field_turn_rel` ×
+      `field_rate_radps` (the field's unmodelled turn, which the filter reads as the body's rate ⊥B and
+      carries along B as B moves) over sin of B's angle to its direction low-passed over `along_b_memory_s`.
     about_b_turn_rad, about_b_sigma_rad: with a field model, the floor of the attitude's 1-σ about the
       field inside the filter: `about_b_sigma_rad` (0: none, the default; the published σ is floored
       by :func:`attitude_cov` with a uniform angle's π/√3) until the inertial field has turned by `about_b_turn_rad`
@@ -275,6 +276,7 @@ class AttitudeRateKalman:
         self._dt_nominal = math.inf
         self._b_i0 = None  # the inertial field's direction at the start (the floor about B)
         self._b_ref = None  # the field's direction in the body, low-passed (the rate's floor along B)
+        self._handed_over = False
         self.field_turn_rad = 0.0
 
     # -- public -----------------------------------------------------------------------------------
@@ -326,6 +328,8 @@ class AttitudeRateKalman:
         self._started = True
         self.t_s = t_s
         self._b_ref = None
+        # a rate handed over with its covariance (another filter's, which has seen B move) needs no floor
+        self._handed_over = rate_cov is not None and omega_radps is not None
         self._record_prediction(t_s, np.eye(n), restart=True)
         self._update(t_s, z)
         # a rate handed over with its covariance is an estimate from the first sample on
@@ -578,8 +582,8 @@ class AttitudeRateKalman:
         u = self._u
         v = float(u @ Pw @ u)
         s_perp = math.sqrt(max(float(np.trace(Pw)) - v, 0.0) / 2.0)
-        fs = 0.0  # Euler's equations carry the part along B through the dynamics
-        if not self.euler:
+        fs = 0.0  # Euler's equations carry the part along B through the dynamics; a handed-over P has seen it
+        if not (self.euler or self._handed_over):
             fs = tun.along_b_perp_factor * s_perp / max(math.sin(min(self._sweep0, math.pi / 2))
                                                         ** tun.along_b_sweep_power, 1e-9)
         ft = 0.0
