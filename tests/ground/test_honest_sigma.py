@@ -235,12 +235,28 @@ def test_attitude_filters_with_a_tle_carry_the_angle_about_b(slow_heavy):
 def test_smoother_with_a_tle_covers_its_error(slow_heavy):
     """The RTS smoother with the TLE on the slow heavy tumble: one pass from the likeliest of six
     angles about B claimed 0.025 °/s and was 0.14 °/s off (1-σ covered 16 %); as the Gaussian sum of
-    the six passes: 0.07 °/s off, covered 71 %."""
-    rec, _ = slow_heavy
-    res = sm.rts_smooth(rec.t_s, rec.b_T, ge.noise_estimate_T(rec.b_T), field_eci_T=rec.field())
-    assert 0.6 <= _cover(rec, res.w_radps, res.sigma_radps) <= 0.8
-    assert _rms_dps(rec, res.w_radps) < 0.1
-    assert len(res.info["angle_weights"]) == 6 and sum(res.info["angle_weights"]) == pytest.approx(1.0)
+    the six passes: 0.07 °/s off, covered 71 % on seed 0 but 33 % on seed 1 (the weights, over-sure by
+    the field model's own error, put 82 % on a pass 0.12 °/s off ⊥B); with the weights tempered
+    (`angle_sum.pass_temper`) 63 % over the two records, each within 40–85 %."""
+    seed1 = realistic.simulate("slow_heavy", seed=1)
+    hits = []
+    for rec in (slow_heavy[0], seed1):
+        res = sm.rts_smooth(rec.t_s, rec.b_T, ge.noise_estimate_T(rec.b_T), field_eci_T=rec.field())
+        ok = np.all(np.isfinite(res.w_radps), axis=1)
+        hits.append((np.abs(res.w_radps[ok] - rec.w_true_radps[ok]) <= res.sigma_radps[ok]).ravel())
+        assert 0.4 <= float(np.mean(hits[-1])) <= 0.85
+        assert _rms_dps(rec, res.w_radps) < 0.15
+        assert len(res.info["angle_weights"]) == 6 and sum(res.info["angle_weights"]) == pytest.approx(1.0)
+    assert 0.6 <= float(np.mean(np.concatenate(hits))) <= 0.8
+
+
+def test_pass_temper_is_at_least_the_variance_of_unit_weight():
+    """Whole passes' likelihoods tempered by the variance of unit weight, at least by PASS_TEMPER: two
+    passes 3 apart in nll weigh 1 : e⁻¹ (untempered: 1 : e⁻³)."""
+    assert angle_sum.pass_temper(1.0) == angle_sum.PASS_TEMPER == 3.0
+    assert angle_sum.pass_temper(7.5) == 7.5
+    _, _, wt = angle_sum.mixture([0.0, 3.0], np.zeros((2, 1, 3)), np.ones((2, 1, 3)), angle_sum.pass_temper(1.0))
+    assert wt[1, 0] / wt[0, 0] == pytest.approx(math.exp(-1.0))
 
 
 @pytest.mark.slow
