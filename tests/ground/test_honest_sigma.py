@@ -310,3 +310,23 @@ def test_attitude_filters_without_orbit_cover_their_error():
             rms.append(_rms_dps(rec, w))
         assert 0.6 <= float(np.mean(np.concatenate(hits))) <= 0.8, method
         assert max(rms) < 2.0, method   # before: 0.81–2.58 °/s
+
+
+def test_field_error_replaces_the_misfit_scaling():
+    """A smoother's σ scaled by √c (c = 25, the misfit read as white noise) on a field 10 % off at |ω| = 0.2
+    rad/s: unscaled (0.01) and widened by ε|ω| = 0.02 instead: √(0.01² + 0.02²), not 0.05."""
+    s = np.full((2, 3), 0.05)
+    w = np.array([[0.2, 0.0, 0.0], [0.0, 0.12, 0.16]])
+    out = ge.field_error_instead_of_misfit(s, w, 0.1, 25.0)
+    assert np.allclose(out, math.hypot(0.01, 0.02))
+    assert np.allclose(ge.field_error_instead_of_misfit(s, w, 0.1, 0.5), math.hypot(0.05, 0.02))  # c < 1: as 1
+
+
+@pytest.mark.slow
+def test_uncalibrated_host_smoother_with_a_tle_is_not_over_wide(host_iron, tmp_path):
+    """The RTS smoother with the TLE on the uncalibrated host: its σ, scaled by the misfit's variance of unit
+    weight (χ²/dof ≈ 25), was 5.2 °/s per axis on a 1.4 °/s error (covered 99 %); the field's error taken as
+    what it is (`estimate.field_error_instead_of_misfit`): 60–85 %."""
+    rec, path = host_iron
+    est = _run(path, "smoother", tmp_path, *_tle_args(rec))
+    assert 0.6 <= _coverage(est, rec.w_true_radps) <= 0.85
