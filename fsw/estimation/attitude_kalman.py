@@ -161,6 +161,7 @@ class AttitudeKalmanTuning:
       B move: the flown filter's hand-over); without a field model, plus `along_b_field_turn_rel` ×
       `field_rate_radps` (the field's unmodelled turn, which the filter reads as the body's rate ⊥B and
       carries along B as B moves) over sin of B's angle to its direction low-passed over `along_b_memory_s`.
+      The floor is at most `sigma_rate0_radps`, and a Gauss–Markov rate's stationary spread (`rate_tau_s`).
     about_b_turn_rad, about_b_sigma_rad: with a field model, the floor of the attitude's 1-σ about the
       field inside the filter: `about_b_sigma_rad` (0: none, the default; the published σ is floored
       by :func:`attitude_cov` with a uniform angle's π/√3) until the inertial field has turned by `about_b_turn_rad`
@@ -590,7 +591,10 @@ class AttitudeRateKalman:
         if self.field is None:
             ft = tun.along_b_field_turn_rel * tun.field_rate_radps / max(math.sin(min(self._sweep1, math.pi / 2)),
                                                                          1e-6)
-        floor = min(tun.sigma_rate0_radps, math.hypot(fs, ft))
+        cap = tun.sigma_rate0_radps
+        if math.isfinite(tun.rate_tau_s):  # a Gauss–Markov rate: no farther off than its stationary spread
+            cap = min(cap, tun.rate_accel_radps2 * math.sqrt(self.adapt * tun.rate_tau_s / 2.0))
+        floor = min(cap, math.hypot(fs, ft))
         if v < floor * floor:
             Pw += (floor * floor - v) * np.outer(u, u)
         return Pw
