@@ -227,7 +227,8 @@ def rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_
         kf, q_s, x_s, P_s = next(p for p in passes if p[0].angle_about_b_rad == angle)
         c = variance_scale(kf.log)
         w_s, var, wt = angle_sum.mixture([p[0].nll for p in passes], [p[2][:, :3] for p in passes],
-                                         [c * np.einsum("kii->ki", p[3][:, 3:6, 3:6]) for p in passes], c)
+                                         [c * np.einsum("kii->ki", p[3][:, 3:6, 3:6]) for p in passes],
+                                         angle_sum.pass_temper(c))
         sig = np.sqrt(var)
         mix = {"angle_weights": wt[:, 0].tolist(), "w_pass_radps": x_s[:, :3].copy()}
     chi2 = _chi2(t, b, sigma_b_T * noise[2], q_s, x_s, field_eci_T)

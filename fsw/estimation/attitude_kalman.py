@@ -151,6 +151,17 @@ class AttitudeKalmanTuning:
     field_sigma_T: 1-σ per axis of the field model's error, added to the measurement noise; with no
       field model, `field_rate_radps` lets the (unknown, fixed) inertial field drift instead.
     max_substep_rad: rotation per integration substep of Euler's equations (RK4).
+    along_b_perp_factor, along_b_sweep_power, along_b_field_turn_rel, along_b_memory_s: the floor of the
+      published rate's 1-σ along the field (:meth:`AttitudeRateKalman.rate_cov_published`; factor 0: none).
+      The part of ω along B shows only as B moves in the body; until it has, the linearised filter takes
+      its first large corrections as information (on a 1 °/s tumble its σ along B fell to 0.3 °/s while it
+      was 2–5 °/s off, for a minute). In the random-walk phase the floor is `along_b_perp_factor` × the σ
+      perpendicular to B over sin(sweep)^`along_b_sweep_power`, sweep the largest angle B has moved in the
+      body since the start (none when the start took another filter's rate and covariance, which has seen
+      B move: the flown filter's hand-over); without a field model, plus `along_b_field_turn_rel` ×
+      `field_rate_radps` (the field's unmodelled turn, which the filter reads as the body's rate ⊥B and
+      carries along B as B moves) over sin of B's angle to its direction low-passed over `along_b_memory_s`.
+      The floor is at most `sigma_rate0_radps`, and a Gauss–Markov rate's stationary spread (`rate_tau_s`).
     about_b_turn_rad, about_b_sigma_rad: with a field model, the floor of the attitude's 1-σ about the
       field inside the filter: `about_b_sigma_rad` (0: none, the default; the published σ is floored
       by :func:`attitude_cov` with a uniform angle's π/√3) until the inertial field has turned by `about_b_turn_rad`
@@ -190,6 +201,10 @@ class AttitudeKalmanTuning:
     sigma_flag_radps: float = 0.1
     about_b_turn_rad: float = math.radians(20.0)
     about_b_sigma_rad: float = 0.0
+    along_b_perp_factor: float = 3.0
+    along_b_sweep_power: float = 3.0
+    along_b_field_turn_rel: float = 0.5
+    along_b_memory_s: float = 60.0
 
 
 class AttitudeRateKalman:
@@ -261,6 +276,8 @@ class AttitudeRateKalman:
         self._gap = False
         self._dt_nominal = math.inf
         self._b_i0 = None  # the inertial field's direction at the start (the floor about B)
+        self._b_ref = None  # the field's direction in the body, low-passed (the rate's floor along B)
+        self._handed_over = False
         self.field_turn_rad = 0.0
 
     # -- public -----------------------------------------------------------------------------------
@@ -311,6 +328,9 @@ class AttitudeRateKalman:
         self._bad = 0
         self._started = True
         self.t_s = t_s
+        self._b_ref = None
+        # a rate handed over with its covariance (another filter's, which has seen B move) needs no floor
+        self._handed_over = rate_cov is not None and omega_radps is not None
         self._record_prediction(t_s, np.eye(n), restart=True)
         self._update(t_s, z)
         # a rate handed over with its covariance is an estimate from the first sample on
@@ -410,7 +430,8 @@ class AttitudeRateKalman:
         self._nis_mean = 3.0
 
     def rate_found(self) -> bool:
-        """The acquisition test of the random-walk phase: enough samples and every 1-σ of ω below
+        """The acquisition test of the random-walk phase: enough samples and every published 1-σ of ω (its
+        part along B floored by :meth:`rate_cov_published`: Euler's equations wait for it) below
         `euler_sigma_rate_radps` + `euler_sigma_rate_rel`·|ω| (the innovation test excluded)."""
         tun = self.tuning
         return (self._started and self._samples >= tun.euler_after_samples
@@ -526,12 +547,57 @@ class AttitudeRateKalman:
             self.beta = self.beta + dx[self.i_beta:]
         if self._b_i0 is not None and not self.store and self.tuning.about_b_sigma_rad > 0:
             self._floor_about_b(t_s)
+        self._track_sweep(z)
         if self.store:
             lg = self.log
             lg["q"].append(self.q.copy())
             lg["x"].append(self._x())
             lg["P"].append(self.P.copy())
             lg["nis"].append(self.nis)
+
+    def _track_sweep(self, z: np.ndarray) -> None:
+        """How far the field has moved in the body (for :meth:`rate_cov_published`): the largest angle from
+        its direction at the start, and its angle to its direction low-passed over `along_b_memory_s`."""
+        u = z / max(float(np.linalg.norm(z)), 1e-30)
+        self._u = u
+        if self._b_ref is None:
+            self._b_ref, self._b_first, self._ref_t = u.copy(), u.copy(), self.t_s
+            self._sweep0 = self._sweep1 = 0.0
+            return
+        a = min(1.0, max(self.t_s - self._ref_t, 0.0) / self.tuning.along_b_memory_s)
+        r = self._b_ref + a * (u - self._b_ref)
+        self._b_ref = r / max(float(np.linalg.norm(r)), 1e-30)
+        self._ref_t = self.t_s
+        self._sweep0 = max(self._sweep0, _angle(u, self._b_first))
+        self._sweep1 = _angle(u, self._b_ref)
+
+    def rate_cov_published(self) -> np.ndarray:
+        """The 3×3 covariance of ω to publish: the filter's own, its variance along the field held at or
+        above the floor of `AttitudeKalmanTuning.along_b_perp_factor` (see there): what the field's motion
+        in the body has shown of the part along B so far. Inside the filter P stays as it is (a floor
+        there let the first samples' noise into the part along B: 2× the error)."""
+        Pw = np.array(self.P[3:6, 3:6], float)
+        tun = self.tuning
+        if self._b_ref is None or not tun.along_b_perp_factor > 0:
+            return Pw
+        u = self._u
+        v = float(u @ Pw @ u)
+        s_perp = math.sqrt(max(float(np.trace(Pw)) - v, 0.0) / 2.0)
+        fs = 0.0  # Euler's equations carry the part along B through the dynamics; a handed-over P has seen it
+        if not (self.euler or self._handed_over):
+            fs = tun.along_b_perp_factor * s_perp / max(math.sin(min(self._sweep0, math.pi / 2))
+                                                        ** tun.along_b_sweep_power, 1e-9)
+        ft = 0.0
+        if self.field is None:
+            ft = tun.along_b_field_turn_rel * tun.field_rate_radps / max(math.sin(min(self._sweep1, math.pi / 2)),
+                                                                         1e-6)
+        cap = tun.sigma_rate0_radps
+        if math.isfinite(tun.rate_tau_s):  # a Gauss–Markov rate: no farther off than its stationary spread
+            cap = min(cap, tun.rate_accel_radps2 * math.sqrt(self.adapt * tun.rate_tau_s / 2.0))
+        floor = min(cap, math.hypot(fs, ft))
+        if v < floor * floor:
+            Pw += (floor * floor - v) * np.outer(u, u)
+        return Pw
 
     def about_b_floor_rad(self) -> float:
         """The floor of the attitude's 1-σ about the field at the inertial field's turn so far
@@ -621,9 +687,14 @@ class AttitudeRateKalman:
             flags |= DEGENERATE
         if s.max() > tun.sigma_flag_radps:
             flags |= DEGENERATE
+        s = np.sqrt(np.clip(np.diagonal(self.rate_cov_published()), 0.0, None))
         self.omega_radps[:] = w
         self.sigma_radps[:] = np.minimum(s, SIGMA_UNOBSERVED_RADPS)
         self.flags = flags
+
+
+def _angle(u: np.ndarray, x: np.ndarray) -> float:
+    return math.acos(max(-1.0, min(1.0, float(u @ x))))
 
 
 #: 1-σ of an angle uniform over a turn: the attitude about B before the field has turned
