@@ -394,8 +394,10 @@ def plot(r: BenchResult, path: str) -> None:
     tr = r.trace
     t = np.asarray(tr.t_s)
     fig, ax = plt.subplots(3, 2, figsize=(12, 9), sharex=True)
-    for a, y, name in ((ax[0, 0], tr.yaw, "yaw ψ"), (ax[0, 1], tr.pitch, "pitch θ")):
-        a.plot(t, y, lw=1.0)
+    for a, y, est, name in ((ax[0, 0], tr.yaw, tr.est_yaw, "yaw ψ"), (ax[0, 1], tr.pitch, tr.est_pitch, "pitch θ")):
+        a.plot(t, y, lw=1.0, label="truth")
+        if r.attitude == "estimate" and np.isfinite(np.asarray(est, float)).any():
+            a.plot(t, est, lw=0.8, ls="--", color="tab:orange", label="onboard estimate")
         a.axhspan(-0.2, 0.2, color="tab:green", alpha=0.12, label="±0.2 rad")
         a.axvline(r.settle_s, color="grey", ls=":", lw=0.8)
         a.set_ylabel(f"{name} [rad]")
