@@ -431,9 +431,9 @@ def plot(r: BenchResult, path: str) -> None:
 
 
 SWEEP_STARTS_DEG = tuple(45.0 * k for k in range(8))
-RUN_KEYS = ("arg_lat0_deg", "seed", "yaw_err_max_rad", "pitch_err_max_rad", "within_0p2_rad", "converged_at_s",
-            "att_err_rms_rad", "att_err_rms_rad_max", "rate_err_rms_dps", "trusted_from_s", "decisions_held",
-            "interlock_violations", "safe_entries", "wall_s")
+RUN_KEYS = ("arg_lat0_deg", "seed", "duration_s", "settle_s", "yaw_err_max_rad", "pitch_err_max_rad",
+            "within_0p2_rad", "converged_at_s", "att_err_rms_rad", "att_err_rms_rad_max", "rate_err_rms_dps",
+            "trusted_from_s", "decisions_held", "interlock_violations", "safe_entries", "wall_s")
 
 
 def sweep(scenario_name: str = DEFAULT_SCENARIO, *, starts: int = 8, seeds: int = 5, attitude: str = "estimate",
@@ -445,12 +445,24 @@ def sweep(scenario_name: str = DEFAULT_SCENARIO, *, starts: int = 8, seeds: int 
     for lat0 in SWEEP_STARTS_DEG[:starts]:
         for seed in range(seeds):
             d = run_bench(scenario_name, arg_lat0_deg=lat0, seed=seed, attitude=attitude, **kwargs).as_dict()
-            row_ = {k: d[k] for k in RUN_KEYS}
-            row_["energy_J"] = d["energy_J"]["total"]
-            runs.append(row_)
+            runs.append(sweep_row(d))
             print(f"start {lat0:5.0f} deg seed {seed}: yaw {d['yaw_err_max_rad']:.3f} pitch "
-                  f"{d['pitch_err_max_rad']:.3f} rad, {row_['energy_J']:.0f} J, estimate RMS "
+                  f"{d['pitch_err_max_rad']:.3f} rad, {runs[-1]['energy_J']:.0f} J, estimate RMS "
                   f"{d['att_err_rms_rad_max']:.3f} rad, wall {d['wall_s']:.0f} s", file=out, flush=True)
+    return aggregate(runs, scenario_name, attitude, out)
+
+
+def sweep_row(d: dict) -> dict:
+    """A sweep's row of one run's JSON (`BenchResult.as_dict`): `RUN_KEYS`, the energy as its total."""
+    row_ = {k: d[k] for k in RUN_KEYS}
+    row_["energy_J"] = d["energy_J"]["total"] if isinstance(d["energy_J"], dict) else d["energy_J"]
+    return row_
+
+
+def aggregate(runs: list[dict], scenario_name: str, attitude: str, out=None) -> dict:
+    """The sweep's JSON from its rows (:func:`sweep_row`), however they were run (one process, or one
+    run's JSON each), with the aggregates of the issue; the summary line on `out` (default stdout)."""
+    out = out or sys.stdout
     energy = np.array([r["energy_J"] for r in runs])
     est = np.array([r["att_err_rms_rad_max"] for r in runs], float)
     res = {"scenario": scenario_name, "attitude_source": attitude, "runs": runs,
