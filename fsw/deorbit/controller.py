@@ -40,19 +40,24 @@ What produces M_theor (the moment the regulator asks for in each channel) is `la
   turn 11.7 J) wins. M_theor is then the chosen width × M_ctrl / T (eq. 6 read backwards), so the
   pulses still obey eq. 5 and eq. 6.
 
-  What the plan stands on (`prediction`). "linear": the LVLH model from the attitude now, with the
-  field in body axes at the attitude frozen. That is tens of degrees wrong after a quarter libration from
-  the benchmark's 60°/45° start, and with 80-s pulses that each change a rate by ~1·10⁻³ rad/s (as
-  much as a whole swing) the choice between pulses hangs on *when* the field's components are weak:
-  with the field frozen in body axes the plan picks the wrong moments, adds energy, and from some
-  starts the spacecraft is never caught (under the IGRF-14 degree-13 field from 45° along the orbit it
-  went over 180° in yaw). "nonlinear" (default): the free motion from the attitude now at any angle
-  (:func:`free_motion`: RK4 on R_bo and ω_rel with gravity gradient and the sail's moment), the field
-  turned into body axes along it, and the response of every later state to each period's pulse
-  propagated along that motion (:func:`impulse_responses`: a small rate change at the period's middle,
-  a secant) — a linearisation about where the spacecraft is going instead of about the target. Near the
-  target both are the same model. The rotation vectors of the predicted states are continued across
-  180° (:func:`unwrapped_rotvecs`), so a predicted tumble costs what it turns.
+  The energy guard (`energy_guard_rad`). With 80-s pulses of 15 A·m², one pulse changes a rate by
+  ~1·10⁻³ rad/s, as much as a whole swing: a pulse takes energy out of the libration only when the
+  rate along its angular impulse ΔL exceeds |ΔL|/2J (ΔE = ω·ΔL + ½ΔLᵀJ⁻¹ΔL), i.e. at high rates or
+  where the field's components are weak. The plan alone often picks pulses that add energy now, counting
+  on later pulses, timed on its model of the field along the orbit, to take it out again; from large
+  angles that bet fails (the model is linear about the target, the field frozen in body axes) and under
+  the IGRF-14 degree-13 field from 45° along the orbit it pumped the swing over 180°. So outside the
+  libration energy of an `energy_guard_rad` swing (the LVLH model's energy, which the free motion keeps),
+  a first move may not leave more energy after its period than coasting would: far from the target the
+  kit only ever damps; near it the plan acts as before.
+
+  What the plan is linearised about (`prediction`): "linear" (default), the LVLH model from the
+  attitude now with the field at that attitude frozen over the horizon; "nonlinear", the free motion
+  from the attitude now at any angle (:func:`free_motion`), the field turned into body axes along it
+  and every later state's response to each period's pulse propagated along it (:func:`impulse_responses`,
+  a secant over a twentieth of a pulse). Near the target the two are the same model (tested); from the
+  60°/45° start at 225° along the orbit the nonlinear one spun the roll up within 300 s (the secant of a
+  twentieth of a pulse says little about a whole one at large angles), so it is not the default.
 """
 from __future__ import annotations
 
@@ -371,7 +376,10 @@ class ControllerConfig:
     lasso_sweeps: int = 40
     #: the motion the plan starts from: "nonlinear" (:func:`free_motion`, the field turned with the attitude
     #: along it) or "linear" (the LVLH model from the attitude now, the field at the attitude frozen)
-    prediction: str = "nonlinear"
+    prediction: str = "linear"
+    #: outside the libration energy of this pointing error (the LVLH model's), a first move may not leave more
+    #: energy than coasting would (0: no guard)
+    energy_guard_rad: float = 0.2
     free_motion_substeps: int = 10  # RK4 steps per period (even: the mid-point is a step)
     sail_share: float = 5.0 / 5.58  # the sail's share of the area the flow sees broadside (the rest: the body)
     # "paper"
@@ -385,6 +393,8 @@ class ControllerConfig:
             raise ValueError(f"prediction must be 'nonlinear' or 'linear', got {self.prediction!r}")
         if self.free_motion_substeps < 2 or self.free_motion_substeps % 2 or not 0.0 <= self.sail_share <= 1.0:
             raise ValueError("need an even free_motion_substeps >= 2 and 0 <= sail_share <= 1")
+        if not self.energy_guard_rad >= 0.0:
+            raise ValueError("need energy_guard_rad >= 0")
         if not self.period_s > 0 or not 0 <= self.min_impulse_s <= self.period_s:
             raise ValueError("need period_s > 0 and 0 <= min_impulse_s <= period_s")
         if any(not self.min_impulse_s <= w <= self.period_s for w in self.widths_s):
@@ -498,7 +508,10 @@ class DiscreteController:
         cost = (V * (H @ V)).sum(0) - 2.0 * (Bm * V).sum(0) + (R * R).sum(0) + c.continuation_l1 * np.abs(V).sum(0)
         joules = np.array([self._move_joules(0, a, acting, polarity) + self._move_joules(1, b, acting, polarity)
                            for a, b in U0])
-        k = int(np.argmin(cost + c.energy_price_per_J * joules))
+        total = cost + c.energy_price_per_J * joules
+        if c.energy_guard_rad > 0.0:
+            total = np.where(self.adds_energy(free[:6], pred[:6, :2], U0), np.inf, total)
+        k = int(np.argmin(total))
         bx = float(att.b_body_T[0])
         m_ctrl = c.dipole_Am2 * abs(bx)
         out = []
@@ -527,6 +540,24 @@ class DiscreteController:
             dw[:, ch] = np.cross(c.dipole_Am2 * CHANNEL_AXIS[ch], b_body) * (T * self.FD_DUTY) / self.J
         Rp, wp = impulse_responses(Rs, ws, dw, *args, S, N)
         return free, response_matrix(Rp, wp, np.array(rv_free), ws[S::S], self.FD_DUTY)
+
+    def libration_energy(self, x: np.ndarray) -> np.ndarray:
+        """½ xᵀWx of states x (6, ...) of the LVLH model: the stiffnesses of roll, pitch and yaw and the
+        inertia; the gyroscopic coupling does no work, so the free linear motion keeps it [J]."""
+        A, J = self.A, self.J
+        w = np.array([-A[3, 0] * J[0], -A[4, 1] * J[1], -A[5, 2] * J[2], *J])
+        return 0.5 * np.tensordot(w, np.asarray(x) ** 2, axes=1)
+
+    def adds_energy(self, x1_free: np.ndarray, pred1: np.ndarray, U0: np.ndarray) -> np.ndarray:
+        """Per first move (rows of U0), whether it leaves the libration more energy after the first period
+        than coasting (`x1_free`) would, while above the energy of an `energy_guard_rad` swing in yaw: the
+        kit never pumps a large swing up, whatever the plan's model makes of the field along the orbit.
+        The closed move is always allowed."""
+        A, J = self.A, self.J
+        floor = 0.5 * min(-A[4, 1] * J[1], -A[5, 2] * J[2]) * self.config.energy_guard_rad ** 2
+        e_free = float(self.libration_energy(x1_free))
+        e_moves = self.libration_energy(x1_free[:, None] + pred1 @ U0.T)
+        return (e_moves > max(e_free, floor)) & np.any(U0 != 0.0, axis=1)
 
     @staticmethod
     def _move_joules(ch: int, u: float, acting: tuple[int, int], polarity: tuple[int, int]) -> float:
