@@ -50,7 +50,10 @@ What produces M_theor (the moment the regulator asks for in each channel) is `la
   guard, outside the pitch/yaw libration energy of an `energy_guard_rad` swing (the LVLH model's), a
   first move may not leave more of it after its period than coasting would. Counting roll as well, the
   guard blocked every pulse from the 60°/45° start (no pulse can take energy out at those rates with
-  roll kicks counted); the pitch/yaw version is not yet measured in closed loop.
+  roll kicks counted). Pitch and yaw only, from 45° under the degree-13 field it brought yaw and pitch
+  within 0.05 rad by 3,300 s, then the pulses' roll kicks spun the roll up and the roll-yaw coupling
+  took yaw to 1.5 rad (990 J); from 225° it held (0.200 / 0.129 rad, 447 J). So the roll's own
+  libration energy is guarded too, outside a `roll_guard_rad` swing.
 
   What the plan is linearised about (`prediction`): "linear" (default), the LVLH model from the
   attitude now with the field at that attitude frozen over the horizon; "nonlinear", the free motion
@@ -382,6 +385,8 @@ class ControllerConfig:
     #: outside the pitch/yaw libration energy of this pointing error (the LVLH model's), a first move may not
     #: leave more of it than coasting would (0, the default: no guard; see the module docstring)
     energy_guard_rad: float = 0.0
+    #: with the guard: the roll's own libration energy is held the same way outside a swing of this size
+    roll_guard_rad: float = 1.0
     free_motion_substeps: int = 10  # RK4 steps per period (even: the mid-point is a step)
     sail_share: float = 5.0 / 5.58  # the sail's share of the area the flow sees broadside (the rest: the body)
     # "paper"
@@ -558,9 +563,15 @@ class DiscreteController:
         The closed move is always allowed."""
         A, J = self.A, self.J
         floor = 0.5 * min(-A[4, 1] * J[1], -A[5, 2] * J[2]) * self.config.energy_guard_rad ** 2
+        x1 = x1_free[:, None] + pred1 @ U0.T
         e_free = float(self.libration_energy(x1_free))
-        e_moves = self.libration_energy(x1_free[:, None] + pred1 @ U0.T)
-        return (e_moves > max(e_free, floor)) & np.any(U0 != 0.0, axis=1)
+        adds = self.libration_energy(x1) > max(e_free, floor)
+        # the roll: each pulse kicks it (p_my·B_z, −p_mz·B_y); nothing may pump it past a roll_guard_rad swing
+        k_roll = -A[3, 0] * J[0]
+        roll = 0.5 * (k_roll * x1[0] ** 2 + J[0] * x1[3] ** 2)
+        roll_free = 0.5 * (k_roll * x1_free[0] ** 2 + J[0] * x1_free[3] ** 2)
+        adds |= roll > max(roll_free, 0.5 * k_roll * self.config.roll_guard_rad ** 2)
+        return adds & np.any(U0 != 0.0, axis=1)
 
     @staticmethod
     def _move_joules(ch: int, u: float, acting: tuple[int, int], polarity: tuple[int, int]) -> float:
