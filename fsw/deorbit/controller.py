@@ -52,8 +52,9 @@ What produces M_theor (the moment the regulator asks for in each channel) is `la
   guard blocked every pulse from the 60°/45° start (no pulse can take energy out at those rates with
   roll kicks counted). Pitch and yaw only, from 45° under the degree-13 field it brought yaw and pitch
   within 0.05 rad by 3,300 s, then the pulses' roll kicks spun the roll up and the roll-yaw coupling
-  took yaw to 1.5 rad (990 J); from 225° it held (0.200 / 0.129 rad, 447 J). So the roll's own
-  libration energy is guarded too, outside a `roll_guard_rad` swing.
+  took yaw to 1.5 rad (990 J); from 225° it held (0.200 / 0.129 rad, 447 J). With the roll's own
+  libration energy guarded too (outside a `roll_guard_rad` swing) too few pulses pass (0°, 45°, 225°:
+  0.95, 0.87, 1.46 rad in yaw). Hence off by default.
 
   What the plan is linearised about (`prediction`): "linear" (default), the LVLH model from the
   attitude now with the field at that attitude frozen over the horizon; "nonlinear", the free motion
