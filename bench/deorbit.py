@@ -397,8 +397,10 @@ def plot(r: BenchResult, path: str) -> None:
     tr = r.trace
     t = np.asarray(tr.t_s)
     fig, ax = plt.subplots(3, 2, figsize=(12, 9), sharex=True)
-    for a, y, name in ((ax[0, 0], tr.yaw, "yaw ψ"), (ax[0, 1], tr.pitch, "pitch θ")):
-        a.plot(t, y, lw=1.0)
+    for a, y, est, name in ((ax[0, 0], tr.yaw, tr.est_yaw, "yaw ψ"), (ax[0, 1], tr.pitch, tr.est_pitch, "pitch θ")):
+        a.plot(t, y, lw=1.0, label="truth")
+        if r.attitude == "estimate" and np.isfinite(np.asarray(est, float)).any():
+            a.plot(t, est, lw=0.8, ls="--", color="tab:orange", label="onboard estimate")
         a.axhspan(-0.2, 0.2, color="tab:green", alpha=0.12, label="±0.2 rad")
         a.axvline(r.settle_s, color="grey", ls=":", lw=0.8)
         a.set_ylabel(f"{name} [rad]")
@@ -432,9 +434,9 @@ def plot(r: BenchResult, path: str) -> None:
 
 
 SWEEP_STARTS_DEG = tuple(45.0 * k for k in range(8))
-RUN_KEYS = ("arg_lat0_deg", "seed", "yaw_err_max_rad", "pitch_err_max_rad", "within_0p2_rad", "converged_at_s",
-            "att_err_rms_rad", "att_err_rms_rad_max", "rate_err_rms_dps", "trusted_from_s", "decisions_held",
-            "interlock_violations", "safe_entries", "wall_s")
+RUN_KEYS = ("arg_lat0_deg", "seed", "duration_s", "settle_s", "yaw_err_max_rad", "pitch_err_max_rad",
+            "within_0p2_rad", "converged_at_s", "att_err_rms_rad", "att_err_rms_rad_max", "rate_err_rms_dps",
+            "trusted_from_s", "decisions_held", "interlock_violations", "safe_entries", "wall_s")
 
 
 def sweep_task(run: Run, *, scenario_name: str, attitude: str, **kwargs) -> dict:
@@ -442,8 +444,8 @@ def sweep_task(run: Run, *, scenario_name: str, attitude: str, **kwargs) -> dict
     but the wall time (a run's result depends on its start and seed only)."""
     d = run_bench(scenario_name, arg_lat0_deg=run.params["arg_lat0_deg"], seed=run.seed[0], attitude=attitude,
                   **kwargs).as_dict()
-    row_ = {k: d[k] for k in RUN_KEYS if k != "wall_s"}
-    row_["energy_J"] = d["energy_J"]["total"]
+    row_ = sweep_row(d)
+    del row_["wall_s"]
     return row_
 
 
@@ -474,6 +476,20 @@ def sweep(scenario_name: str = DEFAULT_SCENARIO, *, starts: int = 8, seeds: int 
             return runs
     for spec, r in zip(specs, runs):
         r["wall_s"] = round(elapsed[spec.id], 2)
+    return aggregate(runs, scenario_name, attitude, out)
+
+
+def sweep_row(d: dict) -> dict:
+    """A sweep's row of one run's JSON (`BenchResult.as_dict`): `RUN_KEYS`, the energy as its total."""
+    row_ = {k: d[k] for k in RUN_KEYS}
+    row_["energy_J"] = d["energy_J"]["total"] if isinstance(d["energy_J"], dict) else d["energy_J"]
+    return row_
+
+
+def aggregate(runs: list[dict], scenario_name: str, attitude: str, out=None) -> dict:
+    """The sweep's JSON from its rows (:func:`sweep_row`), however they were run (one process, or one
+    run's JSON each), with the aggregates of the issue; the summary line on `out` (default stdout)."""
+    out = out or sys.stdout
     energy = np.array([r["energy_J"] for r in runs])
     est = np.array([r["att_err_rms_rad_max"] for r in runs], float)
     res = {"scenario": scenario_name, "attitude_source": attitude, "runs": runs,

@@ -251,7 +251,9 @@ class Decoder:
             "t_s": msg.time_usec * 1e-6, "yaw_rad": msg.yaw, "pitch_rad": msg.pitch, "roll_rad": msg.roll,
             "rate_radps": f32(*msg.rate), "pointing_sigma_rad": f32(*msg.pointing_sigma),
             "rate_sigma_radps": msg.rate_sigma, "hypotheses": msg.hypotheses, "held": msg.held,
-            "source": source.name.removeprefix("DEBRIS_CONTROLLER_ATTITUDE_").lower()}
+            "source": source.name.removeprefix("DEBRIS_CONTROLLER_ATTITUDE_").lower(),
+            # SITL's truth beside them (NaN from the target, or a sender without the extension)
+            "truth_ypr_rad": f32(*getattr(msg, "truth_ypr", (math.nan,) * 3))}
 
     def _attitude(self, kind: str, msg) -> None:
         """The flown filter's attitude (ATTITUDE_QUATERNION: q body → ECI) and its 1-σ with the rate's and

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fsw.deorbit.controller import AttitudeInput
+from fsw.deorbit.controller import AttitudeInput, euler_zyx
 from fsw.estimation.rotations import quat_from_dcm, quat_to_dcm
 
 from .deorbit_kit import DeorbitKitEmulator
@@ -159,7 +159,9 @@ def build_kit(sim: DeorbitSimulator, controller=None, law: str = "mpc", attitude
     source = (TruthAttitude(sim) if attitude == "truth" else
               EstimatedAttitude(sigma_b_T, box_spacecraft(sim.spec, controller.inertia_kgm2)))
     kit_options.setdefault("magnets", box_magnets(sim.spec))
-    return DeorbitKit(sim.kit, source, controller=controller, **kit_options)
+    kit = DeorbitKit(sim.kit, source, controller=controller, **kit_options)
+    kit.truth_ypr = lambda now_s: euler_zyx(sim.attitude_orbital(sim.clock.true_s(now_s))[0])
+    return kit
 
 
 def box_spacecraft(spec: DeorbitSpec, inertia_kgm2):

@@ -161,6 +161,10 @@ class DeorbitKit:
         #: another pulse law in place of the controller while the kit runs (the mission's detumbling,
         #: `fsw.deorbit.detumble.DetumbleLaw`): its `period_s`, `decide(now_s, channels) -> [ChannelCommand]`
         self.law = None
+        #: SITL only: loop time -> the simulation's true (yaw, pitch, roll) [rad], sent beside the controller's
+        #: inputs in DEBRIS_DEORBIT_ATTITUDE.truth_ypr so that the ground can score them (None on the target)
+        self.truth_ypr: Callable[[float], tuple[float, float, float]] | None = None
+        self.truth_errors = 0
         self.handlers: dict[int, Callable] = {
             mavlink.MAV_CMD_DEBRIS_CAPSULE: self.cmd_capsule,
             mavlink.MAV_CMD_DEBRIS_MAGNET_TURN: self.cmd_magnet_turn,
@@ -248,7 +252,13 @@ class DeorbitKit:
         if now_s >= self._next_status_s:
             self._next_status_s = max(self._next_status_s + self.STATUS_PERIOD_S, now_s)
             tlm.deorbit_status(now_s, self.status(now_s))
-            tlm.deorbit_attitude(now_s, self.attitude_report(), self.decisions_without_attitude)
+            truth = (math.nan,) * 3
+            if self.truth_ypr is not None:
+                try:
+                    truth = self.truth_ypr(now_s)
+                except Exception:  # noqa: BLE001 - SITL's scoring aid never brings the loop down
+                    self.truth_errors += 1
+            tlm.deorbit_attitude(now_s, self.attitude_report(), self.decisions_without_attitude, truth)
         if now_s >= self._next_field_tlm_s:
             self._next_field_tlm_s = max(self._next_field_tlm_s + self.field_tlm_every_s, now_s)
             self.sensor_field.telemetry(now_s, tlm)

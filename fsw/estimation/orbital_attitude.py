@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
+from numba import njit
 
 from .field_motion import A_WGS84_M, MU_EARTH_M3S2
 from .rotations import quat_aligning, quat_exp, quat_mul, quat_to_dcm, skew, so3_exp
@@ -171,7 +172,9 @@ def predict(q: np.ndarray, w: np.ndarray, P: np.ndarray, dt_s: float, u: Inputs,
             tuning: "OrbitalAttitudeTuning") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(q, ω, P) propagated by `dt_s` with the inputs `u` held: the midpoint rule (RK2) in steps of at
     most `tuning.max_step_s` (the rates here are ~10⁻³ rad/s: a step turns the body by milliradians);
-    the bias (the last three states) is a random walk and keeps its value."""
+    the bias (the last three states) is a random walk and keeps its value. The steps run compiled
+    (:func:`_propagate`, the arithmetic of :func:`transition` and :func:`torque_body_Nm`: a call of
+    numpy per 3-vector cost more than the arithmetic)."""
     if dt_s <= 0.0:
         return q, w, P
     J = model.J()
@@ -184,16 +187,116 @@ def predict(q: np.ndarray, w: np.ndarray, P: np.ndarray, dt_s: float, u: Inputs,
     Q[:3, 3:6] = Q[3:6, :3] = qa * h ** 2 / 2.0 * np.eye(3)
     Q[3:6, 3:6] = qa * h * np.eye(3)
     Q[6:, 6:] = qb * h * np.eye(3)
+    r = np.asarray(u.r_eci_m, float)
+    rho = model.density_at_kgm3(math.sqrt(float(r @ r))) if model.density_kgm3 > 0.0 else 0.0
+    return _propagate(np.asarray(q, float), np.asarray(w, float), np.asarray(P, float), h, n, r,
+                      np.asarray(u.v_eci_mps, float), np.asarray(u.b_eci_T, float),
+                      np.asarray(u.dipole_body_Am2, float), J, Jinv, np.asarray(model.cp_offset_m, float),
+                      np.asarray(model.sail_normal_body, float), float(model.sail_area_m2),
+                      float(model.body_area_m2), float(model.drag_coefficient), rho, Q)
+
+
+# --- the compiled propagation (the same arithmetic as transition / torque_body_Nm / the RK2 above) ----
+
+@njit(cache=True)
+def _c3(a, b):
+    out = np.empty(3)
+    out[0] = a[1] * b[2] - a[2] * b[1]
+    out[1] = a[2] * b[0] - a[0] * b[2]
+    out[2] = a[0] * b[1] - a[1] * b[0]
+    return out
+
+
+@njit(cache=True)
+def _dcm(q):
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    s = 2.0 / (w * w + x * x + y * y + z * z)
+    xx, yy, zz = s * x * x, s * y * y, s * z * z
+    xy, xz, yz = s * x * y, s * x * z, s * y * z
+    wx, wy, wz = s * w * x, s * w * y, s * w * z
+    R = np.empty((3, 3))
+    R[0, 0], R[0, 1], R[0, 2] = 1.0 - (yy + zz), xy - wz, xz + wy
+    R[1, 0], R[1, 1], R[1, 2] = xy + wz, 1.0 - (xx + zz), yz - wx
+    R[2, 0], R[2, 1], R[2, 2] = xz - wy, yz + wx, 1.0 - (xx + yy)
+    return R
+
+
+@njit(cache=True)
+def _qmul(p, q):
+    return np.array((p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3],
+                     p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2],
+                     p[0] * q[2] - p[1] * q[3] + p[2] * q[0] + p[3] * q[1],
+                     p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0]))
+
+
+@njit(cache=True)
+def _qexp(phi):
+    th = math.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
+    s = 0.5 if th < 1e-12 else math.sin(0.5 * th) / th
+    return np.array((math.cos(0.5 * th), s * phi[0], s * phi[1], s * phi[2]))
+
+
+@njit(cache=True)
+def _skew(v):
+    s = np.zeros((3, 3))
+    s[0, 1], s[0, 2] = -v[2], v[1]
+    s[1, 0], s[1, 2] = v[2], -v[0]
+    s[2, 0], s[2, 1] = -v[1], v[0]
+    return s
+
+
+@njit(cache=True)
+def _so3(phi):
+    th2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
+    K = _skew(phi)
+    if th2 < 1e-12:
+        return np.eye(3) + K + 0.5 * K @ K
+    th = math.sqrt(th2)
+    return np.eye(3) + (math.sin(th) / th) * K + ((1.0 - math.cos(th)) / th2) * K @ K
+
+
+@njit(cache=True)
+def _torque(R, r, v, b, p, J, cp, sail_n, s_sail, s_body, cd, rho):
+    RT = R.T.copy()
+    r_b = RT @ r
+    rn = math.sqrt(r_b[0] * r_b[0] + r_b[1] * r_b[1] + r_b[2] * r_b[2])
+    rh = r_b / rn
+    m = (3.0 * 3.986004418e14 / rn ** 3) * _c3(rh, J @ rh)
+    v_b = RT @ v
+    speed = math.sqrt(v_b[0] * v_b[0] + v_b[1] * v_b[1] + v_b[2] * v_b[2])
+    if speed > 0.0 and rho > 0.0:
+        vh = v_b / speed
+        area = s_sail * abs(sail_n[0] * vh[0] + sail_n[1] * vh[1] + sail_n[2] * vh[2]) + s_body
+        force = -0.5 * rho * speed * speed * cd * area * vh
+        m = m + _c3(cp, force)
+    return m + _c3(p, RT @ b)
+
+
+@njit(cache=True)
+def _propagate(q, w, P, h, n, r, v, b, p, J, Jinv, cp, sail_n, s_sail, s_body, cd, rho, Q):
+    eye9 = np.eye(9)
     for _ in range(n):
-        R = quat_to_dcm(q)
-        Phi = transition(R, w, h, u, model, J, Jinv)
+        R = _dcm(q)
+        F = np.zeros((9, 9))
+        F[:3, :3] = -_skew(w)
+        F[:3, 3:6] = np.eye(3)
+        F[3:6, 3:6] = Jinv @ (_skew(J @ w) - _skew(w) @ J)
+        eps = 1e-4
+        for i in range(3):
+            d = np.zeros(3)
+            d[i] = eps
+            mp = _torque(R @ _so3(d), r, v, b, p, J, cp, sail_n, s_sail, s_body, cd, rho)
+            mm = _torque(R @ _so3(-d), r, v, b, p, J, cp, sail_n, s_sail, s_body, cd, rho)
+            F[3:6, i] = Jinv @ (mp - mm) / (2.0 * eps)
+        Fh = F * h
+        Phi = eye9 + Fh + 0.5 * Fh @ Fh
         P = Phi @ P @ Phi.T + Q
-        k1 = _wdot(R, w, u, model, J, Jinv)
+        k1 = Jinv @ (_torque(R, r, v, b, p, J, cp, sail_n, s_sail, s_body, cd, rho) - _c3(w, J @ w))
         wm = w + 0.5 * h * k1
-        qm = quat_mul(q, quat_exp(0.5 * h * w))
-        k2 = _wdot(quat_to_dcm(qm), wm, u, model, J, Jinv)
-        q = quat_mul(q, quat_exp(h * wm))
-        q = q / np.linalg.norm(q)
+        qm = _qmul(q, _qexp(0.5 * h * w))
+        k2 = Jinv @ (_torque(_dcm(qm), r, v, b, p, J, cp, sail_n, s_sail, s_body, cd, rho) - _c3(wm, J @ wm))
+        q = _qmul(q, _qexp(h * wm))
+        q = q / math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
         w = w + h * k2
     return q, w, 0.5 * (P + P.T)
 

@@ -7678,22 +7678,22 @@ class MAVLink_debris_deorbit_attitude_message(MAVLink_message):
 
     id = MAVLINK_MSG_ID_DEBRIS_DEORBIT_ATTITUDE
     msgname = "DEBRIS_DEORBIT_ATTITUDE"
-    fieldnames = ["time_usec", "yaw", "pitch", "roll", "rate", "pointing_sigma", "rate_sigma", "source", "hypotheses", "held"]
-    ordered_fieldnames = ["time_usec", "yaw", "pitch", "roll", "rate", "pointing_sigma", "rate_sigma", "held", "source", "hypotheses"]
-    fieldtypes = ["uint64_t", "float", "float", "float", "float", "float", "float", "uint8_t", "uint8_t", "uint32_t"]
+    fieldnames = ["time_usec", "yaw", "pitch", "roll", "rate", "pointing_sigma", "rate_sigma", "source", "hypotheses", "held", "truth_ypr"]
+    ordered_fieldnames = ["time_usec", "yaw", "pitch", "roll", "rate", "pointing_sigma", "rate_sigma", "held", "source", "hypotheses", "truth_ypr"]
+    fieldtypes = ["uint64_t", "float", "float", "float", "float", "float", "float", "uint8_t", "uint8_t", "uint32_t", "float"]
     fielddisplays_by_name: Dict[str, str] = {}
     fieldenums_by_name: Dict[str, str] = {"source": "DEBRIS_CONTROLLER_ATTITUDE"}
-    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "yaw": "rad", "pitch": "rad", "roll": "rad", "rate": "rad/s", "pointing_sigma": "rad", "rate_sigma": "rad/s"}
-    native_format = bytearray(b"<QffffffIBB")
-    orders = [0, 1, 2, 3, 4, 5, 6, 8, 9, 7]
-    lengths = [1, 1, 1, 1, 3, 2, 1, 1, 1, 1]
-    array_lengths = [0, 0, 0, 0, 3, 2, 0, 0, 0, 0]
+    fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "yaw": "rad", "pitch": "rad", "roll": "rad", "rate": "rad/s", "pointing_sigma": "rad", "rate_sigma": "rad/s", "truth_ypr": "rad"}
+    native_format = bytearray(b"<QffffffIBBf")
+    orders = [0, 1, 2, 3, 4, 5, 6, 8, 9, 7, 10]
+    lengths = [1, 1, 1, 1, 3, 2, 1, 1, 1, 1, 3]
+    array_lengths = [0, 0, 0, 0, 3, 2, 0, 0, 0, 0, 3]
     crc_extra = 226
-    unpacker = struct.Struct("<Qfff3f2ffIBB")
+    unpacker = struct.Struct("<Qfff3f2ffIBB3f")
     instance_field = None
     instance_offset = -1
 
-    def __init__(self, time_usec: int, yaw: float, pitch: float, roll: float, rate: Sequence[float], pointing_sigma: Sequence[float], rate_sigma: float, source: int, hypotheses: int, held: int):
+    def __init__(self, time_usec: int, yaw: float, pitch: float, roll: float, rate: Sequence[float], pointing_sigma: Sequence[float], rate_sigma: float, source: int, hypotheses: int, held: int, truth_ypr: Sequence[float] = (0, 0, 0)):
         MAVLink_message.__init__(self, MAVLink_debris_deorbit_attitude_message.id, MAVLink_debris_deorbit_attitude_message.msgname)
         self._fieldnames = MAVLink_debris_deorbit_attitude_message.fieldnames
         self._instance_field = MAVLink_debris_deorbit_attitude_message.instance_field
@@ -7708,9 +7708,10 @@ class MAVLink_debris_deorbit_attitude_message(MAVLink_message):
         self.source = source
         self.hypotheses = hypotheses
         self.held = held
+        self.truth_ypr = truth_ypr
 
     def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
-        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.yaw, self.pitch, self.roll, self.rate[0], self.rate[1], self.rate[2], self.pointing_sigma[0], self.pointing_sigma[1], self.rate_sigma, self.held, self.source, self.hypotheses), force_mavlink1=force_mavlink1)
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.yaw, self.pitch, self.roll, self.rate[0], self.rate[1], self.rate[2], self.pointing_sigma[0], self.pointing_sigma[1], self.rate_sigma, self.held, self.source, self.hypotheses, self.truth_ypr[0], self.truth_ypr[1], self.truth_ypr[2]), force_mavlink1=force_mavlink1)
 
 
 # Define name on the class for backwards compatibility (it is now msgname).
@@ -19066,7 +19067,7 @@ class MAVLink(object):
         """
         self.send(self.debris_attitude_sigma_encode(time_usec, attitude_sigma, rate_sigma, filter, flags, handovers), force_mavlink1=force_mavlink1)
 
-    def debris_deorbit_attitude_encode(self, time_usec: int, yaw: float, pitch: float, roll: float, rate: Sequence[float], pointing_sigma: Sequence[float], rate_sigma: float, source: int, hypotheses: int, held: int) -> MAVLink_debris_deorbit_attitude_message:
+    def debris_deorbit_attitude_encode(self, time_usec: int, yaw: float, pitch: float, roll: float, rate: Sequence[float], pointing_sigma: Sequence[float], rate_sigma: float, source: int, hypotheses: int, held: int, truth_ypr: Sequence[float] = (0, 0, 0)) -> MAVLink_debris_deorbit_attitude_message:
         """
         The de-orbit controller's inputs: the attitude w.r.t. the orbital
         frame (x along the velocity, z to nadir; yaw, pitch, roll
@@ -19084,11 +19085,12 @@ class MAVLink(object):
         source                    : Source and trust. (type:uint8_t, values:DEBRIS_CONTROLLER_ATTITUDE)
         hypotheses                : Attitude hypotheses the onboard filter still runs (0 for truth). (type:uint8_t)
         held                      : Controller decisions taken with the capsules held closed for want of a trusted attitude. (type:uint32_t)
+        truth_ypr                 : SITL only: the simulation's true yaw, pitch, roll at the same time, to score the controller's inputs on the ground (NaN on the target). [rad] (type:float)
 
         """
-        return MAVLink_debris_deorbit_attitude_message(time_usec, yaw, pitch, roll, rate, pointing_sigma, rate_sigma, source, hypotheses, held)
+        return MAVLink_debris_deorbit_attitude_message(time_usec, yaw, pitch, roll, rate, pointing_sigma, rate_sigma, source, hypotheses, held, truth_ypr)
 
-    def debris_deorbit_attitude_send(self, time_usec: int, yaw: float, pitch: float, roll: float, rate: Sequence[float], pointing_sigma: Sequence[float], rate_sigma: float, source: int, hypotheses: int, held: int, force_mavlink1: bool = False) -> None:
+    def debris_deorbit_attitude_send(self, time_usec: int, yaw: float, pitch: float, roll: float, rate: Sequence[float], pointing_sigma: Sequence[float], rate_sigma: float, source: int, hypotheses: int, held: int, truth_ypr: Sequence[float] = (0, 0, 0), force_mavlink1: bool = False) -> None:
         """
         The de-orbit controller's inputs: the attitude w.r.t. the orbital
         frame (x along the velocity, z to nadir; yaw, pitch, roll
@@ -19106,9 +19108,10 @@ class MAVLink(object):
         source                    : Source and trust. (type:uint8_t, values:DEBRIS_CONTROLLER_ATTITUDE)
         hypotheses                : Attitude hypotheses the onboard filter still runs (0 for truth). (type:uint8_t)
         held                      : Controller decisions taken with the capsules held closed for want of a trusted attitude. (type:uint32_t)
+        truth_ypr                 : SITL only: the simulation's true yaw, pitch, roll at the same time, to score the controller's inputs on the ground (NaN on the target). [rad] (type:float)
 
         """
-        self.send(self.debris_deorbit_attitude_encode(time_usec, yaw, pitch, roll, rate, pointing_sigma, rate_sigma, source, hypotheses, held), force_mavlink1=force_mavlink1)
+        self.send(self.debris_deorbit_attitude_encode(time_usec, yaw, pitch, roll, rate, pointing_sigma, rate_sigma, source, hypotheses, held, truth_ypr), force_mavlink1=force_mavlink1)
 
     def debris_mission_status_encode(self, time_usec: int, phase: int, reason: int, time_in_phase: float, rate: float, rate_sigma: float, ci95_pct: float, inertia: Sequence[float], energy: Sequence[float]) -> MAVLink_debris_mission_status_message:
         """

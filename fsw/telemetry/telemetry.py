@@ -271,12 +271,13 @@ class Telemetry:
             [int(x) for x in st.capsule_state], [int(x) for x in st.magnet_state], [int(x) for x in st.polarity],
             [int(x) for x in st.fault], int(st.controller_state)))
 
-    def deorbit_attitude(self, t_s: float, a, held: int) -> None:
-        """DEBRIS_DEORBIT_ATTITUDE from a `fsw.deorbit.onboard_attitude.AttitudeReport` (the controller's inputs)."""
+    def deorbit_attitude(self, t_s: float, a, held: int, truth_ypr=(math.nan, math.nan, math.nan)) -> None:
+        """DEBRIS_DEORBIT_ATTITUDE from a `fsw.deorbit.onboard_attitude.AttitudeReport` (the controller's inputs);
+        `truth_ypr`: SITL's true yaw, pitch, roll then (NaN on the target)."""
         self._send(mavlink.MAVLink_debris_deorbit_attitude_message(
             usec(t_s), float(a.yaw_rad), float(a.pitch_rad), float(a.roll_rad), [float(x) for x in a.rate_radps],
             [float(x) for x in a.pointing_sigma_rad], float(a.rate_sigma_radps), int(a.source),
-            min(int(a.hypotheses), 255), min(int(held), 0xFFFFFFFF)))
+            min(int(a.hypotheses), 255), min(int(held), 0xFFFFFFFF), [float(x) for x in truth_ypr]))
 
     def mission_status(self, t_s: float, phase: int, reason: int, time_in_phase_s: float, rate_radps: float,
                        rate_sigma_radps: float, ci95_pct: float, inertia_kgm2, energy_J) -> None:

@@ -50,3 +50,22 @@ def test_a_short_run_on_the_estimate_reports_its_keys():
     assert d["seed"] == 3 and d["decisions_held"] == 1 and math.isnan(d["trusted_from_s"])
     assert d["capsule_openings"]["total"] == 0  # never trusted in 30 s: capsules held closed
     assert math.isfinite(d["att_err_rms_rad"]["yaw"])
+
+
+def test_the_sweep_aggregates_runs_made_one_at_a_time(capsys):
+    """A sweep assembled from single runs' JSON (each `--arg-lat0 --seed --json`) is the sweep's JSON."""
+    def run(lat0, seed, yaw, pitch, energy, rms):
+        return {"arg_lat0_deg": lat0, "seed": seed, "duration_s": 10800.0, "settle_s": 3600.0,
+                "yaw_err_max_rad": yaw, "pitch_err_max_rad": pitch, "within_0p2_rad": max(yaw, pitch) <= 0.2,
+                "converged_at_s": 2000.0, "att_err_rms_rad": {"yaw": rms, "pitch": rms / 2},
+                "att_err_rms_rad_max": rms, "rate_err_rms_dps": 0.005, "trusted_from_s": 900.0,
+                "decisions_held": 9, "interlock_violations": 0, "safe_entries": 0, "wall_s": 1.0,
+                "energy_J": {"total": energy, "pitch": energy / 2, "yaw": energy / 2}, "law": "mpc"}
+    rows = [deorbit.sweep_row(run(0.0, 0, 0.1, 0.15, 1200.0, 0.04)),
+            deorbit.sweep_row(run(45.0, 0, 0.3, 0.1, 1800.0, 0.06))]
+    assert rows[0]["energy_J"] == 1200.0 and "law" not in rows[0]
+    d = deorbit.aggregate(rows, "amds_deorbit", "estimate")
+    assert d["attitude_source"] == "estimate" and d["runs"] == rows
+    assert d["fraction_within_0p2_rad"] == 0.5
+    assert d["energy_J_mean"] == 1500.0 and d["energy_J_max"] == 1800.0 and d["att_err_rms_rad_max"] == 0.06
+    assert "2 runs, attitude estimate: within 0.2 rad 50 %" in capsys.readouterr().out

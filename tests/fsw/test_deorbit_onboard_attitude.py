@@ -145,3 +145,25 @@ def test_without_a_field_along_the_orbit_there_is_no_estimate():
     src.observe(0.0, np.array([20e-6, 0.0, 0.0]), np.zeros(3))
     assert src.bank is None and src.attitude(0.0) is None and "no orbit" in src.reason
     assert src.report().source == mavlink.DEBRIS_CONTROLLER_ATTITUDE_NONE
+
+
+def test_the_truth_beside_the_inputs_is_sent_and_its_failure_never_stops_the_loop():
+    """SITL's `truth_ypr` rides in DEBRIS_DEORBIT_ATTITUDE; one that raises (a time outside the simulator's
+    history) is counted and sent as NaN, the loop runs on."""
+    emu = DeorbitKitEmulator()
+    kit = DeorbitKit(emu)
+    cap = Capture()
+    tlm = Telemetry(cap)
+    kit.truth_ypr = lambda t: (0.1, -0.2, 0.3)
+    kit.telemetry(0.0, tlm)
+
+    def broken(t):
+        raise ValueError("no truth at that time")
+
+    kit.truth_ypr = broken
+    kit.tick(1.0)
+    kit.telemetry(1.0, tlm)
+    att = [m for m in cap.messages() if m.get_type() == "DEBRIS_DEORBIT_ATTITUDE"]
+    assert len(att) == 2 and kit.truth_errors == 1
+    assert list(att[0].truth_ypr) == pytest.approx([0.1, -0.2, 0.3], rel=1e-6)
+    assert all(math.isnan(x) for x in att[1].truth_ypr)
