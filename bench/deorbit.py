@@ -234,16 +234,22 @@ class BenchResult:
         }
 
 
+def deorbit_scenario(scenario_name: str):
+    """The scenario `scenario_name`; ValueError when it has no de-orbit kit (no [deorbit] table)."""
+    scn = scenarios.load(scenario_name)
+    if scn.deorbit is None:
+        raise ValueError(f"scenario {scn.name!r} has no [deorbit] table")
+    return scn
+
+
 def run_bench(scenario_name: str = DEFAULT_SCENARIO, *, duration_s: float | None = None, rate_hz: float = 10.0,
               law: str = "mpc", faults: list[Fault] | tuple = (), seed: int = 0,
               settle_s: float | None = None, controller: ControllerConfig | None = None,
               arg_lat0_deg: float | None = None, attitude: str = "estimate") -> BenchResult:
-    scn = scenarios.load(scenario_name)
+    scn = deorbit_scenario(scenario_name)
     if arg_lat0_deg is not None:  # start elsewhere on the same orbit
         scn = dataclasses.replace(scn, arg_lat0_deg=float(arg_lat0_deg))
     spec = scn.deorbit
-    if spec is None:
-        raise ValueError(f"scenario {scn.name!r} has no [deorbit] table")
     duration = float(duration_s if duration_s is not None else spec.duration_s)
     settle = float(settle_s if settle_s is not None else min(spec.settle_s, duration))
     step = 1.0 / rate_hz
@@ -455,6 +461,7 @@ def sweep(scenario_name: str = DEFAULT_SCENARIO, *, starts: int = 8, seeds: int 
     aggregates of the issue. The runs are a campaign (bench.campaign): `campaign` = (parser, arguments) of
     its options (default: in this process); an exit status instead for --rerun or a failed run."""
     out = out or sys.stdout
+    deorbit_scenario(scenario_name)  # refused before a campaign starts, not in each of its runs
     specs = [Run(f"u{lat0:g}-s{seed}", (seed,), {"arg_lat0_deg": lat0}) for lat0 in SWEEP_STARTS_DEG[:starts]
              for seed in range(seeds)]
     config = {"benchmark": "bench.deorbit --sweep", "scenario": scenario_name, "attitude": attitude,
