@@ -16,7 +16,7 @@ the orbital frame o (x_o along the velocity, z_o nadir, y_o = z_o × x_o): R_bo 
 the sail normal's pointing error about body y and z (what the controller acts on), so their σ is the
 pointing σ the controller's trust gate reads.
 
-Dynamics (:func:`torque_body_Nm`): J ω̇ = −ω × Jω + M_gg + M_aero + p × B with
+Dynamics (:func:`_torque`, compiled): J ω̇ = −ω × Jω + M_gg + M_aero + p × B with
 M_gg = 3μ/r³ · r̂ × J r̂, M_aero = r_cp × F for a flat sail plus body in free molecular flow
 (F = −½ρ|v|²C_d(S_sail|n·v̂| + S_body) v̂, the air at rest in inertial space), p the kit's unscreened
 dipoles reported by the sequencer and B = R(q)ᵀ B_I. The model is the box's `SpacecraftModel`: its
@@ -38,8 +38,8 @@ from typing import Callable
 import numpy as np
 from numba import njit
 
-from .field_motion import A_WGS84_M, MU_EARTH_M3S2
-from .rotations import quat_aligning, quat_exp, quat_mul, quat_to_dcm, skew, so3_exp
+from .field_motion import A_WGS84_M
+from .rotations import quat_aligning, quat_exp, quat_mul, quat_to_dcm, skew
 
 UT_PER_T = 1e6
 
@@ -128,53 +128,13 @@ def orbital_frame(r_eci_m: np.ndarray, v_eci_mps: np.ndarray) -> tuple[np.ndarra
     return np.column_stack((x, _cross(z, x), z)), _cross(r_eci_m, v_eci_mps) / float(r_eci_m @ r_eci_m)
 
 
-def torque_body_Nm(R_bi: np.ndarray, u: Inputs, model: SpacecraftModel, J: np.ndarray) -> np.ndarray:
-    """Gravity gradient + the sail's aerodynamic moment + the kit's p × B, body axes, at attitude R_bi."""
-    r_b = R_bi.T @ u.r_eci_m
-    r = math.sqrt(float(r_b @ r_b))
-    rh = r_b / r
-    m = (3.0 * MU_EARTH_M3S2 / r ** 3) * _cross(rh, J @ rh)
-    v_b = R_bi.T @ u.v_eci_mps
-    speed = math.sqrt(float(v_b @ v_b))
-    if speed > 0.0 and model.density_kgm3 > 0.0:
-        vh = v_b / speed
-        area = model.sail_area_m2 * abs(float(np.dot(model.sail_normal_body, vh))) + model.body_area_m2
-        force = -0.5 * model.density_at_kgm3(r) * speed * speed * model.drag_coefficient * area * vh
-        m = m + _cross(np.asarray(model.cp_offset_m, float), force)
-    return m + _cross(u.dipole_body_Am2, R_bi.T @ u.b_eci_T)
-
-
-def _wdot(R_bi: np.ndarray, w: np.ndarray, u: Inputs, model: SpacecraftModel, J: np.ndarray,
-          Jinv: np.ndarray) -> np.ndarray:
-    return Jinv @ (torque_body_Nm(R_bi, u, model, J) - _cross(w, J @ w))
-
-
-def transition(R_bi: np.ndarray, w: np.ndarray, h: float, u: Inputs, model: SpacecraftModel, J: np.ndarray,
-               Jinv: np.ndarray) -> np.ndarray:
-    """Φ (9×9) of the error (δθ, δω, δβ) over `h`: I + Fh + (Fh)²/2 with F_θθ = −[ω]ₓ, F_θω = I,
-    F_ωω = J⁻¹([Jω]ₓ − [ω]ₓJ), F_ωθ = J⁻¹ ∂M/∂δθ (central differences: gravity gradient, sail, p × B)."""
-    F = np.zeros((9, 9))
-    F[:3, :3] = -skew(w)
-    F[:3, 3:6] = np.eye(3)
-    F[3:6, 3:6] = Jinv @ (skew(J @ w) - skew(w) @ J)
-    eps = 1e-4
-    for i in range(3):
-        d = np.zeros(3)
-        d[i] = eps
-        mp = torque_body_Nm(R_bi @ so3_exp(d), u, model, J)
-        mm = torque_body_Nm(R_bi @ so3_exp(-d), u, model, J)
-        F[3:6, i] = Jinv @ (mp - mm) / (2.0 * eps)
-    Fh = F * h
-    return np.eye(9) + Fh + 0.5 * Fh @ Fh
-
-
 def predict(q: np.ndarray, w: np.ndarray, P: np.ndarray, dt_s: float, u: Inputs, model: SpacecraftModel,
             tuning: "OrbitalAttitudeTuning") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(q, ω, P) propagated by `dt_s` with the inputs `u` held: the midpoint rule (RK2) in steps of at
     most `tuning.max_step_s` (the rates here are ~10⁻³ rad/s: a step turns the body by milliradians);
     the bias (the last three states) is a random walk and keeps its value. The steps run compiled
-    (:func:`_propagate`, the arithmetic of :func:`transition` and :func:`torque_body_Nm`: a call of
-    numpy per 3-vector cost more than the arithmetic)."""
+    (:func:`_propagate`: a call of numpy per 3-vector cost more than the arithmetic; the tests hold it
+    against the same model written with numpy)."""
     if dt_s <= 0.0:
         return q, w, P
     J = model.J()
@@ -196,7 +156,7 @@ def predict(q: np.ndarray, w: np.ndarray, P: np.ndarray, dt_s: float, u: Inputs,
                       float(model.body_area_m2), float(model.drag_coefficient), rho, Q)
 
 
-# --- the compiled propagation (the same arithmetic as transition / torque_body_Nm / the RK2 above) ----
+# --- the compiled propagation (tests/fsw/test_orbital_attitude_propagation.py: the same model in numpy) ---
 
 @njit(cache=True)
 def _c3(a, b):
