@@ -185,6 +185,24 @@ def _is_number(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
+def _number_table(table, name: str, spec, fail, *, positive: bool = False) -> dict:
+    """The keyword arguments of dataclass `spec` from the scenario's table [name]: every key one of its
+    fields, a number (or 3 numbers where the field's default is a tuple), finite (and > 0 if `positive`)."""
+    if not isinstance(table, dict):
+        fail(f"[{name}]", "must be a table")
+    kw = {}
+    for k, v in table.items():
+        if k not in spec.__dataclass_fields__:
+            fail(f"{name}.{k}", f"unknown key (expected {sorted(spec.__dataclass_fields__)})")
+        vector = isinstance(getattr(spec, k), tuple)
+        a = _numbers(v, (3,) if vector else ())
+        if a is None or (positive and not np.all(a > 0)):
+            what = ("3 finite numbers" if vector else "a finite number") + (" > 0" if positive else " (not strings)")
+            fail(f"{name}.{k}", f"expected {what}, got {v!r}")
+        kw[k] = tuple(float(x) for x in a) if vector else float(a)
+    return kw
+
+
 def _numbers(v, shape: tuple) -> np.ndarray | None:
     """`v` as a float array of `shape` if it is nested lists of finite numbers (not strings, not
     booleans) of that shape; None otherwise."""
@@ -317,20 +335,7 @@ def load(name_or_path: str = DEFAULT_SCENARIO) -> Scenario:
 
     deorbit = None
     if "deorbit" in doc:
-        table = doc["deorbit"]
-        if not isinstance(table, dict):
-            fail("[deorbit]", "must be a table")
-        kw = {}
-        for k, v in table.items():
-            if k not in DeorbitSpec.__dataclass_fields__:
-                fail(f"deorbit.{k}", f"unknown key (expected {sorted(DeorbitSpec.__dataclass_fields__)})")
-            vector = isinstance(getattr(DeorbitSpec, k), tuple)
-            a = _numbers(v, (3,) if vector else ())
-            if a is None:
-                fail(f"deorbit.{k}", ("expected 3 finite numbers" if vector else "expected a finite number")
-                     + f" (not strings), got {v!r}")
-            kw[k] = tuple(float(x) for x in a) if vector else float(a)
-        deorbit = DeorbitSpec(**kw)
+        deorbit = DeorbitSpec(**_number_table(doc["deorbit"], "deorbit", DeorbitSpec, fail))
         for k in ("sail_area_m2", "drag_coefficient", "density_kgm3", "density_scale_height_km",
                   "dipole_Am2", "duration_s"):
             if not getattr(deorbit, k) > 0:
@@ -345,22 +350,9 @@ def load(name_or_path: str = DEFAULT_SCENARIO) -> Scenario:
 
     mission = None
     if "mission" in doc:
-        table = doc["mission"]
-        if not isinstance(table, dict):
-            fail("[mission]", "must be a table")
-        if deorbit is None:
+        if isinstance(doc["mission"], dict) and deorbit is None:
             fail("[mission]", "needs a [deorbit] table (the kit and the sail)")
-        kw = {}
-        for k, v in table.items():
-            if k not in MissionSpec.__dataclass_fields__:
-                fail(f"mission.{k}", f"unknown key (expected {sorted(MissionSpec.__dataclass_fields__)})")
-            vector = isinstance(getattr(MissionSpec, k), tuple)
-            a = _numbers(v, (3,) if vector else ())
-            if a is None or not np.all(a > 0):
-                fail(f"mission.{k}", ("expected 3 finite numbers > 0" if vector else "expected a finite number > 0")
-                     + f", got {v!r}")
-            kw[k] = tuple(float(x) for x in a) if vector else float(a)
-        mission = MissionSpec(**kw)
+        mission = MissionSpec(**_number_table(doc["mission"], "mission", MissionSpec, fail, positive=True))
 
     return Scenario(
         name=str(doc.get("name", path.stem)), description=str(doc.get("description", "")),
