@@ -156,7 +156,8 @@ class DeorbitKit:
         self.last_input: AttitudeInput | None = None
         self.hold_reason = ""
         self._hold_reason_sent = ""
-        self._magnets = magnets
+        #: the magnets' build and placement (`MagnetGeometry`, one per channel), for the laws that plan with them
+        self.magnets = magnets
         self.pulses: list[PulseRecord] | None = [] if keep_pulses else None
         #: another pulse law in place of the controller while the kit runs (the mission's detumbling,
         #: `fsw.deorbit.detumble.DetumbleLaw`): its `period_s`, `decide(now_s, channels) -> [ChannelCommand]`
@@ -286,7 +287,7 @@ class DeorbitKit:
         (capsule opening or open) with its polarity, along its magnet's home axis (polarity −1: half a
         turn about the shaft) [A·m²]."""
         p = np.zeros(3)
-        for ch, mag in zip(self.sequencer.channels, self._magnets):
+        for ch, mag in zip(self.sequencer.channels, self.magnets):
             if ch.acting:
                 p += ch.acting * mag.moment_Am2 * np.asarray(mag.home_axis, float)
         return p

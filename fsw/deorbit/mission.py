@@ -150,7 +150,7 @@ class Mission:
                  config: MissionConfig = MissionConfig(), detumble: DetumbleConfig | None = None,
                  rates=None, on_phase: Callable[[float, Phase, Phase, str], None] | None = None) -> None:
         self.kit, self.ident, self.cfg, self.rates = kit, ident, config, rates
-        self.law = DetumbleLaw(detumble or DetumbleConfig(), kit._magnets, np.diag(inertia_guess_kgm2))
+        self.law = DetumbleLaw(detumble or DetumbleConfig(), kit.magnets, np.diag(inertia_guess_kgm2))
         self.inertia_guess = np.asarray(inertia_guess_kgm2, float)
         self.J_kgm2: np.ndarray | None = None  # the identified tensor (3, 3)
         self.ci95_pct = math.nan
