@@ -44,6 +44,11 @@ When a frame that has not arrived whole may start inside those 13 bytes, the sig
 on at once (a genuine one is not held back) and its last bytes from that start byte on are looked at
 again with what follows: a command whose first bytes went into a cut frame's "signature" is still
 found (they are then counted twice, in the frame and in the junk, when no frame starts there).
+Two valid frames that overlap cannot both be real, and one CRC-16 in 65,536 matches by chance (a
+flood of valid-looking headers in front of a frame makes it happen): a frame followed neither by a
+start byte nor by the end of the data, inside which a complete good frame starts that runs past it and
+is so followed, is refused for that later frame. When the later frame has not arrived whole, the
+earlier one is passed on (nothing is held back on a guess).
 Nothing raises, whatever the bytes.
 """
 from __future__ import annotations
@@ -290,9 +295,10 @@ class Deframer:
             length = head[0]
             signed = length and b[i] == STX_V2 and b[i + 2] & IFLAG_SIGNED
             ok = length and self._crc_ok(i, length, head[1]) and not (
-                signed and self._complete_frame_after(i + length - SIGNATURE_LEN, i + length))
+                signed and self._complete_frame_after(i + length - SIGNATURE_LEN, i + length)) and not (
+                not self._followed_well(i + length) and self._later_frame_overlaps(i + 1, i + length))
             # (a signed frame cut inside its signature block, not covered by the CRC, is refused: the
-            # next frame starts there)
+            # next frame starts there; so is a chance CRC match in noise that runs into a good frame)
             if self.starved:
                 break  # out of CRCs: undecided, left for discard()
             if ok:
@@ -326,6 +332,31 @@ class Deframer:
                 return j
             j += 1
         return -1
+
+    def _followed_well(self, end: int) -> bool:
+        """Whether a frame ending at `end` is followed as frames on a link are: by a start byte, or by
+        the end of the data so far (a datagram, a chunk)."""
+        b = self._buf
+        return end >= len(b) or b[end] == STX_V2 or (self.mavlink1 and b[end] == STX_V1)
+
+    def _later_frame_overlaps(self, start: int, end: int) -> bool:
+        """Whether a complete, valid frame starts in [start, end), runs past `end` and is followed well.
+        Two valid frames that overlap cannot both be real; the one whose end meets the next frame (or
+        the end of the data) is, the other a CRC that matched by chance (1 in 65,536 a candidate: a
+        flood of valid-looking headers in front of a frame makes it happen)."""
+        b = self._buf
+        n = len(b)
+        j = start
+        while j < end:
+            j = self._candidate(j, n, end)
+            if j < 0:
+                return False
+            head = self._header(j, n)
+            if head is not None and head[0] and end < j + head[0] <= n and self._crc_ok(j, *head) \
+                    and self._followed_well(j + head[0]):
+                return True
+            j += 1
+        return False
 
     def _complete_frame_after(self, start: int, stop: int | None = None) -> bool:
         """Whether a complete, valid frame starts somewhere in [start, stop). Then an incomplete

@@ -191,3 +191,21 @@ def test_a_command_whose_signature_ends_in_a_start_byte_is_obeyed_at_once():
     up, runs, _ = make_uplink()
     up.feed(frame, 0.0)
     assert runs == [k]
+
+
+def test_a_chance_crc_match_in_noise_does_not_swallow_the_frame_it_runs_into():
+    """Found by the fuzz (tests/test_fuzz_readers.py): a valid-looking COMMAND_LONG header in noise
+    declares 45 bytes that end inside the sample after it, and those bytes pass its CRC-16 by chance
+    (here forced by two chosen noise bytes). Of the two overlapping frames the one whose end meets the
+    end of the data or the next frame is taken: the sample, not the noise."""
+    from fsw.telemetry.framing import MESSAGES, crc_x25
+    p = packer()
+    sample = imu_frame(p, 439060853, 0.5)
+    header = bytes([0xFD, 33, 0, 0, 0, 255, 190, mavlink.MAVLINK_MSG_ID_COMMAND_LONG, 0, 0])
+    extra = MESSAGES[mavlink.MAVLINK_MSG_ID_COMMAND_LONG][0]
+    want = sample[29] | sample[30] << 8  # the noise frame's CRC bytes: the sample's bytes 29 and 30
+    noise = next(header + bytes([7, 9, x, y]) for x in range(256) for y in range(256)
+                 if crc_x25(header[1:] + bytes([7, 9, x, y]) + sample[:29], extra) == want)
+    for tail, times in ((b"", [439060853]), (imu_frame(p, 439060854, 0.25), [439060853, 439060854])):
+        out = [m for m in run_deframer(noise + sample + tail, []) if m.get_type() != "BAD_DATA"]
+        assert [getattr(m, "time_usec", m.get_type()) for m in out] == times
