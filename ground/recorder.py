@@ -67,7 +67,10 @@ class Recorder:
     """Writes a decoder's segments to `csv` / `rates_csv` (either may be None) as they settle."""
 
     def __init__(self, csv: str | os.PathLike | None, rates_csv: str | os.PathLike | None, *,
-                 protect=(), settle_s: float = SETTLE_S) -> None:
+                 protect=(), settle_s: float = SETTLE_S, hold_rows: int = 0) -> None:
+        """`hold_rows`: the files' rows are formatted and written that many at a time
+        (`ground.recording._Appender`): for recordings made from data at rest."""
+        self.hold_rows = hold_rows
         self.bases = {"csv": None if csv is None else Path(csv),
                       "rates": None if rates_csv is None else Path(rates_csv)}
         self.settle_s = settle_s
@@ -192,11 +195,12 @@ class Recorder:
             f.paths = self._paths(source, index)
             meta = decoder.metadata(seg)
             if "csv" in f.paths:
-                f.csv = RecordingAppender(f.paths["csv"], meta, truth=bool(seg.truth), kit=seg.kit_seen)
+                f.csv = RecordingAppender(f.paths["csv"], meta, truth=bool(seg.truth), kit=seg.kit_seen,
+                                          hold_rows=self.hold_rows)
                 self._stated(f, seg, meta)
                 self.written.append(("recording", f.paths["csv"]))
             if "rates" in f.paths:
-                f.rates = RateAppender(f.paths["rates"], decoder.rate_metadata(seg))
+                f.rates = RateAppender(f.paths["rates"], decoder.rate_metadata(seg), hold_rows=self.hold_rows)
                 self.written.append(("rate estimates", f.paths["rates"]))
         if f.csv is not None:
             rec = decoder.recording(seg, ready)

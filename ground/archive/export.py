@@ -18,12 +18,15 @@ import struct
 from itertools import islice
 from dataclasses import dataclass
 
+import numpy as np
+
 from fsw.files import atomic_file
 from fsw.telemetry.framing import Deframer
 
 from fsw.telemetry.dialect import mavlink
 
 from ..decode import F32_FIELDS, KNOWLEDGE_MESSAGES, SAMPLE_MESSAGES, Decoder, f32
+from ..link_stats import MAG_FIELDS, MAX_TIME_US
 from ..recorder import Recorder
 from .bulk import LAYOUTS, Sample, decode_samples
 from .store import frames
@@ -86,10 +89,11 @@ def export_recordings(conn: sqlite3.Connection, sysid: int, csv: str | os.PathLi
     (other runs) may never take the name of. The sample messages are decoded in bulk, `CHUNK` frames at a time
     (`ground.archive.bulk`); frames of messages the recordings do not use go to the decoder's link accounting and
     clock only (a `Sample` without fields: its header): the same files, at a fraction of the time."""
-    recorder = Recorder(csv, rates_csv, protect=protect)
+    recorder = Recorder(csv, rates_csv, protect=protect, hold_rows=HOLD_ROWS)
     decoder = Decoder(method=method, origin=origin, recorder=recorder, rounded=True)
     decode = Deframer().decode
-    handle, on_frame, tick = decoder.handle, decoder.stats.on_frame, decoder.tick
+    stats, counts = decoder.stats, decoder.frames_by_type
+    handle, accounted, on_frame, tick = decoder.handle, decoder.accounted, stats.on_frame, decoder.tick
     recorded = {msgid for msgid, cls in mavlink.mavlink_map.items() if cls.msgname in _RECORDED}
     names = {msgid: cls.msgname for msgid, cls in mavlink.mavlink_map.items()}
     out = Exported(decoder=decoder)
@@ -98,17 +102,26 @@ def export_recordings(conn: sqlite3.Connection, sysid: int, csv: str | os.PathLi
     while chunk := list(islice(rows, CHUNK)):
         if n == 0:
             out.first_us = chunk[0][0]
-        samples = _bulk(chunk)
+        msgs = _bulk(chunk)
+        for i, (_, msgid, frame) in enumerate(chunk):
+            if i not in msgs and (msgid in recorded or msgid not in names):
+                msgs[i] = _rounded(decode(frame))
+        sources = [(f[5], f[6]) if f[0] == 0xFD else (f[3], f[4]) for _, _, f in chunk]
+        bulk = _account(stats, chunk, sources, msgs, names)
         for i, (t_us, msgid, frame) in enumerate(chunk):
             now_s = t_us * 1e-6
-            msg = samples.get(i)
-            if msg is not None:
+            msg = msgs.get(i)
+            if sources[i] in bulk:              # accounted already: all new, all intact
+                if msg is not None:
+                    stats.last_verdict = "new"
+                    accounted(names[msgid], msg, now_s)
+                tick(now_s)
+            elif msg is not None:
                 handle(msg, now_s)
-            elif msgid in recorded or msgid not in names:
-                handle(_rounded(decode(frame)), now_s)
             else:
                 on_frame(Sample(frame, names[msgid], msgid, {}), now_s)   # its header, undecoded
                 tick(now_s)
+        counts.update(names[msgid] for (_, msgid, _), src in zip(chunk, sources) if src in bulk)
         n += len(chunk)
         out.last_us = chunk[-1][0]
     if n:
@@ -118,8 +131,36 @@ def export_recordings(conn: sqlite3.Connection, sysid: int, csv: str | os.PathLi
     return out
 
 
+def _account(stats, chunk: list[tuple], sources: list[tuple[int, int]], msgs: dict, names: dict) -> set:
+    """The link accounting of the chunk's frames done at once, per source (`LinkStats.on_run`), for the
+    sources whose frames are all intact, of known messages and new (no loss, copy or reordering): those
+    sources. The others' frames go to the decoder one by one, as received."""
+    by_source: dict[tuple[int, int], list[int]] = {}
+    for i, src in enumerate(sources):
+        by_source.setdefault(src, []).append(i)
+    done = set()
+    for src, places in by_source.items():
+        if any(chunk[i][1] not in names or (i in msgs and (msgs[i].get_msgId() < 0 or
+                                                          msgs[i].get_type().startswith("UNKNOWN")))
+               or (chunk[i][1] in LAYOUTS and i not in msgs) for i in places):
+            continue
+        frames_ = [chunk[i][2] for i in places]
+        seqs = np.fromiter((f[4] if f[0] == 0xFD else f[2] for f in frames_), dtype=np.int64, count=len(frames_))
+        imu = [msgs[i] for i in places if chunk[i][1] == _HIGHRES_IMU and i in msgs]
+        times = [int(m.time_usec) for m in imu if m.fields_updated & MAG_FIELDS == MAG_FIELDS
+                 and m.time_usec < MAX_TIME_US]
+        if stats.on_run(src, seqs, frames_, chunk[places[0]][0] * 1e-6, chunk[places[-1]][0] * 1e-6, times):
+            done.add(src)
+    return done
+
+
+_HIGHRES_IMU = mavlink.MAVLINK_MSG_ID_HIGHRES_IMU
+
+
 #: frames decoded in bulk at a time
 CHUNK = 20_000
+#: rows of a recording formatted and written at a time
+HOLD_ROWS = 20_000
 
 
 def _bulk(chunk: list[tuple]) -> dict[int, Sample]:
