@@ -15,10 +15,9 @@ BAD_DATA), as the export did before.
 from __future__ import annotations
 
 import re
+from collections import namedtuple
 
 import numpy as np
-from fastcrc import crc16
-
 from fsw.telemetry.dialect import mavlink
 
 from ..decode import F32_FIELDS, SAMPLE_MESSAGES
@@ -55,10 +54,40 @@ class Sample:
         return self._id
 
 
+def _message_class(name: str, msgid: int, fields: list[str]) -> type:
+    """A decoded message of one type as a named tuple: its fields, then its frame and header; pymavlink's
+    accessors (as `Sample`)."""
+    base = namedtuple(name, [*fields, "frame_", "seq_", "sysid_", "compid_"])
+
+    class Message(base):
+        __slots__ = ()
+
+        def get_type(self) -> str:
+            return name
+
+        def get_msgId(self) -> int:
+            return msgid
+
+        def get_msgbuf(self) -> bytes:
+            return self.frame_
+
+        def get_seq(self) -> int:
+            return self.seq_
+
+        def get_srcSystem(self) -> int:
+            return self.sysid_
+
+        def get_srcComponent(self) -> int:
+            return self.compid_
+
+    Message.__name__ = Message.__qualname__ = name
+    return Message
+
+
 class _Layout:
     """One message's wire layout as a NumPy dtype, and what the decoder reads of it."""
 
-    def __init__(self, cls) -> None:
+    def __init__(self, msgid: int, cls) -> None:
         fmt = cls.unpacker.format
         if fmt[0] != "<":
             raise ValueError(f"{cls.msgname}: not a little-endian layout")
@@ -74,10 +103,11 @@ class _Layout:
                                for (count, code), n in zip(items, self.fields)])
         self.rounded = F32_FIELDS.get(self.name, ())
         self.floats = {n for (_, code), n in zip(items, self.fields) if code in "fd"}
+        self.message = _message_class(self.name, msgid, self.fields)
 
 
 def _layouts() -> dict[int, _Layout]:
-    return {msgid: _Layout(cls) for msgid, cls in mavlink.mavlink_map.items() if cls.msgname in SAMPLE_MESSAGES}
+    return {msgid: _Layout(msgid, cls) for msgid, cls in mavlink.mavlink_map.items() if cls.msgname in SAMPLE_MESSAGES}
 
 
 #: the sample messages by id
@@ -91,32 +121,74 @@ def _f32_decimals(values: np.ndarray) -> np.ndarray:
         return unique.astype(str).astype(np.float64)[inverse].reshape(values.shape)
 
 
-def _payload(frame: bytes, layout: _Layout) -> bytes | None:
-    """The frame's payload padded to the message's size, None if its length or CRC is wrong."""
-    if frame[0] == 0xFD:
-        header, n, sig = 10, frame[1], 13 if frame[2] & 1 else 0
-    elif frame[0] == 0xFE:
-        header, n, sig = 6, frame[1], 0
+def _crc_table() -> np.ndarray:
+    """CRC-16/MCRF4XX (MAVLink's X.25) by byte: reflected polynomial 0x8408."""
+    crc = np.arange(256, dtype=np.uint16)
+    for _ in range(8):
+        crc = np.where(crc & 1, (crc >> 1) ^ 0x8408, crc >> 1).astype(np.uint16)
+    return crc
+
+
+_CRC_TABLE = _crc_table()
+
+
+def _crc(columns: np.ndarray, extra: int) -> np.ndarray:
+    """The CRC of each row of `columns` (k × n bytes) followed by the byte `extra`, all rows at once."""
+    crc = np.full(len(columns), 0xFFFF, dtype=np.uint16)
+    for j in range(columns.shape[1]):
+        crc = (crc >> 8) ^ _CRC_TABLE[(crc ^ columns[:, j]) & 0xFF]
+    return (crc >> 8) ^ _CRC_TABLE[(crc ^ extra) & 0xFF]
+
+
+def _checked(frames: list[bytes], places: list[int], layout: _Layout):
+    """Frames of one length and start byte, checked at once: (places that pass, their payloads padded to
+    the message's size, seq, sysid, compid) — a frame whose length or CRC is wrong is left out."""
+    table = np.frombuffer(b"".join(frames), dtype=np.uint8).reshape(len(frames), -1)
+    length = table.shape[1]
+    if table[0, 0] == 0xFD:
+        header, signed = 10, (table[:, 2] & 1).astype(bool)
+        n = length - 12 - 13 * signed
+        hdr = table[:, 4:7]
     else:
-        return None
-    end = header + n
-    if len(frame) != end + 2 + sig or n > layout.size:
-        return None
-    crc = frame[end] | frame[end + 1] << 8
-    if crc16.mcrf4xx(frame[1:end] + bytes((layout.crc_extra,)), 0xFFFF) != crc:
-        return None
-    return frame[header:end] + bytes(layout.size - n)
+        header, signed = 6, np.zeros(len(frames), bool)
+        n = np.full(len(frames), length - 8)
+        hdr = table[:, 2:5]
+    ok = (table[:, 1] == n) & (n >= 0) & (n <= layout.size)
+    out = []
+    for sig in (False, True):   # each its payload length: one CRC pass per
+        rows = np.flatnonzero(ok & (signed == sig))
+        if not rows.size:
+            continue
+        end = header + int(n[rows[0]])
+        crc = table[rows, end].astype(np.uint16) | table[rows, end + 1].astype(np.uint16) << 8
+        good = rows[_crc(table[rows, 1:end], layout.crc_extra) == crc]
+        payload = np.zeros((good.size, layout.size), dtype=np.uint8)
+        payload[:, :end - header] = table[good, header:end]
+        out.append((good, payload))
+    if not out:
+        return [], None, None
+    good = np.concatenate([g for g, _ in out])
+    payload = np.concatenate([p for _, p in out])
+    return [places[i] for i in good], payload, hdr[good]
 
 
 def decode_samples(frames: list[bytes], msgid: int) -> list[Sample | None]:
-    """The frames (all of message `msgid`, one of `LAYOUTS`) decoded; None where a frame fails a check."""
+    """The frames (all of message `msgid`, one of `LAYOUTS`) decoded; None where a frame fails a check
+    (length, CRC). The checks and the unpacking are done on the frames' bytes as NumPy arrays, the frames
+    of one length and start byte together."""
     layout = LAYOUTS[msgid]
-    payloads = [_payload(f, layout) for f in frames]
-    ok = [i for i, p in enumerate(payloads) if p is not None]
-    out: list[Sample | None] = [None] * len(frames)
-    if not ok:
+    out: list = [None] * len(frames)
+    groups: dict[tuple[int, int], list[int]] = {}
+    for i, f in enumerate(frames):
+        if f and f[0] in (0xFD, 0xFE):
+            groups.setdefault((len(f), f[0]), []).append(i)
+    parts = [_checked([frames[i] for i in places], places, layout) for places in groups.values()]
+    parts = [p for p in parts if p[0]]
+    if not parts:
         return out
-    table = np.frombuffer(b"".join(payloads[i] for i in ok), dtype=layout.dtype)
+    ok = [i for p in parts for i in p[0]]
+    table = np.concatenate([p[1] for p in parts]).view(layout.dtype).ravel()
+    hdr = np.concatenate([p[2] for p in parts])
     columns = []
     for name in layout.fields:
         col = table[name]
@@ -125,10 +197,10 @@ def decode_samples(frames: list[bytes], msgid: int) -> list[Sample | None]:
         elif name in layout.floats:
             col = col.astype(np.float64)
         values = col.tolist()
-        if name in layout.arrays:
-            values = [tuple(v) if name in layout.rounded else v for v in values]
+        if name in layout.arrays and name in layout.rounded:
+            values = list(map(tuple, values))
         columns.append(values)
-    names, kind = layout.fields, layout.name
-    for i, row in zip(ok, zip(*columns)):
-        out[i] = Sample(frames[i], kind, msgid, dict(zip(names, row)))
+    columns += [[frames[i] for i in ok], hdr[:, 0].tolist(), hdr[:, 1].tolist(), hdr[:, 2].tolist()]
+    for i, msg in zip(ok, map(layout.message._make, zip(*columns))):
+        out[i] = msg
     return out
