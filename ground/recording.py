@@ -508,18 +508,11 @@ def _lines(table: np.ndarray) -> list[str]:
 class _Appender:
     """A format-v1 CSV written while its rows arrive: metadata and header when opened, then rows in
     time order, each batch with one write(2) of whole lines. A process killed at any moment leaves a
-    file that reads up to its last complete row; nothing is buffered in the process, unless `hold_rows`
-    is given: then the batches' values are held until that many rows are, a comment is written or the
-    file is closed, and formatted and written at once (the same file, made faster when the rows come a
-    few at a time; for a file made from data at rest, as an archive's export)."""
+    file that reads up to its last complete row; nothing is buffered in the process."""
 
-    def __init__(self, path: PathLike, groups: Sequence[_Group], metadata: dict[str, str], *,
-                 hold_rows: int = 0) -> None:
+    def __init__(self, path: PathLike, groups: Sequence[_Group], metadata: dict[str, str]) -> None:
         self.path = Path(path)
         self.groups = tuple(groups)
-        self.hold_rows = hold_rows
-        self._held: list[np.ndarray] = []
-        self._held_rows = 0
         lines = _metadata_lines(path, metadata)
         lines.append(",".join(c for g in groups for c in g.columns))
         self.line = len(lines)  # lines in the file so far
@@ -537,22 +530,6 @@ class _Appender:
     def _append(self, table: np.ndarray) -> None:
         if not len(table):
             return
-        if self.hold_rows:
-            self._held.append(table)
-            self._held_rows += len(table)
-            if self._held_rows >= self.hold_rows:
-                self.flush()
-            return
-        self._format(table)
-
-    def flush(self) -> None:
-        """Format and write the rows held (`hold_rows`)."""
-        if self._held:
-            table = self._held[0] if len(self._held) == 1 else np.vstack(self._held)
-            self._held, self._held_rows = [], 0
-            self._format(table)
-
-    def _format(self, table: np.ndarray) -> None:
         lines = _row_lines(self.path, self.groups, table, self.line + 1, self.last_t)
         self._write(lines)
         self.line += len(lines)
@@ -568,13 +545,11 @@ class _Appender:
         the reader (a key learnt or changed while recording)."""
         lines = _metadata_lines(self.path, metadata)
         if lines:
-            self.flush()
             self._write(lines)
             self.line += len(lines)
 
     def close(self) -> None:
         if self._fd >= 0:
-            self.flush()
             os.fsync(self._fd)
             os.close(self._fd)
             self._fd = -1
@@ -584,11 +559,9 @@ class RecordingAppender(_Appender):
     """A recording written row by row (SI in, µT / N·m / °/s in the file); `truth`: with the moment and
     reference-rate columns; `kit`: with the kit-field and flags columns."""
 
-    def __init__(self, path: PathLike, metadata: dict[str, str], *, truth: bool, kit: bool = False,
-                 hold_rows: int = 0) -> None:
+    def __init__(self, path: PathLike, metadata: dict[str, str], *, truth: bool, kit: bool = False) -> None:
         t, b, m, w, k, f = _RECORDING_GROUPS
-        super().__init__(path, (t, b) + ((m, w) if truth else ()) + ((k, f) if kit else ()), metadata,
-                         hold_rows=hold_rows)
+        super().__init__(path, (t, b) + ((m, w) if truth else ()) + ((k, f) if kit else ()), metadata)
         self.truth = truth
         self.kit = kit
 
@@ -604,8 +577,8 @@ class RecordingAppender(_Appender):
 class RateAppender(_Appender):
     """Rate estimates written row by row (rad/s in, °/s in the file)."""
 
-    def __init__(self, path: PathLike, metadata: dict[str, str], *, hold_rows: int = 0) -> None:
-        super().__init__(path, _RATE_GROUPS, metadata, hold_rows=hold_rows)
+    def __init__(self, path: PathLike, metadata: dict[str, str]) -> None:
+        super().__init__(path, _RATE_GROUPS, metadata)
 
     def append(self, t_s, w_radps, sigma_radps) -> None:
         self._append(np.hstack([np.asarray(t_s, dtype=float)[:, None], np.rad2deg(np.asarray(w_radps, dtype=float)),

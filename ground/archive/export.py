@@ -15,6 +15,7 @@ from __future__ import annotations
 import os
 import sqlite3
 import struct
+from collections import Counter
 from itertools import islice
 from dataclasses import dataclass
 
@@ -104,14 +105,13 @@ def export_recordings(conn: sqlite3.Connection, sysid: int, csv: str | os.PathLi
             out.first_us = chunk[0][0]
         msgs = _bulk(chunk)
         for i, (_, msgid, frame) in enumerate(chunk):
-            if i not in msgs and (msgid in recorded or msgid not in names):
+            if msgs[i] is None and (msgid in recorded or msgid not in names):
                 msgs[i] = _rounded(decode(frame))
         sources = [(f[5], f[6]) if f[0] == 0xFD else (f[3], f[4]) for _, _, f in chunk]
-        bulk = _account(stats, chunk, sources, msgs, names)
-        for i, (t_us, msgid, frame) in enumerate(chunk):
+        bulk = _account(stats, chunk, sources, msgs)
+        for (t_us, msgid, frame), src, msg in zip(chunk, sources, msgs):
             now_s = t_us * 1e-6
-            msg = msgs.get(i)
-            if sources[i] in bulk:              # accounted already: all new, all intact
+            if src in bulk:                     # accounted already: all new, all intact
                 if msg is not None:
                     stats.last_verdict = "new"
                     accounted(names[msgid], msg, now_s)
@@ -121,7 +121,8 @@ def export_recordings(conn: sqlite3.Connection, sysid: int, csv: str | os.PathLi
             else:
                 on_frame(Sample(frame, names[msgid], msgid, {}), now_s)   # its header, undecoded
                 tick(now_s)
-        counts.update(names[msgid] for (_, msgid, _), src in zip(chunk, sources) if src in bulk)
+        ids = Counter(msgid for (_, msgid, _), src in zip(chunk, sources) if src in bulk)
+        counts.update({names[msgid]: k for msgid, k in ids.items()})
         n += len(chunk)
         out.last_us = chunk[-1][0]
     if n:
@@ -131,22 +132,23 @@ def export_recordings(conn: sqlite3.Connection, sysid: int, csv: str | os.PathLi
     return out
 
 
-def _account(stats, chunk: list[tuple], sources: list[tuple[int, int]], msgs: dict, names: dict) -> set:
+def _account(stats, chunk: list[tuple], sources: list[tuple[int, int]], msgs: list) -> set:
     """The link accounting of the chunk's frames done at once, per source (`LinkStats.on_run`), for the
     sources whose frames are all intact, of known messages and new (no loss, copy or reordering): those
-    sources. The others' frames go to the decoder one by one, as received."""
+    sources. The others' frames go to the decoder one by one, as received. (Every frame of an unknown
+    message, and every one the bulk decoding refused, is in `msgs` as pymavlink decoded it.)"""
+    refused = {sources[i] for i, m in enumerate(msgs) if m is not None and not isinstance(m, tuple)
+               and (m.get_msgId() < 0 or m.get_type().startswith("UNKNOWN"))}
     by_source: dict[tuple[int, int], list[int]] = {}
     for i, src in enumerate(sources):
         by_source.setdefault(src, []).append(i)
     done = set()
     for src, places in by_source.items():
-        if any(chunk[i][1] not in names or (i in msgs and (msgs[i].get_msgId() < 0 or
-                                                          msgs[i].get_type().startswith("UNKNOWN")))
-               or (chunk[i][1] in LAYOUTS and i not in msgs) for i in places):
+        if src in refused:
             continue
         frames_ = [chunk[i][2] for i in places]
         seqs = np.fromiter((f[4] if f[0] == 0xFD else f[2] for f in frames_), dtype=np.int64, count=len(frames_))
-        imu = [msgs[i] for i in places if chunk[i][1] == _HIGHRES_IMU and i in msgs]
+        imu = [msgs[i] for i in places if chunk[i][1] == _HIGHRES_IMU and msgs[i] is not None]
         times = [int(m.time_usec) for m in imu if m.fields_updated & MAG_FIELDS == MAG_FIELDS
                  and m.time_usec < MAX_TIME_US]
         if stats.on_run(src, seqs, frames_, chunk[places[0]][0] * 1e-6, chunk[places[-1]][0] * 1e-6, times):
@@ -163,18 +165,17 @@ CHUNK = 20_000
 HOLD_ROWS = 20_000
 
 
-def _bulk(chunk: list[tuple]) -> dict[int, Sample]:
-    """The chunk's sample messages decoded in bulk, by their place in the chunk (those that fail a check:
-    left out, for pymavlink)."""
+def _bulk(chunk: list[tuple]) -> list:
+    """The chunk's sample messages decoded in bulk, at their place in the chunk (None elsewhere, and for
+    those that fail a check: left to pymavlink)."""
     where: dict[int, list[int]] = {}
     for i, (_, msgid, _) in enumerate(chunk):
         if msgid in LAYOUTS:
             where.setdefault(msgid, []).append(i)
-    out = {}
+    out = [None] * len(chunk)
     for msgid, places in where.items():
         for i, msg in zip(places, decode_samples([chunk[i][2] for i in places], msgid)):
-            if msg is not None:
-                out[i] = msg
+            out[i] = msg
     return out
 
 
