@@ -178,11 +178,17 @@ def decode_samples(frames: list[bytes], msgid: int) -> list[Sample | None]:
     of one length and start byte together."""
     layout = LAYOUTS[msgid]
     out: list = [None] * len(frames)
-    groups: dict[tuple[int, int], list[int]] = {}
-    for i, f in enumerate(frames):
-        if f and f[0] in (0xFD, 0xFE):
-            groups.setdefault((len(f), f[0]), []).append(i)
-    parts = [_checked([frames[i] for i in places], places, layout) for places in groups.values()]
+    if not frames:
+        return out
+    # frames by length and start byte (an empty frame: length 0, refused with the other bad starts)
+    key = np.fromiter(map(len, frames), dtype=np.int64, count=len(frames)) * 256 + np.fromiter(
+        (f[0] if f else 0 for f in frames), dtype=np.int64, count=len(frames))
+    kinds, group = np.unique(key, return_inverse=True)
+    parts = []
+    for g, k in enumerate(kinds.tolist()):
+        if k % 256 in (0xFD, 0xFE):
+            places = np.flatnonzero(group == g).tolist()
+            parts.append(_checked([frames[i] for i in places], places, layout))
     parts = [p for p in parts if p[0]]
     if not parts:
         return out
@@ -201,6 +207,9 @@ def decode_samples(frames: list[bytes], msgid: int) -> list[Sample | None]:
             values = list(map(tuple, values))
         columns.append(values)
     columns += [[frames[i] for i in ok], hdr[:, 0].tolist(), hdr[:, 1].tolist(), hdr[:, 2].tolist()]
-    for i, msg in zip(ok, map(layout.message._make, zip(*columns))):
+    decoded = list(map(layout.message._make, zip(*columns)))
+    if len(ok) == len(frames) and ok == sorted(ok):
+        return decoded
+    for i, msg in zip(ok, decoded):
         out[i] = msg
     return out
