@@ -25,8 +25,10 @@ class LiveLink:
     UDP_DRAIN_DATAGRAMS = 4096
     UDP_RCVBUF_BYTES = 4 << 20
 
-    def __init__(self, url: str, baud: int, say: Callable[[str], None]) -> None:
-        self.url, self.baud, self.say = url, baud, say
+    def __init__(self, url: str, baud: int, say: Callable[[str], None], *, raw: bool = False) -> None:
+        """`raw`: `read` gives the intact frames as their bytes (CRC checked, not decoded: the caller decodes
+        them, e.g. in bulk) and the junk as BAD_DATA messages; else pymavlink's messages."""
+        self.url, self.baud, self.say, self.raw = url, baud, say, raw
         self.udp = url.startswith(("udpin:", "udp:"))
         self.conn = self._open()
         self.deframer = Deframer()
@@ -72,7 +74,9 @@ class LiveLink:
                 pass
             self.conn = None
             self._retry_at = time.monotonic() + 1.0
-        return self.deframer.feed(bytes(data)) if data else []
+        if not data:
+            return []
+        return self.deframer.feed_frames(bytes(data)) if self.raw else self.deframer.feed(bytes(data))
 
     def _read_udp(self) -> list:
         out: list = []
@@ -85,12 +89,13 @@ class LiveLink:
             self.say(f"{self.url}: {e}")
             time.sleep(0.1)
             return out
+        feed = self.deframer.feed_frames if self.raw else self.deframer.feed
         for data, _addr, _size in datagrams:
-            out += self.deframer.feed(data, end=True)  # a datagram holds whole frames
+            out += feed(data, end=True)  # a datagram holds whole frames
         return out
 
     def flush(self) -> list:
-        return self.deframer.flush()
+        return self.deframer.flush_frames() if self.raw else self.deframer.flush()
 
     def write(self, frame: bytes) -> None:
         """Send a frame back on the link (requests for missing samples); dropped while it is down."""

@@ -40,6 +40,9 @@ from typing import Callable  # noqa: E402
 from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range, link_url  # noqa: E402
 from fsw.telemetry.signing import KeyFileError, load_key  # noqa: E402
 
+from fsw.telemetry.framing import Deframer  # noqa: E402
+
+from .archive.bulk import decode_frames  # noqa: E402
 from .archive.store import ArchiveFeed, default_path  # noqa: E402
 from .live_link import LiveLink  # noqa: E402
 from .web.boxview import ONBOARD_METHODS, RATE_METHOD_NAMES  # noqa: E402
@@ -47,6 +50,8 @@ from .web.fleet import Fleet  # noqa: E402
 
 #: frames waiting between the links and the ingest thread
 MAX_QUEUED = 200_000
+#: frames the ingest thread takes from the queue at once (those waiting, up to this many)
+INGEST_BATCH = 2000
 #: the terminal's summary line every this many seconds
 LINE_PERIOD_S = 10.0
 
@@ -61,7 +66,8 @@ class Ingest:
             fleet, urls, archive, baud, say, clock
         self.queue: queue.Queue = queue.Queue(maxsize=MAX_QUEUED)
         self.stop_event = threading.Event()
-        self.links = [LiveLink(url, baud, say) for url in urls]  # opened now: an error before any thread starts
+        # opened now: an error before any thread starts; frames come raw, decoded by the ingest thread in bulk
+        self.links = [LiveLink(url, baud, say, raw=True) for url in urls]
         self.threads: list[threading.Thread] = []
         self.feed: ArchiveFeed | None = None
         self.error: BaseException | None = None
@@ -101,17 +107,21 @@ class Ingest:
             return
         ready.set()
         feed = self.feed
+        decode = Deframer().decode
         done = False
         while not done:
+            batch: list = []
             try:
-                batch = [self.queue.get(timeout=0.1)]
+                batch.append(self.queue.get(timeout=0.1))
+                while len(batch) < INGEST_BATCH:     # and every frame waiting: decoded together
+                    batch.append(self.queue.get_nowait())
             except queue.Empty:
-                batch = []
-                if self.stop_event.is_set() and not any(t.is_alive() for t in self.threads[1:]):
+                if not batch and self.stop_event.is_set() and not any(t.is_alive() for t in self.threads[1:]):
                     done = True  # the links have stopped: what they put last is taken below, then the end
                     while not self.queue.empty():
                         batch.append(self.queue.get_nowait())
-            for msg, now_s in batch:
+            msgs = decode_frames([item for item, _ in batch], decode)
+            for msg, (_, now_s) in zip(msgs, batch):
                 if feed is not None and msg.get_type() != "BAD_DATA":
                     feed.add(msg, now_s)  # archived first, whatever the view makes of it
                 try:

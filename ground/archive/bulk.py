@@ -140,7 +140,7 @@ def _crc(columns: np.ndarray, extra: int) -> np.ndarray:
     return (crc >> 8) ^ _CRC_TABLE[(crc ^ extra) & 0xFF]
 
 
-def _checked(frames: list[bytes], places: list[int], layout: _Layout):
+def _checked(frames: list[bytes], places: list[int], layout: _Layout, crc: bool = True):
     """Frames of one length and start byte, checked at once: (places that pass, their payloads padded to
     the message's size, seq, sysid, compid) — a frame whose length or CRC is wrong is left out."""
     table = np.frombuffer(b"".join(frames), dtype=np.uint8).reshape(len(frames), -1)
@@ -160,8 +160,10 @@ def _checked(frames: list[bytes], places: list[int], layout: _Layout):
         if not rows.size:
             continue
         end = header + int(n[rows[0]])
-        crc = table[rows, end].astype(np.uint16) | table[rows, end + 1].astype(np.uint16) << 8
-        good = rows[_crc(table[rows, 1:end], layout.crc_extra) == crc]
+        good = rows
+        if crc:
+            sent = table[rows, end].astype(np.uint16) | table[rows, end + 1].astype(np.uint16) << 8
+            good = rows[_crc(table[rows, 1:end], layout.crc_extra) == sent]
         payload = np.zeros((good.size, layout.size), dtype=np.uint8)
         payload[:, :end - header] = table[good, header:end]
         out.append((good, payload))
@@ -172,10 +174,13 @@ def _checked(frames: list[bytes], places: list[int], layout: _Layout):
     return [places[i] for i in good], payload, hdr[good]
 
 
-def decode_samples(frames: list[bytes], msgid: int) -> list[Sample | None]:
+def decode_samples(frames: list[bytes], msgid: int, *, rounded: bool = True,
+                   crc_checked: bool = False) -> list[Sample | None]:
     """The frames (all of message `msgid`, one of `LAYOUTS`) decoded; None where a frame fails a check
     (length, CRC). The checks and the unpacking are done on the frames' bytes as NumPy arrays, the frames
-    of one length and start byte together."""
+    of one length and start byte together. `rounded`: the `F32_FIELDS` as `ground.decode.f32` gives them
+    (the decoder's recordings); else every float as pymavlink gives it (float32's exact value).
+    `crc_checked`: the frames' CRCs were checked already (by the deframer): not again."""
     layout = LAYOUTS[msgid]
     out: list = [None] * len(frames)
     if not frames:
@@ -188,7 +193,7 @@ def decode_samples(frames: list[bytes], msgid: int) -> list[Sample | None]:
     for g, k in enumerate(kinds.tolist()):
         if k % 256 in (0xFD, 0xFE):
             places = np.flatnonzero(group == g).tolist()
-            parts.append(_checked([frames[i] for i in places], places, layout))
+            parts.append(_checked([frames[i] for i in places], places, layout, not crc_checked))
     parts = [p for p in parts if p[0]]
     if not parts:
         return out
@@ -198,12 +203,13 @@ def decode_samples(frames: list[bytes], msgid: int) -> list[Sample | None]:
     columns = []
     for name in layout.fields:
         col = table[name]
-        if name in layout.rounded:
+        round_it = rounded and name in layout.rounded
+        if round_it:
             col = _f32_decimals(col)
         elif name in layout.floats:
             col = col.astype(np.float64)
         values = col.tolist()
-        if name in layout.arrays and name in layout.rounded:
+        if name in layout.arrays and round_it:
             values = list(map(tuple, values))
         columns.append(values)
     columns += [[frames[i] for i in ok], hdr[:, 0].tolist(), hdr[:, 1].tolist(), hdr[:, 2].tolist()]
@@ -212,4 +218,34 @@ def decode_samples(frames: list[bytes], msgid: int) -> list[Sample | None]:
         return decoded
     for i, msg in zip(ok, decoded):
         out[i] = msg
+    return out
+
+
+def msgid_of(frame: bytes) -> int:
+    """The message id in a raw MAVLink 2 or 1 frame's header (-1: too short for one)."""
+    if len(frame) >= 10 and frame[0] == 0xFD:
+        return frame[7] | frame[8] << 8 | frame[9] << 16
+    if len(frame) >= 6 and frame[0] == 0xFE:
+        return frame[5]
+    return -1
+
+
+def decode_frames(items: list, decode_one) -> list:
+    """Messages of a batch of intact raw frames, CRC checked (what `fsw.telemetry.framing.Deframer.feed_frames` gives;
+    anything else in `items`, e.g. its BAD_DATA, passes through): the sample messages decoded in bulk as
+    pymavlink gives them (`decode_samples`, not rounded), every other frame, and any the bulk decoding
+    refuses, by `decode_one` (pymavlink), in the batch's order."""
+    out = list(items)
+    where: dict[int, list[int]] = {}
+    for i, item in enumerate(items):
+        if isinstance(item, (bytes, bytearray)):
+            msgid = msgid_of(item)
+            if msgid in LAYOUTS:
+                where.setdefault(msgid, []).append(i)
+            else:
+                out[i] = decode_one(item)
+    for msgid, places in where.items():
+        for i, msg in zip(places, decode_samples([items[i] for i in places], msgid, rounded=False,
+                                                    crc_checked=True)):
+            out[i] = msg if msg is not None else decode_one(items[i])
     return out
