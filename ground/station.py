@@ -121,9 +121,10 @@ class Ingest:
                     while not self.queue.empty():
                         batch.append(self.queue.get_nowait())
             msgs = decode_frames([item for item, _ in batch], decode)
+            if feed is not None:  # archived first, whatever the view makes of them
+                intact = [(m, t) for m, (_, t) in zip(msgs, batch) if m.get_type() != "BAD_DATA"]
+                feed.add_many([m for m, _ in intact], [t for _, t in intact])
             for msg, (_, now_s) in zip(msgs, batch):
-                if feed is not None and msg.get_type() != "BAD_DATA":
-                    feed.add(msg, now_s)  # archived first, whatever the view makes of it
                 try:
                     self.fleet.handle(msg, now_s)
                 except Exception as e:  # noqa: BLE001 - a frame the view cannot take must not stop the station
