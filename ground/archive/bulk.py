@@ -1,16 +1,19 @@
-"""The sample messages of an archive's interval decoded in bulk, for the recordings' export.
+"""The sample messages decoded in bulk: for the recordings' export of an archive's interval and for the
+ground station's ingest.
 
 An hour of a box is about 110,000 sample frames (DEBRIS_MAG_SAMPLE, DEBRIS_RATE_ESTIMATE,
-DEBRIS_SIM_STATE, HIGHRES_IMU: `ground.decode.SAMPLE_MESSAGES`). Decoding them one by one with
-pymavlink, then rounding each float to its float32 decimal (`ground.decode.f32`) one value at a time,
-was most of the export's time. Here a batch of frames of one message id is checked (length, CRC with
-the message's CRC extra, as pymavlink checks it) and unpacked at once with NumPy (a structured dtype
-made from the bindings' own struct format, truncated MAVLink 2 payloads padded with zeros as the
-protocol says), the fields `ground.decode.F32_FIELDS` names are rounded at once (NumPy's float32
-text, the same shortest decimal `f32` gives; the distinct values only), and each frame becomes a
-`Sample`: the message's fields as attributes, its header read from its bytes. The decoder takes them
-as they are (`Decoder(rounded=True)`). A frame that fails a check is left to pymavlink (`decode` gives
-BAD_DATA), as the export did before.
+DEBRIS_SIM_STATE, HIGHRES_IMU: `ground.decode.SAMPLE_MESSAGES`); ten boxes at 100 samples/s send 3,000 a
+second. Decoding them one by one with pymavlink (an object a frame), then rounding each float to its
+float32 decimal (`ground.decode.f32`) one value at a time, was most of the time of both. Here the frames of
+one message id are grouped by length and start byte, checked at once (length; CRC-16/MCRF4XX with the
+message's CRC extra, as pymavlink checks it, computed byte column by byte column over all the frames; not
+again for frames the deframer checked) and unpacked at once with NumPy (a structured dtype made from the
+bindings' own struct format, truncated MAVLink 2 payloads padded with zeros as the protocol says); for the
+export the fields `ground.decode.F32_FIELDS` names are rounded at once (NumPy's float32 text, the same
+shortest decimal `f32` gives; the distinct values only). Each frame becomes a named tuple of its message
+(`_message_class`): the fields as attributes, its frame and header, pymavlink's accessors. The decoder
+takes them as they are (`Decoder(rounded=True)`), the station's views and archive as pymavlink's messages
+(`decode_frames`). A frame that fails a check is left to pymavlink (`decode` gives BAD_DATA), as before.
 """
 from __future__ import annotations
 
