@@ -191,36 +191,41 @@ class Decoder:
         self.frames_by_type[kind] += 1
         self.stats.on_frame(msg, now_s)
         if msg.get_msgId() >= 0 and self.stats.last_verdict != "duplicate" and not kind.startswith("UNKNOWN"):
-            if self.verifier is not None:
-                verdict = self.verifier.check(bytes(msg.get_msgbuf()), now_s)
-                if verdict is not Verdict.OK:
-                    self.unauthenticated[verdict.value] += 1
-                    self.tick(now_s)
-                    return
-            if kind in SAMPLE_MESSAGES:
-                self._sample_message(kind, msg, now_s)
-            elif kind == "DEBRIS_LOOP_STATUS" and self.stats.last_verdict == "new":
-                stream = self._stream(msg, create=False)
-                if stream is not None:
-                    stream.loop_status(int(msg.time_usec))
-                    self._restarts(stream)
-            elif kind == "DEBRIS_SAMPLE_STORE":
-                stream = self._stream(msg)
-                if stream is not None:
-                    stream.store_status(msg)
-            elif kind == "DEBRIS_INERTIA_ESTIMATE":
-                self._inertia(msg)
-            elif kind in KNOWLEDGE_MESSAGES:
-                self._knowledge(kind, msg)
-            elif kind == "DEBRIS_KIT_FIELD" and msg.channel in (0, 1):
-                self.kit_field[int(msg.channel)] = msg
-            elif kind in ("ATTITUDE_QUATERNION", "DEBRIS_ATTITUDE_SIGMA"):
-                self._attitude(kind, msg)
-            elif kind == "DEBRIS_DEORBIT_ATTITUDE":
-                self._deorbit_attitude(msg)
-            elif kind == "DEBRIS_MISSION_STATUS":
-                self._mission_status(msg)
+            self.accounted(kind, msg, now_s)
         self.tick(now_s)
+
+    def accounted(self, kind: str, msg, now_s: float) -> None:
+        """Decode an intact message of a known type that the link accounting (`stats`) has taken as not a
+        duplicate, its verdict in ``stats.last_verdict`` (`handle` without the counting and the tick: for
+        frames accounted in bulk, `ground.archive.export`)."""
+        if self.verifier is not None:
+            verdict = self.verifier.check(bytes(msg.get_msgbuf()), now_s)
+            if verdict is not Verdict.OK:
+                self.unauthenticated[verdict.value] += 1
+                return
+        if kind in SAMPLE_MESSAGES:
+            self._sample_message(kind, msg, now_s)
+        elif kind == "DEBRIS_LOOP_STATUS" and self.stats.last_verdict == "new":
+            stream = self._stream(msg, create=False)
+            if stream is not None:
+                stream.loop_status(int(msg.time_usec))
+                self._restarts(stream)
+        elif kind == "DEBRIS_SAMPLE_STORE":
+            stream = self._stream(msg)
+            if stream is not None:
+                stream.store_status(msg)
+        elif kind == "DEBRIS_INERTIA_ESTIMATE":
+            self._inertia(msg)
+        elif kind in KNOWLEDGE_MESSAGES:
+            self._knowledge(kind, msg)
+        elif kind == "DEBRIS_KIT_FIELD" and msg.channel in (0, 1):
+            self.kit_field[int(msg.channel)] = msg
+        elif kind in ("ATTITUDE_QUATERNION", "DEBRIS_ATTITUDE_SIGMA"):
+            self._attitude(kind, msg)
+        elif kind == "DEBRIS_DEORBIT_ATTITUDE":
+            self._deorbit_attitude(msg)
+        elif kind == "DEBRIS_MISSION_STATUS":
+            self._mission_status(msg)
 
     def _mission_status(self, msg) -> None:
         """The mission's phase (DEBRIS_MISSION_STATUS): the latest kept in ``mission`` (SI, phase and reason

@@ -128,6 +128,25 @@ class SourceStats:
         self.expected += gap + 1
         return "new"
 
+    def account_run(self, seqs: np.ndarray, frames: list[bytes]) -> bool:
+        """`account` of a run of frames at once when every one of them is 'new' with nothing lost before
+        it (each sequence number the one expected, none a copy of a recent frame): True, the counters as
+        `account` one by one leaves them; else False, nothing changed (account them one by one)."""
+        n = len(frames)
+        if n == 0:
+            return True
+        first = int(seqs[0])
+        if self.expected is not None and first != self.expected % 256:
+            return False
+        if n > 1 and not np.all(np.diff(seqs.astype(np.int64)) % 256 == 1):
+            return False
+        # a copy of a frame still in `recent`; within the run, frames less than 256 apart differ in seq
+        if self.recent and any(f in self.recent for f in frames[:REORDER_WINDOW]):
+            return False
+        self.expected = (first if self.expected is None else self.expected) + n
+        self.recent.extend(frames[-REORDER_WINDOW:])
+        return True
+
     def as_dict(self) -> dict:
         expected = self.received + self.unknown + self.lost
         return {"received": self.received, "unknown": self.unknown, "lost": self.lost,
@@ -171,6 +190,27 @@ class LinkStats:
             src.sample_times_us.append(int(msg.time_usec))
         elif kind == "DEBRIS_LINK_STATUS" and self.last_verdict == "new" and getattr(msg, "frames_sent", 0):
             src.sender_count(int(msg.frames_sent))
+
+    def on_run(self, key: tuple[int, int], seqs: np.ndarray, frames: list[bytes], first_s: float, last_s: float,
+               sample_times_us=()) -> bool:
+        """`on_frame` of a run of source `key`'s frames of known messages, received from `first_s` to
+        `last_s`, at once (`SourceStats.account_run`): True when they were all 'new' and are accounted,
+        False (nothing changed) otherwise. `sample_times_us`: the magnetometer sample times of the run's
+        HIGHRES_IMU frames (as `on_frame` takes them). DEBRIS_LINK_STATUS's count of frames sent is not read
+        here: a caller that wants losses of 256 frames or more found gives those frames to `on_frame`."""
+        src = self.sources.get(key)
+        fresh = src is None
+        if fresh:
+            src = SourceStats(first_s=first_s)
+        if not src.account_run(seqs, frames):
+            return False
+        if fresh:
+            self.sources[key] = src
+        src.last_s = last_s
+        src.received += len(frames)
+        src.sample_times_us.extend(sample_times_us)
+        self.last_verdict = "new"
+        return True
 
     def on_bad_data(self, msg) -> None:
         """Account pymavlink's BAD_DATA (unframeable bytes, bad CRC, malformed frame) or UNKNOWN_*

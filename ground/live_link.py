@@ -7,7 +7,7 @@ import time
 from typing import Callable
 
 from fsw.telemetry import dialect
-from fsw.telemetry.framing import Deframer
+from fsw.telemetry.framing import IFLAG_SIGNED, SIGNATURE_LEN, STX_V2, Deframer, crc_x25, frame_header
 from fsw.telemetry.udp_link import UDP_MAX_PAYLOAD, UdpLink
 
 
@@ -25,8 +25,10 @@ class LiveLink:
     UDP_DRAIN_DATAGRAMS = 4096
     UDP_RCVBUF_BYTES = 4 << 20
 
-    def __init__(self, url: str, baud: int, say: Callable[[str], None]) -> None:
-        self.url, self.baud, self.say = url, baud, say
+    def __init__(self, url: str, baud: int, say: Callable[[str], None], *, raw: bool = False) -> None:
+        """`raw`: `read` gives the intact frames as their bytes (CRC checked, not decoded: the caller decodes
+        them, e.g. in bulk) and the junk as BAD_DATA messages; else pymavlink's messages."""
+        self.url, self.baud, self.say, self.raw = url, baud, say, raw
         self.udp = url.startswith(("udpin:", "udp:"))
         self.conn = self._open()
         self.deframer = Deframer()
@@ -72,7 +74,9 @@ class LiveLink:
                 pass
             self.conn = None
             self._retry_at = time.monotonic() + 1.0
-        return self.deframer.feed(bytes(data)) if data else []
+        if not data:
+            return []
+        return self.deframer.feed_frames(bytes(data)) if self.raw else self.deframer.feed(bytes(data))
 
     def _read_udp(self) -> list:
         out: list = []
@@ -85,12 +89,20 @@ class LiveLink:
             self.say(f"{self.url}: {e}")
             time.sleep(0.1)
             return out
+        if self.raw:
+            feed = self.deframer.feed_frames
+            for data, _addr, _size in datagrams:
+                if _one_frame(data, self.deframer.mavlink1):
+                    out.append(bytes(data))  # what the deframer finds in it, without its search
+                else:
+                    out += feed(data, end=True)
+            return out
         for data, _addr, _size in datagrams:
             out += self.deframer.feed(data, end=True)  # a datagram holds whole frames
         return out
 
     def flush(self) -> list:
-        return self.deframer.flush()
+        return self.deframer.flush_frames() if self.raw else self.deframer.flush()
 
     def write(self, frame: bytes) -> None:
         """Send a frame back on the link (requests for missing samples); dropped while it is down."""
@@ -104,3 +116,17 @@ class LiveLink:
     def close(self) -> None:
         if self.conn is not None:
             self.conn.close()
+
+
+def _one_frame(data, mavlink1: bool) -> bool:
+    """Whether a datagram is exactly one intact frame of a known message (its header passes the deframer's
+    checks, MAVLink 1 only if `mavlink1`; its length is the datagram's, its CRC is right): the common case,
+    taken as it is."""
+    if not data:
+        return False
+    header = frame_header(data, 0, len(data), mavlink1)
+    if not header or header[0] != len(data):
+        return False
+    length, extra = header
+    end = length - (SIGNATURE_LEN if data[0] == STX_V2 and data[2] & IFLAG_SIGNED else 0)
+    return crc_x25(data[1:end - 2], extra) == data[end - 2] | (data[end - 1] << 8)

@@ -28,10 +28,14 @@ when it moves by `UTC0_RESTATE_S` or more (a new time set); the TLE when it chan
 """
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
 import numpy as np
+
+from fsw.drivers.mmc5983ma_regs import TESLA_PER_GAUSS
+from fsw.telemetry.dialect import mavlink
 
 from .box_knowledge import KEYS as KNOWLEDGE_KEYS
 from .box_knowledge import MAGCAL_KEYS
@@ -61,13 +65,76 @@ class _Files:
         self.stated: dict[str, str] = {}  # what the recording says of the box's knowledge
         self.utc0_s: float | None = None  # the UTC of t = 0 stated
         self.magcal_t_s: float | None = None  # the box time of the calibration stated
+        self.held: _Held | None = None  # rows taken and not yet handed to the files (`hold_rows`)
+
+
+_NAN3 = (math.nan,) * 3
+_ZERO3 = (0.0, 0.0, 0.0)
+
+
+class _Held:
+    """The values of rows taken (`Recorder.hold_rows`), as they were when taken, handed to the files in one
+    batch: the same columns and values `Decoder.recording` / `Decoder.rate_estimates` give, row by row."""
+
+    def __init__(self) -> None:
+        self.times: list[int] = []
+        self.mag: list[tuple] = []
+        self.truth: list[tuple] = []     # (w, m) per row, when the file has truth columns
+        self.kit: list[tuple] = []       # (kit field, flags) per row, when the file has kit columns
+        self.estimates: list = []        # the estimate in hand per row, when there is a rates file
+
+    def take(self, seg: Segment, f: _Files, ready: list[int]) -> None:
+        self.times.extend(ready)
+        if f.csv is not None:
+            self.mag.extend(seg.mag_gauss[t] for t in ready)
+            if f.csv.truth:
+                if seg.truth:
+                    nan = (_NAN3, _NAN3)
+                    self.truth.extend(seg.truth.get(t, nan) for t in ready)
+                else:       # Recording without truth: moments zero, reference rate NaN
+                    self.truth.extend([(_NAN3, _ZERO3)] * len(ready))
+            if f.csv.kit:
+                if seg.kit_seen:
+                    zero = (_ZERO3, 0)
+                    self.kit.extend(seg.kit.get(t, zero) for t in ready)
+                else:
+                    self.kit.extend([(_ZERO3, 0)] * len(ready))
+        if f.rates is not None:
+            self.estimates.extend(seg.estimate.get(t) for t in ready)
+
+    def hand_over(self, f: _Files) -> None:
+        if not self.times:
+            return
+        t_s = np.array(self.times, dtype=float) / 1e6
+        n = len(self.times)
+        if f.csv is not None:
+            b_T = np.array(self.mag, dtype=float).reshape(-1, 3) * TESLA_PER_GAUSS
+            m = w = kit = flags = None
+            if f.csv.truth:
+                w = np.array([x[0] for x in self.truth], dtype=float).reshape(-1, 3)
+                m = np.array([x[1] for x in self.truth], dtype=float).reshape(-1, 3)
+            if f.csv.kit:
+                kit = np.array([x[0] for x in self.kit], dtype=float).reshape(-1, 3) * TESLA_PER_GAUSS
+                flags = np.array([x[1] for x in self.kit], dtype=np.int64)
+            f.csv.append(t_s, b_T, m, w, kit, flags)
+        if f.rates is not None:
+            w = np.full((n, 3), np.nan)
+            s = np.full((n, 3), np.nan)
+            for i, est in enumerate(self.estimates):
+                if est is not None and not est[2] & mavlink.DEBRIS_ESTIMATE_FLAGS_NO_ESTIMATE:
+                    w[i], s[i] = est[0], est[1]
+            f.rates.append(t_s, w, s)
+        self.__init__()
 
 
 class Recorder:
     """Writes a decoder's segments to `csv` / `rates_csv` (either may be None) as they settle."""
 
     def __init__(self, csv: str | os.PathLike | None, rates_csv: str | os.PathLike | None, *,
-                 protect=(), settle_s: float = SETTLE_S) -> None:
+                 protect=(), settle_s: float = SETTLE_S, hold_rows: int = 0) -> None:
+        """`hold_rows`: the rows are handed to the files and written that many at a time (their values as
+        they were when they settled; the same files): for recordings made from data at rest."""
+        self.hold_rows = hold_rows
         self.bases = {"csv": None if csv is None else Path(csv),
                       "rates": None if rates_csv is None else Path(rates_csv)}
         self.settle_s = settle_s
@@ -115,6 +182,7 @@ class Recorder:
                 f = self._files.get(id(seg))
                 if f is None:
                     continue
+                self._hand_over(f)
                 if f.csv is not None and not f.dirty:
                     missing = seg.report()["missing"]
                     if missing:
@@ -165,6 +233,7 @@ class Recorder:
                 changed.update({key: now[key] for key in group if key in now})
         if not changed:
             return
+        self._hand_over(f)
         f.csv.comments({key: changed[key] for key in KNOWLEDGE_KEYS if key in changed})
         self._stated(f, seg, changed)
 
@@ -198,6 +267,19 @@ class Recorder:
             if "rates" in f.paths:
                 f.rates = RateAppender(f.paths["rates"], decoder.rate_metadata(seg))
                 self.written.append(("rate estimates", f.paths["rates"]))
+        if self.hold_rows:
+            f.written_upto_us = ready[-1]
+            if f.held is None:
+                f.held = _Held()
+            if f.csv is not None:
+                if seg.truth and not f.csv.truth:
+                    f.dirty = True  # as below
+                if seg.kit_seen and not f.csv.kit:
+                    f.dirty = True
+            f.held.take(seg, f, ready)
+            if len(f.held.times) >= self.hold_rows:
+                self._hand_over(f)
+            return
         if f.csv is not None:
             rec = decoder.recording(seg, ready)
             if rec.w_ref_radps is not None and not f.csv.truth:
@@ -212,6 +294,12 @@ class Recorder:
             est = decoder.rate_estimates(seg, ready)
             f.rates.append(est.t_s, est.w_radps, est.sigma_radps)
         f.written_upto_us = ready[-1]
+
+    @staticmethod
+    def _hand_over(f: _Files) -> None:
+        """The rows held (`hold_rows`) to the files."""
+        if f.held is not None:
+            f.held.hand_over(f)
 
 
 def _same(a: Path, b: Path) -> bool:

@@ -40,6 +40,9 @@ from typing import Callable  # noqa: E402
 from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range, link_url  # noqa: E402
 from fsw.telemetry.signing import KeyFileError, load_key  # noqa: E402
 
+from fsw.telemetry.framing import Deframer  # noqa: E402
+
+from .archive.bulk import decode_frames  # noqa: E402
 from .archive.store import ArchiveFeed, default_path  # noqa: E402
 from .live_link import LiveLink  # noqa: E402
 from .web.boxview import ONBOARD_METHODS, RATE_METHOD_NAMES  # noqa: E402
@@ -47,32 +50,44 @@ from .web.fleet import Fleet  # noqa: E402
 
 #: frames waiting between the links and the ingest thread
 MAX_QUEUED = 200_000
+#: frames the ingest thread takes from the queue at once (those waiting, up to this many)
+INGEST_BATCH = 2000
+#: batches waiting for the archive's thread (beyond: the ingest waits for it)
+ARCHIVE_BATCHES_QUEUED = 256
 #: the terminal's summary line every this many seconds
 LINE_PERIOD_S = 10.0
 
 
 class Ingest:
-    """The link threads and the ingest thread: frames from `urls` into `fleet` and the archive at
-    `archive` (None: none)."""
+    """The link threads, the ingest thread and the archive's thread: frames from `urls` into `fleet` and the
+    archive at `archive` (None: none). The ingest thread decodes the frames waiting, hands them to the archive's
+    thread (its own SQLite connection: a commit's fsync never holds the view up) and to the fleet."""
 
     def __init__(self, fleet: Fleet, urls: list[str], *, archive: str | Path | None, baud: int = 115200,
                  say: Callable[[str], None] = print, clock: Callable[[], float] = time.time) -> None:
         self.fleet, self.urls, self.archive_path, self.baud, self.say, self.clock = \
             fleet, urls, archive, baud, say, clock
         self.queue: queue.Queue = queue.Queue(maxsize=MAX_QUEUED)
+        #: batches (messages, receive times) for the archive's thread; None: the end
+        self.to_archive: queue.Queue = queue.Queue(maxsize=ARCHIVE_BATCHES_QUEUED)
         self.stop_event = threading.Event()
-        self.links = [LiveLink(url, baud, say) for url in urls]  # opened now: an error before any thread starts
+        # opened now: an error before any thread starts; frames come raw, decoded by the ingest thread in bulk
+        self.links = [LiveLink(url, baud, say, raw=True) for url in urls]
         self.threads: list[threading.Thread] = []
+        self.archiver: threading.Thread | None = None
         self.feed: ArchiveFeed | None = None
         self.error: BaseException | None = None
 
     def start(self) -> None:
-        ready = threading.Event()
-        ingest = threading.Thread(target=self._ingest, args=(ready,), name="station-ingest", daemon=True)
+        if self.archive_path is not None:
+            ready = threading.Event()
+            self.archiver = threading.Thread(target=self._archive, args=(ready,), name="station-archive", daemon=True)
+            self.archiver.start()
+            ready.wait()
+            if self.error is not None:
+                raise self.error
+        ingest = threading.Thread(target=self._ingest, name="station-ingest", daemon=True)
         ingest.start()
-        ready.wait()
-        if self.error is not None:
-            raise self.error
         self.threads.append(ingest)
         for link in self.links:
             th = threading.Thread(target=self._read, args=(link,), name=f"station-link {link.url}", daemon=True)
@@ -92,38 +107,54 @@ class Ingest:
         for msg in link.flush():
             self.queue.put((msg, self.clock()))
 
-    def _ingest(self, ready: threading.Event) -> None:
+    def _archive(self, ready: threading.Event) -> None:
         try:
-            self.feed = ArchiveFeed(self.archive_path, self.say) if self.archive_path is not None else None
+            self.feed = feed = ArchiveFeed(self.archive_path, self.say)
         except Exception as e:  # the archive cannot be opened: raised by start(), nothing read yet
             self.error = e
             ready.set()
             return
         ready.set()
-        feed = self.feed
+        while True:
+            try:
+                batch = self.to_archive.get(timeout=0.1)
+            except queue.Empty:
+                batch = ()
+            if batch is None:
+                break
+            if batch:
+                feed.add_many(*batch)
+            feed.tick()
+            self.fleet.archive = {"frames": feed.frames, "error": feed.error, "lost": feed.lost}
+        feed.close()
+        self.fleet.archive = {"frames": feed.frames, "error": feed.error, "lost": feed.lost}
+
+    def _ingest(self) -> None:
+        decode = Deframer().decode
+        archiving = self.archiver is not None
         done = False
         while not done:
+            batch: list = []
             try:
-                batch = [self.queue.get(timeout=0.1)]
+                batch.append(self.queue.get(timeout=0.1))
+                while len(batch) < INGEST_BATCH:     # and every frame waiting: decoded together
+                    batch.append(self.queue.get_nowait())
             except queue.Empty:
-                batch = []
-                if self.stop_event.is_set() and not any(t.is_alive() for t in self.threads[1:]):
+                if not batch and self.stop_event.is_set() and not any(t.is_alive() for t in self.threads[1:]):
                     done = True  # the links have stopped: what they put last is taken below, then the end
                     while not self.queue.empty():
                         batch.append(self.queue.get_nowait())
-            for msg, now_s in batch:
-                if feed is not None and msg.get_type() != "BAD_DATA":
-                    feed.add(msg, now_s)  # archived first, whatever the view makes of it
+            msgs = decode_frames([item for item, _ in batch], decode)
+            if archiving and batch:  # every intact frame archived, whatever the view makes of it
+                intact = [(m, t) for m, (_, t) in zip(msgs, batch) if m.get_type() != "BAD_DATA"]
+                self.to_archive.put(([m for m, _ in intact], [t for _, t in intact]))
+            for msg, (_, now_s) in zip(msgs, batch):
                 try:
                     self.fleet.handle(msg, now_s)
                 except Exception as e:  # noqa: BLE001 - a frame the view cannot take must not stop the station
                     self.fleet.failed(msg, e, self.say)
-            if feed is not None:
-                feed.tick()
-                self.fleet.archive = {"frames": feed.frames, "error": feed.error, "lost": feed.lost}
-        if feed is not None:
-            feed.close()
-            self.fleet.archive = {"frames": feed.frames, "error": feed.error, "lost": feed.lost}
+        if archiving:
+            self.to_archive.put(None)
 
     def stop(self) -> None:
         """Stop reading; every frame read is still archived and handed to the fleet (the queue drained)."""
@@ -135,6 +166,8 @@ class Ingest:
             if waiting > 10_000:
                 self.say(f"archiving the {waiting} frames still waiting")
             self.threads[0].join()
+        if self.archiver is not None:
+            self.archiver.join()
         for link in self.links:
             link.close()
 

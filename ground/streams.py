@@ -154,7 +154,7 @@ class Stream:
             self.current = seg
         if not seg.add_sample(int(msg.time_usec), b_gauss, now_s, int(msg.seq)):
             return None
-        kit = tuple(float(x) for x in getattr(msg, "kit_mag", (0.0, 0.0, 0.0)))
+        kit = tuple(map(float, getattr(msg, "kit_mag", (0.0, 0.0, 0.0))))
         if not all(map(math.isfinite, kit)):
             kit = (math.nan,) * 3
         flags = int(msg.flags) & ~1  # RESENT is the link's, not the sample's

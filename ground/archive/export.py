@@ -12,11 +12,16 @@ source: `ground.recorder`), the ``# source:`` line aside, which names the archiv
 """
 from __future__ import annotations
 
+import gc
 import os
 import sqlite3
 import struct
+from collections import Counter
+from contextlib import contextmanager
 from itertools import islice
 from dataclasses import dataclass
+
+import numpy as np
 
 from fsw.files import atomic_file
 from fsw.telemetry.framing import Deframer
@@ -24,6 +29,7 @@ from fsw.telemetry.framing import Deframer
 from fsw.telemetry.dialect import mavlink
 
 from ..decode import F32_FIELDS, KNOWLEDGE_MESSAGES, SAMPLE_MESSAGES, Decoder, f32
+from ..link_stats import MAG_FIELDS, MAX_TIME_US
 from ..recorder import Recorder
 from .bulk import LAYOUTS, Sample, decode_samples
 from .store import frames
@@ -86,54 +92,122 @@ def export_recordings(conn: sqlite3.Connection, sysid: int, csv: str | os.PathLi
     (other runs) may never take the name of. The sample messages are decoded in bulk, `CHUNK` frames at a time
     (`ground.archive.bulk`); frames of messages the recordings do not use go to the decoder's link accounting and
     clock only (a `Sample` without fields: its header): the same files, at a fraction of the time."""
-    recorder = Recorder(csv, rates_csv, protect=protect)
+    recorder = Recorder(csv, rates_csv, protect=protect, hold_rows=HOLD_ROWS)
     decoder = Decoder(method=method, origin=origin, recorder=recorder, rounded=True)
+    out = Exported(decoder=decoder)
+    with _without_cycle_collection():
+        _decode_interval(frames(conn, sysid, from_us, to_us, with_msgid=True), decoder, out)
+    out.written = list(recorder.written)
+    return out
+
+
+@contextmanager
+def _without_cycle_collection():
+    """Python's cyclic garbage collector held off: the decoder's tables grow by about ten objects a sample,
+    all alive to the end, and the collector went through them again and again (a sixth of the export's
+    time). Nothing here makes reference cycles; memory is freed by reference counting as before."""
+    was = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was:
+            gc.enable()
+
+
+def _decode_interval(rows, decoder: Decoder, out: Exported) -> None:
+    """`export_recordings`' work: the frames (time, msgid, frame) through the decoder, `CHUNK` at a time."""
     decode = Deframer().decode
-    handle, on_frame, tick = decoder.handle, decoder.stats.on_frame, decoder.tick
+    stats, counts = decoder.stats, decoder.frames_by_type
+    handle, accounted, on_frame, tick = decoder.handle, decoder.accounted, stats.on_frame, decoder.tick
     recorded = {msgid for msgid, cls in mavlink.mavlink_map.items() if cls.msgname in _RECORDED}
     names = {msgid: cls.msgname for msgid, cls in mavlink.mavlink_map.items()}
-    out = Exported(decoder=decoder)
     n = 0
-    rows = frames(conn, sysid, from_us, to_us, with_msgid=True)
     while chunk := list(islice(rows, CHUNK)):
         if n == 0:
             out.first_us = chunk[0][0]
-        samples = _bulk(chunk)
-        for i, (t_us, msgid, frame) in enumerate(chunk):
+        msgs = _bulk(chunk)
+        for i, (_, msgid, frame) in enumerate(chunk):
+            if msgs[i] is None and (msgid in recorded or msgid not in names):
+                msgs[i] = _rounded(decode(frame))
+        sources = [_source(f) for _, _, f in chunk]
+        bulk = _account(stats, chunk, sources, msgs)
+        for (t_us, msgid, frame), src, msg in zip(chunk, sources, msgs):
             now_s = t_us * 1e-6
-            msg = samples.get(i)
-            if msg is not None:
+            if src in bulk:                     # accounted already: all new, all intact
+                if msg is not None:
+                    stats.last_verdict = "new"
+                    accounted(names[msgid], msg, now_s)
+                tick(now_s)
+            elif msg is not None:
                 handle(msg, now_s)
-            elif msgid in recorded or msgid not in names:
-                handle(_rounded(decode(frame)), now_s)
             else:
                 on_frame(Sample(frame, names[msgid], msgid, {}), now_s)   # its header, undecoded
                 tick(now_s)
+        ids = Counter(msgid for (_, msgid, _), src in zip(chunk, sources) if src in bulk)
+        counts.update({names[msgid]: k for msgid, k in ids.items()})
         n += len(chunk)
         out.last_us = chunk[-1][0]
     if n:
         decoder.finish()
     out.frames = n
-    out.written = list(recorder.written)
-    return out
+
+
+def _account(stats, chunk: list[tuple], sources: list[tuple[int, int]], msgs: list) -> set:
+    """The link accounting of the chunk's frames done at once, per source (`LinkStats.on_run`), for the
+    sources whose frames are all intact, of known messages and new (no loss, copy or reordering): those
+    sources. The others' frames go to the decoder one by one, as received. (Every frame of an unknown
+    message, and every one the bulk decoding refused, is in `msgs` as pymavlink decoded it.)"""
+    refused = {sources[i] for i, m in enumerate(msgs) if m is not None and not isinstance(m, tuple)
+               and (m.get_msgId() < 0 or m.get_type().startswith("UNKNOWN"))}
+    by_source: dict[tuple[int, int], list[int]] = {}
+    for i, src in enumerate(sources):
+        by_source.setdefault(src, []).append(i)
+    done = set()
+    for src, places in by_source.items():
+        if src in refused or src == _NO_SOURCE:
+            continue
+        frames_ = [chunk[i][2] for i in places]
+        seqs = np.fromiter((f[4] if f[0] == 0xFD else f[2] for f in frames_), dtype=np.int64, count=len(frames_))
+        imu = [msgs[i] for i in places if chunk[i][1] == _HIGHRES_IMU and msgs[i] is not None]
+        times = [int(m.time_usec) for m in imu if m.fields_updated & MAG_FIELDS == MAG_FIELDS
+                 and m.time_usec < MAX_TIME_US]
+        if stats.on_run(src, seqs, frames_, chunk[places[0]][0] * 1e-6, chunk[places[-1]][0] * 1e-6, times):
+            done.add(src)
+    return done
+
+
+_HIGHRES_IMU = mavlink.MAVLINK_MSG_ID_HIGHRES_IMU
+#: the source of a frame too short to hold one (never accounted in bulk)
+_NO_SOURCE = (-1, -1)
+
+
+def _source(frame: bytes) -> tuple[int, int]:
+    """(sysid, compid) of a raw MAVLink 2 or 1 frame."""
+    if len(frame) >= 10 and frame[0] == 0xFD:
+        return frame[5], frame[6]
+    if len(frame) >= 6 and frame[0] == 0xFE:
+        return frame[3], frame[4]
+    return _NO_SOURCE
 
 
 #: frames decoded in bulk at a time
 CHUNK = 20_000
+#: rows of a recording formatted and written at a time
+HOLD_ROWS = 20_000
 
 
-def _bulk(chunk: list[tuple]) -> dict[int, Sample]:
-    """The chunk's sample messages decoded in bulk, by their place in the chunk (those that fail a check:
-    left out, for pymavlink)."""
+def _bulk(chunk: list[tuple]) -> list:
+    """The chunk's sample messages decoded in bulk, at their place in the chunk (None elsewhere, and for
+    those that fail a check: left to pymavlink)."""
     where: dict[int, list[int]] = {}
     for i, (_, msgid, _) in enumerate(chunk):
         if msgid in LAYOUTS:
             where.setdefault(msgid, []).append(i)
-    out = {}
+    out = [None] * len(chunk)
     for msgid, places in where.items():
         for i, msg in zip(places, decode_samples([chunk[i][2] for i in places], msgid)):
-            if msg is not None:
-                out[i] = msg
+            out[i] = msg
     return out
 
 

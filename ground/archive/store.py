@@ -162,6 +162,24 @@ class ArchiveWriter:
         elif now - self._oldest_s >= self.commit_period_s or len(rows) >= self.max_pending:
             self.commit()
 
+    def add_many(self, msgs: list, times_s: list[float]) -> None:
+        """`add` of a batch of messages received at `times_s`, the commit checked once at its end (the
+        ground station's ingest: the frames waiting, taken together)."""
+        rows = self._rows
+        for msg, now_s in zip(msgs, times_s):
+            t = getattr(msg, "time_usec", None)
+            if t is None:
+                t = getattr(msg, "time_boot_ms", None)
+                if t is not None:
+                    t *= 1000
+            if t is not None and not 0 <= t <= _INT64_MAX:
+                t = None
+            rows.append((round(now_s * 1e6), msg.get_srcSystem(), msg.get_srcComponent(), msg.get_msgId(), t,
+                         bytes(msg.get_msgbuf())))
+        if rows and self._oldest_s is None:
+            self._oldest_s = self.clock()
+        self.tick()
+
     def add_frame(self, t_us: int, sysid: int, compid: int, msgid: int, box_t_us: int | None, frame: bytes) -> None:
         """Archive a raw frame received at `t_us` (µs since 1970)."""
         self._rows.append((t_us, sysid, compid, msgid, box_t_us, frame))
@@ -226,6 +244,13 @@ class ArchiveFeed:
             return
         self.given += 1
         self._guard(self.writer.add, msg, now_s)
+
+    def add_many(self, msgs: list, times_s: list[float]) -> None:
+        if self.writer is None:
+            self.given += len(msgs) if self.error is not None else 0
+            return
+        self.given += len(msgs)
+        self._guard(self.writer.add_many, msgs, times_s)
 
     def tick(self) -> None:
         if self.writer is not None:

@@ -105,3 +105,56 @@ def test_rows_are_formatted_as_one_value_at_a_time():
                      [1.7976931348623157e308, -1.7976931348623157e308, 1.79769313486231e308, 0.1, 1e-7, 2.5]]
     want = [",".join([_format_exact(r[0]), *map(_format, r[1:])]) for r in table.tolist()]
     assert _lines(table) == want
+
+
+def test_a_batch_of_raw_frames_decodes_to_pymavlinks_messages():
+    """`decode_frames` (the ground station's ingest): the sample messages decoded in bulk, not rounded, every
+    other message by pymavlink, junk passed through, in the batch's order: each the value pymavlink gives."""
+    from fsw.telemetry.framing import Deframer
+    from ground.archive.bulk import decode_frames
+
+    msgs = _messages(np.random.default_rng(8))[:40]
+    msgs.insert(5, mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GENERIC, mavlink.MAV_AUTOPILOT_INVALID,
+                                                     0, 0, mavlink.MAV_STATE_ACTIVE, 3))
+    msgs.insert(9, mavlink.MAVLink_statustext_message(mavlink.MAV_SEVERITY_INFO, b"hello"))
+    deframer = Deframer()
+    items = []
+    for i, frame in enumerate(_pack(msgs, signed=True)):
+        items += deframer.feed_frames(frame, end=True)
+        if i == 20:
+            items += deframer.feed_frames(b"\x01\x02junk", end=True)
+    assert sum(isinstance(x, bytes) for x in items) == len(msgs) and len(items) == len(msgs) + 1
+    got = decode_frames(items, Deframer().decode)
+    ref = Deframer()
+    for item, have in zip(items, got):
+        if not isinstance(item, bytes):
+            assert have is item and have.get_type() == "BAD_DATA"
+            continue
+        want = ref.decode(item)
+        assert (have.get_type(), have.get_msgId(), have.get_seq(), have.get_srcSystem(),
+                have.get_srcComponent(), bytes(have.get_msgbuf())) == \
+               (want.get_type(), want.get_msgId(), want.get_seq(), want.get_srcSystem(),
+                want.get_srcComponent(), item)
+        for name in want.get_fieldnames():
+            a, b = getattr(have, name), getattr(want, name)
+            if isinstance(b, (list, tuple)):
+                assert len(a) == len(b) and all(map(_same, a, b)), name
+            else:
+                assert _same(a, b), name
+
+
+def test_a_batch_archived_at_once_holds_what_frame_by_frame_does(tmp_path):
+    from fsw.telemetry.framing import Deframer
+    from ground.archive import ArchiveWriter, open_reader
+
+    msgs = [Deframer().decode(f) for f in _pack(_messages(np.random.default_rng(9))[:60])]
+    times = [1_750_000_000 + 0.01 * k for k in range(len(msgs))]
+    with ArchiveWriter(tmp_path / "one.sqlite") as w:
+        for m, t in zip(msgs, times):
+            w.add(m, t)
+    with ArchiveWriter(tmp_path / "many.sqlite") as w:
+        w.add_many(msgs[:25], times[:25])
+        w.add_many(msgs[25:], times[25:])
+    rows = [open_reader(tmp_path / n).execute("SELECT t_us, sysid, compid, msgid, box_t_us, frame FROM frames "
+                                              "ORDER BY rowid").fetchall() for n in ("one.sqlite", "many.sqlite")]
+    assert len(rows[0]) == 60 and rows[0] == rows[1]

@@ -223,3 +223,56 @@ def test_first_and_last_seen_times() -> None:
     feed(stats, pack(heartbeat(1), 1), now_s=12.5)
     s = src_summary(stats)
     assert (s["first_s"], s["last_s"]) == (10.0, 12.5)
+
+
+def _state(src) -> tuple:
+    return (src.as_dict(), src.expected, list(src.recent), list(src.missing))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_a_run_accounted_at_once_is_what_frame_by_frame_accounting_gives_or_is_refused(seed):
+    """`LinkStats.on_run` (the archive export's bulk accounting) against `on_frame` one by one: a run it
+    takes leaves the same counters; it refuses, changing nothing, every run with a loss, a copy, a late or
+    an out-of-sequence frame, which then go one by one."""
+    rng = np.random.default_rng(seed)
+    parser = mavlink.MAVLink(None)
+    seq, sent = 0, []
+    for k in range(3000):
+        sent.append(pack(heartbeat(k), seq))
+        seq += 1
+        event = rng.random()
+        if event < 0.002:
+            seq += int(rng.integers(1, 300))                         # lost frames
+        elif event < 0.004:
+            sent.append(sent[-1])                                    # a copy
+        elif event < 0.006 and len(sent) > 3:
+            sent.append(sent[-3])                                    # a late copy
+        elif event < 0.008:
+            sent[-1], sent[-2] = sent[-2], sent[-1]                  # reordered
+    bulk, one = LinkStats(), LinkStats()
+    taken = refused = 0
+    i = 0
+    while i < len(sent):
+        run = sent[i:i + int(rng.integers(1, 80))]
+        i += len(run)
+        before = {k: _state(s) for k, s in bulk.sources.items()}
+        seqs = np.array([f[4] for f in run])
+        ok = bulk.on_run(FSW, seqs, run, float(i), float(i + 1))
+        verdicts, lost = [], one.lost()
+        for f in run:
+            one.on_frame(parser.decode(bytearray(f)), float(i + 1))
+            verdicts.append(one.last_verdict)
+        clean = set(verdicts) == {"new"} and one.lost() == lost
+        assert ok == clean
+        if ok:
+            taken += 1
+        else:
+            refused += 1
+            assert {k: _state(s) for k, s in bulk.sources.items()} == before
+            for f in run:                                            # then frame by frame
+                bulk.on_frame(parser.decode(bytearray(f)), float(i + 1))
+        src, ref = bulk.sources[FSW], one.sources[FSW]
+        assert _state(src)[1:] == _state(ref)[1:]
+        assert {k: v for k, v in src.as_dict().items() if k != "first_s"} == \
+               {k: v for k, v in ref.as_dict().items() if k != "first_s"}
+    assert taken > 20 and refused > 10

@@ -1,7 +1,9 @@
-"""The live web view in a real browser during a SITL run of two boxes: headless Chromium (the Debian package)
+"""The live web view in a real browser during a SITL run of three boxes: headless Chromium (the Debian package)
 opens the station's page while two `hil.sitl` runs (system ids 1 and 2, the de-orbit scenario and the default
-one, each signing with its own key) send to `ground.station`; for each box the page's
-last plotted rows (``window.station.plotted``, read through the DevTools protocol with aiohttp's WebSocket
+one) and a third box in this process (system id 3, running the identification experiment), each
+signing with its own key, send to `ground.station`; for each box the page's
+last plotted rows (field, rate ± σ, truth, the truth's attitude, the kit's energy, the inertia estimate ± its
+95 % band: ``window.station.plotted``, read through the DevTools protocol with aiohttp's WebSocket
 client) are the values of the very frames the station archived at those times, decoded independently from
 the archive. A screenshot is kept in ``artifacts/station.png`` (git-ignored; the path is printed)."""
 import asyncio
@@ -64,9 +66,17 @@ def devtools_port(profile: Path, proc, timeout_s=60.0) -> int:
     raise TimeoutError("chromium did not open its DevTools port")
 
 
-async def watch(port, url, boxes=("1", "2"), timeout_s=120.0):
-    """Until the page has plotted, for every box, the field, the rate and its truth, the kit's energy: per box
-    the last plotted rows and the rows it holds, the updates received, a screenshot (PNG bytes) of the first."""
+#: what the page must have plotted of each box before it is read: box 1 flies the kit, box 3 identifies its
+#: inertia. (The flown filter's own attitude is not among them: in a run this short every box flies the
+#: fixed-field filter, which has none — the orbit's filters wait for the host-magnetics calibration, an orbit.)
+NEED = {"1": ("field_uT", "rate_dps", "truth_rate_dps", "kit_energy_J", "truth_attitude_deg"),
+        "2": ("field_uT", "rate_dps", "truth_rate_dps", "truth_attitude_deg"),
+        "3": ("field_uT", "inertia_kgm2")}
+
+
+async def watch(port, url, boxes=("1", "2", "3"), timeout_s=180.0, done=lambda: True):
+    """Until the page has plotted, for every box, what `NEED` says (box time past 8 s) and `done()`: per box the
+    last plotted rows and the rows it holds, the updates received, a screenshot (PNG bytes) of the first."""
     import base64
 
     async with ClientSession() as http:
@@ -77,8 +87,6 @@ async def watch(port, url, boxes=("1", "2"), timeout_s=120.0):
             await cdp.call("Page.enable")
             await cdp.call("Page.navigate", url=url)
             deadline = time.monotonic() + timeout_s
-            need = {"1": ("field_uT", "rate_dps", "truth_rate_dps", "kit_energy_J"),  # box 1 flies the kit
-                    "2": ("field_uT", "rate_dps", "truth_rate_dps")}
             plotted = {}
             while time.monotonic() < deadline:
                 for box in boxes:  # each box's detail drawn in turn, as an operator clicks its row
@@ -87,7 +95,8 @@ async def watch(port, url, boxes=("1", "2"), timeout_s=120.0):
                         f" station.selected = '{box}'; render();"
                         f" return JSON.stringify(station.plotted['{box}']); }})()")
                     plotted[box] = json.loads(got or "{}")
-                if all(all(k in plotted[b] for k in need[b]) and plotted[b]["field_uT"][0] > 8.0 for b in boxes):
+                if done() and all(all(k in plotted[b] for k in NEED[b]) and plotted[b]["field_uT"][0] > 8.0
+                                  for b in boxes):
                     break
                 await asyncio.sleep(0.5)
             updates = await cdp.evaluate("(window.station||{}).updates||0")
@@ -117,6 +126,67 @@ def at(msgs, kind, t_s, **match):
     return hits[-1]
 
 
+def euler_deg(q_wxyz):
+    """Roll, pitch, yaw (deg) of a quaternion body → reference, by SciPy (Z-Y-X, intrinsic)."""
+    from scipy.spatial.transform import Rotation
+
+    w, x, y, z = q_wxyz
+    yaw, pitch, roll = Rotation.from_quat([x, y, z, w]).as_euler("ZYX", degrees=True)
+    return [roll, pitch, yaw]
+
+
+def identifying_box(port, key, sysid=3):
+    """A third box, in this process: SITL of Aist-2D (1 Hz samples) whose identification experiment is started
+    as the ground would (MAV_CMD_DEBRIS_IDENT_START, the tug), run faster than real time until it is done,
+    its telemetry signed with `key` and sent to the station: running and final DEBRIS_INERTIA_ESTIMATE
+    (the two other boxes never start the experiment). Returns the thread and the final state it reached."""
+    import dataclasses
+    import threading
+    from types import SimpleNamespace
+
+    from fsw.ident import DONE
+    from fsw.telemetry import dialect
+    from hil import sitl as hil_sitl
+    from support import flight_assumptions
+
+    args = hil_sitl.parse_args(["--scenario", "aist2d_ident", "--rate", "10", "--speed", "0", "--quiet",
+                                "--system-id", str(sysid)])
+    args = dataclasses.replace(args, scenario=flight_assumptions("aist2d_ident"))
+    state = {"final": None}
+
+    def run():
+        tx = dialect.open_link(f"udpout:127.0.0.1:{port}", source_system=sysid,
+                               source_component=dialect.FSW_COMPID)
+        try:
+            box = hil_sitl.build(args, link=tx, key=key, ident_options={
+                "work_per_tick": 200000, "update_every_s": 10.0, "tlm_period_s": 2.0})
+            ident = box.fsw.apps["ident"]
+            start = SimpleNamespace(command=mavlink.MAV_CMD_DEBRIS_IDENT_START, confirmation=0, target_system=sysid,
+                                    target_component=1, param1=mavlink.DEBRIS_TORQUE_SOURCE_TUG, param2=20.0,
+                                    param3=20.0, param4=20.0, param5=0.2, param6=0.15, param7=-0.1)
+            k = 0
+            while ident.state != DONE and k < 3000:
+                t = k / args.run.rate_hz
+                box.sim.advance_to(t)
+                if k == 5:
+                    box.fsw.commands.handle(start, t, authenticated=True)
+                box.fsw.tick(t)
+                if k % 10 == 0:
+                    time.sleep(0.02)     # about 10 × real time: no burst for the station's socket
+                k += 1
+            for _ in range(30):          # its last telemetry after the final estimate
+                k += 1
+                box.sim.advance_to(k / args.run.rate_hz)
+                box.fsw.tick(k / args.run.rate_hz)
+            state["final"] = ident.state
+        finally:
+            tx.close()
+
+    th = threading.Thread(target=run, daemon=True)
+    th.start()
+    return th, state
+
+
 def sitl(port, key_file, sysid, scenario):
     return subprocess.Popen([sys.executable, "-m", "hil.sitl", "--scenario", scenario, "--key", str(key_file),
                              "--system-id", str(sysid), "--sample-rate", "10", "--duration", "30", "--speed", "1",
@@ -124,14 +194,16 @@ def sitl(port, key_file, sysid, scenario):
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 
 
-def test_browser_shows_the_decoded_values_of_two_live_sitl_boxes(tmp_path):
-    keys = {1: tmp_path / "box1.key", 2: tmp_path / "box2.key"}
-    for path in keys.values():
-        write_key(path, os.urandom(32))
+def test_browser_shows_the_decoded_values_of_three_live_sitl_boxes(tmp_path):
+    keys = {1: tmp_path / "box1.key", 2: tmp_path / "box2.key", 3: tmp_path / "box3.key"}
+    secrets = {sysid: os.urandom(32) for sysid in keys}
+    for sysid, path in keys.items():
+        write_key(path, secrets[sysid])
     port = free_udp_port()
     archive = tmp_path / "archive.sqlite"
     station = subprocess.Popen([sys.executable, "-m", "ground.station", f"udpin:127.0.0.1:{port}",
-                                "--box", f"1:{keys[1]}", "--box", f"2:{keys[2]}", "--web", "127.0.0.1:0",
+                                "--box", f"1:{keys[1]}", "--box", f"2:{keys[2]}", "--box", f"3:{keys[3]}",
+                                "--web", "127.0.0.1:0",
                                 "--archive", str(archive), "--quiet"],
                                cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     boxes, browser = [], None
@@ -141,6 +213,7 @@ def test_browser_shows_the_decoded_values_of_two_live_sitl_boxes(tmp_path):
         assert line.startswith("web view: http://127.0.0.1:"), line + station.stderr.read()
         url = line.split()[-1]
         boxes = [sitl(port, keys[1], 1, "amds_deorbit"), sitl(port, keys[2], 2, "isoi")]
+        ident_thread, ident = identifying_box(port, secrets[3])
         browser = subprocess.Popen([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu",
                                     "--disable-background-networking", "--disable-component-update",
                                     "--disable-sync", "--no-first-run", "--hide-scrollbars",
@@ -148,7 +221,14 @@ def test_browser_shows_the_decoded_values_of_two_live_sitl_boxes(tmp_path):
                                     "--window-size=1500,1250", "about:blank"],
                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         cdp_port = devtools_port(profile, browser)
-        plotted, updates, n_rows, png = asyncio.run(watch(cdp_port, url))
+        ended = []
+
+        def settled():  # box 3's experiment done, and two seconds for its last frames to be drawn
+            if not ident_thread.is_alive() and not ended:
+                ended.append(time.monotonic())
+            return bool(ended) and time.monotonic() > ended[0] + 2.0
+
+        plotted, updates, n_rows, png = asyncio.run(watch(cdp_port, url, done=settled))
     finally:
         for p in (browser, *boxes):
             if p is not None and p.poll() is None:
@@ -167,8 +247,11 @@ def test_browser_shows_the_decoded_values_of_two_live_sitl_boxes(tmp_path):
 
     for sysid in (1, 2):
         box = plotted[str(sysid)]
-        assert n_rows[str(sysid)]["field_uT"] >= 5, n_rows
         msgs = archived(archive, sysid)
+        assert n_rows[str(sysid)]["field_uT"] >= 5, n_rows
+        assert "attitude_deg" not in box                   # the fixed-field filter flies: no attitude of its own
+        t, *att = box["truth_attitude_deg"]
+        assert att == pytest.approx(euler_deg(at(msgs, "DEBRIS_SIM_STATE", t).q), abs=1e-3)
         t, *b_uT = box["field_uT"]
         assert t > 8.0
         sample = at(msgs, "DEBRIS_MAG_SAMPLE", t)
@@ -186,4 +269,15 @@ def test_browser_shows_the_decoded_values_of_two_live_sitl_boxes(tmp_path):
         else:
             assert "kit_energy_J" not in box  # the default scenario has no kit: nothing of box 1's shown for it
         assert f"box {sysid}: " in out
-    assert out.count("refused: none") == 2  # each box's frames verified with its own key
+    assert out.count("refused: none") == 3  # each box's frames verified with its own key
+
+    # box 3's identification: the estimate converging with its 95 % band is the archived one's
+    assert ident["final"] == mavlink.DEBRIS_IDENT_STATE_DONE
+    msgs = archived(archive, 3)
+    estimates = [m for m in msgs if m.get_type() == "DEBRIS_INERTIA_ESTIMATE" and m.samples]
+    assert len(estimates) >= 3 and estimates[-1].state == mavlink.DEBRIS_IDENT_STATE_DONE
+    t, *inertia = plotted["3"]["inertia_kgm2"]
+    est = at(msgs, "DEBRIS_INERTIA_ESTIMATE", t)
+    assert inertia == pytest.approx([*est.inertia[:3], *est.ci95[:3]], abs=1e-3)   # Ixx Iyy Izz and their 95 %
+    assert est.time_usec == max(m.time_usec for m in estimates)                      # the newest: the final one
+    assert n_rows["3"]["inertia_kgm2"] >= 3
