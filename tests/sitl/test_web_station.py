@@ -3,9 +3,13 @@ opens the station's page while two `hil.sitl` runs (system ids 1 and 2, the de-o
 one) and a third box in this process (system id 3, running the identification experiment), each
 signing with its own key, send to `ground.station`; for each box the page's
 last plotted rows (field, rate ± σ, truth, the truth's attitude, the kit's energy, the inertia estimate ± its
-95 % band: ``window.station.plotted``, read through the DevTools protocol with aiohttp's WebSocket
-client) are the values of the very frames the station archived at those times, decoded independently from
-the archive. A screenshot is kept in ``artifacts/station.png`` (git-ignored; the path is printed)."""
+95 % band, the flown filter's attitude: ``window.station.plotted``, read through the DevTools protocol with
+aiohttp's WebSocket client) are the values of the very frames the station archived at those times, decoded
+independently from the archive. Boxes 1 and 2 fly the fixed-field filter (the orbit filters wait for the
+host-magnetics calibration, about an orbit) and show no attitude of their own; box 3 starts with its host's
+true iron as the calibration a restart would restore (`HostCalibration.restore`), so its flown filter hands
+over to the Euler filter with the field along the orbit at its second sample and its ATTITUDE_QUATERNION
+is plotted as yaw, pitch, roll. A screenshot is kept in ``artifacts/station.png`` (git-ignored; the path is printed)."""
 import asyncio
 import json
 import math
@@ -67,11 +71,12 @@ def devtools_port(profile: Path, proc, timeout_s=60.0) -> int:
 
 
 #: what the page must have plotted of each box before it is read: box 1 flies the kit, box 3 identifies its
-#: inertia. (The flown filter's own attitude is not among them: in a run this short every box flies the
-#: fixed-field filter, which has none — the orbit's filters wait for the host-magnetics calibration, an orbit.)
+#: inertia with its host calibration restored, so it flies the orbit's filter and plots its own attitude
+#: (boxes 1 and 2 fly the fixed-field filter, which has none: the orbit's filters wait for the host-magnetics
+#: calibration, about an orbit).
 NEED = {"1": ("field_uT", "rate_dps", "truth_rate_dps", "kit_energy_J", "truth_attitude_deg"),
         "2": ("field_uT", "rate_dps", "truth_rate_dps", "truth_attitude_deg"),
-        "3": ("field_uT", "inertia_kgm2")}
+        "3": ("field_uT", "inertia_kgm2", "attitude_deg")}
 
 
 async def watch(port, url, boxes=("1", "2", "3"), timeout_s=180.0, done=lambda: True):
@@ -135,11 +140,30 @@ def euler_deg(q_wxyz):
     return [roll, pitch, yaw]
 
 
+def true_calibration(host, t_s=0.0) -> dict:
+    """The simulated host's own iron (`hil.host_magnetics.HostMagnetics`: b_meas = S·b + h(t)) as a
+    calibration snapshot (`fsw.estimation.magcal.MagCal.snapshot`'s format; B = (I + D)(B_meas − b)):
+    b = h(`t_s`), I + D = S⁻¹ (symmetric: the scenarios' S is), no drift terms, converged."""
+    import numpy as np
+
+    from fsw.estimation import magcal as mc
+
+    b_T = host.hard_iron_at_T(t_s)
+    D = np.linalg.inv(host.soft_iron) - np.eye(3)
+    D = (D + D.T) / 2.0
+    theta = [*(b_T * mc.UT_PER_T), *(D[i, j] for i, j in mc.D_TERMS)]
+    return {"theta_uT": [float(x) for x in theta], "b_T": [float(x) for x in b_T],
+            "D": D.tolist(), "cov": None, "published_at_s": t_s, "drift_period_s": None, "state": mc.CONVERGED}
+
+
 def identifying_box(port, key, sysid=3):
     """A third box, in this process: SITL of Aist-2D (1 Hz samples) whose identification experiment is started
     as the ground would (MAV_CMD_DEBRIS_IDENT_START, the tug), run faster than real time until it is done,
     its telemetry signed with `key` and sent to the station: running and final DEBRIS_INERTIA_ESTIMATE
-    (the two other boxes never start the experiment). Returns the thread and the final state it reached."""
+    (the two other boxes never start the experiment). Its host-magnetics calibration is the host's true iron,
+    restored before its first tick as after a restart (`true_calibration`): its flown filter hands over to
+    the orbit's (Euler) filter and sends ATTITUDE_QUATERNION. Returns the thread and what it reached:
+    the experiment's final state, the flown filter's name and hand-overs."""
     import dataclasses
     import threading
     from types import SimpleNamespace
@@ -152,7 +176,7 @@ def identifying_box(port, key, sysid=3):
     args = hil_sitl.parse_args(["--scenario", "aist2d_ident", "--rate", "10", "--speed", "0", "--quiet",
                                 "--system-id", str(sysid)])
     args = dataclasses.replace(args, scenario=flight_assumptions("aist2d_ident"))
-    state = {"final": None}
+    state = {"final": None, "filter": None, "handovers": 0}
 
     def run():
         tx = dialect.open_link(f"udpout:127.0.0.1:{port}", source_system=sysid,
@@ -160,6 +184,7 @@ def identifying_box(port, key, sysid=3):
         try:
             box = hil_sitl.build(args, link=tx, key=key, ident_options={
                 "work_per_tick": 200000, "update_every_s": 10.0, "tlm_period_s": 2.0})
+            box.fsw.calibration.restore(true_calibration(box.sim.host), None, 0.0, restart=False)
             ident = box.fsw.apps["ident"]
             start = SimpleNamespace(command=mavlink.MAV_CMD_DEBRIS_IDENT_START, confirmation=0, target_system=sysid,
                                     target_component=1, param1=mavlink.DEBRIS_TORQUE_SOURCE_TUG, param2=20.0,
@@ -179,6 +204,8 @@ def identifying_box(port, key, sysid=3):
                 box.sim.advance_to(k / args.run.rate_hz)
                 box.fsw.tick(k / args.run.rate_hz)
             state["final"] = ident.state
+            flown = box.fsw.estimators["kalman"]
+            state["filter"], state["handovers"] = flown.name, flown.handovers
         finally:
             tx.close()
 
@@ -281,3 +308,16 @@ def test_browser_shows_the_decoded_values_of_three_live_sitl_boxes(tmp_path):
     assert inertia == pytest.approx([*est.inertia[:3], *est.ci95[:3]], abs=1e-3)   # Ixx Iyy Izz and their 95 %
     assert est.time_usec == max(m.time_usec for m in estimates)                      # the newest: the final one
     assert n_rows["3"]["inertia_kgm2"] >= 3
+
+    # box 3's own attitude: the flown filter handed over once to the Euler filter, which flew to the end;
+    # the plotted yaw/pitch/roll are the archived ATTITUDE_QUATERNION's (body → ECI) at the plotted time
+    assert (ident["filter"], ident["handovers"]) == ("euler", 1), ident
+    sigmas = [m for m in msgs if m.get_type() == "DEBRIS_ATTITUDE_SIGMA"]
+    assert sigmas[-1].filter == mavlink.DEBRIS_RATE_FILTER_EULER and sigmas[-1].handovers == 1
+    t, *att = plotted["3"]["attitude_deg"]
+    t_ms = round(t * 1e3)
+    quats = [m for m in msgs if m.get_type() == "ATTITUDE_QUATERNION" and m.time_boot_ms == t_ms]
+    assert quats, f"no ATTITUDE_QUATERNION at {t} s in the archive"
+    q = quats[-1]
+    assert att == pytest.approx(euler_deg((q.q1, q.q2, q.q3, q.q4)), abs=1e-3)   # degrees
+    assert n_rows["3"]["attitude_deg"] >= 3
