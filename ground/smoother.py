@@ -48,6 +48,7 @@ from fsw.estimation import rate_kalman as rk
 from fsw.estimation import rotations as rot
 from ground import angle_sum
 from ground import euler_trajectory as et
+from ground import rts_pass
 
 FieldFn = Callable[[float], np.ndarray]
 SHAPE_SIGMA_FLOOR = 0.01  # 1-σ floor of ln(J₂/J₁), ln(J₃/J₁) carried into the Euler RTS smoother
@@ -146,10 +147,7 @@ def _forward(t, b, sigma_b_T, field_eci_T, noise, angle, start=None, store=False
                                tuning=ak.AttitudeKalmanTuning(kappa=kappa, rate_accel_radps2=accel, adapt_max=1.0,
                                                               rate_tau_s=tau),
                                angle_about_b_rad=angle, store=store)
-    kf.start(t[0], b[0], **(start or {}))
-    for k in range(1, len(t)):
-        kf.update(t[k], b[k])
-    return kf
+    return rts_pass.forward(kf, t, b, start or {})  # compiled (the filter's own updates where it cannot be)
 
 
 def _reversed(t, b, field_eci_T):
