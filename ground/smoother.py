@@ -696,10 +696,7 @@ def euler_rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, fiel
             P0[kf.i_beta:, kf.i_beta:] = (3 * sigma_b_T * rk.UT_PER_T) ** 2 * np.eye(3)
         else:
             P0[:3, :3] = 0.1 ** 2 * np.eye(3)
-        kf.start(t[0], b[0], **start)
-        for k in range(1, len(t)):
-            kf.update(t[k], b[k])
-        return kf
+        return rts_pass.forward(kf, t, b, start)  # compiled (the filter's own updates where it cannot be)
 
     fits = {}
     for a in accels_radps2:

@@ -97,3 +97,34 @@ def test_rts_smooth_same_with_and_without_the_compiled_passes(monkeypatch):
         assert fast.info[k] == slow.info[k], k
     np.testing.assert_allclose(fast.w_radps, slow.w_radps, rtol=0, atol=1e-12)  # rad/s
     np.testing.assert_allclose(fast.sigma_radps, slow.sigma_radps, rtol=1e-8)
+
+
+@pytest.mark.parametrize("tensor", [False, True])
+def test_euler_pass_equals_the_filters_updates(tensor):
+    """The Euler RTS smoother's passes: Euler's equations from the start, the shape estimated or J known."""
+    t, b = record(seed=11)
+    J = np.diag([1.0, 1.6, 2.3]) if tensor else None
+
+    def euler_filter():
+        tun = ak.AttitudeKalmanTuning(rate_accel_radps2=1e-4, adapt_max=1.0, max_substep_rad=0.25, max_substeps=400)
+        return ak.AttitudeRateKalman(0.6e-6, field_eci_T=sm.tabulated(FIELD, t), inertia_kgm2=J,
+                                     estimate_inertia=J is None, store=True, tuning=tun)
+    n = euler_filter().n
+    P0 = np.zeros((n, n))
+    P0[:3, :3] = 0.1 ** 2 * np.eye(3)
+    P0[3:6, 3:6] = 0.05 ** 2 * np.eye(3)
+    start = {"q": np.array([1.0, 0.0, 0.0, 0.0]), "omega_radps": np.radians([9.0, -14.0, 6.0]), "P": P0}
+    if J is None:
+        P0[6:8, 6:8] = 0.05 ** 2 * np.eye(2)
+        start["p"] = np.log([1.55, 2.4])
+    ref = reference(euler_filter(), t, b, start)
+    got = rts_pass.forward(euler_filter(), t, b, start)
+    assert rts_pass.compiled(got) and got.euler and ref.euler and ref.resets == 0
+    np.testing.assert_allclose(got.w, ref.w, rtol=0, atol=1e-13)  # rad/s
+    np.testing.assert_allclose(got.p, ref.p, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got.P, ref.P, rtol=1e-8, atol=1e-20)
+    assert got.nll == pytest.approx(ref.nll, rel=1e-12, abs=1e-9)
+    for name in ("qp", "xp", "Pp", "F", "q", "x", "P", "nis"):
+        a, c = np.array(got.log[name]), np.array(ref.log[name])
+        assert a.shape == c.shape, name
+        np.testing.assert_allclose(a, c, rtol=1e-8, atol=1e-12, err_msg=name)
