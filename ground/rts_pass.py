@@ -303,3 +303,33 @@ def _python_pass(kf: ak.AttitudeRateKalman, t, b_T, first: int = 1) -> ak.Attitu
     for k in range(first, len(t)):
         kf.update(t[k], b_T[k])
     return kf
+
+
+@njit(cache=True)
+def _qlog(q):
+    """rotations.quat_log: the rotation vector of a unit quaternion, the shorter way round."""
+    if q[0] < 0:
+        q = -q
+    s = math.sqrt(q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    if s < 1e-12:
+        return 2.0 * q[1:]
+    return (2.0 * math.atan2(s, q[0]) / s) * q[1:]
+
+
+@njit(cache=True)
+def backward(q_f, x_f, P_f, q_p, x_p, P_p, F, restart, n_att):
+    """The RTS backward pass of :func:`ground.smoother.rts` (its docstring has the equations): smoothed
+    attitudes, additive states and covariances."""
+    N = q_f.shape[0]
+    q_s, x_s, P_s = q_f.copy(), x_f.copy(), P_f.copy()
+    conj = np.array((1.0, -1.0, -1.0, -1.0))
+    for k in range(N - 2, -1, -1):
+        if restart[k + 1]:
+            continue
+        C = np.linalg.solve(P_p[k + 1], F[k + 1] @ P_f[k]).T
+        d = np.concatenate((_qlog(_qmul(q_p[k + 1] * conj, q_s[k + 1])), x_s[k + 1] - x_p[k + 1]))
+        dx = C @ d
+        q_s[k] = _qmul(q_f[k], _qexp(dx[:n_att]))
+        x_s[k] = x_f[k] + dx[n_att:]
+        P_s[k] = P_f[k] + C @ (P_s[k + 1] - P_p[k + 1]) @ C.T
+    return q_s, x_s, P_s

@@ -101,22 +101,12 @@ def rts(log: dict, n_att: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     Returns the smoothed attitudes (N, 4), additive states (N, m) and covariances (N, n, n). Where the
     filter restarted (a gap, a divergence) the pass does not link the two sides.
     """
-    q_f, x_f, P_f = np.array(log["q"]), np.array(log["x"]), np.array(log["P"])
-    q_p, x_p, P_p, F = np.array(log["qp"]), np.array(log["xp"]), np.array(log["Pp"]), np.array(log["F"])
+    q_f, x_f, P_f = (np.array(log[k], float) for k in ("q", "x", "P"))
+    q_p, x_p, P_p, F = (np.array(log[k], float) for k in ("qp", "xp", "Pp", "F"))
     N = len(q_f)
-    restart = log.get("restart", [False] * N)
-    q_s, x_s, P_s = q_f.copy(), x_f.copy(), P_f.copy()
-    for k in range(N - 2, -1, -1):
-        if restart[k + 1]:  # the filter started afresh at k + 1: nothing links the two stretches
-            continue
-        C = np.linalg.solve(P_p[k + 1], F[k + 1] @ P_f[k]).T
-        d = np.concatenate([rot.quat_log(rot.quat_mul(rot.quat_conj(q_p[k + 1]), q_s[k + 1])),
-                            x_s[k + 1] - x_p[k + 1]])
-        dx = C @ d
-        q_s[k] = rot.quat_mul(q_f[k], rot.quat_exp(dx[:n_att]))
-        x_s[k] = x_f[k] + dx[n_att:]
-        P_s[k] = P_f[k] + C @ (P_s[k + 1] - P_p[k + 1]) @ C.T
-    return q_s, x_s, P_s
+    # where the filter started afresh at k + 1, nothing links the two stretches
+    restart = np.array(log.get("restart", [False] * N), bool)
+    return rts_pass.backward(q_f, x_f, P_f, q_p, x_p, P_p, F, restart, n_att)  # compiled
 
 
 def variance_scale(log: dict, skip: int = 10) -> float:
