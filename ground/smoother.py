@@ -47,6 +47,8 @@ from fsw.estimation.rate_formulas import unobserved_sigma
 from fsw.estimation import rate_kalman as rk
 from fsw.estimation import rotations as rot
 from ground import angle_sum
+from ground import euler_trajectory as et
+from ground import rts_pass
 
 FieldFn = Callable[[float], np.ndarray]
 SHAPE_SIGMA_FLOOR = 0.01  # 1-σ floor of ln(J₂/J₁), ln(J₃/J₁) carried into the Euler RTS smoother
@@ -85,6 +87,7 @@ def tabulated(field_eci_T: FieldFn | None, t_s: np.ndarray) -> FieldFn | None:
     def field(t_query: float) -> np.ndarray:
         v = table.get(float(t_query))
         return v if v is not None else np.asarray(field_eci_T(t_query), float)
+    field.at_samples = (t, values)  # the compiled propagation reads it whole
     return field
 
 
@@ -98,22 +101,12 @@ def rts(log: dict, n_att: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     Returns the smoothed attitudes (N, 4), additive states (N, m) and covariances (N, n, n). Where the
     filter restarted (a gap, a divergence) the pass does not link the two sides.
     """
-    q_f, x_f, P_f = np.array(log["q"]), np.array(log["x"]), np.array(log["P"])
-    q_p, x_p, P_p, F = np.array(log["qp"]), np.array(log["xp"]), np.array(log["Pp"]), np.array(log["F"])
+    q_f, x_f, P_f = (np.array(log[k], float) for k in ("q", "x", "P"))
+    q_p, x_p, P_p, F = (np.array(log[k], float) for k in ("qp", "xp", "Pp", "F"))
     N = len(q_f)
-    restart = log.get("restart", [False] * N)
-    q_s, x_s, P_s = q_f.copy(), x_f.copy(), P_f.copy()
-    for k in range(N - 2, -1, -1):
-        if restart[k + 1]:  # the filter started afresh at k + 1: nothing links the two stretches
-            continue
-        C = np.linalg.solve(P_p[k + 1], F[k + 1] @ P_f[k]).T
-        d = np.concatenate([rot.quat_log(rot.quat_mul(rot.quat_conj(q_p[k + 1]), q_s[k + 1])),
-                            x_s[k + 1] - x_p[k + 1]])
-        dx = C @ d
-        q_s[k] = rot.quat_mul(q_f[k], rot.quat_exp(dx[:n_att]))
-        x_s[k] = x_f[k] + dx[n_att:]
-        P_s[k] = P_f[k] + C @ (P_s[k + 1] - P_p[k + 1]) @ C.T
-    return q_s, x_s, P_s
+    # where the filter started afresh at k + 1, nothing links the two stretches
+    restart = np.array(log.get("restart", [False] * N), bool)
+    return rts_pass.backward(q_f, x_f, P_f, q_p, x_p, P_p, F, restart, n_att)  # compiled
 
 
 def variance_scale(log: dict, skip: int = 10) -> float:
@@ -144,10 +137,7 @@ def _forward(t, b, sigma_b_T, field_eci_T, noise, angle, start=None, store=False
                                tuning=ak.AttitudeKalmanTuning(kappa=kappa, rate_accel_radps2=accel, adapt_max=1.0,
                                                               rate_tau_s=tau),
                                angle_about_b_rad=angle, store=store)
-    kf.start(t[0], b[0], **(start or {}))
-    for k in range(1, len(t)):
-        kf.update(t[k], b[k])
-    return kf
+    return rts_pass.forward(kf, t, b, start or {})  # compiled (the filter's own updates where it cannot be)
 
 
 def _reversed(t, b, field_eci_T):
@@ -275,27 +265,43 @@ class _Trajectory:
     Jr: np.ndarray         # (N, 3, n) ∂r/∂δx₀
 
 
-def _trajectory(kf: ak.AttitudeRateKalman, t, z_uT, sb_uT, n) -> _Trajectory:
-    """Propagate the filter's nominal state (no updates) across the first n samples."""
-    q0, w0 = kf.q.copy(), kf.w.copy()
-    nn = kf.n
-    Q = np.zeros((n, 4))
-    W = np.zeros((n, 3))
-    Phi = np.zeros((n, nn, nn))
-    r = np.zeros((n, 3))
-    Jr = np.zeros((n, 3, nn))
-    F = np.eye(nn)
-    kf.t_s = t[0]
-    for k in range(n):
-        if k:
-            F = kf.propagate(t[k] - t[k - 1]) @ F
-            kf.t_s = t[k]
-        h, H = kf.measurement(t[k])
-        Q[k], W[k], Phi[k] = kf.q, kf.w, F
-        r[k] = (z_uT[k] - h) / sb_uT
-        Jr[k] = -(H @ F) / sb_uT
-    kf.q, kf.w, kf.t_s = q0, w0, t[0]
+def _trajectory(kf: ak.AttitudeRateKalman, t, z_uT, sb_uT, n, jacobian: bool = True) -> _Trajectory:
+    """Propagate the filter's nominal state (no updates, torque-free Euler) across the first n samples,
+    compiled (:func:`ground.euler_trajectory.trajectory`; the filter's own propagation is its reference in
+    tests/ground/test_euler_trajectory.py). Without `jacobian` only q, ω and r (Φ and Jr empty: an LM
+    trial's cost)."""
+    if not kf.euler or kf.torque is not None:
+        raise NotImplementedError("the batch fit's propagation is torque-free Euler")
+    if not np.all(np.isfinite(kf.p)):
+        raise ValueError("non-finite state")
+    if kf.J is not None:
+        mode, j2, j3, J, K = et.TENSOR, 1.0, 1.0, kf.J.ravel().copy(), kf.J_inv.ravel().copy()
+    else:
+        mode, j2, j3, J, K = et.SHAPE, math.exp(kf.p[0]), math.exp(kf.p[1]), _NO_TENSOR, _NO_TENSOR
+    b_i = _NO_FIELD if kf.field is None else _field_at_samples(kf.field, t, n)
+    tun = kf.tuning
+    Q, W, Phi, r, Jr, ok = et.trajectory(np.asarray(kf.q, float), np.asarray(kf.w, float), mode, j2, j3, J, K,
+                                         int(kf.n_p), np.asarray(kf.beta, float), b_i,
+                                         np.ascontiguousarray(t, dtype=float),
+                                         np.ascontiguousarray(z_uT, dtype=float), float(sb_uT), int(n),
+                                         float(tun.max_substep_rad), int(tun.max_substeps), jacobian)
+    if not ok:
+        raise ValueError("non-finite state")
     return _Trajectory(Q, W, Phi, r, Jr)
+
+
+_NO_FIELD = np.zeros((0, 3))
+_NO_TENSOR = np.zeros(9)
+
+
+def _field_at_samples(field_eci_T: FieldFn, t: np.ndarray, n: int) -> np.ndarray:
+    """B_I (µT) at the first n samples: the table of :func:`tabulated` when it holds these times."""
+    table = getattr(field_eci_T, "at_samples", None)
+    if table is not None and len(table[0]) >= n and (table[0] is t or np.array_equal(table[0][:n], t[:n])):
+        values = table[1][:n]
+    else:
+        values = np.array([np.asarray(field_eci_T(x), float) for x in t[:n]]).reshape(n, 3)
+    return np.ascontiguousarray(values * rk.UT_PER_T)
 
 
 def euler_fit(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
@@ -555,7 +561,7 @@ def _wahba_start(kf, t, z, field_eci_T, n) -> np.ndarray:
     With R(t_k) = R₀ R_rel,k: min over R₀ of Σ |R₀ R_rel,k z_k − B_I(t_k)|² (Wahba 1965), solved by
     the SVD of Σ B_I,k (R_rel,k z_k)ᵀ (Markley 1988): the global optimum, whatever the angle about B.
     """
-    traj_q = _trajectory(kf, t, z, 1.0, n).q
+    traj_q = _trajectory(kf, t, z, 1.0, n, jacobian=False).q
     C0t = rot.quat_to_dcm(kf.q).T
     Bm = np.zeros((3, 3))
     for k in range(n):
@@ -592,7 +598,7 @@ def _lm(kf, t, z, sb, n, free, prior_w, iterations, lam: float = 1e-3):
             trial = _apply(kf, step, free)
             try:
                 with np.errstate(invalid="ignore", over="ignore"):  # a step too far: a non-finite cost, refused
-                    tr = _trajectory(trial, t, z, sb, n)
+                    tr = _trajectory(trial, t, z, sb, n, jacobian=False)
                 tc = float(tr.r.reshape(-1) @ tr.r.reshape(-1)) + _prior_cost(trial, prior_w)
             except (ValueError, OverflowError, FloatingPointError):
                 tc = math.inf
@@ -680,10 +686,7 @@ def euler_rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, fiel
             P0[kf.i_beta:, kf.i_beta:] = (3 * sigma_b_T * rk.UT_PER_T) ** 2 * np.eye(3)
         else:
             P0[:3, :3] = 0.1 ** 2 * np.eye(3)
-        kf.start(t[0], b[0], **start)
-        for k in range(1, len(t)):
-            kf.update(t[k], b[k])
-        return kf
+        return rts_pass.forward(kf, t, b, start)  # compiled (the filter's own updates where it cannot be)
 
     fits = {}
     for a in accels_radps2:
