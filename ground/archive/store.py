@@ -117,6 +117,21 @@ def _create(path: Path) -> None:
             os.unlink(tmp)
 
 
+def archive_row(msg, now_s: float) -> tuple:
+    """The archive's row of an intact frame (a pymavlink message as parsed) received at `now_s` (Unix time,
+    s): (received µs, system, component, message id, the box's time µs or None, the frame's bytes).
+    `box_time_us` written out: this is ingest's hot path."""
+    t = getattr(msg, "time_usec", None)
+    if t is None:
+        t = getattr(msg, "time_boot_ms", None)
+        if t is not None:
+            t *= 1000
+    if t is not None and not 0 <= t <= _INT64_MAX:
+        t = None
+    return (round(now_s * 1e6), msg.get_srcSystem(), msg.get_srcComponent(), msg.get_msgId(), t,
+            bytes(msg.get_msgbuf()))
+
+
 class ArchiveWriter:
     """Appends frames to an archive (created if missing) in transactions of the frames handed over within
     `commit_period_s` of `clock` (monotonic seconds) or `max_pending` frames; `close` commits the rest."""
@@ -144,18 +159,9 @@ class ArchiveWriter:
         self.commits = 0
 
     def add(self, msg, now_s: float) -> None:
-        """Archive an intact frame (a pymavlink message as parsed) received at `now_s` (Unix time, s).
-        The hot path of ingest: one call, no helper (`box_time_us` inlined)."""
-        t = getattr(msg, "time_usec", None)
-        if t is None:
-            t = getattr(msg, "time_boot_ms", None)
-            if t is not None:
-                t *= 1000
-        if t is not None and not 0 <= t <= _INT64_MAX:
-            t = None
+        """Archive an intact frame (a pymavlink message as parsed) received at `now_s` (Unix time, s)."""
         rows = self._rows
-        rows.append((round(now_s * 1e6), msg.get_srcSystem(), msg.get_srcComponent(), msg.get_msgId(), t,
-                     bytes(msg.get_msgbuf())))
+        rows.append(archive_row(msg, now_s))
         now = self.clock()
         if self._oldest_s is None:
             self._oldest_s = now
@@ -166,16 +172,7 @@ class ArchiveWriter:
         """`add` of a batch of messages received at `times_s`, the commit checked once at its end (the
         ground station's ingest: the frames waiting, taken together)."""
         rows = self._rows
-        for msg, now_s in zip(msgs, times_s):
-            t = getattr(msg, "time_usec", None)
-            if t is None:
-                t = getattr(msg, "time_boot_ms", None)
-                if t is not None:
-                    t *= 1000
-            if t is not None and not 0 <= t <= _INT64_MAX:
-                t = None
-            rows.append((round(now_s * 1e6), msg.get_srcSystem(), msg.get_srcComponent(), msg.get_msgId(), t,
-                         bytes(msg.get_msgbuf())))
+        rows.extend(map(archive_row, msgs, times_s))
         if rows and self._oldest_s is None:
             self._oldest_s = self.clock()
         self.tick()
