@@ -119,16 +119,8 @@ def _create(path: Path) -> None:
 
 def archive_row(msg, now_s: float) -> tuple:
     """The archive's row of an intact frame (a pymavlink message as parsed) received at `now_s` (Unix time,
-    s): (received µs, system, component, message id, the box's time µs or None, the frame's bytes).
-    `box_time_us` written out: this is ingest's hot path."""
-    t = getattr(msg, "time_usec", None)
-    if t is None:
-        t = getattr(msg, "time_boot_ms", None)
-        if t is not None:
-            t *= 1000
-    if t is not None and not 0 <= t <= _INT64_MAX:
-        t = None
-    return (round(now_s * 1e6), msg.get_srcSystem(), msg.get_srcComponent(), msg.get_msgId(), t,
+    s): (received µs, system, component, message id, the box's time µs or None, the frame's bytes)."""
+    return (round(now_s * 1e6), msg.get_srcSystem(), msg.get_srcComponent(), msg.get_msgId(), box_time_us(msg),
             bytes(msg.get_msgbuf()))
 
 
