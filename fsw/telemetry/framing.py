@@ -344,24 +344,12 @@ class Deframer:
         Two valid frames that overlap cannot both be real; the one whose end meets the next frame (or
         the end of the data) is, the other a CRC that matched by chance (1 in 65,536 a candidate: a
         flood of valid-looking headers in front of a frame makes it happen)."""
-        b = self._buf
-        n = len(b)
-        j = start
-        while j < end:
-            j = self._candidate(j, n, end)
-            if j < 0:
-                return False
-            head = self._header(j, n)
-            if head is not None and head[0] and end < j + head[0] <= n and self._crc_ok(j, *head) \
-                    and self._followed_well(j + head[0]):
-                return True
-            j += 1
-        return False
+        return self._complete_frame_after(start, end, past=end)
 
-    def _complete_frame_after(self, start: int, stop: int | None = None) -> bool:
-        """Whether a complete, valid frame starts somewhere in [start, stop). Then an incomplete
-        candidate before it is noise (a good frame does not sit inside another), and a command after
-        line noise is not held up until more bytes arrive."""
+    def _complete_frame_after(self, start: int, stop: int | None = None, past: int | None = None) -> bool:
+        """Whether a complete, valid frame starts somewhere in [start, stop) (and, given `past`, ends after
+        it and is followed well). Then an incomplete candidate before it is noise (a good frame does not
+        sit inside another), and a command after line noise is not held up until more bytes arrive."""
         b = self._buf
         n = len(b)
         stop = n if stop is None else min(stop, n)
@@ -371,7 +359,8 @@ class Deframer:
             if j < 0:
                 return False
             head = self._header(j, n)
-            if head is not None and head[0] and j + head[0] <= n and self._crc_ok(j, *head):
+            if head is not None and head[0] and j + head[0] <= n and (past is None or j + head[0] > past) \
+                    and self._crc_ok(j, *head) and (past is None or self._followed_well(j + head[0])):
                 return True
             j += 1
         return False
