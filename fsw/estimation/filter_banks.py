@@ -19,12 +19,6 @@ from .rotations import quat_conj, quat_exp, quat_log, quat_mul, quat_to_dcm
 #: (2 steps) such a body's hypotheses started 1 in ln J off and the filter settled on a wrong shape: on
 #: a 27 °/s, 0.5 s, 1.5 µT cubesat tumble it stayed at 0.2–0.6 of Boer's error after 30 s.
 SHAPE_GRID_HALF_WIDTH = 5
-#: 1-σ of ln J ratios about each shape of the grid when its hypothesis starts (:class:`EulerAcquisitionKalman`):
-#: 0.3, most of the grid's step, so that the hypothesis one step from the true shape (up to 0.17 off in each
-#: ln) walks to it. With 0.2 the winner of a 27 °/s, 0.5 s, 1.5 µT cubesat tumble's trial (true ln J₃/J₁ −1.66)
-#: was often the one at −1.4, whose σ had collapsed before it got there: 0.32 and 0.88 of Boer's error from
-#: 30 to 90 s on two of 20 seeds (0.12 and 0.27 now; `python -m bench.lockon`)
-SIGMA_SHAPE = 0.3
 
 
 def shape_grid(step: float = 0.35, half_width: int = SHAPE_GRID_HALF_WIDTH) -> tuple[tuple[float, float], ...]:
@@ -137,7 +131,7 @@ class EulerAcquisitionKalman(_Bank):
     """
 
     def __init__(self, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
-                 tuning: AttitudeKalmanTuning | None = None, shapes=None, sigma_shape: float = SIGMA_SHAPE,
+                 tuning: AttitudeKalmanTuning | None = None, shapes=None, sigma_shape: float = 0.2,
                  trial_samples: int = 15, trial_s: float = 15.0, retry_samples: int = 15,
                  angle_about_b_rad: float = 0.0, trial_step_s: float = TRIAL_STEP_S,
                  about_b_hypotheses: int = 0, about_b_step_s: float = ABOUT_B_STEP_S,
