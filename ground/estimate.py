@@ -200,6 +200,9 @@ def _estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, fi
         notes["model"] = res.method
         if "variance_scale" in res.info and "widened_to_cover" not in res.info:
             notes["variance_scale"] = float(res.info["variance_scale"])
+        if "auto_choice" in res.info:  # the rule, with its k: said in the recording's metadata and summary
+            notes["auto_rule"] = (f"no candidate that another's {sm.EXCLUDE_Z:g}-sigma band excludes at over "
+                                  f"{100 * sm.EXCLUDE_SHARE:g} % of samples")
         if "widened_to_cover" in res.info:
             notes["sigma_covers"] = "solutions that disagree beyond their σ (ground.smoother.auto_result)"
         notes["chi2_per_dof"] = f"{res.chi2_dof:.3f}"
