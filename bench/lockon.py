@@ -10,7 +10,9 @@ from 30 s to 90 s against the RMS of the Boer formula's error perpendicular to B
 (the issue's target: at most a third).
 
     python -m bench.lockon                                  # every filter, seeds 0-5
-    python -m bench.lockon --filters euler --seeds 20 --json lockon.json
+    python -m bench.lockon --filters euler --seeds 20 --json lockon.json --workers 2
+
+Each (filter, seed) is a campaign's run (bench.campaign: --workers, --scheduler, --results, --rerun).
 
 The body's rate precesses in body axes at ~13 °/s (an elongated body, ω along its axis ~15 °/s): the
 random-walk filters (``fixed``, ``orbit``, ``mm``) lag it whatever their process noise (κ from 0.5 to 4:
@@ -18,18 +20,19 @@ random-walk filters (``fixed``, ``orbit``, ``mm``) lag it whatever their process
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import math
-import sys
-import time
 
 import numpy as np
 
+from bench.campaign import options as campaign_options
+from bench.campaign.runs import Run
+from fsw.argtypes import ArgumentParser, check_paths_or_exit
 from fsw.estimation import rate_formulas as rf
 from fsw.estimation.flown_filter import FILTERS, FlownFilter
 from fsw.estimation.onboard_field import InterpolatedOrbitField
+from fsw.files import write_atomic
 from fsw.flight import ESTIMATOR_WORK_PER_TICK
 from hil import scenario
 from hil.host_magnetics import HostMagnetics
@@ -102,29 +105,44 @@ def lock_on(seed: int, kind: str) -> tuple[float, float]:
     return rms, boer_rms
 
 
+def lockon_task(run: Run) -> dict:
+    """A campaign's task (bench.campaign): the lock-on of filter `run.params["filter"]` on the tumble of
+    seed `run.seed[0]`."""
+    rms, boer = lock_on(run.seed[0], run.params["filter"])
+    return {"rms_dps": rms, "boer_perp_rms_dps": boer, "ratio": rms / boer}
+
+
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.lockon", description=__doc__.splitlines()[0])
+    ap = ArgumentParser(prog="python -m bench.lockon", description=__doc__.splitlines()[0])
     ap.add_argument("--filters", default=",".join(FILTERS), help=f"comma-separated subset of {','.join(FILTERS)}")
     ap.add_argument("--seeds", type=int, default=6, help="seeds 0 … N−1 (default 6)")
     ap.add_argument("--json", metavar="FILE", help="write the figures as JSON")
+    campaign_options.add_arguments(ap)
     args = ap.parse_args(argv)
+    campaign_options.check(ap, args)
+    check_paths_or_exit(ap, outputs={"--json": args.json, **campaign_options.outputs(args)})
     kinds = [k for k in args.filters.split(",") if k]
     bad = [k for k in kinds if k not in FILTERS]
     if bad or not kinds:
         ap.error(f"--filters: unknown {', '.join(bad) or '(none)'}; choose from {', '.join(FILTERS)}")
     if args.seeds < 1:
         ap.error("--seeds must be >= 1")
+    specs = [Run(f"{kind}/{seed}", (seed,), {"filter": kind}) for kind in kinds for seed in range(args.seeds)]
+    config = {"benchmark": "bench.lockon", "rate_dps": RATE_DPS, "dt_s": DT_S, "sigma_T": SIGMA_T,
+              "from_s": FROM_S, "to_s": DURATION_S}
+
+    def show(run: Run, r: dict) -> None:
+        print(f"{run.params['filter']:6s} seed {run.seed[0]:3d}: {r['rms_dps']:6.2f} °/s, "
+              f"Boer ⊥ {r['boer_perp_rms_dps']:6.2f} °/s, ratio {r['ratio']:5.2f}"
+              f"{'' if r['ratio'] <= 1 / 3 else '  > 1/3'}", flush=True)
+
+    got = campaign_options.execute(ap, args, lockon_task, specs, config, name="lockon", on_result=show)
+    if isinstance(got, int):  # --rerun, or a run that failed
+        return got
     out = {"case": {"rate_dps": RATE_DPS, "dt_s": DT_S, "sigma_uT": SIGMA_T * 1e6, "from_s": FROM_S,
                     "to_s": DURATION_S}, "filters": {}}
     for kind in kinds:
-        rows = []
-        for seed in range(args.seeds):
-            c0 = time.process_time()
-            rms, boer = lock_on(seed, kind)
-            rows.append({"seed": seed, "rms_dps": rms, "boer_perp_rms_dps": boer, "ratio": rms / boer,
-                         "cpu_s": time.process_time() - c0})
-            print(f"{kind:6s} seed {seed:3d}: {rms:6.2f} °/s, Boer ⊥ {boer:6.2f} °/s, ratio {rms / boer:5.2f}"
-                  f"{'' if rms <= boer / 3 else '  > 1/3'}", flush=True)
+        rows = [{"seed": spec.seed[0], **r} for spec, r in zip(specs, got) if spec.params["filter"] == kind]
         ratios = [r["ratio"] for r in rows]
         met = sum(r <= 1 / 3 for r in ratios)
         out["filters"][kind] = {"runs": rows, "ratio_max": max(ratios), "ratio_median": float(np.median(ratios)),
@@ -132,11 +150,12 @@ def main(argv=None) -> int:
         print(f"{kind}: ratio median {np.median(ratios):.2f}, max {max(ratios):.2f}; ≤ 1/3 on {met} of "
               f"{len(ratios)} seeds")
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(out, f, indent=1)
+        write_atomic(args.json, json.dumps(out, indent=1))
         print(f"wrote {args.json}")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from fsw.startup import exit_with
+
+    exit_with(main)

@@ -9,7 +9,8 @@ SITL is (`hil.sitl.build`, lockstep, the flight software at `--rate` Hz on a nul
 magnets as the known torque) → DETUMBLING (the kit's pulses, `fsw.deorbit.detumble`) → STABILISING (the
 de-orbit controller on the onboard estimate with the identified tensor) → STABILISED.
 
-Per run (:func:`run_one`, the unit a campaign can distribute): the time each phase was entered, the
+Per run (:func:`run_one`; each seed a campaign's run, bench.campaign: --workers, --scheduler, --results,
+--rerun): the time each phase was entered, the
 kit's energy per phase, the identified tensor against the truth (`inertia_err_pct`: the largest
 component error in % of the largest true moment; `ci95_covered`: every component within its 95 %
 interval), `stabilised` (STABILISED reached and the true yaw and pitch within 0.2 rad over the last
@@ -25,6 +26,7 @@ at true time T.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import sys
@@ -33,6 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.campaign import options as campaign_options
+from bench.campaign.runs import Run
 from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range
 from fsw.config import RunConfig
 from fsw.deorbit.controller import euler_zyx
@@ -198,7 +202,7 @@ def line(r: dict) -> str:
             f"(ci95 {r['ci95_pct']:.2f} %, covered {r['ci95_covered']}), detumbling at "
             f"{t.get('DETUMBLING', math.nan):.0f} s, stabilising at {t.get('STABILISING', math.nan):.0f} s, "
             f"stabilised at {t.get('STABILISED', math.nan):.0f} s, end {r['final_phase']} ({r['final_reason']}), "
-            f"{r['energy_J']:.0f} J, wall {r['wall_s']:.0f} s")
+            f"{r['energy_J']:.0f} J" + (f", wall {r['wall_s']:.0f} s" if "wall_s" in r else ""))
 
 
 def plot(r: dict, path: str) -> None:
@@ -234,6 +238,14 @@ def plot(r: dict, path: str) -> None:
         save_figure(fig, path, dpi=100)
     finally:
         plt.close(fig)
+
+
+def mission_task(run: Run, *, params: dict) -> dict:
+    """A campaign's task (bench.campaign): the mission of seed `run.seed[0]` (`run_one`), without its wall
+    time (a run's result depends on its seed and parameters alone)."""
+    r = run_one(run.seed[0], {**params, "trace": run.params["trace"]})
+    r.pop("wall_s", None)
+    return r
 
 
 def merge(ap, paths: list[str], out_path: str | None) -> int:
@@ -273,32 +285,52 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--merge", nargs="+", metavar="JSON", default=None,
                     help="no run: the runs of these JSON files (from this tool) aggregated into --json")
     ap.add_argument("--plot", metavar="FILE.png", help="the first seed's phases, rates, pulses, attitude")
+    campaign_options.add_arguments(ap)
     args = ap.parse_args(argv)
+    campaign_options.check(ap, args)
     scenario_file = args.scenario if Path(args.scenario).is_file() else None
-    check_paths_or_exit(ap, inputs={"--scenario": scenario_file}, outputs={"--json": args.json, "--plot": args.plot})
+    check_paths_or_exit(ap, inputs={"--scenario": scenario_file},
+                        outputs={"--json": args.json, "--plot": args.plot, **campaign_options.outputs(args)})
     check_plot_path_or_exit(ap, args.plot)
     if args.merge:
         return merge(ap, args.merge, args.json)
-    params = {"scenario": args.scenario, "duration_s": args.duration, "rate_hz": args.rate}
-    runs = []
+    params = {"scenario": args.scenario, "duration_s": args.duration, "rate_hz": args.rate,
+              "faults": tuple(args.fault)}
     try:
         for f in args.fault:
             Fault.parse(f)
-        params["faults"] = tuple(args.fault)
-        for i, seed in enumerate(range(args.first_seed, args.first_seed + args.seeds)):
-            r = run_one(seed, {**params, "trace": bool(args.plot) and i == 0})
-            if "trace" in r:
-                plot(r, args.plot)
-                print(f"wrote {args.plot}")
-                del r["trace"]
-            runs.append(r)
-            print(line(r), flush=True)
-            if args.json:
-                write_atomic(args.json, json.dumps({"scenario": args.scenario, "params": params, **aggregate(runs)},
-                                                   indent=2, default=float))
-    except ValueError as e:
+        if scenarios.load(args.scenario).mission is None:
+            raise ValueError(f"scenario {args.scenario!r} has no [mission] table")
+    except (ValueError, scenarios.ScenarioError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    seeds = range(args.first_seed, args.first_seed + args.seeds)
+    # the first seed's run keeps its trace for --plot (in its result, so that a re-run gives the same)
+    specs = [Run(f"seed{seed}", (seed,), {"trace": bool(args.plot) and seed == args.first_seed}) for seed in seeds]
+    config = {"benchmark": "bench.mission", **params}
+    runs: list[dict] = []
+    elapsed: dict = {}
+
+    def done(spec: Run, r: dict) -> None:
+        runs.append({k: v for k, v in r.items() if k != "trace"})
+        print(line(r), flush=True)
+        if args.json:
+            write_atomic(args.json, json.dumps({"scenario": args.scenario, "params": params, **aggregate(runs)},
+                                               indent=2, default=float))
+
+    got = campaign_options.execute(ap, args, functools.partial(mission_task, params=params), specs, config,
+                                   name="mission", on_result=done, elapsed_s=elapsed)
+    if isinstance(got, int):  # --rerun, or a run that failed
+        return got
+    runs = []
+    for spec, r in zip(specs, got):
+        if "trace" in r:
+            plot(r, args.plot)
+            print(f"wrote {args.plot}")
+        runs.append({**{k: v for k, v in r.items() if k != "trace"}, "wall_s": round(elapsed[spec.id], 1)})
+    if args.json:
+        write_atomic(args.json, json.dumps({"scenario": args.scenario, "params": params, **aggregate(runs)},
+                                           indent=2, default=float))
     out = {"scenario": args.scenario, "params": params, **aggregate(runs)}
     print(f"{len(runs)} runs: tensor error max {out['inertia_err_pct_max']:.2f} % of the largest moment, ci95 "
           f"coverage {100 * out['ci95_coverage']:.0f} %, stabilised {100 * out['fraction_stabilised']:.0f} %, "

@@ -12,7 +12,7 @@ def test_lockon_bench_writes_the_ratio_of_each_filter_and_seed(tmp_path):
     """One seed of the Euler filter: its error from 30 s on against the truth, at most a third of Boer's ⊥B
     error, as the JSON says; and the tumble is the issue's (27 °/s, 0.5 s steps, 1.5 µT)."""
     out = tmp_path / "l.json"
-    assert lockon.main(["--filters", "euler", "--seeds", "1", "--json", str(out)]) == 0
+    assert lockon.main(["--filters", "euler", "--seeds", "1", "--json", str(out), "--workers", "1"]) == 0
     d = json.loads(out.read_text())
     run = d["filters"]["euler"]["runs"][0]
     assert run["ratio"] == pytest.approx(run["rms_dps"] / run["boer_perp_rms_dps"])

@@ -65,3 +65,24 @@ def test_merge_aggregates_the_runs_of_several_files(tmp_path, capsys):
     assert exit_status(mission.main, ["--merge", str(out), "--json", str(out)]) == 2   # never over an input
     assert exit_status(mission.main, ["--merge", str(tmp_path / "none.json"), "--json", str(tmp_path / "x.json")]) == 1
     assert "Traceback" not in capsys.readouterr().err
+
+
+def test_the_seeds_run_as_a_campaign_resumable_and_rerun_bit_for_bit(tmp_path, capsys):
+    """Each seed a campaign's run (bench.campaign): the results file holds them, a second start runs none again,
+    --rerun gives the stored result bit for bit, and --plot draws the first seed's trace (kept in its run)."""
+    import json
+
+    res, out, png = tmp_path / "r.parquet", tmp_path / "m.json", tmp_path / "m.png"
+    argv = ["--seeds", "2", "--duration", "30", "--workers", "1", "--results", str(res), "--json", str(out),
+            "--plot", str(png)]
+    assert mission.main(argv) == 0
+    d = json.loads(out.read_text())
+    assert [r["seed"] for r in d["runs"]] == [0, 1] and all(r["wall_s"] >= 0 for r in d["runs"])
+    assert png.stat().st_size > 0 and "trace" not in d["runs"][0]
+    capsys.readouterr()
+    assert mission.main(argv) == 0 and json.loads(out.read_text())["runs"] == d["runs"]   # resumed: none run again
+    assert "seed   0" not in capsys.readouterr().out
+    # the plot's run is another run than the same seed without a trace: refused, the file named
+    assert mission.main(argv[:-2]) == 1 and "--results" in capsys.readouterr().err
+    assert mission.main([*argv[:8], "--rerun", "seed1"]) == 0
+    assert "bit for bit" in capsys.readouterr().out
