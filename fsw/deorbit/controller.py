@@ -390,13 +390,27 @@ class ControllerConfig:
     roll_guard_rad: float = 1.0
     free_motion_substeps: int = 10  # RK4 steps per period (even: the mid-point is a step)
     sail_share: float = 5.0 / 5.58  # the sail's share of the area the flow sees broadside (the rest: the body)
+    # "energy" (`fsw.deorbit.energy_horizon`)
+    energy_horizon: int = 3  # periods predicted: the first move and horizon − 1 periods of continuation
+    energy_substeps: int = 5  # RK4 steps a period (the widths must be whole steps)
+    energy_widths_s: tuple[float, ...] = (80.0, 100.0)  # the first move's pulse widths
+    #: the price of the kit's joules in the spacecraft's libration energy [J per J]
+    energy_price_J_per_J: float = 1e-9
+    #: a pulse must beat staying closed by this fraction of the energy it moves (field-model error)
+    energy_margin: float = 0.1
+    #: no opening while the libration energy is below that of a yaw swing of this size
+    deadband_rad: float = 0.0
     # "paper"
     kd_Nm_s: float | None = None  # default J/T
     tau_s: float = 600.0  # k_p = k_d / τ
 
     def __post_init__(self) -> None:
-        if self.law not in ("mpc", "paper"):
-            raise ValueError(f"law must be 'mpc' or 'paper', got {self.law!r}")
+        if self.law not in ("mpc", "paper", "energy"):
+            raise ValueError(f"law must be 'mpc', 'paper' or 'energy', got {self.law!r}")
+        if not (self.energy_horizon >= 1 and self.energy_substeps >= 1 and self.energy_margin >= 0
+                and self.energy_price_J_per_J >= 0 and self.deadband_rad >= 0):
+            raise ValueError("need energy_horizon >= 1, energy_substeps >= 1, energy_margin >= 0, "
+                             "energy_price_J_per_J >= 0, deadband_rad >= 0")
         if self.prediction not in ("nonlinear", "linear"):
             raise ValueError(f"prediction must be 'nonlinear' or 'linear', got {self.prediction!r}")
         if self.free_motion_substeps < 2 or self.free_motion_substeps % 2 or not 0.0 <= self.sail_share <= 1.0:
@@ -460,6 +474,8 @@ class DiscreteController:
         self.last_error_rad = pointing_error(att.R_bo)
         if self.config.law == "paper":
             cmds = self._paper(att)
+        elif self.config.law == "energy":
+            cmds = self._energy(now_s, att, acting, polarity)
         else:
             cmds = self._mpc(now_s, att, acting, polarity)
         self.last = cmds
@@ -528,6 +544,31 @@ class DiscreteController:
             # the moment this pulse makes about the channel's axis, averaged over T (eq. 6 backwards)
             m_theor = abs(u) * m_ctrl * pol * float(np.sign(bx)) * (1.0 if ch == 0 else -1.0)
             out.append(ChannelCommand(ch, pol, abs(u) * T, m_theor, m_ctrl))
+        return out
+
+    def _energy(self, now_s: float, att: AttitudeInput, acting: tuple[int, int],
+                polarity: tuple[int, int]) -> list[ChannelCommand]:
+        """The energy-descent choice over a few pulses (`fsw.deorbit.energy_horizon`)."""
+        from . import energy_horizon as eh
+
+        c = self.config
+        T, S, H = c.period_s, c.energy_substeps, c.energy_horizon
+        t = now_s + (T / S) * (np.arange(H * S) + 0.5)
+        b_orbital = (np.asarray(att.b_orbital_forecast(t)) if att.b_orbital_forecast is not None
+                     else np.tile(att.R_bo @ att.b_body_T, (H * S, 1)))
+        n, ka = c.mean_motion_radps, c.aero_stiffness_Nm_per_rad
+        move, _, _, _ = eh.choose(
+            att.R_bo, att.omega_rel_radps, b_orbital, J=self.J, n=n, ka=ka, sail_share=c.sail_share,
+            dipole_Am2=c.dipole_Am2, period_s=T, substeps=S, horizon=H, widths_s=c.energy_widths_s, acting=acting,
+            polarity=polarity, opening_J=OPENING_J, turn_J=TURN_J, energy_price=c.energy_price_J_per_J,
+            margin=c.energy_margin, deadband_J=eh.deadband_energy_J(self.J, n, ka, c.deadband_rad))
+        bx = float(att.b_body_T[0])
+        m_ctrl = c.dipole_Am2 * abs(bx)
+        out = []
+        for ch, (pol, steps) in enumerate(((int(move[0]), int(move[1])), (int(move[2]), int(move[3])))):
+            width = eh.width_s(steps, T, S) if pol else 0.0
+            m_theor = width / T * m_ctrl * pol * float(np.sign(bx)) * (1.0 if ch == 0 else -1.0)
+            out.append(ChannelCommand(ch, pol if width > 0 else 0, width, m_theor, m_ctrl))
         return out
 
     def _nonlinear_plan(self, att: AttitudeInput, b_orbital: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
