@@ -400,6 +400,15 @@ class ControllerConfig:
     energy_margin: float = 0.1
     #: no opening while the libration energy is below that of a yaw swing of this size
     deadband_rad: float = 0.0
+    #: below the energy of a swing of this size (pitch and yaw: `energy_switch_axes`) the "mpc" choice
+    #: decides (its linear model holds there); 0: the energy law everywhere
+    energy_switch_rad: float = 0.0
+    energy_switch_axes: str = "total"  # "total": the Jacobi energy; "pitch-yaw": the LVLH pitch/yaw part
+    #: "mpc": above the energy of a yaw swing of this size, a first move that the nonlinear prediction
+    #: (`energy_horizon.pumps`, `energy_substeps_guard` steps a period) says ends the energy horizon with more
+    #: energy than staying closed is replaced by the "energy" law's choice (0: no guard)
+    nonlinear_guard_rad: float = 0.0
+    energy_substeps_guard: int = 10
     # "paper"
     kd_Nm_s: float | None = None  # default J/T
     tau_s: float = 600.0  # k_p = k_d / τ
@@ -462,6 +471,7 @@ class DiscreteController:
         box_lasso(np.eye(2), np.ones((2, 1)), 0.0, 1)  # load (or compile) the kernels now, not at a decision
         free_motion(np.eye(3), np.zeros(3), self.J, c.mean_motion_radps, 0.0, 0.0, 1.0, 1)
         self.decisions = 0
+        self.guarded = 0  # "mpc" first moves replaced by the nonlinear guard
         self.last: list[ChannelCommand] = []
         self.last_error_rad = (math.nan, math.nan)
 
@@ -536,6 +546,21 @@ class DiscreteController:
         if c.energy_guard_rad > 0.0:
             total = np.where(self.adds_energy(free[:6], pred[:6, :2], U0), np.inf, total)
         k = int(np.argmin(total))
+        if c.nonlinear_guard_rad > 0.0 and np.any(U0[k] != 0.0):
+            from . import energy_horizon as eh
+
+            S, H = c.energy_substeps_guard, c.energy_horizon
+            steps = [int(round(abs(u) * S)) for u in U0[k]]
+            move = (int(np.sign(U0[k][0])), steps[0], int(np.sign(U0[k][1])), steps[1])
+            n, ka = c.mean_motion_radps, c.aero_stiffness_Nm_per_rad
+            t = now_s + (T / S) * (np.arange(H * S) + 0.5)
+            b_o = (np.asarray(att.b_orbital_forecast(t)) if att.b_orbital_forecast is not None
+                   else np.tile(att.R_bo @ att.b_body_T, (H * S, 1)))
+            if eh.pumps(att.R_bo, att.omega_rel_radps, b_o, move, J=self.J, n=n, ka=ka, sail_share=c.sail_share,
+                        dipole_Am2=c.dipole_Am2, period_s=T, substeps=S, horizon=H,
+                        floor_J=eh.deadband_energy_J(self.J, n, ka, c.nonlinear_guard_rad)):
+                self.guarded += 1
+                return self._energy(now_s, att, acting, polarity)
         bx = float(att.b_body_T[0])
         m_ctrl = c.dipole_Am2 * abs(bx)
         out = []
@@ -553,10 +578,22 @@ class DiscreteController:
 
         c = self.config
         T, S, H = c.period_s, c.energy_substeps, c.energy_horizon
+        n, ka = c.mean_motion_radps, c.aero_stiffness_Nm_per_rad
+        if c.energy_switch_rad > 0.0:
+            e_switch = eh.deadband_energy_J(self.J, n, ka, c.energy_switch_rad)
+            if c.energy_switch_axes == "total":
+                e = float(eh.jacobi_energy(np.asarray(att.R_bo, float), np.asarray(att.omega_rel_radps, float),
+                                           self.J, n, ka, c.sail_share)) - eh._e_min(self.J, n, ka, c.sail_share)
+            else:
+                dy, dz = pointing_error(att.R_bo)
+                x = np.array([0.0, dy, dz, 0.0, att.omega_rel_radps[1], att.omega_rel_radps[2]])
+                e = float(self.libration_energy(x))
+            self.last_energy_J = e
+            if e < e_switch:
+                return self._mpc(now_s, att, acting, polarity)
         t = now_s + (T / S) * (np.arange(H * S) + 0.5)
         b_orbital = (np.asarray(att.b_orbital_forecast(t)) if att.b_orbital_forecast is not None
                      else np.tile(att.R_bo @ att.b_body_T, (H * S, 1)))
-        n, ka = c.mean_motion_radps, c.aero_stiffness_Nm_per_rad
         move, _, _, _ = eh.choose(
             att.R_bo, att.omega_rel_radps, b_orbital, J=self.J, n=n, ka=ka, sail_share=c.sail_share,
             dipole_Am2=c.dipole_Am2, period_s=T, substeps=S, horizon=H, widths_s=c.energy_widths_s, acting=acting,

@@ -216,3 +216,18 @@ def deadband_energy_J(J, n, ka, swing_rad: float) -> float:
 def width_s(steps: int, period_s: float, substeps: int) -> float:
     return steps * period_s / substeps if steps else 0.0
 
+
+
+def pumps(R_bo, w_rel, b_orbital_T, move, *, J, n, ka, sail_share, dipole_Am2, period_s, substeps, horizon,
+          floor_J) -> bool:
+    """Whether `move` (pol_pitch, steps_pitch, pol_yaw, steps_yaw), followed by its best continuation, ends the
+    horizon with more energy than staying closed now and continuing at best, while the energy is above
+    `floor_J` over the target's: the guard of another law's choice (``"mpc"`` with `nonlinear_guard_rad`)."""
+    Jv = np.asarray(J, float)
+    R0, w0 = np.asarray(R_bo, float), np.asarray(w_rel, float)
+    if float(jacobi_energy(R0, w0, Jv, n, ka, sail_share)) - _e_min(Jv, n, ka, sail_share) <= floor_J:
+        return False
+    first = np.array([(0, 0, 0, 0), tuple(int(v) for v in move)], dtype=np.int64)
+    E = sequence_energies(R0, w0, Jv, n, ka, sail_share, period_s / substeps, substeps,
+                          np.asarray(b_orbital_T, float), first, continuation_moves(substeps), horizon, dipole_Am2)
+    return bool(E[1].min() > E[0].min())

@@ -173,3 +173,14 @@ def test_the_controller_law_energy_gives_eq5_pulses():
             assert np.sign(m[1 + c.channel]) == np.sign(c.m_theor_Nm)
     with pytest.raises(ValueError):
         ControllerConfig(law="energy", energy_horizon=0)
+
+
+def test_the_guard_flags_the_moves_that_pump_energy_into_the_propagated_truth():
+    R0, w0 = np.eye(3), np.array([0.0, 3e-3, 0.0])
+    b = b_orbital_T(T / S * (np.arange(S) + 0.5))
+    kw = dict(J=J, n=N, ka=KA, sail_share=SHARE, dipole_Am2=DIPOLE, period_s=T, substeps=S, horizon=1)
+    E0 = energy(R0, w0)
+    for move in [(1, S, 0, 0), (-1, S, 0, 0), (0, 0, 1, 4), (0, 0, -1, 4)]:
+        truth_pumps = energy(*truth_after(R0, w0, [move])) > E0
+        assert eh.pumps(R0, w0, b, np.array(move), floor_J=0.0, **kw) == truth_pumps
+        assert not eh.pumps(R0, w0, b, np.array(move), floor_J=2 * (E0 - energy(np.eye(3), np.zeros(3))), **kw)
