@@ -395,14 +395,14 @@ class ControllerConfig:
     energy_substeps: int = 5  # RK4 steps a period (the widths must be whole steps)
     energy_widths_s: tuple[float, ...] = (80.0, 100.0)  # the first move's pulse widths
     #: the price of the kit's joules in the spacecraft's libration energy [J per J]
-    energy_price_J_per_J: float = 1e-9
+    energy_price_J_per_J: float = 0.0
     #: a pulse must beat staying closed by this fraction of the energy it moves (field-model error)
-    energy_margin: float = 0.1
+    energy_margin: float = 0.0
     #: no opening while the libration energy is below that of a yaw swing of this size
     deadband_rad: float = 0.0
     #: below the energy of a swing of this size (pitch and yaw: `energy_switch_axes`) the "mpc" choice
     #: decides (its linear model holds there); 0: the energy law everywhere
-    energy_switch_rad: float = 0.0
+    energy_switch_rad: float = 0.8
     energy_switch_axes: str = "total"  # "total": the Jacobi energy; "pitch-yaw": the LVLH pitch/yaw part
     #: "mpc": above the energy of a yaw swing of this size, a first move that the nonlinear prediction
     #: (`energy_horizon.pumps`, `energy_substeps_guard` steps a period) says ends the energy horizon with more
