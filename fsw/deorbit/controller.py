@@ -64,6 +64,10 @@ What produces M_theor (the moment the regulator asks for in each channel) is `la
   60°/45° start at 225° along the orbit the nonlinear one spun the roll up within 300 s (the secant of a
   twentieth of a pulse says little about a whole one at large angles), so it is not the default.
   Neither option has yet been measured to hold all eight starts.
+- ``"energy"``: candidate pulse sequences over a few periods predicted on the nonlinear motion in the
+  forecast field and scored by the energy of the libration (`fsw.deorbit.energy_horizon`); below the energy
+  of an `energy_switch_rad` yaw swing the ``"mpc"`` choice decides. `nonlinear_guard_rad` applies the same
+  prediction as a guard of the ``"mpc"`` choice (off by default).
 """
 from __future__ import annotations
 

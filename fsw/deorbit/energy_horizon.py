@@ -18,14 +18,19 @@ gradient minimum), it is constant on the free motion, and the kit changes it by 
 takes energy out is one that damps, roll included, whatever the angle.
 
 The choice, once per period T: every first move (each channel closed, or open with polarity ±1 for one of
-`widths_s`: 49 pairs) followed by every continuation of `horizon − 1` periods of full-period pulses or
-nothing per channel (9 per period) is propagated (RK4, `substeps` steps a period, the moment on while the
-channel is open); a sequence costs its energy at the end of the horizon plus `energy_price` × the joules of
-its openings and turns. A first move is worth the least cost of its sequences. The closed first move is
-taken unless another one is worth less by more than `margin` × the energy the pulse moves in or out
-(robustness: the decrease must survive a relative error of the field model of that size), and nothing
-opens while the energy is below that of a `deadband_rad` swing in yaw. All inputs are arguments (time,
-state, forecast): no clock, no hardware.
+`widths_s`: 80 or 100 s, 25 pairs) followed by every continuation of `horizon − 1` periods of full-period
+pulses or nothing per channel (9 per period) is propagated (RK4, `substeps` steps a period, the moment on
+while the channel is open; 2,275 periods for a horizon of 3, ~0.1 s); a sequence costs its energy at the
+end of the horizon plus `energy_price` × the joules of its openings and turns. A first move is worth the
+least cost of its sequences. The closed first move is taken unless another one is worth less by more than
+`margin` × the energy the pulse moves in or out (robustness to a relative error of the field model), and
+nothing opens while the energy is below `deadband_J` over the target's. The controller's defaults
+(`ControllerConfig`): no price, no margin, no dead band, and below the energy of a 0.8-rad yaw swing
+(`energy_switch_rad`) the "mpc" choice decides instead: near the target its linear model holds, and there
+an 80-s pulse is too coarse for a choice over three periods alone to take energy out (on the law's own
+dynamics with the degree-13 field along the orbit, yaw stalled at 0.3–0.6 rad). The `pumps` guard applies
+the same prediction to another law's first move. All inputs are arguments (time, state, forecast): no
+clock, no hardware.
 """
 from __future__ import annotations
 
