@@ -564,7 +564,7 @@ class DiscreteController:
                         dipole_Am2=c.dipole_Am2, period_s=T, substeps=S, horizon=H,
                         floor_J=eh.deadband_energy_J(self.J, n, ka, c.nonlinear_guard_rad)):
                 self.guarded += 1
-                return self._energy(now_s, att, acting, polarity)
+                return self._energy(now_s, att, acting, polarity, switch=False)
         bx = float(att.b_body_T[0])
         m_ctrl = c.dipole_Am2 * abs(bx)
         out = []
@@ -576,14 +576,15 @@ class DiscreteController:
         return out
 
     def _energy(self, now_s: float, att: AttitudeInput, acting: tuple[int, int],
-                polarity: tuple[int, int]) -> list[ChannelCommand]:
-        """The energy-descent choice over a few pulses (`fsw.deorbit.energy_horizon`)."""
+                polarity: tuple[int, int], switch: bool = True) -> list[ChannelCommand]:
+        """The energy-descent choice over a few pulses (`fsw.deorbit.energy_horizon`); with `switch`, the
+        "mpc" choice below the energy of an `energy_switch_rad` swing."""
         from . import energy_horizon as eh
 
         c = self.config
         T, S, H = c.period_s, c.energy_substeps, c.energy_horizon
         n, ka = c.mean_motion_radps, c.aero_stiffness_Nm_per_rad
-        if c.energy_switch_rad > 0.0:
+        if switch and c.energy_switch_rad > 0.0:
             e_switch = eh.deadband_energy_J(self.J, n, ka, c.energy_switch_rad)
             if c.energy_switch_axes == "total":
                 e = float(eh.jacobi_energy(np.asarray(att.R_bo, float), np.asarray(att.omega_rel_radps, float),

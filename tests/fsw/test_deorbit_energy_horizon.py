@@ -184,3 +184,20 @@ def test_the_guard_flags_the_moves_that_pump_energy_into_the_propagated_truth():
         truth_pumps = energy(*truth_after(R0, w0, [move])) > E0
         assert eh.pumps(R0, w0, b, np.array(move), floor_J=0.0, **kw) == truth_pumps
         assert not eh.pumps(R0, w0, b, np.array(move), floor_J=2 * (E0 - energy(np.eye(3), np.zeros(3))), **kw)
+
+
+def test_the_guard_hands_a_pumping_move_to_the_energy_law_without_looping():
+    """The guard of "mpc" hands a move that pumps energy to the energy law's own choice, whatever the switch
+    (which would hand it back to "mpc")."""
+    rng = np.random.default_rng(0)  # a state where the linear plan's first move pumps (5 of 12 such states)
+    R0 = Rotation.from_rotvec(rng.normal(size=3) * 0.6).as_matrix()
+    att = AttitudeInput(R0, rng.normal(size=3) * 4e-4, R0.T @ b_orbital_T(0.0), b_orbital_T)
+    both = DiscreteController(ControllerConfig(law="mpc", nonlinear_guard_rad=1e-3, energy_switch_rad=10.0,
+                                               mean_motion_radps=N, aero_stiffness_Nm_per_rad=KA))
+    cmds = both.decide(0.0, att)
+    assert both.guarded == 1
+    # the replacement does not pump, by the law's prediction
+    move = [(c.polarity, int(round(c.width_s / 20.0))) for c in cmds]
+    b = b_orbital_T(T / S * (np.arange(3 * S) + 0.5))
+    assert not eh.pumps(att.R_bo, att.omega_rel_radps, b, np.array([*move[0], *move[1]]), J=J, n=N, ka=KA,
+                        sail_share=SHARE, dipole_Am2=DIPOLE, period_s=T, substeps=S, horizon=3, floor_J=0.0)
