@@ -519,8 +519,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="loop rate, 1 to 100 Hz (default 10 Hz)")
     ap.add_argument("--arg-lat0", type=finite_float(), default=None, metavar="DEG",
                     help="argument of latitude at t = 0 (default: the scenario's, 0°): start elsewhere on the orbit")
-    ap.add_argument("--law", choices=("mpc", "paper"), default="mpc",
-                    help="what produces M_theor: the receding-horizon choice (default) or the PD law")
+    ap.add_argument("--law", choices=("mpc", "paper", "energy"), default="mpc",
+                    help="what produces M_theor: the receding-horizon choice (default), the PD law, or the "
+                         "energy law (fsw/deorbit/energy_horizon.py)")
     ap.add_argument("--fault", action="append", default=[], metavar="KIND:CH:T[:VALUE]",
                     help="inject a fault, e.g. stall:pitch:1500, stuck:yaw:900:0.5, switch:yaw:600:closed=1")
     ap.add_argument("--attitude", choices=("estimate", "truth"), default="estimate",

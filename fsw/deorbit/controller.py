@@ -64,6 +64,10 @@ What produces M_theor (the moment the regulator asks for in each channel) is `la
   60°/45° start at 225° along the orbit the nonlinear one spun the roll up within 300 s (the secant of a
   twentieth of a pulse says little about a whole one at large angles), so it is not the default.
   Neither option has yet been measured to hold all eight starts.
+- ``"energy"``: candidate pulse sequences over a few periods predicted on the nonlinear motion in the
+  forecast field and scored by the energy of the libration (`fsw.deorbit.energy_horizon`); below the energy
+  of an `energy_switch_rad` yaw swing the ``"mpc"`` choice decides. `nonlinear_guard_rad` applies the same
+  prediction as a guard of the ``"mpc"`` choice (off by default).
 """
 from __future__ import annotations
 
@@ -390,13 +394,36 @@ class ControllerConfig:
     roll_guard_rad: float = 1.0
     free_motion_substeps: int = 10  # RK4 steps per period (even: the mid-point is a step)
     sail_share: float = 5.0 / 5.58  # the sail's share of the area the flow sees broadside (the rest: the body)
+    # "energy" (`fsw.deorbit.energy_horizon`)
+    energy_horizon: int = 3  # periods predicted: the first move and horizon − 1 periods of continuation
+    energy_substeps: int = 5  # RK4 steps a period (the widths must be whole steps)
+    energy_widths_s: tuple[float, ...] = (80.0, 100.0)  # the first move's pulse widths
+    #: the price of the kit's joules in the spacecraft's libration energy [J per J]
+    energy_price_J_per_J: float = 0.0
+    #: a pulse must beat staying closed by this fraction of the energy it moves (field-model error)
+    energy_margin: float = 0.0
+    #: no opening while the libration energy is below that of a yaw swing of this size
+    deadband_rad: float = 0.0
+    #: below the energy of a swing of this size (pitch and yaw: `energy_switch_axes`) the "mpc" choice
+    #: decides (its linear model holds there); 0: the energy law everywhere
+    energy_switch_rad: float = 0.8
+    energy_switch_axes: str = "total"  # "total": the Jacobi energy; "pitch-yaw": the LVLH pitch/yaw part
+    #: "mpc": above the energy of a yaw swing of this size, a first move that the nonlinear prediction
+    #: (`energy_horizon.pumps`, `energy_substeps_guard` steps a period) says ends the energy horizon with more
+    #: energy than staying closed is replaced by the "energy" law's choice (0: no guard)
+    nonlinear_guard_rad: float = 0.0
+    energy_substeps_guard: int = 10
     # "paper"
     kd_Nm_s: float | None = None  # default J/T
     tau_s: float = 600.0  # k_p = k_d / τ
 
     def __post_init__(self) -> None:
-        if self.law not in ("mpc", "paper"):
-            raise ValueError(f"law must be 'mpc' or 'paper', got {self.law!r}")
+        if self.law not in ("mpc", "paper", "energy"):
+            raise ValueError(f"law must be 'mpc', 'paper' or 'energy', got {self.law!r}")
+        if not (self.energy_horizon >= 1 and self.energy_substeps >= 1 and self.energy_margin >= 0
+                and self.energy_price_J_per_J >= 0 and self.deadband_rad >= 0):
+            raise ValueError("need energy_horizon >= 1, energy_substeps >= 1, energy_margin >= 0, "
+                             "energy_price_J_per_J >= 0, deadband_rad >= 0")
         if self.prediction not in ("nonlinear", "linear"):
             raise ValueError(f"prediction must be 'nonlinear' or 'linear', got {self.prediction!r}")
         if self.free_motion_substeps < 2 or self.free_motion_substeps % 2 or not 0.0 <= self.sail_share <= 1.0:
@@ -448,6 +475,7 @@ class DiscreteController:
         box_lasso(np.eye(2), np.ones((2, 1)), 0.0, 1)  # load (or compile) the kernels now, not at a decision
         free_motion(np.eye(3), np.zeros(3), self.J, c.mean_motion_radps, 0.0, 0.0, 1.0, 1)
         self.decisions = 0
+        self.guarded = 0  # "mpc" first moves replaced by the nonlinear guard
         self.last: list[ChannelCommand] = []
         self.last_error_rad = (math.nan, math.nan)
 
@@ -460,6 +488,8 @@ class DiscreteController:
         self.last_error_rad = pointing_error(att.R_bo)
         if self.config.law == "paper":
             cmds = self._paper(att)
+        elif self.config.law == "energy":
+            cmds = self._energy(now_s, att, acting, polarity)
         else:
             cmds = self._mpc(now_s, att, acting, polarity)
         self.last = cmds
@@ -520,6 +550,21 @@ class DiscreteController:
         if c.energy_guard_rad > 0.0:
             total = np.where(self.adds_energy(free[:6], pred[:6, :2], U0), np.inf, total)
         k = int(np.argmin(total))
+        if c.nonlinear_guard_rad > 0.0 and np.any(U0[k] != 0.0):
+            from . import energy_horizon as eh
+
+            S, H = c.energy_substeps_guard, c.energy_horizon
+            steps = [int(round(abs(u) * S)) for u in U0[k]]
+            move = (int(np.sign(U0[k][0])), steps[0], int(np.sign(U0[k][1])), steps[1])
+            n, ka = c.mean_motion_radps, c.aero_stiffness_Nm_per_rad
+            t = now_s + (T / S) * (np.arange(H * S) + 0.5)
+            b_o = (np.asarray(att.b_orbital_forecast(t)) if att.b_orbital_forecast is not None
+                   else np.tile(att.R_bo @ att.b_body_T, (H * S, 1)))
+            if eh.pumps(att.R_bo, att.omega_rel_radps, b_o, move, J=self.J, n=n, ka=ka, sail_share=c.sail_share,
+                        dipole_Am2=c.dipole_Am2, period_s=T, substeps=S, horizon=H,
+                        floor_J=eh.deadband_energy_J(self.J, n, ka, c.nonlinear_guard_rad)):
+                self.guarded += 1
+                return self._energy(now_s, att, acting, polarity, switch=False)
         bx = float(att.b_body_T[0])
         m_ctrl = c.dipole_Am2 * abs(bx)
         out = []
@@ -528,6 +573,44 @@ class DiscreteController:
             # the moment this pulse makes about the channel's axis, averaged over T (eq. 6 backwards)
             m_theor = abs(u) * m_ctrl * pol * float(np.sign(bx)) * (1.0 if ch == 0 else -1.0)
             out.append(ChannelCommand(ch, pol, abs(u) * T, m_theor, m_ctrl))
+        return out
+
+    def _energy(self, now_s: float, att: AttitudeInput, acting: tuple[int, int],
+                polarity: tuple[int, int], switch: bool = True) -> list[ChannelCommand]:
+        """The energy-descent choice over a few pulses (`fsw.deorbit.energy_horizon`); with `switch`, the
+        "mpc" choice below the energy of an `energy_switch_rad` swing."""
+        from . import energy_horizon as eh
+
+        c = self.config
+        T, S, H = c.period_s, c.energy_substeps, c.energy_horizon
+        n, ka = c.mean_motion_radps, c.aero_stiffness_Nm_per_rad
+        if switch and c.energy_switch_rad > 0.0:
+            e_switch = eh.deadband_energy_J(self.J, n, ka, c.energy_switch_rad)
+            if c.energy_switch_axes == "total":
+                e = float(eh.jacobi_energy(np.asarray(att.R_bo, float), np.asarray(att.omega_rel_radps, float),
+                                           self.J, n, ka, c.sail_share)) - eh._e_min(self.J, n, ka, c.sail_share)
+            else:
+                dy, dz = pointing_error(att.R_bo)
+                x = np.array([0.0, dy, dz, 0.0, att.omega_rel_radps[1], att.omega_rel_radps[2]])
+                e = float(self.libration_energy(x))
+            self.last_energy_J = e
+            if e < e_switch:
+                return self._mpc(now_s, att, acting, polarity)
+        t = now_s + (T / S) * (np.arange(H * S) + 0.5)
+        b_orbital = (np.asarray(att.b_orbital_forecast(t)) if att.b_orbital_forecast is not None
+                     else np.tile(att.R_bo @ att.b_body_T, (H * S, 1)))
+        move, _, _, _ = eh.choose(
+            att.R_bo, att.omega_rel_radps, b_orbital, J=self.J, n=n, ka=ka, sail_share=c.sail_share,
+            dipole_Am2=c.dipole_Am2, period_s=T, substeps=S, horizon=H, widths_s=c.energy_widths_s, acting=acting,
+            polarity=polarity, opening_J=OPENING_J, turn_J=TURN_J, energy_price=c.energy_price_J_per_J,
+            margin=c.energy_margin, deadband_J=eh.deadband_energy_J(self.J, n, ka, c.deadband_rad))
+        bx = float(att.b_body_T[0])
+        m_ctrl = c.dipole_Am2 * abs(bx)
+        out = []
+        for ch, (pol, steps) in enumerate(((int(move[0]), int(move[1])), (int(move[2]), int(move[3])))):
+            width = eh.width_s(steps, T, S) if pol else 0.0
+            m_theor = width / T * m_ctrl * pol * float(np.sign(bx)) * (1.0 if ch == 0 else -1.0)
+            out.append(ChannelCommand(ch, pol if width > 0 else 0, width, m_theor, m_ctrl))
         return out
 
     def _nonlinear_plan(self, att: AttitudeInput, b_orbital: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

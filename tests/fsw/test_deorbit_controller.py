@@ -116,7 +116,7 @@ def _att(R_bo, w=(0.0, 0.0, 0.0), b_o=(20e-6, 2e-6, 10e-6)):
 
 
 def test_mpc_leaves_a_resting_spacecraft_alone():
-    c = DiscreteController()
+    c = DiscreteController(ControllerConfig(law="mpc"))
     cmds = c.decide(0.0, _att(np.eye(3)))
     assert [(k.polarity, k.width_s) for k in cmds] == [(0, 0.0), (0, 0.0)]
 
@@ -157,12 +157,12 @@ def test_paper_law_is_eq5_and_eq6():
 
 def test_energy_price_trades_pulses_for_error():
     att = _att(dcm_from_euler_zyx(0.1, 0.1, 0.0), (0.0, 5e-4, 5e-4))
-    cheap = DiscreteController(ControllerConfig(energy_price_per_J=0.0, energy_guard_rad=0.0)).decide(0.0, att)
-    dear = DiscreteController(ControllerConfig(energy_price_per_J=1e3, energy_guard_rad=0.0)).decide(0.0, att)
+    cheap = DiscreteController(ControllerConfig(law="mpc", energy_price_per_J=0.0)).decide(0.0, att)
+    dear = DiscreteController(ControllerConfig(law="mpc", energy_price_per_J=1e3)).decide(0.0, att)
     assert any(k.polarity for k in cheap)
     assert not any(k.polarity for k in dear)
     # an open capsule with the right polarity costs nothing to keep open
-    kept = DiscreteController(ControllerConfig(energy_price_per_J=1e3, energy_guard_rad=0.0)).decide(
+    kept = DiscreteController(ControllerConfig(law="mpc", energy_price_per_J=1e3, energy_guard_rad=0.0)).decide(
         0.0, att, acting=tuple(k.polarity for k in cheap), polarity=tuple(k.polarity for k in cheap))
     assert [k.polarity for k in kept] == [k.polarity for k in cheap]
 
@@ -281,8 +281,8 @@ def test_small_angles_plan_the_same_either_way(prediction):
     b_o = np.array((20e-6, 2e-6, 10e-6))
     R = dcm_from_euler_zyx(0.05, -0.04, 0.02)
     att = AttitudeInput(R, np.array([0.0, 3e-4, -3e-4]), R.T @ b_o, lambda t: np.tile(b_o, (len(t), 1)))
-    ref = DiscreteController(ControllerConfig(prediction="linear")).decide(0.0, att)
-    got = DiscreteController(ControllerConfig(prediction=prediction)).decide(0.0, att)
+    ref = DiscreteController(ControllerConfig(law="mpc", prediction="linear")).decide(0.0, att)
+    got = DiscreteController(ControllerConfig(law="mpc", prediction=prediction)).decide(0.0, att)
     assert [(k.polarity, k.width_s) for k in got] == [(k.polarity, k.width_s) for k in ref]
 
 
@@ -303,7 +303,8 @@ def test_away_from_the_target_no_pulse_adds_libration_energy():
     again); with the guard no chosen pulse adds energy."""
     rng = np.random.default_rng(3)
     b_o = np.array((20e-6, 2e-6, 10e-6))
-    free, guarded = DiscreteController(), DiscreteController(ControllerConfig(energy_guard_rad=0.2))
+    free, guarded = (DiscreteController(ControllerConfig(law="mpc")),
+                     DiscreteController(ControllerConfig(law="mpc", energy_guard_rad=0.2)))
     added = 0
     for _ in range(12):
         ypr = rng.uniform(-0.8, 0.8, 3) * np.array([1.0, 1.0, 0.3])
