@@ -9,6 +9,9 @@ times per record, where the per-substep Python (tuples, 8×8 matrices) was most 
 table's time. Units: field µT, rate rad/s, time s. The numpy reference is the filter's own propagation
 (tests/ground/test_euler_trajectory.py compares them).
 
+Division as numpy does it (``error_model="numpy"``): a state that divides by zero gives inf/NaN, as the
+reference does, and the caller refuses it as non-finite — never a ZeroDivisionError out of a worker.
+
 State layout as the filter's error state: δθ (3), δω (3), δp (2, the shape ln J₂/J₁, ln J₃/J₁, when
 estimated), δβ (3, the inertial field, without a field model).
 """
@@ -23,7 +26,7 @@ from numba import njit
 SHAPE, TENSOR = 0, 1
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _euler_rate(mode, j2, j3, J, K, w1, w2, w3):
     """ω̇ of torque-free Euler (fsw.estimation.attitude_kalman.euler_rate, the same operation order)."""
     if mode == SHAPE:
@@ -36,7 +39,7 @@ def _euler_rate(mode, j2, j3, J, K, w1, w2, w3):
             K[6] * e1 + K[7] * e2 + K[8] * e3)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _m3(a, b, out):
     """out = a b for row-major 3×3 arrays of 9 (the filter's _m3 order)."""
     for i in range(3):
@@ -44,7 +47,7 @@ def _m3(a, b, out):
             out[3 * i + j] = a[3 * i] * b[j] + a[3 * i + 1] * b[3 + j] + a[3 * i + 2] * b[6 + j]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _jacobians(mode, j2, j3, J, K, w, A, Ap):
     """∂ω̇/∂ω into A (9) and ∂ω̇/∂p into Ap (6, zeros for a known tensor)."""
     w1, w2, w3 = w[0], w[1], w[2]
@@ -73,7 +76,7 @@ def _jacobians(mode, j2, j3, J, K, w, A, Ap):
         Ap[i] = 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _exp_jr(px, py, pz, E, Jr):
     """exp([φ]ₓ) into E and J_r(φ) into Jr (row-major 9; rotations.so3_exp_jr_tuple's order)."""
     th2 = px * px + py * py + pz * pz
@@ -91,14 +94,14 @@ def _exp_jr(px, py, pz, E, Jr):
         Jr[i] = eye - a * Kx[i] + c * k2[i]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _qdot(q0, q1, q2, q3, w1, w2, w3):
     """½ q ⊗ [0, ω]."""
     return (0.5 * (q0 * 0.0 - q1 * w1 - q2 * w2 - q3 * w3), 0.5 * (q0 * w1 + q1 * 0.0 + q2 * w3 - q3 * w2),
             0.5 * (q0 * w2 - q1 * w3 + q2 * 0.0 + q3 * w1), 0.5 * (q0 * w3 + q1 * w2 - q2 * w1 + q3 * 0.0))
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _rk4(mode, j2, j3, J, K, q, w, h, wm):
     """One RK4 substep of q̇ = ½ q ⊗ [0, ω], torque-free ω̇, in place on q (4) and w (3); the midpoint rate
     into wm."""
@@ -126,7 +129,7 @@ def _rk4(mode, j2, j3, J, K, q, w, h, wm):
     wm[0], wm[1], wm[2] = 0.5 * (a1 + b1), 0.5 * (a2 + b2), 0.5 * (a3 + b3)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _substep(mode, j2, j3, J, K, wm, h, npar, S):
     """The substep's transition, rows δθ and δω (6 × n) into S (the other rows are the identity's)."""
     A = np.empty(9)
@@ -162,7 +165,7 @@ def _substep(mode, j2, j3, J, K, wm, h, npar, S):
                 S[3 + i, 6 + j] = Ap[2 * i + j] * h + 0.5 * acc
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def trajectory(q0, w0, mode, j2, j3, J, K, npar, beta, b_i, t, z, sb, n, max_substep_rad, max_substeps,
                jacobian):
     """The nominal trajectory over the first n samples from (q0, ω0) at t[0] and, with `jacobian`, the

@@ -26,7 +26,7 @@ from fsw.estimation import rate_kalman as rk
 from ground import euler_trajectory as et
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _qmul(p, q):
     return np.array((p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3],
                      p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2],
@@ -34,14 +34,14 @@ def _qmul(p, q):
                      p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0]))
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _qexp(phi):
     th = math.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
     s = 0.5 if th < 1e-12 else math.sin(0.5 * th) / th
     return np.array((math.cos(0.5 * th), s * phi[0], s * phi[1], s * phi[2]))
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _skew(v):
     s = np.zeros((3, 3))
     s[0, 1], s[0, 2] = -v[2], v[1]
@@ -50,12 +50,12 @@ def _skew(v):
     return s
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _norm4(q):
     return math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _dcm(q):
     w, x, y, z = q[0], q[1], q[2], q[3]
     s = 2.0 / (w * w + x * x + y * y + z * z)
@@ -69,7 +69,7 @@ def _dcm(q):
     return R
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _transition(phi, decay, mean_dt, n):
     """Φ of the random-walk step (AttitudeRateKalman.propagate): exp(−[φ]ₓ), (mean·dt) J_r(φ), decay·I."""
     F = np.eye(n)
@@ -94,7 +94,7 @@ def _transition(phi, decay, mean_dt, n):
     return F
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _physical(p):
     """fsw.estimation.attitude_kalman.physical_shape: J = diag(1, e^p₁, e^p₂) obeys the triangle inequalities."""
     j = (1.0, math.exp(p[0]), math.exp(p[1]))
@@ -104,7 +104,7 @@ def _physical(p):
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def passes(t, z, b_i, q, w, p, beta, P, nll, t_s, dt_nominal, bhat, bad, r_var, kappa, accel, tau, field_rate,
            max_gap_s, max_rate, max_step_angle, nis_reset, store, mode, J, K, max_substep_rad, max_substeps,
            shape_rate):
@@ -305,7 +305,7 @@ def _python_pass(kf: ak.AttitudeRateKalman, t, b_T, first: int = 1) -> ak.Attitu
     return kf
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _qlog(q):
     """rotations.quat_log: the rotation vector of a unit quaternion, the shorter way round."""
     if q[0] < 0:
@@ -316,7 +316,7 @@ def _qlog(q):
     return (2.0 * math.atan2(s, q[0]) / s) * q[1:]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def backward(q_f, x_f, P_f, q_p, x_p, P_p, F, restart, n_att):
     """The RTS backward pass of :func:`ground.smoother.rts` (its docstring has the equations): smoothed
     attitudes, additive states and covariances."""

@@ -272,7 +272,7 @@ def _trajectory(kf: ak.AttitudeRateKalman, t, z_uT, sb_uT, n, jacobian: bool = T
     trial's cost)."""
     if not kf.euler or kf.torque is not None:
         raise NotImplementedError("the batch fit's propagation is torque-free Euler")
-    if not np.all(np.isfinite(kf.p)):
+    if not np.all(np.abs(kf.p) < _LN_RATIO_MAX):  # NaN too; beyond, a ratio is 0 or inf in floating point
         raise ValueError("non-finite state")
     if kf.J is not None:
         mode, j2, j3, J, K = et.TENSOR, 1.0, 1.0, kf.J.ravel().copy(), kf.J_inv.ravel().copy()
@@ -290,6 +290,8 @@ def _trajectory(kf: ak.AttitudeRateKalman, t, z_uT, sb_uT, n, jacobian: bool = T
     return _Trajectory(Q, W, Phi, r, Jr)
 
 
+#: |ln J₂/J₁|, |ln J₃/J₁| beyond which exp() is 0 or overflows (an LM trial may step there)
+_LN_RATIO_MAX = 700.0
 _NO_FIELD = np.zeros((0, 3))
 _NO_TENSOR = np.zeros(9)
 

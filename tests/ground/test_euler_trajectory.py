@@ -74,9 +74,10 @@ def test_compiled_trajectory_refuses_a_non_finite_state():
     with pytest.raises(ValueError):
         sm._trajectory(kf, t, np.zeros((10, 3)), 1.0, 10)
     kf.w = np.zeros(3)
-    kf.p = np.array([math.nan, 0.0])
-    with pytest.raises(ValueError):
-        sm._trajectory(kf, t, np.zeros((10, 3)), 1.0, 10)
+    for p in ([math.nan, 0.0], [-1000.0, 0.0], [0.0, 800.0]):  # a ratio NaN, 0 or inf: an LM trial's step
+        kf.p = np.array(p)
+        with pytest.raises(ValueError):
+            sm._trajectory(kf, t, np.zeros((10, 3)), 1.0, 10)
 
 
 def test_field_table_is_the_models_values():
