@@ -23,50 +23,16 @@ from numba import njit
 
 from fsw.estimation import attitude_kalman as ak
 from fsw.estimation import rate_kalman as rk
+from fsw.estimation.rotations import quat_exp_nb as _qexp
+from fsw.estimation.rotations import quat_mul_nb as _qmul
+from fsw.estimation.rotations import quat_to_dcm_nb as _dcm
+from fsw.estimation.rotations import skew_nb as _skew
 from ground import euler_trajectory as et
-
-
-@njit(cache=True, error_model="numpy")
-def _qmul(p, q):
-    return np.array((p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3],
-                     p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2],
-                     p[0] * q[2] - p[1] * q[3] + p[2] * q[0] + p[3] * q[1],
-                     p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0]))
-
-
-@njit(cache=True, error_model="numpy")
-def _qexp(phi):
-    th = math.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
-    s = 0.5 if th < 1e-12 else math.sin(0.5 * th) / th
-    return np.array((math.cos(0.5 * th), s * phi[0], s * phi[1], s * phi[2]))
-
-
-@njit(cache=True, error_model="numpy")
-def _skew(v):
-    s = np.zeros((3, 3))
-    s[0, 1], s[0, 2] = -v[2], v[1]
-    s[1, 0], s[1, 2] = v[2], -v[0]
-    s[2, 0], s[2, 1] = -v[1], v[0]
-    return s
 
 
 @njit(cache=True, error_model="numpy")
 def _norm4(q):
     return math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-
-
-@njit(cache=True, error_model="numpy")
-def _dcm(q):
-    w, x, y, z = q[0], q[1], q[2], q[3]
-    s = 2.0 / (w * w + x * x + y * y + z * z)
-    xx, yy, zz = s * x * x, s * y * y, s * z * z
-    xy, xz, yz = s * x * y, s * x * z, s * y * z
-    wx, wy, wz = s * w * x, s * w * y, s * w * z
-    R = np.empty((3, 3))
-    R[0, 0], R[0, 1], R[0, 2] = 1.0 - (yy + zz), xy - wz, xz + wy
-    R[1, 0], R[1, 1], R[1, 2] = xy + wz, 1.0 - (xx + zz), yz - wx
-    R[2, 0], R[2, 1], R[2, 2] = xz - wy, yz + wx, 1.0 - (xx + yy)
-    return R
 
 
 @njit(cache=True, error_model="numpy")

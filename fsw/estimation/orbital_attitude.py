@@ -40,6 +40,7 @@ from numba import njit
 
 from .field_motion import A_WGS84_M
 from .rotations import quat_aligning, quat_exp, quat_mul, quat_to_dcm, skew
+from .rotations import quat_exp_nb as _qexp, quat_mul_nb as _qmul, quat_to_dcm_nb as _dcm, skew_nb as _skew
 
 UT_PER_T = 1e6
 
@@ -165,44 +166,6 @@ def _c3(a, b):
     out[1] = a[2] * b[0] - a[0] * b[2]
     out[2] = a[0] * b[1] - a[1] * b[0]
     return out
-
-
-@njit(cache=True)
-def _dcm(q):
-    w, x, y, z = q[0], q[1], q[2], q[3]
-    s = 2.0 / (w * w + x * x + y * y + z * z)
-    xx, yy, zz = s * x * x, s * y * y, s * z * z
-    xy, xz, yz = s * x * y, s * x * z, s * y * z
-    wx, wy, wz = s * w * x, s * w * y, s * w * z
-    R = np.empty((3, 3))
-    R[0, 0], R[0, 1], R[0, 2] = 1.0 - (yy + zz), xy - wz, xz + wy
-    R[1, 0], R[1, 1], R[1, 2] = xy + wz, 1.0 - (xx + zz), yz - wx
-    R[2, 0], R[2, 1], R[2, 2] = xz - wy, yz + wx, 1.0 - (xx + yy)
-    return R
-
-
-@njit(cache=True)
-def _qmul(p, q):
-    return np.array((p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3],
-                     p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2],
-                     p[0] * q[2] - p[1] * q[3] + p[2] * q[0] + p[3] * q[1],
-                     p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0]))
-
-
-@njit(cache=True)
-def _qexp(phi):
-    th = math.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
-    s = 0.5 if th < 1e-12 else math.sin(0.5 * th) / th
-    return np.array((math.cos(0.5 * th), s * phi[0], s * phi[1], s * phi[2]))
-
-
-@njit(cache=True)
-def _skew(v):
-    s = np.zeros((3, 3))
-    s[0, 1], s[0, 2] = -v[2], v[1]
-    s[1, 0], s[1, 2] = v[2], -v[0]
-    s[2, 0], s[2, 1] = -v[1], v[0]
-    return s
 
 
 @njit(cache=True)
