@@ -227,14 +227,19 @@ def _rk4_step(R, w, J, n, ka, sail_share, h):
     dR4, dw4 = _relative_rhs(R + h * dR3, w + h * dw3, J, n, ka, sail_share)
     R = R + h / 6.0 * (dR1 + 2.0 * dR2 + 2.0 * dR3 + dR4)
     w = w + h / 6.0 * (dw1 + 2.0 * dw2 + 2.0 * dw3 + dw4)
-    # Gram-Schmidt on the rows keeps R a rotation
+    return orthonormal_rows(R), w
+
+
+@njit(cache=True)
+def orthonormal_rows(R):
+    """R made a rotation again after an integration step: Gram-Schmidt on its rows."""
     r0 = R[0] / math.sqrt(R[0] @ R[0])
     r1 = R[1] - (R[1] @ r0) * r0
     r1 = r1 / math.sqrt(r1 @ r1)
     out = np.empty((3, 3))
     out[0], out[1] = r0, r1
     out[2] = np.array((r0[1] * r1[2] - r0[2] * r1[1], r0[2] * r1[0] - r0[0] * r1[2], r0[0] * r1[1] - r0[1] * r1[0]))
-    return out, w
+    return out
 
 
 @njit(cache=True)

@@ -34,12 +34,12 @@ clock, no hardware.
 """
 from __future__ import annotations
 
-import math
 
 import numpy as np
 from numba import njit
 
 from .controller import _relative_rhs as relative_rhs
+from .controller import orthonormal_rows
 
 
 @njit(cache=True)
@@ -70,19 +70,7 @@ def _step(R, w, J, n, ka, s, h, m, b_o):
     dw4 = dw4 + np.cross(m, b_o @ R4) / J
     Rn = R + h / 6.0 * (dR1 + 2.0 * dR2 + 2.0 * dR3 + dR4)
     wn = w + h / 6.0 * (dw1 + 2.0 * dw2 + 2.0 * dw3 + dw4)
-    return _orthonormal(Rn), wn
-
-
-@njit(cache=True)
-def _orthonormal(R):
-    """Gram-Schmidt on the rows (as `controller._rk4_step`)."""
-    r0 = R[0] / math.sqrt(R[0] @ R[0])
-    r1 = R[1] - (R[1] @ r0) * r0
-    r1 = r1 / math.sqrt(r1 @ r1)
-    out = np.empty((3, 3))
-    out[0], out[1] = r0, r1
-    out[2] = np.array((r0[1] * r1[2] - r0[2] * r1[1], r0[2] * r1[0] - r0[0] * r1[2], r0[0] * r1[1] - r0[1] * r1[0]))
-    return out
+    return orthonormal_rows(Rn), wn
 
 
 @njit(cache=True)
