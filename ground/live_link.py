@@ -7,7 +7,7 @@ import time
 from typing import Callable
 
 from fsw.telemetry import dialect
-from fsw.telemetry.framing import IFLAG_SIGNED, SIGNATURE_LEN, STX_V2, Deframer, crc_x25, frame_header
+from fsw.telemetry.framing import Deframer, intact_frame
 from fsw.telemetry.udp_link import UDP_MAX_PAYLOAD, UdpLink
 
 
@@ -92,7 +92,7 @@ class LiveLink:
         if self.raw:
             feed = self.deframer.feed_frames
             for data, _addr, _size in datagrams:
-                if _one_frame(data, self.deframer.mavlink1):
+                if intact_frame(data, self.deframer.mavlink1):
                     out.append(bytes(data))  # what the deframer finds in it, without its search
                 else:
                     out += feed(data, end=True)
@@ -117,16 +117,3 @@ class LiveLink:
         if self.conn is not None:
             self.conn.close()
 
-
-def _one_frame(data, mavlink1: bool) -> bool:
-    """Whether a datagram is exactly one intact frame of a known message (its header passes the deframer's
-    checks, MAVLink 1 only if `mavlink1`; its length is the datagram's, its CRC is right): the common case,
-    taken as it is."""
-    if not data:
-        return False
-    header = frame_header(data, 0, len(data), mavlink1)
-    if not header or header[0] != len(data):
-        return False
-    length, extra = header
-    end = length - (SIGNATURE_LEN if data[0] == STX_V2 and data[2] & IFLAG_SIGNED else 0)
-    return crc_x25(data[1:end - 2], extra) == data[end - 2] | (data[end - 1] << 8)

@@ -151,13 +151,28 @@ def candidate_pattern(mavlink1: bool = True) -> re.Pattern:
     return re.compile(v2 + b"|" + v1)
 
 
+def _whole_frame_header(data: bytes, mavlink1: bool):
+    """(length, CRC extra) of the frame `data` is exactly, by its header; None if it is not one."""
+    if not data:
+        return None
+    head = frame_header(data, 0, len(data), mavlink1)
+    return head if head is not None and head[0] == len(data) else None
+
+
 def whole_frame(data: bytes, mavlink1: bool = True) -> bool:
     """Whether `data` (one UDP datagram, say) is exactly one frame by its header (no CRC computed):
     the shape of every datagram a MAVLink sender writes. O(1)."""
-    if not data:
+    return _whole_frame_header(data, mavlink1) is not None
+
+
+def intact_frame(data: bytes, mavlink1: bool = True) -> bool:
+    """Whether `data` is exactly one frame by its header and its CRC is right: a datagram the deframer
+    would give back whole, taken as it is without the deframer's search (a receiver's common case)."""
+    head = _whole_frame_header(data, mavlink1)
+    if head is None:
         return False
-    head = frame_header(data, 0, len(data), mavlink1)
-    return head is not None and head[0] == len(data)
+    end = head[0] - (SIGNATURE_LEN if data[0] == STX_V2 and data[2] & IFLAG_SIGNED else 0)
+    return crc_x25(data[1:end - 2], head[1]) == data[end - 2] | (data[end - 1] << 8)
 
 
 _PATTERNS = {True: candidate_pattern(True), False: candidate_pattern(False)}

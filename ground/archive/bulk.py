@@ -178,7 +178,7 @@ def _checked(frames: list[bytes], places: list[int], layout: _Layout, crc: bool 
 
 
 def decode_samples(frames: list[bytes], msgid: int, *, rounded: bool = True,
-                   crc_checked: bool = False) -> list[Sample | None]:
+                   crc_checked: bool = False) -> list:
     """The frames (all of message `msgid`, one of `LAYOUTS`) decoded; None where a frame fails a check
     (length, CRC). The checks and the unpacking are done on the frames' bytes as NumPy arrays, the frames
     of one length and start byte together. `rounded`: the `F32_FIELDS` as `ground.decode.f32` gives them

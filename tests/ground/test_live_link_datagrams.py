@@ -1,12 +1,12 @@
-"""The station's UDP link takes a datagram that is exactly one intact frame as it is (`_one_frame`), without the
-deframer's search: only when the deframer would find that frame and nothing else in it."""
+"""The station's UDP link takes a datagram that is exactly one intact frame as it is
+(`fsw.telemetry.framing.intact_frame`), without the deframer's search: only when the deframer would find that
+frame and nothing else in it."""
 from __future__ import annotations
 
 import numpy as np
 
 from fsw.telemetry.dialect import mavlink
-from fsw.telemetry.framing import Deframer
-from ground.live_link import _one_frame
+from fsw.telemetry.framing import Deframer, intact_frame
 
 
 def _frames(rng) -> list[bytes]:
@@ -32,8 +32,8 @@ def test_a_datagram_is_taken_whole_only_when_the_deframer_finds_exactly_that_fra
                       f[:-3] + bytes([f[-3] ^ 0x10]) + f[-2:], bytes([f[0], f[1] + 1]) + f[2:]]
     for mavlink1 in (False, True):
         for d in datagrams:
-            if _one_frame(d, mavlink1):
+            if intact_frame(d, mavlink1):
                 assert Deframer(mavlink1=mavlink1).feed_frames(d, end=True) == [d]
         # and the frames themselves, each alone in its datagram, are taken (MAVLink 1 only when asked for)
-        assert [_one_frame(f, mavlink1) for f in frames] == [mavlink1 or f[0] == 0xFD for f in frames]
+        assert [intact_frame(f, mavlink1) for f in frames] == [mavlink1 or f[0] == 0xFD for f in frames]
     assert any(f[0] == 0xFE for f in frames) and any(f[2] & 1 for f in frames if f[0] == 0xFD)
