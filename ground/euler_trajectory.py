@@ -166,6 +166,20 @@ def _substep(mode, j2, j3, J, K, wm, h, npar, S):
 
 
 @njit(cache=True, error_model="numpy")
+def substep_transition(S, F, top):
+    """F ← S F on rows δθ, δω (a substep's transition S: its other rows are the identity's); `top` (6 × n)
+    is the scratch."""
+    n = F.shape[1]
+    for i in range(6):
+        for j in range(n):
+            acc = 0.0
+            for l in range(S.shape[1]):
+                acc += S[i, l] * F[l, j]
+            top[i, j] = acc
+    F[:6, :] = top
+
+
+@njit(cache=True, error_model="numpy")
 def trajectory(q0, w0, mode, j2, j3, J, K, npar, beta, b_i, t, z, sb, n, max_substep_rad, max_substeps,
                jacobian):
     """The nominal trajectory over the first n samples from (q0, ω0) at t[0] and, with `jacobian`, the
@@ -200,14 +214,7 @@ def trajectory(q0, w0, mode, j2, j3, J, K, npar, beta, b_i, t, z, sb, n, max_sub
                 _rk4(mode, j2, j3, J, K, q, w, h, wm)
                 if jacobian:
                     _substep(mode, j2, j3, J, K, wm, h, npar, S)
-                    # F ← S F on rows δθ, δω (S's other rows are the identity's)
-                    for i in range(6):
-                        for j in range(nx):
-                            acc = 0.0
-                            for l in range(nx):
-                                acc += S[i, l] * F[l, j]
-                            top[i, j] = acc
-                    F[:6, :] = top
+                    substep_transition(S, F, top)
         # the measurement: h = Rᵀ b
         s = 2.0 / (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
         xx, yy, zz = s * q[1] * q[1], s * q[2] * q[2], s * q[3] * q[3]

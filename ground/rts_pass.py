@@ -71,6 +71,16 @@ def _physical(p):
 
 
 @njit(cache=True, error_model="numpy")
+def _log(lq, lx, lP, k, q, w, p, beta, P, npar):
+    """Sample k's state (q; ω, shape, field; P) into the pass's log."""
+    lq[k] = q
+    lx[k, :3] = w
+    lx[k, 3:3 + npar] = p
+    lx[k, 3 + npar:] = beta
+    lP[k] = P
+
+
+@njit(cache=True, error_model="numpy")
 def passes(t, z, b_i, q, w, p, beta, P, nll, t_s, dt_nominal, bhat, bad, r_var, kappa, accel, tau, field_rate,
            max_gap_s, max_rate, max_step_angle, nis_reset, store, mode, J, K, max_substep_rad, max_substeps,
            shape_rate):
@@ -133,13 +143,7 @@ def passes(t, z, b_i, q, w, p, beta, P, nll, t_s, dt_nominal, bhat, bad, r_var, 
             for _ in range(m):
                 et._rk4(mode, j2, j3, J, K, q1, w1, h, wm)
                 et._substep(mode, j2, j3, J, K, wm, h, npar, S6)
-                for i in range(6):
-                    for j in range(n):
-                        acc = 0.0
-                        for l in range(n):
-                            acc += S6[i, l] * F[l, j]
-                        top[i, j] = acc
-                F[:6, :] = top
+                et.substep_transition(S6, F, top)
             q_w = accel ** 2 * dt
         Qn = np.zeros((n, n))
         for i in range(3):
@@ -154,11 +158,7 @@ def passes(t, z, b_i, q, w, p, beta, P, nll, t_s, dt_nominal, bhat, bad, r_var, 
                 Qn[ib + i, ib + i] = field_rate ** 2 * b2 * dt * dt
         P1 = F @ P @ F.T + Qn
         if store:
-            lqp[k] = q1
-            lxp[k, :3] = w1
-            lxp[k, 3:3 + npar] = p
-            lxp[k, 3 + npar:] = beta
-            lPp[k] = P1
+            _log(lqp, lxp, lPp, k, q1, w1, p, beta, P1, npar)
             lF[k] = F
         # update
         C = _dcm(q1)
@@ -195,11 +195,7 @@ def passes(t, z, b_i, q, w, p, beta, P, nll, t_s, dt_nominal, bhat, bad, r_var, 
         q, w, p, beta, P, nll, nis, t_s, dt_nominal, bhat, bad = q2, w3, p1, beta1, P2, nll1, nis1, t[k], dtn, \
             bh1, bad1
         if store:
-            lq[k] = q
-            lx[k, :3] = w
-            lx[k, 3:3 + npar] = p
-            lx[k, 3 + npar:] = beta
-            lP[k] = P
+            _log(lq, lx, lP, k, q, w, p, beta, P, npar)
             lnis[k] = nis
     return N, q, w, p, beta, P, nll, nis, t_s, dt_nominal, bhat, lqp, lxp, lPp, lF, lq, lx, lP, lnis
 
