@@ -43,6 +43,14 @@ def reference(kf, t, b, start):
     return kf
 
 
+def same_log(got, ref, rtol: float) -> None:
+    """The two passes' logs (predicted and filtered states, covariances, transitions, NIS) equal."""
+    for name in ("qp", "xp", "Pp", "F", "q", "x", "P", "nis"):
+        a, c = np.array(got.log[name]), np.array(ref.log[name])
+        assert a.shape == c.shape, name
+        np.testing.assert_allclose(a, c, rtol=rtol, atol=1e-12, err_msg=name)
+
+
 @pytest.mark.parametrize("with_field", [True, False])
 @pytest.mark.parametrize("tau", [math.inf, 30.0])
 def test_compiled_pass_equals_the_filters_updates(with_field, tau):
@@ -54,10 +62,7 @@ def test_compiled_pass_equals_the_filters_updates(with_field, tau):
     np.testing.assert_allclose(got.w, ref.w, rtol=0, atol=1e-14)  # rad/s
     np.testing.assert_allclose(got.P, ref.P, rtol=1e-9, atol=1e-20)
     assert got.nll == pytest.approx(ref.nll, rel=1e-12, abs=1e-9)
-    for name in ("qp", "xp", "Pp", "F", "q", "x", "P", "nis"):
-        a, c = np.array(got.log[name]), np.array(ref.log[name])
-        assert a.shape == c.shape, name
-        np.testing.assert_allclose(a, c, rtol=1e-9, atol=1e-12, err_msg=name)
+    same_log(got, ref, rtol=1e-9)
     assert list(got.log["restart"]) == list(ref.log["restart"])
     np.testing.assert_array_equal(np.array(got.log["t"]), np.array(ref.log["t"]))
 
@@ -124,10 +129,7 @@ def test_euler_pass_equals_the_filters_updates(tensor):
     np.testing.assert_allclose(got.p, ref.p, rtol=0, atol=1e-12)
     np.testing.assert_allclose(got.P, ref.P, rtol=1e-8, atol=1e-20)
     assert got.nll == pytest.approx(ref.nll, rel=1e-12, abs=1e-9)
-    for name in ("qp", "xp", "Pp", "F", "q", "x", "P", "nis"):
-        a, c = np.array(got.log[name]), np.array(ref.log[name])
-        assert a.shape == c.shape, name
-        np.testing.assert_allclose(a, c, rtol=1e-8, atol=1e-12, err_msg=name)
+    same_log(got, ref, rtol=1e-8)
 
 
 def rts_reference(log: dict, n_att: int = 3):
