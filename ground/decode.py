@@ -372,6 +372,14 @@ class Decoder:
             seg.truth[t_us] = (w, m)
             self._last_truth = w
 
+    @property
+    def tick_due_s(self) -> float:
+        """The earliest time at which `tick` does something (−∞: at the next call): a caller that feeds many
+        frames at once (`ground.archive.export`) calls it only from then on, with the same outcome."""
+        if self._next_service_s is None or (self.on_line is not None and self._next_line_s is None):
+            return -math.inf
+        return self._next_service_s if self.on_line is None else min(self._next_service_s, self._next_line_s)
+
     def tick(self, now_s: float) -> None:
         """Emit the live line when one is due, ask for missing samples and write what has settled (call
         also when nothing arrives)."""

@@ -81,6 +81,8 @@ def export_tlog(conn: sqlite3.Connection, sysid: int, path: str | os.PathLike, f
 #: the messages the recordings are made of (`ground.decode.Decoder.handle`); every other frame only
 #: counts in the link accounting, so it is not decoded (the rows and metadata are the same)
 _RECORDED = SAMPLE_MESSAGES | KNOWLEDGE_MESSAGES | {"DEBRIS_LOOP_STATUS", "DEBRIS_SAMPLE_STORE"}
+#: of them, the one only the rate estimates' file is made of (decoded when that file is asked for)
+_RATES_ONLY = "DEBRIS_RATE_ESTIMATE"
 
 
 def export_recordings(conn: sqlite3.Connection, sysid: int, csv: str | os.PathLike | None,
@@ -96,7 +98,8 @@ def export_recordings(conn: sqlite3.Connection, sysid: int, csv: str | os.PathLi
     decoder = Decoder(method=method, origin=origin, recorder=recorder, rounded=True)
     out = Exported(decoder=decoder)
     with _without_cycle_collection():
-        _decode_interval(frames(conn, sysid, from_us, to_us, with_msgid=True), decoder, out)
+        _decode_interval(frames(conn, sysid, from_us, to_us, with_msgid=True), decoder, out,
+                         _RECORDED if rates_csv is not None else _RECORDED - {_RATES_ONLY})
     out.written = list(recorder.written)
     return out
 
@@ -115,35 +118,40 @@ def _without_cycle_collection():
             gc.enable()
 
 
-def _decode_interval(rows, decoder: Decoder, out: Exported) -> None:
-    """`export_recordings`' work: the frames (time, msgid, frame) through the decoder, `CHUNK` at a time."""
+def _decode_interval(rows, decoder: Decoder, out: Exported, used: set[str]) -> None:
+    """`export_recordings`' work: the frames (time, msgid, frame) through the decoder, `CHUNK` at a time, those
+    of the messages `used` decoded."""
     decode = Deframer().decode
     stats, counts = decoder.stats, decoder.frames_by_type
     handle, accounted, on_frame, tick = decoder.handle, decoder.accounted, stats.on_frame, decoder.tick
-    recorded = {msgid for msgid, cls in mavlink.mavlink_map.items() if cls.msgname in _RECORDED}
+    recorded = {msgid for msgid, cls in mavlink.mavlink_map.items() if cls.msgname in used}
     names = {msgid: cls.msgname for msgid, cls in mavlink.mavlink_map.items()}
     n = 0
     while chunk := list(islice(rows, CHUNK)):
         if n == 0:
             out.first_us = chunk[0][0]
-        msgs = _bulk(chunk)
+        msgs = _bulk(chunk, recorded)
         for i, (_, msgid, frame) in enumerate(chunk):
             if msgs[i] is None and (msgid in recorded or msgid not in names):
                 msgs[i] = _rounded(decode(frame))
         sources = [_source(f) for _, _, f in chunk]
         bulk = _account(stats, chunk, sources, msgs)
+        due_s = decoder.tick_due_s              # the decoder's tick does nothing before then
         for (t_us, msgid, frame), src, msg in zip(chunk, sources, msgs):
             now_s = t_us * 1e-6
             if src in bulk:                     # accounted already: all new, all intact
                 if msg is not None:
                     stats.last_verdict = "new"
                     accounted(names[msgid], msg, now_s)
-                tick(now_s)
             elif msg is not None:
-                handle(msg, now_s)
+                handle(msg, now_s)              # ticks
+                due_s = decoder.tick_due_s
+                continue
             else:
                 on_frame(Sample(frame, names[msgid], msgid, {}), now_s)   # its header, undecoded
+            if now_s >= due_s:
                 tick(now_s)
+                due_s = decoder.tick_due_s
         ids = Counter(msgid for (_, msgid, _), src in zip(chunk, sources) if src in bulk)
         counts.update({names[msgid]: k for msgid, k in ids.items()})
         n += len(chunk)
@@ -197,12 +205,12 @@ CHUNK = 20_000
 HOLD_ROWS = 20_000
 
 
-def _bulk(chunk: list[tuple]) -> list:
-    """The chunk's sample messages decoded in bulk, at their place in the chunk (None elsewhere, and for
-    those that fail a check: left to pymavlink)."""
+def _bulk(chunk: list[tuple], recorded: set[int]) -> list:
+    """The chunk's sample messages of the ids `recorded` decoded in bulk, at their place in the chunk (None
+    elsewhere, and for those that fail a check: left to pymavlink)."""
     where: dict[int, list[int]] = {}
     for i, (_, msgid, _) in enumerate(chunk):
-        if msgid in LAYOUTS:
+        if msgid in LAYOUTS and msgid in recorded:
             where.setdefault(msgid, []).append(i)
     out = [None] * len(chunk)
     for msgid, places in where.items():
