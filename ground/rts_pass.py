@@ -6,9 +6,10 @@ likelihood, and with `store` the log of predictions, transitions and updates for
 
 :func:`ground.smoother.rts_smooth` runs some 80 such passes per record (its grid search over the noise
 levels and the angles about B), which in Python were most of the smoother's time. The arithmetic is the
-filter's (:meth:`~AttitudeRateKalman.propagate` — Euler's equations through the kernels of
-:mod:`ground.euler_trajectory` —, ``_process_noise``, ``_update``, the divergence, NIS and shape checks of
-``update`` and ``_publish``) on the path every sample of a sane record takes; a sample off that path (not
+filter's own compiled kernels (:mod:`fsw.estimation.mekf`: the random-walk step, the process noise, the
+measurement update; Euler's equations through :func:`fsw.estimation.euler_step.propagate`), with the
+divergence, NIS and shape checks of ``update`` and ``_publish``, on the path every sample of a sane record
+takes; a sample off that path (not
 finite, out of order, after a gap of more than `max_gap_s`, a diverged state, three NIS outliers in a row, a
 shape no body has) ends the compiled pass and :func:`forward` runs the whole pass again in Python, so a
 restart behaves exactly as the filter's. The published estimate (ω, its floored σ, flags) is not kept: the
@@ -22,42 +23,11 @@ import numpy as np
 from numba import njit
 
 from fsw.estimation import attitude_kalman as ak
+from fsw.estimation import euler_step as es
+from fsw.estimation import mekf
 from fsw.estimation import rate_kalman as rk
 from fsw.estimation.rotations import quat_exp_nb as _qexp
 from fsw.estimation.rotations import quat_mul_nb as _qmul
-from fsw.estimation.rotations import quat_to_dcm_nb as _dcm
-from fsw.estimation.rotations import skew_nb as _skew
-from ground import euler_trajectory as et
-
-
-@njit(cache=True, error_model="numpy")
-def _norm4(q):
-    return math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-
-
-@njit(cache=True, error_model="numpy")
-def _transition(phi, decay, mean_dt, n):
-    """Φ of the random-walk step (AttitudeRateKalman.propagate): exp(−[φ]ₓ), (mean·dt) J_r(φ), decay·I."""
-    F = np.eye(n)
-    th2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
-    K = _skew(-phi)
-    if th2 < 1e-12:
-        E = np.eye(3) + K + 0.5 * K @ K
-    else:
-        th = math.sqrt(th2)
-        E = np.eye(3) + (math.sin(th) / th) * K + ((1.0 - math.cos(th)) / th2) * K @ K
-    if th2 < 1e-6:
-        a, c = 0.5 - th2 / 24.0, 1.0 / 6.0 - th2 / 120.0
-    else:
-        th = math.sqrt(th2)
-        a, c = (1.0 - math.cos(th)) / th2, (th - math.sin(th)) / (th2 * th)
-    Kp = _skew(phi)
-    Jr = np.eye(3) - a * Kp + c * Kp @ Kp
-    F[:3, :3] = E
-    F[:3, 3:6] = mean_dt * Jr
-    for i in range(3):
-        F[3 + i, 3 + i] = decay
-    return F
 
 
 @njit(cache=True, error_model="numpy")
@@ -87,7 +57,7 @@ def passes(t, z, b_i, q, w, p, beta, P, nll, t_s, dt_nominal, bhat, bad, r_var, 
     """Samples 1… of a pass whose first sample the filter took (its start): (k, q, ω, β, P, nll, nis, t_s,
     dt_nominal, b̂, log arrays qp, xp, Pp, F, q, x, P, nis). k = len(t) when every sample was taken, else the
     first sample off the common path (nothing after it taken). z in µT; b_i (N, 3) µT or no rows (β in the
-    state). `mode` −1: ω a random walk / Gauss–Markov; else Euler's equations (euler_trajectory.SHAPE with
+    state). `mode` −1: ω a random walk / Gauss–Markov; else Euler's equations (euler_step.SHAPE with
     the shape p in the state, or TENSOR with J, K = J⁻¹ as 9-arrays)."""
     N = len(t)
     nb = beta.shape[0]
@@ -98,10 +68,7 @@ def passes(t, z, b_i, q, w, p, beta, P, nll, t_s, dt_nominal, bhat, bad, r_var, 
     nxs = 3 + npar + nb
     lqp, lxp, lPp, lF = np.zeros((nl, 4)), np.zeros((nl, nxs)), np.zeros((nl, n, n)), np.zeros((nl, n, n))
     lq, lx, lP, lnis = np.zeros((nl, 4)), np.zeros((nl, nxs)), np.zeros((nl, n, n)), np.zeros(nl)
-    S6 = np.zeros((6, n))
-    wm = np.empty(3)
     R = r_var * np.eye(3)
-    I_n = np.eye(n)
     nis = 0.0
     gm = math.isfinite(tau)
     for k in range(1, N):
@@ -117,11 +84,7 @@ def passes(t, z, b_i, q, w, p, beta, P, nll, t_s, dt_nominal, bhat, bad, r_var, 
                 decay, mean = math.exp(-x), -math.expm1(-x) / x
             else:
                 decay, mean = 1.0, 1.0
-            phi = w * (mean * dt)
-            q1 = _qmul(q, _qexp(phi))
-            q1 = q1 / _norm4(q1)
-            w1 = w * decay
-            F = _transition(phi, decay, mean * dt, n)
+            q1, w1, F = mekf.rw_propagate(q, w, decay, mean, dt, n)
             # process noise (κ|ω||ω⊥| with the previous sample's field direction)
             q_w = accel ** 2 * dt
             if gm:
@@ -129,61 +92,23 @@ def passes(t, z, b_i, q, w, p, beta, P, nll, t_s, dt_nominal, bhat, bad, r_var, 
             w2 = w1[0] * w1[0] + w1[1] * w1[1] + w1[2] * w1[2]
             wb = w1[0] * bhat[0] + w1[1] * bhat[1] + w1[2] * bhat[2]
             q_w += kappa ** 2 * w2 * max(w2 - wb * wb, 0.0) / 3.0 * dt
-        else:  # Euler's equations, RK4 substeps (the filter's propagate; ground.euler_trajectory's kernels)
+        else:  # Euler's equations, RK4 substeps (the filter's propagate)
             wn = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
             if not (math.isfinite(wn) and np.all(np.isfinite(p))):
                 return k, q, w, p, beta, P, nll, nis, t_s, dt_nominal, bhat, lqp, lxp, lPp, lF, lq, lx, lP, lnis
-            j2, j3 = (math.exp(p[0]), math.exp(p[1])) if mode == et.SHAPE else (1.0, 1.0)
+            j2, j3 = (math.exp(p[0]), math.exp(p[1])) if mode == es.SHAPE else (1.0, 1.0)
             m = min(max_substeps, max(1, int(math.ceil(wn * dt / max_substep_rad))))
-            h = dt / m
-            q1 = q.copy()
-            w1 = w.copy()
-            F = np.eye(n)
-            top = np.empty((6, n))
-            for _ in range(m):
-                et._rk4(mode, j2, j3, J, K, q1, w1, h, wm)
-                et._substep(mode, j2, j3, J, K, wm, h, npar, S6)
-                et.substep_transition(S6, F, top)
+            q1, w1, F = es.propagate(q, w, dt, m, mode, j2, j3, J, K, npar, n, _TORQUE_FREE)
             q_w = accel ** 2 * dt
-        Qn = np.zeros((n, n))
-        for i in range(3):
-            Qn[i, i] = q_w * dt * dt / 3.0
-            Qn[i, 3 + i] = Qn[3 + i, i] = q_w * dt / 2.0
-            Qn[3 + i, 3 + i] = q_w
-        for i in range(npar):
-            Qn[6 + i, 6 + i] = shape_rate ** 2 * dt
-        if nb:
-            b2 = beta[0] * beta[0] + beta[1] * beta[1] + beta[2] * beta[2]
-            for i in range(3):
-                Qn[ib + i, ib + i] = field_rate ** 2 * b2 * dt * dt
-        P1 = F @ P @ F.T + Qn
+        P1 = mekf.predict_covariance(F, P, mekf.process_noise(n, npar, q_w, dt, shape_rate, field_rate, beta))
         if store:
             _log(lqp, lxp, lPp, k, q1, w1, p, beta, P1, npar)
             lF[k] = F
-        # update
-        C = _dcm(q1)
-        bi = beta if nb else b_i[k]
-        h = C.T @ bi
-        H = np.zeros((3, n))
-        H[:, :3] = _skew(h)
-        if nb:
-            H[:, ib:] = C.T
         zk = z[k]
         nz = max(math.sqrt(zk[0] * zk[0] + zk[1] * zk[1] + zk[2] * zk[2]), 1e-30)
         bh1 = zk / nz
-        y = zk - h
-        S = H @ P1 @ H.T + R
-        Kg = np.linalg.solve(S, H @ P1).T
-        dx = Kg @ y
-        IKH = I_n - Kg @ H
-        P2 = IKH @ P1 @ IKH.T + Kg @ R @ Kg.T
-        nis1 = y @ np.linalg.solve(S, y)
-        nll1 = nll + 0.5 * (nis1 + math.log(max(np.linalg.det(S), 1e-300)))
-        q2 = _qmul(q1, _qexp(dx[:3]))
-        q2 = q2 / _norm4(q2)
-        w3 = w1 + dx[3:6]
-        p1 = p + dx[6:ib]
-        beta1 = beta + dx[ib:] if nb else beta
+        q2, w3, p1, beta1, P2, nis1, dnll = mekf.update(q1, w1, p, beta, P1, zk, beta if nb else b_i[k], R)
+        nll1 = nll + dnll
         # the filter's checks: diverged (update), not finite or three outliers in a row (_publish)
         wn = math.sqrt(w3[0] * w3[0] + w3[1] * w3[1] + w3[2] * w3[2])
         if not (np.all(np.isfinite(P2)) and wn < max_rate and wn * min(dt, dtn) < max_step_angle
@@ -232,9 +157,9 @@ def forward(kf: ak.AttitudeRateKalman, t: np.ndarray, b_T: np.ndarray, start: di
     if not kf.euler:
         mode, J, K = -1, _NO_TENSOR, _NO_TENSOR
     elif kf.J is not None:
-        mode, J, K = et.TENSOR, kf.J.ravel().copy(), kf.J_inv.ravel().copy()
+        mode, J, K = es.TENSOR, kf.J.ravel().copy(), kf.J_inv.ravel().copy()
     else:
-        mode, J, K = et.SHAPE, _NO_TENSOR, _NO_TENSOR
+        mode, J, K = es.SHAPE, _NO_TENSOR, _NO_TENSOR
     with np.errstate(all="ignore"):
         out = passes(t, z, b_i, np.asarray(kf.q, float), np.asarray(kf.w, float), np.asarray(kf.p, float),
                      np.asarray(kf.beta, float),
@@ -259,6 +184,8 @@ def forward(kf: ak.AttitudeRateKalman, t: np.ndarray, b_T: np.ndarray, start: di
 
 
 _NO_TENSOR = np.zeros(9)
+#: es.propagate's torques for a torque-free body
+_TORQUE_FREE = np.zeros((0, 3, 3))
 
 
 def _python_pass(kf: ak.AttitudeRateKalman, t, b_T, first: int = 1) -> ak.AttitudeRateKalman:

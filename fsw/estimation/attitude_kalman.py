@@ -9,10 +9,10 @@ J = diag(1, e^p₁, e^p₂) estimated) it follows the rate of an asymmetric tumb
 it. It keeps what the RTS smoother needs (ground/smoother.py). Banks of it (shape hypotheses, rate
 models) are in :mod:`fsw.estimation.filter_banks`.
 
-The Euler model pieces (:func:`euler_rate`, :func:`euler_jacobians`, the RK4 step and the substep
-transition) work on tuples of floats: they run per integration substep, where numpy's per-call
-overhead would dominate. Units inside: field in µT, rate in rad/s, time in s; the public interfaces
-take tesla.
+The arithmetic of a step is compiled (:mod:`fsw.estimation.mekf`: the random-walk step, the process noise, the
+measurement update; :mod:`fsw.estimation.euler_step`: Euler's equations' RK4 substeps and their transition):
+a bank runs a dozen of these filters per sample. Units inside: field in µT, rate in rad/s, time in s; the
+public interfaces take tesla.
 """
 from __future__ import annotations
 
@@ -22,64 +22,10 @@ from typing import Callable
 
 import numpy as np
 
+from . import euler_step, mekf
 from .rate_formulas import FIELD_MIN_SIGMAS, SIGMA_UNOBSERVED_RADPS
 from .rate_kalman import DATA_GAP, DEGENERATE, NO_ESTIMATE, PERPENDICULAR_ONLY, UT_PER_T, adapt_noise, run_stream
-from .rotations import (quat_aligning, quat_exp, quat_mul, quat_mul_tuple, quat_to_dcm, skew, so3_exp,
-                        so3_exp_jr_tuple, so3_right_jacobian)
-
-# --- Euler's equations on floats ---------------------------------------------------------------------
-
-
-def _m3(a, b):
-    """3×3 product of row-major 9-tuples."""
-    a0, a1, a2, a3, a4, a5, a6, a7, a8 = a
-    b0, b1, b2, b3, b4, b5, b6, b7, b8 = b
-    return (a0 * b0 + a1 * b3 + a2 * b6, a0 * b1 + a1 * b4 + a2 * b7, a0 * b2 + a1 * b5 + a2 * b8,
-            a3 * b0 + a4 * b3 + a5 * b6, a3 * b1 + a4 * b4 + a5 * b7, a3 * b2 + a4 * b5 + a5 * b8,
-            a6 * b0 + a7 * b3 + a8 * b6, a6 * b1 + a7 * b4 + a8 * b7, a6 * b2 + a7 * b5 + a8 * b8)
-
-
-def euler_rate(par, w, torque=None) -> tuple[float, float, float]:
-    """ω̇ from Euler's equations J ω̇ + ω × (J ω) = M, on floats.
-
-    `par` is ("shape", J₂/J₁, J₃/J₁) for a diagonal tensor known up to scale (torque-free: then
-    ω̇ = (k₁ω₂ω₃, k₂ω₃ω₁, k₃ω₁ω₂) with k₁ = (J₂ − J₃)/J₁ and cyclically), or ("J", J (9), J⁻¹ (9)).
-    """
-    w1, w2, w3 = w
-    if par[0] == "shape":
-        j2, j3 = par[1], par[2]
-        return ((j2 - j3) * w2 * w3, (j3 - 1.0) / j2 * w3 * w1, (1.0 - j2) / j3 * w1 * w2)
-    J, K = par[1], par[2]
-    h1 = J[0] * w1 + J[1] * w2 + J[2] * w3
-    h2 = J[3] * w1 + J[4] * w2 + J[5] * w3
-    h3 = J[6] * w1 + J[7] * w2 + J[8] * w3
-    e1, e2, e3 = -(w2 * h3 - w3 * h2), -(w3 * h1 - w1 * h3), -(w1 * h2 - w2 * h1)
-    if torque is not None:
-        e1, e2, e3 = e1 + torque[0], e2 + torque[1], e3 + torque[2]
-    return (K[0] * e1 + K[1] * e2 + K[2] * e3, K[3] * e1 + K[4] * e2 + K[5] * e3,
-            K[6] * e1 + K[7] * e2 + K[8] * e3)
-
-
-def euler_jacobians(par, w) -> tuple[tuple, tuple]:
-    """∂ω̇/∂ω (row-major 9-tuple) and ∂ω̇/∂(ln J₂/J₁, ln J₃/J₁) (row-major 3×2 6-tuple; zeros for a
-    known tensor)."""
-    w1, w2, w3 = w
-    if par[0] == "shape":
-        j2, j3 = par[1], par[2]
-        k1, k2, k3 = j2 - j3, (j3 - 1.0) / j2, (1.0 - j2) / j3
-        A = (0.0, k1 * w3, k1 * w2, k2 * w3, 0.0, k2 * w1, k3 * w2, k3 * w1, 0.0)
-        Ap = (j2 * w2 * w3, -j3 * w2 * w3, -k2 * w3 * w1, j3 / j2 * w3 * w1, -j2 / j3 * w1 * w2, -k3 * w1 * w2)
-        return A, Ap
-    J, K = par[1], par[2]
-    # ∂/∂ω of −J⁻¹ (ω × Jω) = −J⁻¹ ([ω]ₓ J − [Jω]ₓ)
-    h1 = J[0] * w1 + J[1] * w2 + J[2] * w3
-    h2 = J[3] * w1 + J[4] * w2 + J[5] * w3
-    h3 = J[6] * w1 + J[7] * w2 + J[8] * w3
-    W = (0.0, -w3, w2, w3, 0.0, -w1, -w2, w1, 0.0)
-    Hx = (0.0, -h3, h2, h3, 0.0, -h1, -h2, h1, 0.0)
-    M = tuple(u - v for u, v in zip(_m3(W, J), Hx))
-    return tuple(-v for v in _m3(K, M)), (0.0,) * 6
-
+from .rotations import quat_aligning, quat_to_dcm, skew
 
 def physical_shape(p) -> bool:
     """J = diag(1, e^p₁, e^p₂) obeys the triangle inequalities J_i ≤ J_j + J_k (with a margin)."""
@@ -87,54 +33,9 @@ def physical_shape(p) -> bool:
     return all(j[i] <= 1.02 * (j[(i + 1) % 3] + j[(i + 2) % 3]) for i in range(3))
 
 
-def _rk4_attitude(par, q, w, h, m0, m_mid, m1):
-    """One RK4 step of q̇ = ½ q ⊗ [0, ω], ω̇ = euler_rate; returns (q, ω, the midpoint rate)."""
-    def qdot(qq, ww):
-        d = quat_mul_tuple(qq, (0.0, ww[0], ww[1], ww[2]))
-        return (0.5 * d[0], 0.5 * d[1], 0.5 * d[2], 0.5 * d[3])
-
-    def add(a, b, f):
-        return tuple(x + f * y for x, y in zip(a, b))
-
-    k1w = euler_rate(par, w, m0)
-    k1q = qdot(q, w)
-    w2 = add(w, k1w, 0.5 * h)
-    k2w = euler_rate(par, w2, m_mid)
-    k2q = qdot(add(q, k1q, 0.5 * h), w2)
-    w3 = add(w, k2w, 0.5 * h)
-    k3w = euler_rate(par, w3, m_mid)
-    k3q = qdot(add(q, k2q, 0.5 * h), w3)
-    w4 = add(w, k3w, h)
-    k4w = euler_rate(par, w4, m1)
-    k4q = qdot(add(q, k3q, h), w4)
-    f = h / 6.0
-    qn = tuple(a + f * (b + 2.0 * c + 2.0 * d + e) for a, b, c, d, e in zip(q, k1q, k2q, k3q, k4q))
-    nq = math.sqrt(sum(v * v for v in qn))
-    wn = tuple(a + f * (b + 2.0 * c + 2.0 * d + e) for a, b, c, d, e in zip(w, k1w, k2w, k3w, k4w))
-    return tuple(v / nq for v in qn), wn, tuple(0.5 * (a + b) for a, b in zip(w2, w3))
-
-
-def _substep_transition(par, wm, h, n, npar) -> np.ndarray:
-    """Error-state transition over a substep h at the midpoint rate ω_m (first order in the rate's
-    change): Φ_θθ = exp(−[ω_m h]ₓ), Φ_θω = h J_r(ω_m h) + ½h²A, Φ_ωω = I + Ah + ½(Ah)²,
-    Φ_ωp = (I + ½Ah) A_p h, Φ_θp = ½h² A_p; A = ∂ω̇/∂ω, A_p = ∂ω̇/∂p."""
-    A, Ap = euler_jacobians(par, wm)
-    E, _ = so3_exp_jr_tuple(-wm[0] * h, -wm[1] * h, -wm[2] * h)
-    _, Jr = so3_exp_jr_tuple(wm[0] * h, wm[1] * h, wm[2] * h)
-    Ah = tuple(v * h for v in A)
-    Ah2 = _m3(Ah, Ah)
-    tw = tuple(h * j + 0.5 * h * a for j, a in zip(Jr, Ah))
-    ww = tuple((1.0 if i in (0, 4, 8) else 0.0) + a + 0.5 * a2 for i, (a, a2) in enumerate(zip(Ah, Ah2)))
-    F = np.eye(n)
-    F[:3, :3] = np.reshape(E, (3, 3))
-    F[:3, 3:6] = np.reshape(tw, (3, 3))
-    F[3:6, 3:6] = np.reshape(ww, (3, 3))
-    if npar:
-        Aph = np.reshape(Ap, (3, 2)) * h
-        F[3:6, 6:8] = Aph + 0.5 * (np.reshape(Ah, (3, 3)) @ Aph)
-        F[:3, 6:8] = 0.5 * h * Aph
-    return F
-
+#: the compiled propagation's J and J⁻¹ without a known tensor, and its torques for a torque-free body
+_NO_TENSOR = np.zeros(9)
+_NO_TORQUE = np.zeros((0, 3, 3))
 
 FieldFn = Callable[[float], np.ndarray]
 """B_I(t): the inertial (ECI) field [T] at time t [s] along the orbit (fsw/estimation/field_motion.py)."""
@@ -253,6 +154,8 @@ class AttitudeRateKalman:
         self.field = field_eci_T
         self.J = None if inertia_kgm2 is None else np.array(inertia_kgm2, float)
         self.J_inv = None if self.J is None else np.linalg.inv(self.J)
+        if self.J is not None:  # as the compiled propagation takes them
+            self._J9, self._K9 = self.J.ravel().copy(), self.J_inv.ravel().copy()
         self.torque = torque_Nm
         self.n_p = 2 if estimate_inertia else 0
         self.n_beta = 0 if field_eci_T is not None else 3
@@ -377,7 +280,7 @@ class AttitudeRateKalman:
             # a state that blows up is caught just below (non-finite → restart, counted), not warned about
             with np.errstate(invalid="ignore", over="ignore"):
                 F = self.propagate(dt)
-                self.P = F @ self.P @ F.T + self._process_noise(dt)
+                self.P = mekf.predict_covariance(F, self.P, self._process_noise(dt))
                 self.t_s = t_s
                 self._record_prediction(t_s, F)
                 self._update(t_s, b * UT_PER_T)
@@ -439,49 +342,28 @@ class AttitudeRateKalman:
                 + tun.euler_sigma_rate_rel * float(np.linalg.norm(self.w)))
 
     # -- model ------------------------------------------------------------------------------------
-    def _euler_params(self):
-        if self.J is not None:
-            return ("J", tuple(self.J.ravel()), tuple(self.J_inv.ravel()))
-        return ("shape", math.exp(self.p[0]), math.exp(self.p[1]))
-
-    def _torque(self, t_s: float):
-        if self.torque is None:
-            return None
-        m = self.torque(t_s)
-        return (float(m[0]), float(m[1]), float(m[2]))
-
     def propagate(self, dt: float) -> np.ndarray:
         """Advance the nominal state by dt; return the error-state transition Φ (n×n)."""
         n = self.n
-        F = np.eye(n)
         if not self.euler:
             decay, mean = self._rate_decay(dt)
-            phi = self.w * (mean * dt)
-            self.q = quat_mul(self.q, quat_exp(phi))
-            self.q /= np.linalg.norm(self.q)
-            self.w = self.w * decay
-            F[:3, :3] = so3_exp(-phi)
-            F[:3, 3:6] = (mean * dt) * so3_right_jacobian(phi)
-            F[3:6, 3:6] = decay * np.eye(3)
+            self.q, self.w, F = mekf.rw_propagate(self.q, self.w, decay, mean, dt, n)
             return F
         tun = self.tuning
         wn = math.sqrt(float(self.w @ self.w))
         if not math.isfinite(wn) or not np.all(np.isfinite(self.p)):
             raise ValueError("non-finite state")
         m = min(tun.max_substeps, max(1, int(math.ceil(wn * dt / tun.max_substep_rad))))
-        h = dt / m
-        par = self._euler_params()
-        q = tuple(float(v) for v in self.q)
-        w = tuple(float(v) for v in self.w)
-        t = self.t_s
-        npar = self.n_p
-        for _ in range(m):
-            mid = self._torque(t + 0.5 * h)
-            q, w, wm = _rk4_attitude(par, q, w, h, self._torque(t), mid, self._torque(t + h))
-            F = _substep_transition(par, wm, h, n, npar) @ F
-            t += h
-        self.q = np.array(q)
-        self.w = np.array(w)
+        if self.J is not None:
+            mode, j2, j3, J, K = euler_step.TENSOR, 1.0, 1.0, self._J9, self._K9
+        else:
+            mode, j2, j3, J, K = euler_step.SHAPE, math.exp(self.p[0]), math.exp(self.p[1]), _NO_TENSOR, _NO_TENSOR
+        torques = _NO_TORQUE
+        if self.torque is not None:  # at each substep's start, middle and end
+            h = dt / m
+            torques = np.array([[self.torque(self.t_s + (i + f) * h) for f in (0.0, 0.5, 1.0)] for i in range(m)],
+                               float).reshape(m, 3, 3)
+        self.q, self.w, F = euler_step.propagate(self.q, self.w, dt, m, mode, j2, j3, J, K, self.n_p, n, torques)
         return F
 
     def _rate_decay(self, dt: float) -> tuple[float, float]:
@@ -495,25 +377,18 @@ class AttitudeRateKalman:
 
     def _process_noise(self, dt: float) -> np.ndarray:
         tun = self.tuning
-        n = self.n
-        Q = np.zeros((n, n))
         q_w = self.adapt * tun.rate_accel_radps2 ** 2 * dt
         if not self.euler:  # κ|ω||ω⊥| (see RateKalman)
             if math.isfinite(tun.rate_tau_s):  # Gauss–Markov: a²τ/2 (1 − e^(−2dt/τ)) per step
                 q_w *= -math.expm1(-2.0 * dt / tun.rate_tau_s) * tun.rate_tau_s / (2.0 * dt)
-            w2 = float(self.w @ self.w)
-            wb = float(self.w @ self._bhat)
+            w0, w1, w2_ = self.w
+            b0, b1, b2 = self._bhat
+            w2 = w0 * w0 + w1 * w1 + w2_ * w2_
+            wb = w0 * b0 + w1 * b1 + w2_ * b2
             q_w += tun.kappa ** 2 * w2 * max(w2 - wb * wb, 0.0) / 3.0 * dt
         # ω a random walk with per-step variance q_w; its effect on the attitude over the step
-        Q[:3, :3] = q_w * dt * dt / 3.0 * np.eye(3)
-        Q[:3, 3:6] = Q[3:6, :3] = q_w * dt / 2.0 * np.eye(3)
-        Q[3:6, 3:6] = q_w * np.eye(3)
-        if self.n_p:
-            Q[6:6 + self.n_p, 6:6 + self.n_p] = tun.inertia_shape_rate ** 2 * dt * np.eye(self.n_p)
-        if self.n_beta:
-            b2 = float(self.beta @ self.beta)
-            Q[self.i_beta:, self.i_beta:] = tun.field_rate_radps ** 2 * b2 * dt * dt * np.eye(3)
-        return Q
+        return mekf.process_noise(self.n, self.n_p, float(q_w), dt, tun.inertia_shape_rate, tun.field_rate_radps,
+                                  self.beta)
 
     def measurement(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         """Predicted field h (µT, body) and H = ∂h/∂δx at the nominal state."""
@@ -527,24 +402,12 @@ class AttitudeRateKalman:
         return h, H
 
     def _update(self, t_s: float, z: np.ndarray) -> None:
-        h, H = self.measurement(t_s)
-        self._bhat = z / max(float(np.linalg.norm(z)), 1e-30)
-        P = self.P
-        y = z - h
-        S = H @ P @ H.T + self.R
-        K = np.linalg.solve(S, H @ P).T
-        dx = K @ y
-        IKH = np.eye(self.n) - K @ H
-        self.P = IKH @ P @ IKH.T + K @ self.R @ K.T
-        self.nis = float(y @ np.linalg.solve(S, y))
-        self.nll += 0.5 * (self.nis + math.log(max(np.linalg.det(S), 1e-300)))
-        self.q = quat_mul(self.q, quat_exp(dx[:3]))
-        self.q /= np.linalg.norm(self.q)
-        self.w = self.w + dx[3:6]
-        if self.n_p:
-            self.p = self.p + dx[6:6 + self.n_p]
-        if self.n_beta:
-            self.beta = self.beta + dx[self.i_beta:]
+        b_i = (np.asarray(self.field(t_s), float) * UT_PER_T) if self.field is not None else self.beta
+        self._bhat = z / max(math.sqrt(z[0] * z[0] + z[1] * z[1] + z[2] * z[2]), 1e-30)
+        self.q, self.w, self.p, self.beta, self.P, nis, nll = mekf.update(self.q, self.w, self.p, self.beta, self.P,
+                                                                          z, b_i, self.R)
+        self.nis = float(nis)
+        self.nll += nll
         if self._b_i0 is not None and not self.store and self.tuning.about_b_sigma_rad > 0:
             self._floor_about_b(t_s)
         self._track_sweep(z)

@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 
 import estimation_reference as reference
 from fsw.estimation import attitude_kalman as ak
+from fsw.estimation import euler_step as es
 from fsw.estimation import field_motion as fm
 from fsw.estimation import filter_banks as fb
 from fsw.estimation import rate_kalman as rk
@@ -74,21 +75,32 @@ def test_right_jacobian_and_field_rotation_jacobian():
 
 
 def test_euler_rate_kernels_match_the_tensor_form_and_differences():
-    w = (0.3, -0.2, 0.5)
+    """The compiled Euler's equations (fsw.estimation.euler_step) and their Jacobians against the simulator's
+    tensor form and central differences, for the shape and the full tensor (with a torque)."""
+    w = np.array([0.3, -0.2, 0.5])
     p = np.log([200 / 175, 285 / 175])
-    shape = ("shape", *np.exp(p))
-    J = np.diag([175.0, 200.0, 285.0])
-    full = ("J", tuple(J.ravel()), tuple(np.linalg.inv(J).ravel()))
-    truth = dynamics.euler_rhs(J, np.linalg.inv(J), np.array(w), np.zeros(3))
-    np.testing.assert_allclose(ak.euler_rate(shape, w), truth, rtol=1e-12)
-    np.testing.assert_allclose(ak.euler_rate(full, w), truth, rtol=1e-12)
-    A, Ap = ak.euler_jacobians(shape, w)
-    num = np.column_stack([(np.array(ak.euler_rate(shape, tuple(np.add(w, e)))) -
-                            np.array(ak.euler_rate(shape, tuple(np.subtract(w, e))))) / 2e-7 for e in np.eye(3) * 1e-7])
-    np.testing.assert_allclose(np.reshape(A, (3, 3)), num, atol=1e-8)
-    nump = np.column_stack([(np.array(ak.euler_rate(("shape", *np.exp(p + e)), w)) -
-                             np.array(ak.euler_rate(("shape", *np.exp(p - e)), w))) / 2e-7 for e in np.eye(2) * 1e-7])
-    np.testing.assert_allclose(np.reshape(Ap, (3, 2)), nump, atol=1e-8)
+    J = np.diag([175.0, 200.0, 285.0]) + np.array([[0, 3.0, -2.0], [3.0, 0, 1.0], [-2.0, 1.0, 0]])
+    J9, K9 = J.ravel().copy(), np.linalg.inv(J).ravel().copy()
+    no_torque, torque = np.zeros((0, 3)), np.array([[0.02, -0.01, 0.03]] * 3)
+
+    def shape_rate(w_, p_=p):
+        return np.array(es._euler_rate(es.SHAPE, *np.exp(p_), es_none, es_none, *w_, no_torque, 0))
+
+    es_none = np.zeros(9)
+    Jd = np.diag([175.0, 200.0, 285.0])
+    np.testing.assert_allclose(shape_rate(w), dynamics.euler_rhs(Jd, np.linalg.inv(Jd), w, np.zeros(3)), rtol=1e-12)
+    full = np.array(es._euler_rate(es.TENSOR, 1.0, 1.0, J9, K9, *w, torque, 1))
+    np.testing.assert_allclose(full, dynamics.euler_rhs(J, np.linalg.inv(J), w, torque[1]), rtol=1e-12)
+    for mode, j2, j3, JJ, KK in ((es.SHAPE, *np.exp(p), es_none, es_none), (es.TENSOR, 1.0, 1.0, J9, K9)):
+        A, Ap = np.empty(9), np.empty(6)
+        es._jacobians(mode, j2, j3, JJ, KK, w, A, Ap)
+        num = np.column_stack([(np.array(es._euler_rate(mode, j2, j3, JJ, KK, *(w + e), no_torque, 0))
+                                - np.array(es._euler_rate(mode, j2, j3, JJ, KK, *(w - e), no_torque, 0))) / 2e-7
+                               for e in np.eye(3) * 1e-7])
+        np.testing.assert_allclose(A.reshape(3, 3), num, atol=1e-8)
+    nump = np.column_stack([(shape_rate(w, p + e) - shape_rate(w, p - e)) / 2e-7 for e in np.eye(2) * 1e-7])
+    es._jacobians(es.SHAPE, *np.exp(p), es_none, es_none, w, A, Ap)
+    np.testing.assert_allclose(Ap.reshape(3, 2), nump, atol=1e-8)
 
 
 def test_field_model_matches_the_simulator():

@@ -1,11 +1,14 @@
-"""The batch fit's compiled propagation (`ground.euler_trajectory.trajectory`, through `smoother._trajectory`)
-against the attitude filter's own numpy/tuple propagation and measurement (`AttitudeRateKalman.propagate`,
-`.measurement`), sample by sample: the trajectory, the transition matrices, the residuals and their Jacobian."""
+"""The compiled propagation with Euler's equations — the batch fit's (`ground.euler_trajectory.trajectory`, through
+`smoother._trajectory`) and the attitude filter's (`AttitudeRateKalman.propagate`, fsw.estimation.euler_step) —
+against the propagation on tuples of floats it was compiled from (estimation_reference.propagate) and the
+filter's measurement, sample by sample: the trajectory, the transition matrices, the residuals and their
+Jacobian."""
 import math
 
 import numpy as np
 import pytest
 
+import estimation_reference as reference_euler
 from fsw.estimation import attitude_kalman as ak
 from fsw.estimation import rate_kalman as rk
 from fsw.estimation import field_motion as fm
@@ -24,7 +27,8 @@ def reference(kf: ak.AttitudeRateKalman, t, z_uT, sb_uT, n):
     kf.t_s = t[0]
     for k in range(n):
         if k:
-            F = kf.propagate(t[k] - t[k - 1]) @ F
+            kf.q, kf.w, Fk = reference_euler.propagate(kf, t[k] - t[k - 1])
+            F = Fk @ F
             kf.t_s = t[k]
         h, H = kf.measurement(t[k])
         Q[k], W[k], Phi[k] = kf.q, kf.w, F
@@ -65,6 +69,27 @@ def test_compiled_trajectory_equals_the_filters_propagation(with_field, tensor):
     cheap = sm._trajectory(kf, t, z, sb, n, jacobian=False)
     assert np.array_equal(cheap.r, got.r) and np.array_equal(cheap.q, got.q)
     assert cheap.Phi.shape[0] == 0 and cheap.Jr.shape[0] == 0
+
+
+@pytest.mark.parametrize("tensor", [False, True])
+def test_the_filters_compiled_propagation_equals_the_reference(tensor):
+    """AttitudeRateKalman.propagate (compiled) against the propagation on floats, with a torque for the known
+    tensor (a magnetic moment in a field that turns)."""
+    t = np.array([100.0, 101.3])
+    kf = _filter(True, tensor, t)
+    if tensor:
+        kf.torque = lambda x: np.array([0.02 * math.sin(0.3 * x), -0.01, 0.015 * math.cos(0.2 * x)])
+    q, w, F = reference_euler.propagate(kf, 1.3, kf.torque)
+    F2 = kf.propagate(1.3)
+    np.testing.assert_allclose(kf.q, q, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(kf.w, w, rtol=0, atol=1e-13)   # rad/s
+    np.testing.assert_allclose(F2, F, rtol=0, atol=1e-12)
+    if tensor:  # the torque took part: without it the rate is elsewhere
+        fresh = _filter(True, tensor, t)
+        kf.q, kf.w = fresh.q, fresh.w
+        kf.torque = None
+        kf.propagate(1.3)
+        assert np.linalg.norm(kf.w - w) > 1e-6
 
 
 def test_compiled_trajectory_refuses_a_non_finite_state():
