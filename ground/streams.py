@@ -29,6 +29,8 @@ from .gaps import GapRequester, SeqGaps
 
 #: Sample time going back by more than this means the flight software restarted (plain streams).
 RESTART_BACKSTEP_S = 1.0
+#: the kit field of a DEBRIS_MAG_SAMPLE without the kit extension (a sender from before it): none
+_NO_KIT = (0.0, 0.0, 0.0)
 
 
 @dataclass
@@ -154,12 +156,18 @@ class Stream:
             self.current = seg
         if not seg.add_sample(int(msg.time_usec), b_gauss, now_s, int(msg.seq)):
             return None
-        kit = tuple(map(float, getattr(msg, "kit_mag", (0.0, 0.0, 0.0))))
-        if not all(map(math.isfinite, kit)):
-            kit = (math.nan,) * 3
+        kit = getattr(msg, "kit_mag", _NO_KIT)
         flags = int(msg.flags) & ~1  # RESENT is the link's, not the sample's
+        if any(kit):  # a field taken out (or a NaN): the recording gets the columns
+            kit = tuple(map(float, kit))
+            if not all(map(math.isfinite, kit)):
+                kit = (math.nan,) * 3
+            seg.kit_seen = True
+        else:
+            kit = tuple(kit)
+        if flags:
+            seg.kit_seen = True
         seg.kit[int(msg.time_usec)] = (kit, flags)
-        seg.kit_seen = seg.kit_seen or flags != 0 or any(kit)
         return seg
 
     def plain_sample(self, t_us: int, now_s: float, b_gauss) -> Segment | None:

@@ -117,11 +117,65 @@ def _layouts() -> dict[int, _Layout]:
 LAYOUTS = _layouts()
 
 
-def _f32_decimals(values: np.ndarray) -> np.ndarray:
-    """`ground.decode.f32` of every value at once: float32's shortest decimal, as float64."""
-    unique, inverse = np.unique(values.astype(np.float32).ravel(), return_inverse=True)
+def _f32_decimals_by_text(values: np.ndarray) -> np.ndarray:
+    """`ground.decode.f32` of every value: float32's shortest decimal (NumPy's text of it), as float64. Each
+    distinct bit pattern is written once (by bits, not by value: −0.0 stays −0.0 beside +0.0)."""
+    bits = np.ascontiguousarray(values, dtype=np.float32).ravel().view(np.uint32)
+    unique, inverse = np.unique(bits, return_inverse=True)
     with np.errstate(invalid="ignore"):
-        return unique.astype(str).astype(np.float64)[inverse].reshape(values.shape)
+        return unique.view(np.float32).astype(str).astype(np.float64)[inverse].reshape(np.shape(values))
+
+
+#: 10⁻²² … 10²², each exact in float64
+_P10 = 10.0 ** np.arange(-22, 23)
+
+
+def _f32_decimals(values: np.ndarray) -> np.ndarray:
+    """`_f32_decimals_by_text` without the text, for values of magnitude 10⁻¹² … 10¹³: for p = 1 … 9 digits,
+    the two p-digit decimals m·10⁻ˢ around the value (m = ⌊|x|·10ˢ⌋ and m + 1) are made as float64 with one
+    rounding each (|s| ≤ 22, m < 2⁵³: the float64 nearest the decimal, as reading its text gives), and the
+    first p at which one of them reads back as the same float32 gives it (the nearer of the two if both do):
+    the shortest decimal that identifies the float32, which is what NumPy writes. Zeros, non-finite values,
+    magnitudes outside that range and near-ties between the two go through the text (tests/ground/
+    test_archive_bulk.py compares the two on millions of values)."""
+    x32 = np.asarray(values).astype(np.float32).ravel()
+    x = x32.astype(np.float64)
+    a = np.abs(x)
+    out = np.empty(x.shape)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        e = np.floor(np.log10(a))
+    slow = ~(np.isfinite(e) & (e >= -12) & (e <= 12))
+    e = np.where(slow, 0.0, e).astype(np.int64)
+    e += a >= _P10[e + 23]                  # exactly 10^e <= |x| < 10^(e+1)
+    e -= a < _P10[e + 22]
+    todo = np.flatnonzero(~slow)
+    for p in range(1, 10):
+        if not todo.size:
+            break
+        s = p - 1 - e[todo]                 # |x|·10^s has p digits before the point; |s| <= 22 here
+        up = s >= 0
+        scale = _P10[np.abs(s) + 22]
+        ax = a[todo]
+        v = np.where(up, ax * scale, ax / scale)
+        m0 = np.floor(v)
+        m1 = m0 + 1.0
+        val0 = np.where(up, m0 / scale, m0 * scale)
+        val1 = np.where(up, m1 / scale, m1 * scale)
+        f32 = ax.astype(np.float32)
+        ok0 = val0.astype(np.float32) == f32
+        ok1 = val1.astype(np.float32) == f32
+        frac = v - m0
+        tie = ok0 & ok1 & (np.abs(frac - 0.5) < 1e-6)
+        slow[todo[tie]] = True
+        found = (ok0 | ok1) & ~tie
+        pick = np.where(ok0 & ~(ok1 & (frac > 0.5)), val0, val1)
+        out[todo[found]] = np.copysign(pick[found], x[todo[found]])
+        todo = todo[~(found | tie)]
+    slow[todo] = True                       # none of 9 digits read back (not a float32 value)
+    rest = np.flatnonzero(slow)
+    if rest.size:
+        out[rest] = _f32_decimals_by_text(x32[rest])
+    return out.reshape(np.shape(values))
 
 
 def _crc_table() -> np.ndarray:

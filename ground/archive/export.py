@@ -19,6 +19,7 @@ import struct
 from collections import Counter
 from contextlib import contextmanager
 from itertools import islice
+from operator import itemgetter
 from dataclasses import dataclass
 
 import numpy as np
@@ -152,7 +153,8 @@ def _decode_interval(rows, decoder: Decoder, out: Exported, used: set[str]) -> N
             if now_s >= due_s:
                 tick(now_s)
                 due_s = decoder.tick_due_s
-        ids = Counter(msgid for (_, msgid, _), src in zip(chunk, sources) if src in bulk)
+        ids = (Counter(map(itemgetter(1), chunk)) if len(bulk) == len(set(sources))
+               else Counter(msgid for (_, msgid, _), src in zip(chunk, sources) if src in bulk))
         counts.update({names[msgid]: k for msgid, k in ids.items()})
         n += len(chunk)
         out.last_us = chunk[-1][0]

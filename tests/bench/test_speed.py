@@ -234,5 +234,9 @@ def test_archive_export_hour_csv(benchmark, archive_hour, tmp_path):
     from ground.archive.export import export_recordings
 
     conn = open_reader(archive_hour)
-    out = benchmark.pedantic(export_recordings, args=(conn, 1, tmp_path / "hour.csv"), rounds=1, iterations=1)
+    paths = iter(tmp_path / f"hour{i}.csv" for i in range(100))
+
+    def fresh():  # each round its own file
+        return (conn, 1, next(paths)), {}
+    out = benchmark.pedantic(export_recordings, setup=fresh, rounds=3, iterations=1)
     assert out.frames == 122_400 and len(out.written) == 1

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from fsw.telemetry.dialect import mavlink
-from ground.archive.bulk import LAYOUTS, decode_samples
+from ground.archive.bulk import LAYOUTS, _f32_decimals, _f32_decimals_by_text, decode_samples
 from ground.decode import F32_FIELDS, f32
 from ground.recording import _format, _format_exact, _lines
 
@@ -158,3 +158,29 @@ def test_a_batch_archived_at_once_holds_what_frame_by_frame_does(tmp_path):
     rows = [open_reader(tmp_path / n).execute("SELECT t_us, sysid, compid, msgid, box_t_us, frame FROM frames "
                                               "ORDER BY rowid").fetchall() for n in ("one.sqlite", "many.sqlite")]
     assert len(rows[0]) == 60 and rows[0] == rows[1]
+
+
+def test_float32_decimals_without_text_are_the_decoders():
+    """The export's rounding of float32 values to their shortest decimal (`_f32_decimals`, arithmetic) is
+    `ground.decode.f32`'s (NumPy's text of the float32 read back) on every value: a million random bit
+    patterns (every exponent, NaN, ±inf, subnormals), field-like values, exact ties between two decimals
+    (21.1796875: round half to even) and powers of ten at the edges of the arithmetic's range."""
+    rng = np.random.default_rng(11)
+    bits = rng.integers(0, 2 ** 32, 1_000_000, dtype=np.uint64).astype(np.uint32).view(np.float32)
+    special = np.array([0.0, -0.0, math.nan, math.inf, -math.inf, 1e-45, -3.4e38, 21.1796875, -42.8671875,
+                        1956818.75, 0.1, 0.3, 1.0, 9.999999, 10.0, 1e-12, 9.99e-13, 1e13, 9.999e12, 16777217.0],
+                       dtype=np.float32)
+    for v in (bits, special, rng.normal(0.0, 0.5, 200_000).astype(np.float32),      # gauss: the field
+              (10.0 ** rng.uniform(-13.0, 14.0, 300_000)).astype(np.float32),
+              rng.uniform(-1e6, 1e6, 200_000).astype(np.float32)):
+        with np.errstate(invalid="ignore"):
+            got, want = _f32_decimals(v), _f32_decimals_by_text(v)
+        same = (got == want) & (np.signbit(got) == np.signbit(want)) | (np.isnan(got) & np.isnan(want))
+        assert same.all(), (v[~same][:5], got[~same][:5], want[~same][:5])
+    # the decoder's own f32, value by value: −0.0 beside +0.0 keeps its sign (it once took +0.0's or gave its own)
+    by_decoder = np.array([f32(float(x))[0] for x in special])
+    for got in (_f32_decimals(special), _f32_decimals_by_text(special)):
+        np.testing.assert_array_equal(got, by_decoder)
+        assert (np.signbit(got) == np.signbit(by_decoder)).all()
+    assert _f32_decimals(np.float32([[30.0, 0.299995]])).tolist() == [[30.0, 0.299995]]
+    assert _f32_decimals(np.float32([29.976004])).tolist() == [f32(29.976004)[0]]
