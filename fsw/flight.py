@@ -56,6 +56,7 @@ import numpy as np
 
 from .app import App
 from .commands import CommandRouter, ParamTable
+from .estimation.attitude_kalman import AttitudeRateKalman
 from .estimation.rate_formulas import BoerStream, DerivativeStream
 from .estimation.flown_filter import FILTER_IDS
 from .estimation.rate_kalman import RateKalman
@@ -164,6 +165,15 @@ def load_compiled_kernels() -> None:
     for est in (BoerStream(1e-7), DerivativeStream(1e-7), RateKalman(1e-7)):
         for k in range(3):
             est.update(0.1 * k, b_T + 1e-7 * k)
+    # the attitude filter's step (fsw.estimation.mekf) with and without a field model, and Euler's equations
+    # (fsw.estimation.euler_step) with the shape and with a known tensor and torque
+    shape = AttitudeRateKalman(1e-7, field_eci_T=lambda t: b_T, estimate_inertia=True)
+    tensor = AttitudeRateKalman(1e-7, inertia_kgm2=np.diag([1.0, 2.0, 3.0]), torque_Nm=lambda t: np.zeros(3))
+    for kf in (shape, tensor):
+        for k in range(3):
+            kf.update(0.1 * k, b_T + 1e-7 * k)
+        kf.euler = True
+        kf.update(0.3, b_T)
 
 
 class FlightSoftware:
