@@ -9,6 +9,7 @@ $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -c constraints.txt -e '.[test]'
+	$(PY) -c "from fsw.flight import load_compiled_kernels; load_compiled_kernels()"   # numba's cache, once
 	touch $(STAMP)
 
 sitl: $(STAMP)
@@ -60,6 +61,7 @@ install-target:
 	usermod -a -G i2c,spi,gpio,dialout $(SERVICE_USER)
 	$(PYTHON) -m venv $(PREFIX)/venv
 	$(PREFIX)/venv/bin/pip install --quiet -c constraints.txt '.[target]'
+	$(PREFIX)/venv/bin/python -c "from fsw.flight import load_compiled_kernels; load_compiled_kernels()"
 	install -m 0644 docs/target.md $(PREFIX)/target.md
 	install -d -m 0750 -g $(SERVICE_USER) /etc/debris-box
 	test -e /etc/debris-box/box.toml || install -m 0640 -g $(SERVICE_USER) deploy/box.toml /etc/debris-box/box.toml

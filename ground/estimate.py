@@ -14,7 +14,7 @@ kotelnikov (`kotelnikov-paper`: sedelnikov2023's discrete pairing), kalman (the 
 kalman-orbit / kalman-euler / kalman-mm (attitude filter; -mm: a bank of rate models, random walk
 and Gauss–Markov, for a slow libration; need an orbit for the field's motion unless the field
 is fixed), smoother (RTS), euler (batch torque-free fit), auto (euler when it explains the data, else
-smoother; never a fit that another candidate's σ excludes: `ground/smoother.py`'s docstring).
+smoother; never a fit that another candidate's σ excludes: `ground.smoother`'s docstring).
 
 σ: without a field model every σ is widened by the field's own turning (`--field-turn-dps`), and a
 record whose |B| varies beyond the noise (an uncalibrated host) widens the noise-only methods' σ

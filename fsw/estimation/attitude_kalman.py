@@ -6,7 +6,7 @@ Nominal state q (body → ECI), ω, optional inertia shape p, optional inertial 
 the fixed-field assumption of :class:`~fsw.estimation.rate_kalman.RateKalman` leaves (the field turns at
 about twice the orbital rate); with Euler's equations (a known tensor, or the shape
 J = diag(1, e^p₁, e^p₂) estimated) it follows the rate of an asymmetric tumbling body instead of lagging
-it. It keeps what the RTS smoother needs (ground/smoother.py). Banks of it (shape hypotheses, rate
+it. It keeps what the RTS smoother needs (ground/smoother/). Banks of it (shape hypotheses, rate
 models) are in :mod:`fsw.estimation.filter_banks`.
 
 The arithmetic of a step is compiled (:mod:`fsw.estimation.mekf`: the random-walk step, the process noise, the
@@ -130,7 +130,7 @@ class AttitudeRateKalman:
     (NIS > `nis_reset` three times in a row) send it back to acquisition.
 
     `store=True` keeps, per sample, the predicted and filtered states, covariances, transition
-    matrices and normalised innovations (NIS) for the RTS smoother (ground/smoother.py).
+    matrices and normalised innovations (NIS) for the RTS smoother (ground/smoother/).
     """
 
     PERPENDICULAR_ONLY, DEGENERATE, NO_ESTIMATE, DATA_GAP = PERPENDICULAR_ONLY, DEGENERATE, NO_ESTIMATE, DATA_GAP

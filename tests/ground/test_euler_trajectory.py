@@ -1,5 +1,6 @@
-"""The compiled propagation with Euler's equations — the batch fit's (`ground.euler_trajectory.trajectory`, through
-`smoother._trajectory`) and the attitude filter's (`AttitudeRateKalman.propagate`, fsw.estimation.euler_step) —
+"""The compiled propagation with Euler's equations — the batch fit's (`ground.euler_trajectory.trajectory`,
+through `ground.smoother.batch_fit._trajectory`) and the attitude filter's (`AttitudeRateKalman.propagate`,
+fsw.estimation.euler_step) —
 against the propagation on tuples of floats it was compiled from (estimation_reference.propagate) and the
 filter's measurement, sample by sample: the trajectory, the transition matrices, the residuals and their
 Jacobian."""
@@ -13,6 +14,7 @@ from fsw.estimation import attitude_kalman as ak
 from fsw.estimation import rate_kalman as rk
 from fsw.estimation import field_motion as fm
 from ground import smoother as sm
+from ground.smoother import batch_fit as bf
 
 FIELD = fm.OrbitField(fm.CircularOrbitModel(485e3, 97.5, 40.0, 10.0), fm.DipoleModel(2025.5))
 
@@ -59,14 +61,14 @@ def test_compiled_trajectory_equals_the_filters_propagation(with_field, tensor):
     sb = 0.7
     n = 50
     ref = reference(kf, t, z, sb, n)
-    got = sm._trajectory(kf, t, z, sb, n)
+    got = bf._trajectory(kf, t, z, sb, n)
     assert kf.n == 6 + (0 if tensor else 2) + (0 if with_field else 3)
     for name, a, b in zip(("q", "w", "Phi", "r", "Jr"), ref, (got.q, got.w, got.Phi, got.r, got.Jr)):
         assert a.shape == b.shape, name
         scale = max(1.0, float(np.max(np.abs(a))))
         assert np.max(np.abs(a - b)) <= 1e-11 * scale, name
     # residuals in µT/σ: 1e-11 of 30 µT / 0.7 is far below the noise (σ = 1)
-    cheap = sm._trajectory(kf, t, z, sb, n, jacobian=False)
+    cheap = bf._trajectory(kf, t, z, sb, n, jacobian=False)
     assert np.array_equal(cheap.r, got.r) and np.array_equal(cheap.q, got.q)
     assert cheap.Phi.shape[0] == 0 and cheap.Jr.shape[0] == 0
 
@@ -97,19 +99,19 @@ def test_compiled_trajectory_refuses_a_non_finite_state():
     kf = _filter(True, False, t)
     kf.w = np.array([np.inf, 0.0, 0.0])
     with pytest.raises(ValueError):
-        sm._trajectory(kf, t, np.zeros((10, 3)), 1.0, 10)
+        bf._trajectory(kf, t, np.zeros((10, 3)), 1.0, 10)
     kf.w = np.zeros(3)
     for p in ([math.nan, 0.0], [-1000.0, 0.0], [0.0, 800.0]):  # a ratio NaN, 0 or inf: an LM trial's step
         kf.p = np.array(p)
         with pytest.raises(ValueError):
-            sm._trajectory(kf, t, np.zeros((10, 3)), 1.0, 10)
+            bf._trajectory(kf, t, np.zeros((10, 3)), 1.0, 10)
 
 
 def test_field_table_is_the_models_values():
     t = np.linspace(0.0, 500.0, 40)
     model = FIELD
-    table = sm._field_at_samples(sm.tabulated(model, t), t, 30)
-    direct = sm._field_at_samples(lambda s: model(s), t, 30)  # no table: the model at each time
+    table = bf._field_at_samples(sm.tabulated(model, t), t, 30)
+    direct = bf._field_at_samples(lambda s: model(s), t, 30)  # no table: the model at each time
     np.testing.assert_allclose(table, direct, rtol=1e-13, atol=0.0)
     assert np.max(np.abs(table)) > 10.0 and table.shape == (30, 3)  # µT
     assert rk.UT_PER_T == 1e6

@@ -8,6 +8,7 @@ import pytest
 
 from bench import accuracy as acc
 from ground import smoother as sm
+from ground.smoother import batch_fit as bf
 
 
 @pytest.mark.slow
@@ -16,17 +17,17 @@ def test_the_mode_search_polishes_a_start_once_and_finds_what_polishing_all_find
     run = acc.simulate("undirected", "asymmetric", 1.0, 0.5e-6, rng, record_samples=40, warmup_s=0.0)
     sigma = math.hypot(0.5e-6, acc.CHIP_NOISE_T)
     t, b = run.t_s[run.record], run.b_T[run.record]
-    m = sm._euler_minimum(t, b, sigma, field_eci_T=sm.tabulated(run.field, t))
+    m = bf._euler_minimum(t, b, sigma, field_eci_T=sm.tabulated(run.field, t))
     calls = []
-    real_lm = sm._lm
+    real_lm = bf._lm
 
     def counted(*args, **kwargs):
         calls.append(1)
         return real_lm(*args, **kwargs)
-    monkeypatch.setattr(sm, "_lm", counted)
+    monkeypatch.setattr(bf, "_lm", counted)
     once = m.finish()
     n_once = len(calls)
-    monkeypatch.setattr(sm, "_same_start", lambda a, b, tol_rad=0.02: False)   # every start polished, as before
+    monkeypatch.setattr(bf, "_same_start", lambda a, b, tol_rad=0.02: False)   # every start polished, as before
     calls.clear()
     every = m.finish()
     # most of the 24 starts end in the best minimum: polished again they find it again

@@ -1,0 +1,414 @@
+"""The batch output-error fit of the torque-free motion (:func:`euler_fit`, :func:`euler_fit_checked`): the
+attitude and rate at the first sample, the inertia shape (or a known tensor) and, without a field model, the
+inertial field, fitted to the whole record by Levenberg–Marquardt over growing windows; its other minima as
+good kept in σ. The propagation is compiled (`ground.euler_trajectory`)."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from fsw.estimation import attitude_kalman as ak
+from fsw.estimation import filter_banks as fb
+from fsw.estimation.rate_formulas import unobserved_sigma
+from fsw.estimation import rate_kalman as rk
+from fsw.estimation import rotations as rot
+from ground import euler_trajectory as et
+
+from .rts import FieldFn, Smoothed, rts_smooth, tabulated
+
+#: other minima of the batch fit: polished when within MODE_SEARCH_DCHI2 of the best after their first
+#: iterations, kept in σ (weight e^(−Δχ²/2)) when within MODE_KEEP_DCHI2 after polishing
+MODE_SEARCH_DCHI2, MODE_KEEP_DCHI2 = 30.0, 20.0
+
+
+# --- batch output-error fit of the torque-free motion ----------------------------------------------
+
+@dataclass
+class _Trajectory:
+    q: np.ndarray          # (N, 4) nominal attitudes
+    w: np.ndarray          # (N, 3)
+    Phi: np.ndarray        # (N, n, n) transition from the first sample
+    r: np.ndarray          # (N, 3) residuals / σ
+    Jr: np.ndarray         # (N, 3, n) ∂r/∂δx₀
+
+
+def _trajectory(kf: ak.AttitudeRateKalman, t, z_uT, sb_uT, n, jacobian: bool = True) -> _Trajectory:
+    """Propagate the filter's nominal state (no updates, torque-free Euler) across the first n samples,
+    compiled (:func:`ground.euler_trajectory.trajectory`; the filter's own propagation is its reference in
+    tests/ground/test_euler_trajectory.py). Without `jacobian` only q, ω and r (Φ and Jr empty: an LM
+    trial's cost)."""
+    if not kf.euler or kf.torque is not None:
+        raise NotImplementedError("the batch fit's propagation is torque-free Euler")
+    if not np.all(np.abs(kf.p) < _LN_RATIO_MAX):  # NaN too; beyond, a ratio is 0 or inf in floating point
+        raise ValueError("non-finite state")
+    if kf.J is not None:
+        mode, j2, j3, J, K = et.TENSOR, 1.0, 1.0, kf.J.ravel().copy(), kf.J_inv.ravel().copy()
+    else:
+        mode, j2, j3, J, K = et.SHAPE, math.exp(kf.p[0]), math.exp(kf.p[1]), _NO_TENSOR, _NO_TENSOR
+    b_i = _NO_FIELD if kf.field is None else _field_at_samples(kf.field, t, n)
+    tun = kf.tuning
+    Q, W, Phi, r, Jr, ok = et.trajectory(np.asarray(kf.q, float), np.asarray(kf.w, float), mode, j2, j3, J, K,
+                                         int(kf.n_p), np.asarray(kf.beta, float), b_i,
+                                         np.ascontiguousarray(t, dtype=float),
+                                         np.ascontiguousarray(z_uT, dtype=float), float(sb_uT), int(n),
+                                         float(tun.max_substep_rad), int(tun.max_substeps), jacobian)
+    if not ok:
+        raise ValueError("non-finite state")
+    return _Trajectory(Q, W, Phi, r, Jr)
+
+
+#: |ln J₂/J₁|, |ln J₃/J₁| beyond which exp() is 0 or overflows (an LM trial may step there)
+_LN_RATIO_MAX = 700.0
+_NO_FIELD = np.zeros((0, 3))
+_NO_TENSOR = np.zeros(9)
+
+
+def _field_at_samples(field_eci_T: FieldFn, t: np.ndarray, n: int) -> np.ndarray:
+    """B_I (µT) at the first n samples: the table of :func:`tabulated` when it holds these times."""
+    table = getattr(field_eci_T, "at_samples", None)
+    if table is not None and len(table[0]) >= n and (table[0] is t or np.array_equal(table[0][:n], t[:n])):
+        values = table[1][:n]
+    else:
+        values = np.array([np.asarray(field_eci_T(x), float) for x in t[:n]]).reshape(n, 3)
+    return np.ascontiguousarray(values * rk.UT_PER_T)
+
+
+def euler_fit(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
+              inertia_kgm2: np.ndarray | None = None, init: Smoothed | None = None,
+              first_window: int = 8, growth: float = 1.4, iterations: int = 10, starts_about_b: int = 24,
+              wahba_rounds: int = 2,
+              max_substep_rad: float = 0.25) -> Smoothed:
+    """Torque-free Euler + kinematics fitted to the whole record: :func:`_euler_minimum`, then the other minima
+    as good in σ (:meth:`_Minimum.finish`)."""
+    return _euler_minimum(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2, init=init,
+                          first_window=first_window, growth=growth, iterations=iterations,
+                          starts_about_b=starts_about_b, wahba_rounds=wahba_rounds,
+                          max_substep_rad=max_substep_rad).finish()
+
+
+def _euler_minimum(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
+                   inertia_kgm2: np.ndarray | None = None, init: Smoothed | None = None,
+                   first_window: int = 8, growth: float = 1.4, iterations: int = 10, starts_about_b: int = 24,
+                   wahba_rounds: int = 2, max_substep_rad: float = 0.25) -> "_Minimum":
+    """Torque-free Euler + kinematics fitted to the whole record (see the module docstring).
+
+    `init` gives the starting attitude and rate (default: :func:`rts_smooth`). With a field model the
+    attitude about B is fixed only by the field's slow turning and the cost has several minima in
+    that angle: after the growing windows the whole record is fitted from `starts_about_b` angles
+    about B_I(t₀) (a few iterations each), the best is polished, then the attitude at t₀ is solved
+    globally for the fitted relative motion (Wahba's problem, :func:`_wahba_start`) and the record
+    fitted again from there while that lowers the cost.
+
+    1-σ: the posterior can have several modes as good as the best within a few units of χ² (another
+    attitude about B with a slightly different motion: truths 60–100° away in attitude and 0.1–0.2 °/s
+    in ω, a Mahalanobis distance of thousands in the best minimum's own covariance). Every other start
+    that ends within `MODE_SEARCH_DCHI2` is polished; the distinct minima within `MODE_KEEP_DCHI2` are
+    weighted by e^(−Δχ²/2s²) and σ² is the mixture's second moment about the best: Σ wᵢ (σᵢ² +
+    (ωᵢ − ω̂)²). The estimate stays the best minimum's.
+    """
+    t = np.asarray(t_s, float)
+    b = np.asarray(b_T, float)
+    N = len(t)
+    field_eci_T = tabulated(field_eci_T, t)
+    init = init or rts_smooth(t, b, sigma_b_T, field_eci_T=field_eci_T)
+    tun = ak.AttitudeKalmanTuning(max_substep_rad=max_substep_rad, max_substeps=400)
+
+    def filt():
+        return ak.AttitudeRateKalman(sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2,
+                                     estimate_inertia=inertia_kgm2 is None, tuning=tun)
+
+    kf = filt()
+    if field_eci_T is None:  # the first sample's body axes are the frame; β the field in it
+        beta = rot.quat_to_dcm(init.q[0]) @ (b[0] * rk.UT_PER_T)
+        kf.set_nominal(t[0], np.array([1.0, 0.0, 0.0, 0.0]), init.w_radps[0], beta_uT=beta, euler=True)
+    else:
+        kf.set_nominal(t[0], init.q[0], init.info.get("w_pass_radps", init.w_radps)[0], euler=True)
+    z = b * rk.UT_PER_T
+    sb = sigma_b_T * rk.UT_PER_T
+    nn = kf.n
+    free = np.ones(nn, bool)
+    if field_eci_T is None:
+        free[:3] = False  # δθ₀ is the gauge
+    prior_w = np.zeros(nn)
+    prior_w[6:6 + kf.n_p] = 1.0  # weak prior on the shape: 1-σ of a factor e
+    windows = []
+    n = min(N, max(first_window, 5))
+    while True:
+        windows.append(n)
+        if n >= N:
+            break
+        n = min(N, int(math.ceil(n * growth)))
+    # rate and shape over growing windows, then the angle about B over the whole record: the angle is
+    # fixed only by the field's slow turning, so short windows cannot choose it and the cost has
+    # several minima in it
+    for n in windows:
+        kf, cost = _lm(kf, t, z, sb, n, free, prior_w, iterations)
+    cands = [(kf, cost)]
+    if field_eci_T is not None:
+        b_i0 = np.asarray(field_eci_T(t[0]), float)
+        axis = b_i0 / np.linalg.norm(b_i0)
+        for a in range(1, starts_about_b):
+            other = _apply(kf, np.zeros(int(free.sum())), free)
+            other.q = rot.quat_mul(rot.quat_exp(axis * (2 * math.pi * a / starts_about_b)), kf.q)
+            cands.append(_lm(other, t, z, sb, N, free, prior_w, 3))
+        cands.sort(key=lambda kc: kc[1])
+        kf, cost = _lm(cands[0][0], t, z, sb, N, free, prior_w, iterations)
+        for _ in range(wahba_rounds):
+            other = _apply(kf, np.zeros(int(free.sum())), free)
+            other.q = _wahba_start(kf, t, z, field_eci_T, N)
+            other, c = _lm(other, t, z, sb, N, free, prior_w, iterations)
+            if not np.isfinite(c) or c >= cost - 1e-6:
+                break
+            kf, cost = other, c
+        cands.insert(0, (kf, cost))
+    cands.sort(key=lambda kc: kc[1])
+    return _Minimum(cands, t, z, sb, b, sigma_b_T, N, free, prior_w, windows, iterations)
+
+
+@dataclass
+class _Minimum:
+    """The batch fit's best minimum (its χ²/dof final), before the search for other minima as good (which
+    widens σ only): :func:`euler_fit_checked` compares two fits by χ²/dof and finishes only the one it keeps."""
+    cands: list            # (start, cost) best first
+    t: np.ndarray
+    z: np.ndarray
+    sb: float
+    b: np.ndarray
+    sigma_b_T: float
+    N: int
+    free: np.ndarray
+    prior_w: np.ndarray
+    windows: list
+    iterations: int
+    chi2_dof: float = math.nan
+
+    def __post_init__(self):
+        kf = self.cands[0][0]
+        self.local = _local_solution(kf, self.t, self.z, self.sb, self.N, self.free, self.prior_w)
+        self.chi2_dof = self.local[3] / max(3 * self.N - int(self.free.sum()), 1)
+
+    def finish(self) -> Smoothed:
+        """The fit's result, σ including the other minima as good as the best."""
+        t, z, sb, N, free, prior_w, iterations = self.t, self.z, self.sb, self.N, self.free, self.prior_w, \
+            self.iterations
+        cands = self.cands
+        kf, cost = cands[0]
+        traj, cov, var, chi2, s2 = self.local
+        # other minima as good as this one within a few units of χ² (another attitude about B with a slightly
+        # different motion): the posterior has several modes, and the spread between them belongs in σ
+        modes = [(0.0, traj.w, var)]
+        seen = [kf]  # starts polished, before and after: one that starts where another did ends where it did
+        for other, c in cands[1:]:
+            if not c - cost < MODE_SEARCH_DCHI2 * s2:
+                continue
+            if any(_same_start(other, s) for s in seen):
+                continue  # its polish would find a minimum already seen (most starts end in the best one)
+            seen.append(other)
+            other, c = _lm(other, t, z, sb, N, free, prior_w, iterations)
+            seen.append(other)
+            if not (np.isfinite(c) and c - cost < MODE_KEEP_DCHI2 * s2):
+                continue
+            o_traj, _, o_var, _, _ = _local_solution(other, t, z, sb, N, free, prior_w, s2)
+            if any(np.max(np.abs(o_traj.w - w_m) / np.sqrt(v + 1e-18)) < 0.3 for _, w_m, v in modes):
+                continue  # the same minimum again (within a third of its σ)
+            modes.append((max(c - cost, 0.0) / s2, o_traj.w, o_var))
+        weights = np.exp(-0.5 * np.array([d for d, _, _ in modes]))
+        weights /= weights.sum()
+        between = sum(wt * (w_m - traj.w) ** 2 for wt, (_, w_m, _) in zip(weights, modes))
+        sig = np.sqrt(sum(wt * v for wt, (_, _, v) in zip(weights, modes)) + between)
+        shape = kf.inertia_shape if kf.n_p else None
+        return Smoothed(t, traj.w, unobserved_sigma(sig, self.b, self.sigma_b_T), traj.q, "euler", self.chi2_dof,
+                        shape, info={"s2": s2, "windows": self.windows, "cov_x0": cov, "beta_uT": kf.beta.copy(),
+                                     "p": kf.p.copy(), "minima_chi2": [c for _, c in cands],
+                                     "modes_dchi2": [d for d, _, _ in modes], "modes_weight": weights.tolist(),
+                                     "modes_var_radps2": between})
+
+
+def _local_solution(kf, t, z, sb, n, free, prior_w, s2: float | None = None):
+    """The trajectory at a minimum, its state covariance s²(JᵀJ + W²)⁻¹ at t₀ (s² = max(1, χ²/dof)
+    unless given) and the variance of ω at every sample through the transition matrices;
+    (trajectory, covariance, ω variances (n, 3), χ², s²)."""
+    nn = kf.n
+    traj = _trajectory(kf, t, z, sb, n)
+    A = traj.Jr.reshape(-1, nn)[:, free]
+    r = traj.r.reshape(-1)
+    chi2 = float(r @ r)
+    if s2 is None:
+        s2 = max(1.0, chi2 / max(r.size - int(free.sum()), 1))
+    cov = np.zeros((nn, nn))
+    cov[np.ix_(free, free)] = s2 * np.linalg.pinv(A.T @ A + np.diag(prior_w[free] ** 2))
+    Pw = traj.Phi[:, 3:6, :] @ cov @ traj.Phi[:, 3:6, :].transpose(0, 2, 1)
+    return traj, cov, np.clip(np.einsum("kii->ki", Pw), 0.0, None), chi2, s2
+
+
+def euler_fit_from_filter(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *,
+                          field_eci_T: FieldFn | None = None) -> Smoothed | None:
+    """:func:`_minimum_from_filter`, finished (the other minima as good in σ); None where it gives none."""
+    m = _minimum_from_filter(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T)
+    return None if m is None else m.finish()
+
+
+def _minimum_from_filter(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *,
+                         field_eci_T: FieldFn | None = None) -> "_Reversed | None":
+    """The batch fit of :func:`euler_fit` started from where the parallel-hypothesis Euler filter
+    (:class:`fsw.estimation.filter_banks.EulerAcquisitionKalman`) ends, for the records where the random-walk
+    start leads the fit astray (a 3 s step at 15–28 °/s: the random-walk smoother lags the turning ω).
+    The filter's estimate is good at the record's end, not at its start, so the fit runs in reversed
+    time: t' = t_N − t, ω'(t') = −ω(t_N − t'), the same attitudes in reverse order; torque-free Euler
+    and the kinematics are the same equations in t' (J ω̇' = −ω' × Jω', q̇' = ½ q' ⊗ ω'). The result
+    is mapped back. None when the filter did not lock on Euler's equations or a field model is missing
+    (without one the attitude's gauge is the first sample's)."""
+    if field_eci_T is None:
+        return None
+    t = np.asarray(t_s, float)
+    b = np.asarray(b_T, float)
+    kf = fb.EulerAcquisitionKalman(sigma_b_T, field_eci_T=field_eci_T)
+    with np.errstate(all="ignore"):  # a wrong hypothesis may diverge: the filter drops it
+        for k in range(len(t)):
+            kf.update(t[k], b[k])
+    if not kf.euler or kf.flags & rk.NO_ESTIMATE:
+        return None
+    t_end = float(t[-1])
+    tr = t_end - t[::-1]
+    n = len(t)
+    init = Smoothed(tr, np.tile(-kf.omega_radps, (n, 1)), np.tile(kf.sigma_radps, (n, 1)),
+                    np.tile(kf.main.q, (n, 1)), "euler_acquisition")
+    rev = _euler_minimum(tr, b[::-1], sigma_b_T, field_eci_T=lambda s: field_eci_T(t_end - s), init=init)
+    return _Reversed(rev, t)
+
+
+@dataclass
+class _Reversed:
+    """A minimum of the fit in reversed time, finished and mapped back to forward time."""
+    rev: "_Minimum"
+    t: np.ndarray
+
+    @property
+    def chi2_dof(self) -> float:
+        return self.rev.chi2_dof
+
+    def finish(self) -> Smoothed:
+        rev, t = self.rev.finish(), self.t
+        return _to_forward_time(rev, t)
+
+
+def _to_forward_time(rev: Smoothed, t: np.ndarray) -> Smoothed:
+    """A reversed-time fit's result in forward time."""
+    # the fit's state covariance is at t_N; only the shape's block (time-invariant) holds at t₀
+    cov = np.zeros_like(rev.info["cov_x0"])
+    cov[6:, 6:] = rev.info["cov_x0"][6:, 6:]
+    info = dict(rev.info, reversed=True, cov_x0=cov, modes_var_radps2=rev.info["modes_var_radps2"][::-1].copy())
+    return Smoothed(t, -rev.w_radps[::-1].copy(), rev.sigma_radps[::-1].copy(), rev.q[::-1].copy(), "euler",
+                    rev.chi2_dof, rev.inertia_shape, info=info)
+
+
+def euler_fit_checked(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
+                      inertia_kgm2: np.ndarray | None = None, init: Smoothed | None = None,
+                      chi2_accept: float = 1.5) -> Smoothed:
+    """:func:`euler_fit`; when it does not explain the data (χ²/dof > `chi2_accept`) and the tensor is
+    not known, again from the Euler filter's end (:func:`euler_fit_from_filter`), keeping the better."""
+    # the two fits compared by their best minima's χ²/dof: only the one kept searches for other minima (the
+    # search, which widens σ only, polishes every start within 30·s² of the best: all of them on a fit that
+    # does not explain the data, most of the cost of the fit)
+    eu = _euler_minimum(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2, init=init)
+    if inertia_kgm2 is not None or (np.isfinite(eu.chi2_dof) and eu.chi2_dof <= chi2_accept):
+        return eu.finish()
+    try:
+        other = _minimum_from_filter(t_s, b_T, sigma_b_T, field_eci_T=tabulated(field_eci_T, t_s))
+        if other is not None and np.isfinite(other.chi2_dof) and not other.chi2_dof >= eu.chi2_dof:
+            res = other.finish()
+            res.info["first_chi2_dof"] = eu.chi2_dof
+            return res
+    except (RuntimeError, ValueError, np.linalg.LinAlgError):
+        pass
+    return eu.finish()
+
+
+def _wahba_start(kf, t, z, field_eci_T, n) -> np.ndarray:
+    """The attitude at t₀ that best explains all samples for the fitted relative motion.
+
+    With R(t_k) = R₀ R_rel,k: min over R₀ of Σ |R₀ R_rel,k z_k − B_I(t_k)|² (Wahba 1965), solved by
+    the SVD of Σ B_I,k (R_rel,k z_k)ᵀ (Markley 1988): the global optimum, whatever the angle about B.
+    """
+    traj_q = _trajectory(kf, t, z, 1.0, n, jacobian=False).q
+    C0t = rot.quat_to_dcm(kf.q).T
+    Bm = np.zeros((3, 3))
+    for k in range(n):
+        u = C0t @ (rot.quat_to_dcm(traj_q[k]) @ z[k])
+        Bm += np.outer(np.asarray(field_eci_T(t[k]), float), u)
+    U, _, Vt = np.linalg.svd(Bm)
+    D = np.diag([1.0, 1.0, np.linalg.det(U) * np.linalg.det(Vt)])
+    R0 = U @ D @ Vt
+    return rot.quat_from_dcm(R0)
+
+
+def _same_start(a, b, tol_rad: float = 0.02) -> bool:
+    d = rot.quat_log(rot.quat_mul(rot.quat_conj(a.q), b.q))
+    return float(np.linalg.norm(d)) < tol_rad and float(np.linalg.norm(a.w - b.w)) < 1e-3
+
+
+def _lm(kf, t, z, sb, n, free, prior_w, iterations, lam: float = 1e-3):
+    """Levenberg–Marquardt on the first n samples from the filter's nominal start; (start, cost)."""
+    nn = kf.n
+    cost = math.inf
+    for _ in range(iterations):
+        traj = _trajectory(kf, t, z, sb, n)
+        A = traj.Jr.reshape(-1, nn)[:, free]
+        r = traj.r.reshape(-1)
+        cost = float(r @ r) + _prior_cost(kf, prior_w)
+        if not np.isfinite(cost):
+            return kf, math.inf
+        # (AᵀA + W² + λ diag) δ = −(Aᵀr + W² p)
+        g = A.T @ r + _prior_grad(kf, prior_w)[free]
+        JtJ = A.T @ A + np.diag(prior_w[free] ** 2)
+        improved = False
+        for _ in range(6):
+            step = np.linalg.solve(JtJ + lam * np.diag(np.diag(JtJ) + 1e-12), -g)
+            trial = _apply(kf, step, free)
+            try:
+                with np.errstate(invalid="ignore", over="ignore"):  # a step too far: a non-finite cost, refused
+                    tr = _trajectory(trial, t, z, sb, n, jacobian=False)
+                tc = float(tr.r.reshape(-1) @ tr.r.reshape(-1)) + _prior_cost(trial, prior_w)
+            except (ValueError, OverflowError, FloatingPointError):
+                tc = math.inf
+            if np.isfinite(tc) and tc < cost:
+                kf, improved = trial, True
+                lam = max(lam / 5.0, 1e-9)
+                break
+            lam *= 10.0
+        if not improved:
+            break
+        if cost - tc < 1e-3 * max(1.0, 1e-3 * cost):
+            cost = tc
+            break
+        cost = tc
+    return kf, cost
+
+
+def _prior_cost(kf, w) -> float:
+    if not kf.n_p:
+        return 0.0
+    return float(np.sum((w[6:6 + kf.n_p] * kf.p) ** 2))
+
+
+def _prior_grad(kf, w) -> np.ndarray:
+    g = np.zeros(kf.n)
+    if kf.n_p:
+        g[6:6 + kf.n_p] = w[6:6 + kf.n_p] ** 2 * kf.p
+    return g
+
+
+def _apply(kf: ak.AttitudeRateKalman, step: np.ndarray, free: np.ndarray) -> ak.AttitudeRateKalman:
+    """A copy of the filter's nominal start state moved by the error-state step."""
+    d = np.zeros(kf.n)
+    d[free] = step
+    new = ak.AttitudeRateKalman.__new__(ak.AttitudeRateKalman)
+    new.__dict__.update(kf.__dict__)
+    new.q = rot.quat_mul(kf.q, rot.quat_exp(d[:3]))
+    new.q /= np.linalg.norm(new.q)
+    new.w = kf.w + d[3:6]
+    new.p = kf.p + d[6:6 + kf.n_p]
+    new.beta = kf.beta + d[kf.i_beta:] if kf.n_beta else kf.beta
+    return new
