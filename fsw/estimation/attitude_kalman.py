@@ -390,10 +390,14 @@ class AttitudeRateKalman:
         return mekf.process_noise(self.n, self.n_p, float(q_w), dt, tun.inertia_shape_rate, tun.field_rate_radps,
                                   self.beta)
 
+    def _b_inertial_uT(self, t_s: float) -> np.ndarray:
+        """The inertial field at `t_s` (µT): the model's along the orbit, or the state β without one."""
+        return np.asarray(self.field(t_s), float).reshape(3) * UT_PER_T if self.field is not None else self.beta
+
     def measurement(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         """Predicted field h (µT, body) and H = ∂h/∂δx at the nominal state."""
         C = quat_to_dcm(self.q)
-        b_i = (np.asarray(self.field(t_s), float) * UT_PER_T) if self.field is not None else self.beta
+        b_i = self._b_inertial_uT(t_s)
         h = C.T @ b_i
         H = np.zeros((3, self.n))
         H[:, :3] = skew(h)
@@ -402,7 +406,7 @@ class AttitudeRateKalman:
         return h, H
 
     def _update(self, t_s: float, z: np.ndarray) -> None:
-        b_i = (np.asarray(self.field(t_s), float) * UT_PER_T) if self.field is not None else self.beta
+        b_i = self._b_inertial_uT(t_s)
         self._bhat = z / max(math.sqrt(z[0] * z[0] + z[1] * z[1] + z[2] * z[2]), 1e-30)
         self.q, self.w, self.p, self.beta, self.P, nis, nll = mekf.update(self.q, self.w, self.p, self.beta, self.P,
                                                                           z, b_i, self.R)
