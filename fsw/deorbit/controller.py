@@ -80,6 +80,8 @@ from numba import njit
 from scipy.linalg import expm
 
 from ..estimation.rotations import rotvec_from_dcm
+from . import energy_horizon as eh
+from .relative_motion import free_motion, rk4_step
 
 MU_EARTH_M3S2 = 3.986004418e14
 OPENING_J = 2.0 * 11.7
@@ -197,68 +199,6 @@ def _nearest_rotvec(v: np.ndarray, ref: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
-def _relative_rhs(R, w, J, n, ka, sail_share):
-    """(Ṙ_bo, ω̇_rel) of the free motion relative to the orbital frame (circular orbit): gravity gradient
-    3n² ĉ × Jĉ (ĉ nadir in body axes) and the sail's moment k_a·f·(x_b × v̂) (f the share of the area the
-    flow sees, 1 when broadside: k_a is the small-angle stiffness), Euler's equations in the inertial rate."""
-    wo = -n * R[1, :]  # the orbital frame's rate (n about −y_o) in body axes
-    c = R[2, :]  # nadir
-    vh = R[0, :]  # the flight direction
-    Jc = J * c
-    M = 3.0 * n * n * np.array((c[1] * Jc[2] - c[2] * Jc[1], c[2] * Jc[0] - c[0] * Jc[2], c[0] * Jc[1] - c[1] * Jc[0]))
-    f = sail_share * abs(vh[0]) + (1.0 - sail_share)
-    M[1] -= ka * f * vh[2]
-    M[2] += ka * f * vh[1]
-    wa = w + wo
-    Jw = J * wa
-    gyro = np.array((wa[1] * Jw[2] - wa[2] * Jw[1], wa[2] * Jw[0] - wa[0] * Jw[2], wa[0] * Jw[1] - wa[1] * Jw[0]))
-    wdot = (M - gyro) / J + np.array((w[1] * wo[2] - w[2] * wo[1], w[2] * wo[0] - w[0] * wo[2],
-                                      w[0] * wo[1] - w[1] * wo[0]))
-    K = np.zeros((3, 3))
-    K[0, 1], K[0, 2], K[1, 0], K[1, 2], K[2, 0], K[2, 1] = -w[2], w[1], w[2], -w[0], -w[1], w[0]
-    return R @ K, wdot
-
-
-@njit(cache=True)
-def _rk4_step(R, w, J, n, ka, sail_share, h):
-    dR1, dw1 = _relative_rhs(R, w, J, n, ka, sail_share)
-    dR2, dw2 = _relative_rhs(R + 0.5 * h * dR1, w + 0.5 * h * dw1, J, n, ka, sail_share)
-    dR3, dw3 = _relative_rhs(R + 0.5 * h * dR2, w + 0.5 * h * dw2, J, n, ka, sail_share)
-    dR4, dw4 = _relative_rhs(R + h * dR3, w + h * dw3, J, n, ka, sail_share)
-    R = R + h / 6.0 * (dR1 + 2.0 * dR2 + 2.0 * dR3 + dR4)
-    w = w + h / 6.0 * (dw1 + 2.0 * dw2 + 2.0 * dw3 + dw4)
-    return orthonormal_rows(R), w
-
-
-@njit(cache=True)
-def orthonormal_rows(R):
-    """R made a rotation again after an integration step: Gram-Schmidt on its rows."""
-    r0 = R[0] / math.sqrt(R[0] @ R[0])
-    r1 = R[1] - (R[1] @ r0) * r0
-    r1 = r1 / math.sqrt(r1 @ r1)
-    out = np.empty((3, 3))
-    out[0], out[1] = r0, r1
-    out[2] = np.array((r0[1] * r1[2] - r0[2] * r1[1], r0[2] * r1[0] - r0[0] * r1[2], r0[0] * r1[1] - r0[1] * r1[0]))
-    return out
-
-
-@njit(cache=True)
-def free_motion(R_bo, w_rel, J, n, ka, sail_share, h, steps):
-    """The free (unactuated) motion relative to the orbital frame from (R_bo, ω_rel), RK4 in `steps` steps
-    of `h` (R re-orthonormalised after each); returns R (steps+1, 3, 3) and ω_rel (steps+1, 3), entry k at
-    k·h. The controller's prediction of where the attitude goes when the magnets stay screened, valid at
-    any angle (the linear model is not, at tens of degrees)."""
-    Rs = np.empty((steps + 1, 3, 3))
-    ws = np.empty((steps + 1, 3))
-    R, w = R_bo.copy(), w_rel.copy()
-    Rs[0], ws[0] = R, w
-    for k in range(steps):
-        R, w = _rk4_step(R, w, J, n, ka, sail_share, h)
-        Rs[k + 1], ws[k + 1] = R, w
-    return Rs, ws
-
-
-@njit(cache=True)
 def _rotvec_near(R, ref):
     """The rotation vector of R (as `rotations.rotvec_from_dcm`) of the representatives φ, φ ∓ 2π φ̂ nearest `ref`."""
     c = max(-1.0, min(1.0, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)))
@@ -318,7 +258,7 @@ def impulse_responses(Rs, ws, dw, J, n, ka, sail_share, h, substeps, periods):
             i0 = j * substeps + half
             R, w = Rs[i0].copy(), ws[i0] + dw[j, c]
             for i in range(i0, N * substeps):
-                R, w = _rk4_step(R, w, J, n, ka, sail_share, h)
+                R, w = rk4_step(R, w, J, n, ka, sail_share, h)
                 if (i + 1) % substeps == 0:
                     k = (i + 1) // substeps - 1
                     Rout[j, c, k] = R
@@ -556,7 +496,6 @@ class DiscreteController:
             total = np.where(self.adds_energy(free[:6], pred[:6, :2], U0), np.inf, total)
         k = int(np.argmin(total))
         if c.nonlinear_guard_rad > 0.0 and np.any(U0[k] != 0.0):
-            from . import energy_horizon as eh
 
             S, H = c.energy_substeps_guard, c.energy_horizon
             steps = [int(round(abs(u) * S)) for u in U0[k]]
@@ -584,7 +523,6 @@ class DiscreteController:
                 polarity: tuple[int, int], switch: bool = True) -> list[ChannelCommand]:
         """The energy-descent choice over a few pulses (`fsw.deorbit.energy_horizon`); with `switch`, the
         "mpc" choice below the energy of an `energy_switch_rad` swing."""
-        from . import energy_horizon as eh
 
         c = self.config
         T, S, H = c.period_s, c.energy_substeps, c.energy_horizon

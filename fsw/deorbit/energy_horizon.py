@@ -38,8 +38,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .controller import _relative_rhs as relative_rhs
-from .controller import orthonormal_rows
+from .relative_motion import orthonormal_rows, relative_rhs
 
 
 @njit(cache=True)

@@ -246,7 +246,7 @@ def test_free_motion_is_the_nonlinear_motion_at_large_angles():
     start), where the LVLH linearisation is tens of degrees off after a quarter libration."""
     from scipy.integrate import solve_ivp
 
-    from fsw.deorbit.controller import free_motion
+    from fsw.deorbit.relative_motion import free_motion
 
     r = A_WGS84_M + 600e3
     n = math.sqrt(MU_EARTH_M3S2 / r**3)
