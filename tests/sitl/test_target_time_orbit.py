@@ -139,7 +139,9 @@ class TugAndGround:
 @pytest.mark.slow  # about 50 s of real time on target: the experiment (20 s) and the onboard fit
 def test_target_runs_the_identification_to_its_end_and_the_ground_decodes_it(tmp_path, capsys, monkeypatch):
     # the onboard fit in larger slices than the flight default, so that it ends within seconds of the
-    # experiment on a loaded test machine (the loop's timing is the benchmarks' business, not this test's)
+    # experiment on a loaded test machine (the loop's timing is the benchmarks' business, not this test's);
+    # with slices that long (~80 ms a tick here) the box would lower its sample rate (10 -> 1 Hz once on a
+    # loaded machine: too few samples for the interval asserted below): --fixed-sample-rate keeps 10 Hz
     monkeypatch.setattr(fsw.ident, "IdentConfig", functools.partial(fsw.ident.IdentConfig, work_per_tick=200000))
     key = tmp_path / "mission.key"
     write_key(key, KEY)
@@ -158,7 +160,7 @@ def test_target_runs_the_identification_to_its_end_and_the_ground_decodes_it(tmp
             box = threading.Thread(target=lambda: out.setdefault("status", fsw_main.main(
                 ["--mag-serial", bridge.port_name, "--key", str(key), "--link", f"udpout:127.0.0.1:{tel}",
                  "--uplink", f"udpin:127.0.0.1:{up}", "--duration", str(duration), "--quiet", "--sample-rate", "10",
-                 "--sigma-uT", "0.2"])))
+                 "--fixed-sample-rate", "--sigma-uT", "0.2"])))
             box.start()
             try:
                 assert ground_command.main([url, "--key", str(key), "--retries", "10", "--timeout", "0.5",
