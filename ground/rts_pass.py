@@ -98,7 +98,7 @@ def passes(t, z, b_i, q, w, p, beta, P, nll, t_s, dt_nominal, bhat, bad, r_var, 
                 return k, q, w, p, beta, P, nll, nis, t_s, dt_nominal, bhat, lqp, lxp, lPp, lF, lq, lx, lP, lnis
             j2, j3 = (math.exp(p[0]), math.exp(p[1])) if mode == es.SHAPE else (1.0, 1.0)
             m = min(max_substeps, max(1, int(math.ceil(wn * dt / max_substep_rad))))
-            q1, w1, F = es.propagate(q, w, dt, m, mode, j2, j3, J, K, npar, n, _TORQUE_FREE)
+            q1, w1, F = es.propagate(q, w, dt, m, mode, j2, j3, J, K, npar, n, es.TORQUE_FREE)
             q_w = accel ** 2 * dt
         P1 = mekf.predict_covariance(F, P, mekf.process_noise(n, npar, q_w, dt, shape_rate, field_rate, beta))
         if store:
@@ -154,12 +154,7 @@ def forward(kf: ak.AttitudeRateKalman, t: np.ndarray, b_T: np.ndarray, start: di
         b_i = np.zeros((0, 3))
     tun = kf.tuning
     bhat = getattr(kf, "_bhat", np.zeros(3))
-    if not kf.euler:
-        mode, J, K = -1, _NO_TENSOR, _NO_TENSOR
-    elif kf.J is not None:
-        mode, J, K = es.TENSOR, kf.J.ravel().copy(), kf.J_inv.ravel().copy()
-    else:
-        mode, J, K = es.SHAPE, _NO_TENSOR, _NO_TENSOR
+    mode, _, _, J, K = kf.euler_args() if kf.euler else (-1, 1.0, 1.0, es.NO_TENSOR, es.NO_TENSOR)
     with np.errstate(all="ignore"):
         out = passes(t, z, b_i, np.asarray(kf.q, float), np.asarray(kf.w, float), np.asarray(kf.p, float),
                      np.asarray(kf.beta, float),
@@ -183,9 +178,6 @@ def forward(kf: ak.AttitudeRateKalman, t: np.ndarray, b_T: np.ndarray, start: di
     return kf
 
 
-_NO_TENSOR = np.zeros(9)
-#: es.propagate's torques for a torque-free body
-_TORQUE_FREE = np.zeros((0, 3, 3))
 
 
 def _python_pass(kf: ak.AttitudeRateKalman, t, b_T, first: int = 1) -> ak.AttitudeRateKalman:

@@ -33,10 +33,6 @@ def physical_shape(p) -> bool:
     return all(j[i] <= 1.02 * (j[(i + 1) % 3] + j[(i + 2) % 3]) for i in range(3))
 
 
-#: the compiled propagation's J and J⁻¹ without a known tensor, and its torques for a torque-free body
-_NO_TENSOR = np.zeros(9)
-_NO_TORQUE = np.zeros((0, 3, 3))
-
 FieldFn = Callable[[float], np.ndarray]
 """B_I(t): the inertial (ECI) field [T] at time t [s] along the orbit (fsw/estimation/field_motion.py)."""
 
@@ -154,8 +150,6 @@ class AttitudeRateKalman:
         self.field = field_eci_T
         self.J = None if inertia_kgm2 is None else np.array(inertia_kgm2, float)
         self.J_inv = None if self.J is None else np.linalg.inv(self.J)
-        if self.J is not None:  # as the compiled propagation takes them
-            self._J9, self._K9 = self.J.ravel().copy(), self.J_inv.ravel().copy()
         self.torque = torque_Nm
         self.n_p = 2 if estimate_inertia else 0
         self.n_beta = 0 if field_eci_T is not None else 3
@@ -354,17 +348,24 @@ class AttitudeRateKalman:
         if not math.isfinite(wn) or not np.all(np.isfinite(self.p)):
             raise ValueError("non-finite state")
         m = min(tun.max_substeps, max(1, int(math.ceil(wn * dt / tun.max_substep_rad))))
-        if self.J is not None:
-            mode, j2, j3, J, K = euler_step.TENSOR, 1.0, 1.0, self._J9, self._K9
-        else:
-            mode, j2, j3, J, K = euler_step.SHAPE, math.exp(self.p[0]), math.exp(self.p[1]), _NO_TENSOR, _NO_TENSOR
-        torques = _NO_TORQUE
+        mode, j2, j3, J, K = self.euler_args()
+        torques = euler_step.TORQUE_FREE
         if self.torque is not None:  # at each substep's start, middle and end
             h = dt / m
             torques = np.array([[self.torque(self.t_s + (i + f) * h) for f in (0.0, 0.5, 1.0)] for i in range(m)],
                                float).reshape(m, 3, 3)
         self.q, self.w, F = euler_step.propagate(self.q, self.w, dt, m, mode, j2, j3, J, K, self.n_p, n, torques)
         return F
+
+    def euler_args(self) -> tuple[int, float, float, np.ndarray, np.ndarray]:
+        """Euler's equations as the compiled kernels take them (:mod:`fsw.estimation.euler_step`): (mode, J₂/J₁,
+        J₃/J₁, J, J⁻¹) — the known tensor (J, J⁻¹ row-major), or the shape of the state p (a ratio beyond
+        the float range is inf: the propagation's state is then not finite)."""
+        if self.J is not None:
+            return euler_step.TENSOR, 1.0, 1.0, self.J.ravel(), self.J_inv.ravel()
+        with np.errstate(over="ignore"):
+            j2, j3 = np.exp(self.p)
+        return euler_step.SHAPE, float(j2), float(j3), euler_step.NO_TENSOR, euler_step.NO_TENSOR
 
     def _rate_decay(self, dt: float) -> tuple[float, float]:
         """Gauss–Markov ω over a step: (e^(−dt/τ), mean of e^(−s/τ) over the step); (1, 1) for a

@@ -20,6 +20,9 @@ from numba import njit
 
 #: `mode`: the inertia shape (J₂/J₁, J₃/J₁) in the state, or a known tensor (J and K = J⁻¹ as row-major 9-arrays)
 SHAPE, TENSOR = 0, 1
+#: J and K of the shape's mode (not read), and the torques of a torque-free body (:func:`propagate`)
+NO_TENSOR = np.zeros(9)
+TORQUE_FREE = np.zeros((0, 3, 3))
 
 
 @njit(cache=True, error_model="numpy")

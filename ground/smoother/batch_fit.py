@@ -43,10 +43,7 @@ def _trajectory(kf: ak.AttitudeRateKalman, t, z_uT, sb_uT, n, jacobian: bool = T
         raise NotImplementedError("the batch fit's propagation is torque-free Euler")
     if not np.all(np.abs(kf.p) < _LN_RATIO_MAX):  # NaN too; beyond, a ratio is 0 or inf in floating point
         raise ValueError("non-finite state")
-    if kf.J is not None:
-        mode, j2, j3, J, K = et.TENSOR, 1.0, 1.0, kf.J.ravel().copy(), kf.J_inv.ravel().copy()
-    else:
-        mode, j2, j3, J, K = et.SHAPE, math.exp(kf.p[0]), math.exp(kf.p[1]), _NO_TENSOR, _NO_TENSOR
+    mode, j2, j3, J, K = kf.euler_args()
     b_i = _NO_FIELD if kf.field is None else _field_at_samples(kf.field, t, n)
     tun = kf.tuning
     Q, W, Phi, r, Jr, ok = et.trajectory(np.asarray(kf.q, float), np.asarray(kf.w, float), mode, j2, j3, J, K,
@@ -62,7 +59,6 @@ def _trajectory(kf: ak.AttitudeRateKalman, t, z_uT, sb_uT, n, jacobian: bool = T
 #: |ln J₂/J₁|, |ln J₃/J₁| beyond which exp() is 0 or overflows (an LM trial may step there)
 _LN_RATIO_MAX = 700.0
 _NO_FIELD = np.zeros((0, 3))
-_NO_TENSOR = np.zeros(9)
 
 
 def _field_at_samples(field_eci_T: FieldFn, t: np.ndarray, n: int) -> np.ndarray:
