@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 import estimation_reference as reference
 from fsw.estimation import attitude_kalman as ak
 from fsw.estimation import euler_step as es
+from fsw.estimation import mekf
 from fsw.estimation import field_motion as fm
 from fsw.estimation import filter_banks as fb
 from fsw.estimation import rate_kalman as rk
@@ -101,6 +102,55 @@ def test_euler_rate_kernels_match_the_tensor_form_and_differences():
     nump = np.column_stack([(shape_rate(w, p + e) - shape_rate(w, p - e)) / 2e-7 for e in np.eye(2) * 1e-7])
     es._jacobians(es.SHAPE, *np.exp(p), es_none, es_none, w, A, Ap)
     np.testing.assert_allclose(Ap.reshape(3, 2), nump, atol=1e-8)
+
+
+@pytest.mark.parametrize("with_beta", [False, True])
+def test_compiled_step_is_the_textbook_multiplicative_ekf(with_beta):
+    """fsw.estimation.mekf against independent pieces: the random-walk step's Φ from rotations.so3_exp and
+    so3_right_jacobian with q advanced by quat_exp, Q the white-acceleration blocks, and the update the
+    textbook Joseph-form step (estimation_reference.update) with h = Rᵀb, H = [[h]ₓ, 0, Rᵀ] and the error
+    folded back multiplicatively."""
+    rng = np.random.default_rng(4)
+    n = 9 if with_beta else 6
+    q = rot.quat_normalize(rng.normal(size=4))
+    w = rng.normal(0.0, 0.3, 3)
+    beta = rng.normal(0.0, 30.0, 3) if with_beta else np.zeros(0)
+    A = rng.normal(size=(n, n))
+    P = A @ A.T * 1e-3 + 1e-4 * np.eye(n)
+    dt, decay, mean = 0.7, 0.95, 0.97
+    q1, w1, F = mekf.rw_propagate(q, w, decay, mean, dt, n)
+    phi = w * mean * dt
+    np.testing.assert_allclose(q1, rot.quat_mul(q, rot.quat_exp(phi)), atol=1e-14)
+    np.testing.assert_allclose(w1, decay * w, atol=1e-15)
+    Fr = np.eye(n)
+    Fr[:3, :3], Fr[3:6, 3:6] = rot.so3_exp(-phi), decay * np.eye(3)
+    Fr[:3, 3:6] = mean * dt * rot.so3_right_jacobian(phi)
+    np.testing.assert_allclose(F, Fr, atol=1e-14)
+    q_w = 2e-6
+    Q = mekf.process_noise(n, 0, q_w, dt, 0.0, 1e-3, beta)
+    Qr = np.zeros((n, n))
+    Qr[:6, :6] = np.kron([[dt * dt / 3, dt / 2], [dt / 2, 1.0]], q_w * np.eye(3))
+    if with_beta:
+        Qr[6:, 6:] = (1e-3 * dt) ** 2 * float(beta @ beta) * np.eye(3)
+    np.testing.assert_allclose(Q, Qr, rtol=1e-14, atol=1e-30)
+    np.testing.assert_allclose(mekf.predict_covariance(F, P, Q), reference.predict(np.zeros(n), P, F, Q)[1],
+                               rtol=1e-12)
+    b_i = rng.normal(0.0, 30.0, 3)
+    z, R = rng.normal(0.0, 30.0, 3), 0.04 * np.eye(3)
+    C = rot.quat_to_dcm(q1)
+    h = C.T @ (beta if with_beta else b_i)
+    H = np.zeros((3, n))
+    H[:, :3] = rot.skew(h)
+    if with_beta:
+        H[:, 6:] = C.T
+    dx, P_ref, y, S = reference.update(np.zeros(n), P, z, H, R, hx=h)
+    q2, w2, p2, beta2, P2, nis, nll = mekf.update(q1, w1, np.zeros(0), beta, P, z, b_i, R)
+    np.testing.assert_allclose(q2, rot.quat_normalize(rot.quat_mul(q1, rot.quat_exp(dx[:3]))), atol=1e-13)
+    np.testing.assert_allclose(w2, w1 + dx[3:6], atol=1e-13)
+    np.testing.assert_allclose(beta2, beta + dx[6:], atol=1e-11)
+    np.testing.assert_allclose(P2, P_ref, rtol=1e-10, atol=1e-16)
+    assert nis == pytest.approx(float(y @ np.linalg.solve(S, y)), rel=1e-10)
+    assert nll == pytest.approx(0.5 * (nis + math.log(np.linalg.det(S))), rel=1e-10)
 
 
 def test_field_model_matches_the_simulator():
