@@ -5,7 +5,7 @@ as much as a whole 1-rad swing of this spacecraft, so a plan that is linear abou
 field frozen in body axes (the `"mpc"` law), is not a model of what a pulse does at tens of degrees; where
 it is wrong it picks pulses that add energy, and under the IGRF degree-13 field the 45° start was pumped
 over 180°. This law instead predicts each candidate with the *nonlinear* motion relative to the orbital
-frame (gravity gradient, the sail's moment, Euler's equations: `controller._relative_rhs`) and the kit's
+frame (gravity gradient, the sail's moment, Euler's equations: `relative_motion.relative_rhs`) and the kit's
 moment p × B, the field in orbital axes from the forecast along the orbit (the onboard field model on the
 target) turned into body axes along the predicted attitude, and scores it by what is conserved when the
 magnets are screened: the Jacobi energy of the motion relative to the orbital frame (:func:`jacobi_energy`)
@@ -38,7 +38,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .relative_motion import orthonormal_rows, relative_rhs
+from .relative_motion import rk4_step
 
 
 @njit(cache=True)
@@ -53,26 +53,6 @@ def jacobi_energy(R, w, J, n, ka, sail_share):
 
 
 @njit(cache=True)
-def _step(R, w, J, n, ka, s, h, m, b_o):
-    """One RK4 step of the relative motion with the body-fixed dipole m [A·m²] in the field b_o (orbital
-    axes, constant over the step), R re-orthonormalised."""
-    dR1, dw1 = relative_rhs(R, w, J, n, ka, s)
-    dw1 = dw1 + np.cross(m, b_o @ R) / J
-    R2, w2 = R + 0.5 * h * dR1, w + 0.5 * h * dw1
-    dR2, dw2 = relative_rhs(R2, w2, J, n, ka, s)
-    dw2 = dw2 + np.cross(m, b_o @ R2) / J
-    R3, w3 = R + 0.5 * h * dR2, w + 0.5 * h * dw2
-    dR3, dw3 = relative_rhs(R3, w3, J, n, ka, s)
-    dw3 = dw3 + np.cross(m, b_o @ R3) / J
-    R4, w4 = R + h * dR3, w + h * dw3
-    dR4, dw4 = relative_rhs(R4, w4, J, n, ka, s)
-    dw4 = dw4 + np.cross(m, b_o @ R4) / J
-    Rn = R + h / 6.0 * (dR1 + 2.0 * dR2 + 2.0 * dR3 + dR4)
-    wn = w + h / 6.0 * (dw1 + 2.0 * dw2 + 2.0 * dw3 + dw4)
-    return orthonormal_rows(Rn), wn
-
-
-@njit(cache=True)
 def propagate_period(R, w, J, n, ka, s, h, substeps, b_o, k0, move, dipole):
     """The motion over one period of `substeps` steps of h with `move` = (pol_pitch, steps_pitch, pol_yaw,
     steps_yaw): the pitch magnet (body z) at polarity pol_pitch for its first steps_pitch steps, the yaw
@@ -83,7 +63,7 @@ def propagate_period(R, w, J, n, ka, s, h, substeps, b_o, k0, move, dipole):
             m[2] += dipole * move[0]
         if i < move[3]:
             m[1] += dipole * move[2]
-        R, w = _step(R, w, J, n, ka, s, h, m, b_o[k0 + i])
+        R, w = rk4_step(R, w, J, n, ka, s, h, m, b_o[k0 + i])
     return R, w
 
 

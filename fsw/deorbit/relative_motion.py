@@ -38,11 +38,23 @@ def relative_rhs(R, w, J, n, ka, sail_share):
 
 
 @njit(cache=True)
-def rk4_step(R, w, J, n, ka, sail_share, h):
-    dR1, dw1 = relative_rhs(R, w, J, n, ka, sail_share)
-    dR2, dw2 = relative_rhs(R + 0.5 * h * dR1, w + 0.5 * h * dw1, J, n, ka, sail_share)
-    dR3, dw3 = relative_rhs(R + 0.5 * h * dR2, w + 0.5 * h * dw2, J, n, ka, sail_share)
-    dR4, dw4 = relative_rhs(R + h * dR3, w + h * dw3, J, n, ka, sail_share)
+def _rhs(R, w, J, n, ka, sail_share, m, b_o):
+    """relative_rhs, plus the body-fixed dipole m's moment m × B (B = b_o in body axes) when m is given."""
+    dR, dw = relative_rhs(R, w, J, n, ka, sail_share)
+    if m is not None:
+        dw = dw + np.cross(m, b_o @ R) / J
+    return dR, dw
+
+
+@njit(cache=True)
+def rk4_step(R, w, J, n, ka, sail_share, h, m=None, b_o=None):
+    """One RK4 step of h of the relative motion, R re-orthonormalised; with the body-fixed dipole m [A·m²]
+    in the field b_o [T] (orbital axes, constant over the step) when given (numba compiles the free form
+    without it)."""
+    dR1, dw1 = _rhs(R, w, J, n, ka, sail_share, m, b_o)
+    dR2, dw2 = _rhs(R + 0.5 * h * dR1, w + 0.5 * h * dw1, J, n, ka, sail_share, m, b_o)
+    dR3, dw3 = _rhs(R + 0.5 * h * dR2, w + 0.5 * h * dw2, J, n, ka, sail_share, m, b_o)
+    dR4, dw4 = _rhs(R + h * dR3, w + h * dw3, J, n, ka, sail_share, m, b_o)
     R = R + h / 6.0 * (dR1 + 2.0 * dR2 + 2.0 * dR3 + dR4)
     w = w + h / 6.0 * (dw1 + 2.0 * dw2 + 2.0 * dw3 + dw4)
     return orthonormal_rows(R), w
