@@ -31,16 +31,6 @@ from fsw.estimation.rotations import quat_mul_nb as _qmul
 
 
 @njit(cache=True, error_model="numpy")
-def _physical(p):
-    """fsw.estimation.attitude_kalman.physical_shape: J = diag(1, e^p₁, e^p₂) obeys the triangle inequalities."""
-    j = (1.0, math.exp(p[0]), math.exp(p[1]))
-    for i in range(3):
-        if not j[i] <= 1.02 * (j[(i + 1) % 3] + j[(i + 2) % 3]):
-            return False
-    return True
-
-
-@njit(cache=True, error_model="numpy")
 def _log(lq, lx, lP, k, q, w, p, beta, P, npar):
     """Sample k's state (q; ω, shape, field; P) into the pass's log."""
     lq[k] = q
@@ -112,7 +102,7 @@ def passes(t, z, b_i, q, w, p, beta, P, nll, t_s, dt_nominal, bhat, bad, r_var, 
         # the filter's checks: diverged (update), not finite or three outliers in a row (_publish)
         wn = math.sqrt(w3[0] * w3[0] + w3[1] * w3[1] + w3[2] * w3[2])
         if not (np.all(np.isfinite(P2)) and wn < max_rate and wn * min(dt, dtn) < max_step_angle
-                and np.all(np.isfinite(q2)) and np.all(np.isfinite(w3)) and (npar == 0 or _physical(p1))):
+                and np.all(np.isfinite(q2)) and np.all(np.isfinite(w3)) and (npar == 0 or ak.physical_shape(p1))):
             return k, q, w, p, beta, P, nll, nis, t_s, dt_nominal, bhat, lqp, lxp, lPp, lF, lq, lx, lP, lnis
         bad1 = bad + 1 if nis1 > nis_reset else 0
         if bad1 >= 3:
