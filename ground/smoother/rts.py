@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
@@ -16,7 +15,7 @@ from fsw.estimation import rotations as rot
 from ground import angle_sum
 from ground import rts_pass
 
-FieldFn = Callable[[float], np.ndarray]
+FieldFn = ak.FieldFn
 SHAPE_SIGMA_FLOOR = 0.01  # 1-σ floor of ln(J₂/J₁), ln(J₃/J₁) carried into the Euler RTS smoother
 
 
