@@ -783,9 +783,23 @@ def main(argv=None) -> int:
         held = sum(ok for _, ok, _ in items)
         print(f"{name}: {held}/{len(items)} rows")
     if args.json:
-        write_atomic(args.json, json.dumps(bench, indent=1, default=float))
+        write_atomic(args.json, json.dumps(rounded(bench), indent=1, default=float))
         print(f"wrote {args.json}")
     return 0
+
+
+def rounded(obj, digits: int = 5):
+    """`obj` with every float to `digits` significant digits (the JSON a quarter of the size; no figure the
+    tables print changes): what docs/accuracy_bench.json keeps."""
+    if isinstance(obj, float):
+        return float(f"{obj:.{digits}g}") if math.isfinite(obj) else obj
+    if isinstance(obj, (np.floating, np.integer)):
+        return rounded(obj.item(), digits)
+    if isinstance(obj, dict):
+        return {k: rounded(v, digits) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [rounded(v, digits) for v in obj]
+    return obj
 
 
 if __name__ == "__main__":
