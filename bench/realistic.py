@@ -101,10 +101,11 @@ class HostResidual:
     """The host's iron (`hil.host_magnetics`) in the measurement, taken out again by the box's calibration,
     which is off by what the calibration benchmark leaves: the samples the estimators get.
 
-    `drift_tracked` False (today's box: one constant calibration): the hard iron's thermal drift (~1 µT
-    over an orbit) stays in the samples; True: the calibration follows it (a drift state), only the
-    residual stays. A hard-iron error δ on |B| turns into a rate error of about |ω| δ/|B|: 1 µT on 40 µT
-    at 19 °/s is ~0.5 °/s, which is what the IGRF rows of the fast tumbles show with the drift in."""
+    `drift_tracked` False (a constant calibration): the hard iron's thermal drift (~1 µT over an orbit)
+    stays in the samples; True (the box's calibration as flown, `fsw.estimation.magcal`'s harmonic of the
+    orbit): the calibration follows it, only the residual stays. A hard-iron error δ on |B| turns into a
+    rate error of about |ω| δ/|B|: 1 µT on 40 µT at 19 °/s is ~0.5 °/s, which is what the IGRF rows of the
+    fast tumbles show with the drift in."""
 
     def __init__(self, host, rng, drift_tracked: bool = False) -> None:
         self.host = host
