@@ -36,9 +36,12 @@ random start within a day of its epoch), the host's hard and soft iron and its t
 measurement, taken out by the box's calibration off by the calibration benchmark's residual (0.15 µT
 per axis, 0.2 % soft iron; the calibration follows the drift as the box's does, a harmonic of the orbit —
 ``--host-drift untracked``: a constant calibration, the drift left in the samples, rows keyed
-``…/igrf-constant-cal``), and the
-estimators given what the box would have: the field of the onboard model (IGRF-14 at the flight degree)
-along the 3-day-older box TLE, at the box's clock 2 s ahead.
+``…/igrf-constant-cal``), and the estimators given what the box would have: the field of the onboard model
+(IGRF-14 at the flight degree) along the 3-day-older box TLE, at the box's clock 2 s ahead;
+``igrf_exact`` (rows ``…/igrf-exact``) — the same truth, the box knowing it exactly (the truth's field at
+the true time, no host): an IGRF row against its ``igrf_exact`` row is what the box's knowledge costs,
+against the dipole row also what the other orbit and field cost (the same motions and noise, seen along
+another path through another field).
 
 Samples: the true field (random attitude and rate) plus white Gaussian noise σ_B per axis, the
 MMC5983MA's own noise at BW = 100 Hz (0.04 µT) and its 18-bit quantisation (6.1 nT), at the sampling
@@ -100,6 +103,9 @@ ALTITUDE_M, INCLINATION_DEG, EPOCH = 485e3, 97.5, 2025.5
 #: clock this far ahead (the box's calibration residual: bench.realistic.HostResidual)
 IGRF_SCENARIO, IGRF_CLOCK_OFFSET_S = "isoi_sgp4", 2.0
 WORLDS = ("dipole", "igrf")
+#: the IGRF rows' truth with the box knowing it exactly (no field-model, TLE, clock or calibration error):
+#: what the world's own geometry costs, apart from what the box's knowledge costs
+IGRF_EXACT = "igrf_exact"
 CHIP_NOISE_T = 0.04e-6
 LSB_T = 1e-4 / 16384.0
 BODIES = {"asymmetric": np.diag([175.0, 200.0, 285.0]), "near_symmetric": np.diag([1.0, 1.02, 1.04])}
@@ -136,9 +142,9 @@ def _measure(b_true: np.ndarray, sigma_T: float, rng) -> np.ndarray:
     return np.round((b_true + noise) / LSB_T) * LSB_T
 
 
-def _igrf_world(rng, drift_tracked: bool = True):
+def _igrf_world(rng, drift_tracked: bool = True, exact: bool = False):
     """Truth and the box's view for the IGRF rows (module docstring): (truth field, the box's field,
-    the host's residual after the box's calibration)."""
+    the host's residual after the box's calibration); `exact`: the box's field is the truth and no host."""
     from hil import scenario as scenarios
     from hil.field import FieldTable, IgrfField
     from hil.orbit import TleOrbit
@@ -151,6 +157,8 @@ def _igrf_world(rng, drift_tracked: bool = True):
     truth = FieldAlongOrbit(orbit, IgrfField(EPOCH, 13), orbit.era0_rad)
     table = FieldTable(truth.b_eci_T, step_s=1.0)
     truth_field = type("TruthField", (), {"b_eci_T": staticmethod(table), "orbit": orbit})()
+    if exact:
+        return truth_field, BoxField(truth_field, 0.0), None
     box = BoxField(tle_field(*(scn.box_tle or scn.tle), start), IGRF_CLOCK_OFFSET_S)
     host = scn.host.with_period(orbit.period_s)
     return truth_field, box, HostResidual(host, rng, drift_tracked=drift_tracked)
@@ -166,9 +174,9 @@ def simulate(mode: str, body: str, dt_s: float, sigma_T: float, rng: np.random.G
     lo, hi = MODES[mode] if rate_range_dps is None else rate_range_dps
     raan, u0 = rng.uniform(0, 360), rng.uniform(0, 360)
     host = None
-    if world == "igrf":  # its own draws, from the node and phase drawn: the rest as the dipole row's run
+    if world in ("igrf", IGRF_EXACT):  # its own draws, from the node and phase drawn: the rest as the dipole row's
         truth_field, est_field, host = _igrf_world(np.random.default_rng([int(raan * 1e6), int(u0 * 1e6)]),
-                                                   drift_tracked)
+                                                   drift_tracked, exact=world == IGRF_EXACT)
     else:
         truth_field = FieldAlongOrbit(CircularOrbit(ALTITUDE_M, INCLINATION_DEG, raan, u0), DipoleField(EPOCH))
         est_field = fm.OrbitField(fm.CircularOrbitModel(ALTITUDE_M, INCLINATION_DEG, raan, u0),
@@ -402,7 +410,8 @@ class Row:
 
     @property
     def key(self) -> str:
-        suffix = ("/igrf" + ("" if self.drift_tracked else "-constant-cal")) if self.world == "igrf" else ""
+        suffix = ("/igrf" + ("" if self.drift_tracked else "-constant-cal")) if self.world == "igrf" else (
+            "/igrf-exact" if self.world == IGRF_EXACT else "")
         return f"{self.mode}/{self.body}/dt{self.dt_s:g}/{self.sigma_uT:g}uT{suffix}"
 
 
@@ -716,9 +725,11 @@ def main(argv=None) -> int:
     ap.add_argument("--rows", default="", help="only rows whose key contains this text (e.g. 'undirected')")
     ap.add_argument("--methods", default="",
                     help="comma-separated subset of " + ",".join(METHODS) + " (boer always; default all)")
-    ap.add_argument("--world", choices=WORLDS + ("both",), default="dipole",
+    ap.add_argument("--world", choices=WORLDS + ("both", IGRF_EXACT), default="dipole",
                     help="truth: the dipole the estimators assume (default), igrf (IGRF-14 degree 13, SGP4, the "
-                         "host's iron after the box's calibration, a 3-day-old TLE, the box's clock 2 s off) or both")
+                         "host's iron after the box's calibration, a 3-day-old TLE, the box's clock 2 s off), both, "
+                         "or igrf_exact (the IGRF rows' truth, the box knowing it exactly: what the world's geometry "
+                         "costs apart from the box's knowledge)")
     ap.add_argument("--host-drift", choices=("untracked", "tracked"), default="tracked",
                     help="IGRF rows: the box's calibration following the hard iron's ~1 µT thermal drift (as "
                          "flown; default) or constant (the drift stays in the samples)")

@@ -528,7 +528,7 @@ SPECS: list[Tool] = [
         "--real": Opt([("{files}/realdir", True), ("{files}/missing", False), ("{files}/emptydir", False),
                        ("{files}/rec.csv", False), ("", False), ("{files}/fifo", False)], role="in"),
         "--max-s": Opt(floats(0, lo_open=True)),
-        "--world": Opt(choices(["dipole", "igrf", "both"])),
+        "--world": Opt(choices(["dipole", "igrf", "both", "igrf_exact"])),
         "--host-drift": Opt(choices(["untracked", "tracked"])),
     }, stubs=["bench.campaign.options:execute", "bench.accuracy:real_recordings"],
         judge=lambda v, chosen: _campaign_judge(_accuracy_judge(v, chosen), chosen)),

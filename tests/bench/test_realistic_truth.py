@@ -97,3 +97,20 @@ def test_igrf_rows_take_the_drift_out_as_the_flown_calibration_does():
     assert np.all(rms[True] < 0.35e-6)
     # the scenario's drift (0.6, −0.5, 0.6 µT) is in the constant calibration's samples
     assert np.max(rms[False] - rms[True]) > 0.3e-6
+
+
+def test_igrf_exact_world_gives_the_box_the_truth():
+    """``--world igrf_exact``: the IGRF rows' truth and motions, the box's field the truth itself and no host
+    in the samples (what the world's geometry costs, apart from the box's knowledge)."""
+    real = acc.simulate("undirected", "asymmetric", 1.0, 0.0, np.random.default_rng(9), world="igrf",
+                        record_samples=30, warmup_s=30.0)
+    exact = acc.simulate("undirected", "asymmetric", 1.0, 0.0, np.random.default_rng(9), world=acc.IGRF_EXACT,
+                         record_samples=30, warmup_s=30.0)
+    assert acc.Row("orbital", "asymmetric", 1.0, 0.5, acc.IGRF_EXACT).key.endswith("/igrf-exact")
+    np.testing.assert_array_equal(real.w_true_radps, exact.w_true_radps)   # the same motion and truth
+    np.testing.assert_allclose(real.b_true_T, exact.b_true_T, atol=1e-15)
+    b_box = _body(exact.q_true, exact.field.b_eci_T(exact.t_s))
+    assert np.max(np.abs(b_box - exact.b_true_T)) < 1e-12                 # the box's field is the truth
+    # the samples hold the chip's noise and quantisation only (0.04 µT, 6 nT steps): no host residual
+    assert np.sqrt(np.mean((exact.b_T - exact.b_true_T) ** 2)) < 0.06e-6
+    assert np.sqrt(np.mean((real.b_T - real.b_true_T) ** 2)) > 0.08e-6
