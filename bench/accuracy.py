@@ -93,7 +93,7 @@ from ground import smoother as sm
 from bench.campaign import Run as Run_
 from bench.campaign import options as campaign_options
 from bench.campaign import run_campaign
-from bench.realistic import BoxField, HostResidual
+from bench.realistic import HOST_RESIDUAL_T, BoxField, HostResidual
 from hil import dynamics
 from hil.field import DipoleField, FieldAlongOrbit
 from hil.orbit import CircularOrbit
@@ -130,6 +130,8 @@ class Run:
     field: fm.OrbitField
     meta: dict = field(default_factory=dict)
     q_true: np.ndarray | None = None   # (N, 4) body → ECI, for the information limit
+    #: the 1-σ per axis of the hard iron the box's calibration leaves (None: no host), as the box publishes it
+    hard_iron_sigma_T: float | None = None
 
 
 def _random_unit(rng) -> np.ndarray:
@@ -196,7 +198,8 @@ def simulate(mode: str, body: str, dt_s: float, sigma_T: float, rng: np.random.G
         b_meas = host(b_meas, t)
     return Run(t, b_meas, b_true, w, slice(n_warm, n), est_field,
                {"mode": mode, "body": body, "dt_s": dt_s, "sigma_uT": sigma_T * 1e6, "raan_deg": raan,
-                "arg_lat0_deg": u0, "rate0_dps": math.degrees(rate), "world": world}, q)
+                "arg_lat0_deg": u0, "rate0_dps": math.degrees(rate), "world": world}, q,
+               None if host is None else HOST_RESIDUAL_T)
 
 
 def _tumble(t, J, b_i, truth_field, rate, bdot, sigma_T, rng):
@@ -360,9 +363,13 @@ def estimate(run: Run, sigma_b_T: float, methods=METHODS) -> dict[str, tuple[np.
         out["smoother"] = (rw.w_radps, rw.sigma_radps)
         eu = er = None
         try:
-            eu = sm.euler_fit_checked(t, b, sigma_b_T, field_eci_T=fld, init=rw)
+            eu = sm.euler_fit_checked(t, b, sigma_b_T, field_eci_T=fld, init=rw,
+                                      hard_iron_sigma_T=run.hard_iron_sigma_T)
             out["euler"] = (eu.w_radps, eu.sigma_radps)
-            er = sm.euler_rts_smooth(t, b, sigma_b_T, field_eci_T=fld, init=eu)
+            # the Euler RTS smoother on the samples less the offset the fit found (its model has none)
+            off = eu.info.get("hard_iron_residual_uT")
+            b_rts = b if off is None else b - np.asarray(off) / rk.UT_PER_T
+            er = sm.euler_rts_smooth(t, b_rts, sigma_b_T, field_eci_T=fld, init=eu)
             out["euler_rts"] = (er.w_radps, er.sigma_radps)
         except (RuntimeError, ValueError, np.linalg.LinAlgError):
             pass

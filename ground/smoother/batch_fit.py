@@ -1,7 +1,12 @@
 """The batch output-error fit of the torque-free motion (:func:`euler_fit`, :func:`euler_fit_checked`): the
 attitude and rate at the first sample, the inertia shape (or a known tensor) and, without a field model, the
 inertial field, fitted to the whole record by Levenberg–Marquardt over growing windows; its other minima as
-good kept in σ. The propagation is compiled (`ground.euler_trajectory`)."""
+good kept in σ. The propagation is compiled (`ground.euler_trajectory`).
+
+With `hard_iron_sigma_T` the fit also takes a constant field offset in body axes (what a host calibration
+leaves of the hard iron: its 1-σ per axis is the prior) off every sample: on a tumbling body it is told from
+the inertial field by the turning, and at the fit's precision (0.04–0.08 °/s at 15 °/s) a 0.15 µT offset
+left in doubles the error."""
 from __future__ import annotations
 
 import math
@@ -46,14 +51,27 @@ def _trajectory(kf: ak.AttitudeRateKalman, t, z_uT, sb_uT, n, jacobian: bool = T
     mode, j2, j3, J, K = kf.euler_args()
     b_i = _NO_FIELD if kf.field is None else _field_at_samples(kf.field, t, n)
     tun = kf.tuning
+    bias = _bias(kf)
+    z = np.ascontiguousarray(z_uT if bias is None else np.asarray(z_uT, float)[:n] - bias, dtype=float)
     Q, W, Phi, r, Jr, ok = et.trajectory(np.asarray(kf.q, float), np.asarray(kf.w, float), mode, j2, j3, J, K,
                                          int(kf.n_p), np.asarray(kf.beta, float), b_i,
-                                         np.ascontiguousarray(t, dtype=float),
-                                         np.ascontiguousarray(z_uT, dtype=float), float(sb_uT), int(n),
+                                         np.ascontiguousarray(t, dtype=float), z, float(sb_uT), int(n),
                                          float(tun.max_substep_rad), int(tun.max_substeps), jacobian)
     if not ok:
         raise ValueError("non-finite state")
+    if bias is not None and jacobian:  # r = (z − b − h)/σ: ∂r/∂b = −I/σ at every sample
+        Jr = np.concatenate([Jr, np.broadcast_to(-np.eye(3) / sb_uT, (len(Jr), 3, 3))], axis=2)
     return _Trajectory(Q, W, Phi, r, Jr)
+
+
+def _bias(kf) -> np.ndarray | None:
+    """The fitted constant field offset in body axes (µT), None when the fit takes none."""
+    return getattr(kf, "bias_uT", None)
+
+
+def _n_params(kf) -> int:
+    """The fit's parameters: the filter's error state and, when fitted, the offset's three."""
+    return kf.n + (0 if _bias(kf) is None else 3)
 
 
 #: |ln J₂/J₁|, |ln J₃/J₁| beyond which exp() is 0 or overflows (an LM trial may step there)
@@ -74,20 +92,21 @@ def _field_at_samples(field_eci_T: FieldFn, t: np.ndarray, n: int) -> np.ndarray
 def euler_fit(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
               inertia_kgm2: np.ndarray | None = None, init: Smoothed | None = None,
               first_window: int = 8, growth: float = 1.4, iterations: int = 10, starts_about_b: int = 24,
-              wahba_rounds: int = 2,
-              max_substep_rad: float = 0.25) -> Smoothed:
+              wahba_rounds: int = 2, max_substep_rad: float = 0.25,
+              hard_iron_sigma_T: float | None = None) -> Smoothed:
     """Torque-free Euler + kinematics fitted to the whole record: :func:`_euler_minimum`, then the other minima
     as good in σ (:meth:`_Minimum.finish`)."""
     return _euler_minimum(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2, init=init,
                           first_window=first_window, growth=growth, iterations=iterations,
                           starts_about_b=starts_about_b, wahba_rounds=wahba_rounds,
-                          max_substep_rad=max_substep_rad).finish()
+                          max_substep_rad=max_substep_rad, hard_iron_sigma_T=hard_iron_sigma_T).finish()
 
 
 def _euler_minimum(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
                    inertia_kgm2: np.ndarray | None = None, init: Smoothed | None = None,
                    first_window: int = 8, growth: float = 1.4, iterations: int = 10, starts_about_b: int = 24,
-                   wahba_rounds: int = 2, max_substep_rad: float = 0.25) -> "_Minimum":
+                   wahba_rounds: int = 2, max_substep_rad: float = 0.25,
+                   hard_iron_sigma_T: float | None = None) -> "_Minimum":
     """Torque-free Euler + kinematics fitted to the whole record (see the module docstring).
 
     `init` gives the starting attitude and rate (default: :func:`rts_smooth`). With a field model the
@@ -103,6 +122,10 @@ def _euler_minimum(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_
     that ends within `MODE_SEARCH_DCHI2` is polished; the distinct minima within `MODE_KEEP_DCHI2` are
     weighted by e^(−Δχ²/2s²) and σ² is the mixture's second moment about the best: Σ wᵢ (σᵢ² +
     (ωᵢ − ω̂)²). The estimate stays the best minimum's.
+
+    `hard_iron_sigma_T` (> 0, with a field model): a constant offset in body axes fitted too, prior 1-σ that
+    per axis (a host calibration's residual); its estimate and 1-σ in the result's info
+    (`hard_iron_residual_uT`, `hard_iron_residual_sigma_uT`), its uncertainty in every σ.
     """
     t = np.asarray(t_s, float)
     b = np.asarray(b_T, float)
@@ -123,12 +146,17 @@ def _euler_minimum(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_
         kf.set_nominal(t[0], init.q[0], init.info.get("w_pass_radps", init.w_radps)[0], euler=True)
     z = b * rk.UT_PER_T
     sb = sigma_b_T * rk.UT_PER_T
-    nn = kf.n
+    fit_bias = hard_iron_sigma_T is not None and hard_iron_sigma_T > 0 and field_eci_T is not None
+    if fit_bias:
+        kf.bias_uT = np.zeros(3)
+    nn = _n_params(kf)
     free = np.ones(nn, bool)
     if field_eci_T is None:
         free[:3] = False  # δθ₀ is the gauge
     prior_w = np.zeros(nn)
     prior_w[6:6 + kf.n_p] = 1.0  # weak prior on the shape: 1-σ of a factor e
+    if fit_bias:
+        prior_w[kf.n:] = 1.0 / (hard_iron_sigma_T * rk.UT_PER_T)
     windows = []
     n = min(N, max(first_window, 5))
     while True:
@@ -215,18 +243,21 @@ class _Minimum:
         between = sum(wt * (w_m - traj.w) ** 2 for wt, (_, w_m, _) in zip(weights, modes))
         sig = np.sqrt(sum(wt * v for wt, (_, _, v) in zip(weights, modes)) + between)
         shape = kf.inertia_shape if kf.n_p else None
+        info = {"s2": s2, "windows": self.windows, "cov_x0": cov, "beta_uT": kf.beta.copy(), "p": kf.p.copy(),
+                "minima_chi2": [c for _, c in cands], "modes_dchi2": [d for d, _, _ in modes],
+                "modes_weight": weights.tolist(), "modes_var_radps2": between}
+        if _bias(kf) is not None:
+            info["hard_iron_residual_uT"] = _bias(kf).copy()
+            info["hard_iron_residual_sigma_uT"] = np.sqrt(np.clip(np.diag(cov)[kf.n:], 0.0, None))
         return Smoothed(t, traj.w, unobserved_sigma(sig, self.b, self.sigma_b_T), traj.q, "euler", self.chi2_dof,
-                        shape, info={"s2": s2, "windows": self.windows, "cov_x0": cov, "beta_uT": kf.beta.copy(),
-                                     "p": kf.p.copy(), "minima_chi2": [c for _, c in cands],
-                                     "modes_dchi2": [d for d, _, _ in modes], "modes_weight": weights.tolist(),
-                                     "modes_var_radps2": between})
+                        shape, info=info)
 
 
 def _local_solution(kf, t, z, sb, n, free, prior_w, s2: float | None = None):
     """The trajectory at a minimum, its state covariance s²(JᵀJ + W²)⁻¹ at t₀ (s² = max(1, χ²/dof)
     unless given) and the variance of ω at every sample through the transition matrices;
     (trajectory, covariance, ω variances (n, 3), χ², s²)."""
-    nn = kf.n
+    nn = _n_params(kf)
     traj = _trajectory(kf, t, z, sb, n)
     A = traj.Jr.reshape(-1, nn)[:, free]
     r = traj.r.reshape(-1)
@@ -235,19 +266,22 @@ def _local_solution(kf, t, z, sb, n, free, prior_w, s2: float | None = None):
         s2 = max(1.0, chi2 / max(r.size - int(free.sum()), 1))
     cov = np.zeros((nn, nn))
     cov[np.ix_(free, free)] = s2 * np.linalg.pinv(A.T @ A + np.diag(prior_w[free] ** 2))
-    Pw = traj.Phi[:, 3:6, :] @ cov @ traj.Phi[:, 3:6, :].transpose(0, 2, 1)
+    cx = cov[:kf.n, :kf.n]  # ω depends on the start state alone (the offset's share is in its marginal)
+    Pw = traj.Phi[:, 3:6, :] @ cx @ traj.Phi[:, 3:6, :].transpose(0, 2, 1)
     return traj, cov, np.clip(np.einsum("kii->ki", Pw), 0.0, None), chi2, s2
 
 
 def euler_fit_from_filter(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *,
-                          field_eci_T: FieldFn | None = None) -> Smoothed | None:
+                          field_eci_T: FieldFn | None = None, hard_iron_sigma_T: float | None = None
+                          ) -> Smoothed | None:
     """:func:`_minimum_from_filter`, finished (the other minima as good in σ); None where it gives none."""
-    m = _minimum_from_filter(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T)
+    m = _minimum_from_filter(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T, hard_iron_sigma_T=hard_iron_sigma_T)
     return None if m is None else m.finish()
 
 
 def _minimum_from_filter(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *,
-                         field_eci_T: FieldFn | None = None) -> "_Reversed | None":
+                         field_eci_T: FieldFn | None = None, hard_iron_sigma_T: float | None = None
+                         ) -> "_Reversed | None":
     """The batch fit of :func:`euler_fit` started from where the parallel-hypothesis Euler filter
     (:class:`fsw.estimation.filter_banks.EulerAcquisitionKalman`) ends, for the records where the random-walk
     start leads the fit astray (a 3 s step at 15–28 °/s: the random-walk smoother lags the turning ω).
@@ -271,7 +305,8 @@ def _minimum_from_filter(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *,
     n = len(t)
     init = Smoothed(tr, np.tile(-kf.omega_radps, (n, 1)), np.tile(kf.sigma_radps, (n, 1)),
                     np.tile(kf.main.q, (n, 1)), "euler_acquisition")
-    rev = _euler_minimum(tr, b[::-1], sigma_b_T, field_eci_T=lambda s: field_eci_T(t_end - s), init=init)
+    rev = _euler_minimum(tr, b[::-1], sigma_b_T, field_eci_T=lambda s: field_eci_T(t_end - s), init=init,
+                         hard_iron_sigma_T=hard_iron_sigma_T)
     return _Reversed(rev, t)
 
 
@@ -302,17 +337,19 @@ def _to_forward_time(rev: Smoothed, t: np.ndarray) -> Smoothed:
 
 def euler_fit_checked(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
                       inertia_kgm2: np.ndarray | None = None, init: Smoothed | None = None,
-                      chi2_accept: float = 1.5) -> Smoothed:
+                      chi2_accept: float = 1.5, hard_iron_sigma_T: float | None = None) -> Smoothed:
     """:func:`euler_fit`; when it does not explain the data (χ²/dof > `chi2_accept`) and the tensor is
     not known, again from the Euler filter's end (:func:`euler_fit_from_filter`), keeping the better."""
     # the two fits compared by their best minima's χ²/dof: only the one kept searches for other minima (the
     # search, which widens σ only, polishes every start within 30·s² of the best: all of them on a fit that
     # does not explain the data, most of the cost of the fit)
-    eu = _euler_minimum(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2, init=init)
+    eu = _euler_minimum(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2, init=init,
+                        hard_iron_sigma_T=hard_iron_sigma_T)
     if inertia_kgm2 is not None or (np.isfinite(eu.chi2_dof) and eu.chi2_dof <= chi2_accept):
         return eu.finish()
     try:
-        other = _minimum_from_filter(t_s, b_T, sigma_b_T, field_eci_T=tabulated(field_eci_T, t_s))
+        other = _minimum_from_filter(t_s, b_T, sigma_b_T, field_eci_T=tabulated(field_eci_T, t_s),
+                                     hard_iron_sigma_T=hard_iron_sigma_T)
         if other is not None and np.isfinite(other.chi2_dof) and not other.chi2_dof >= eu.chi2_dof:
             res = other.finish()
             res.info["first_chi2_dof"] = eu.chi2_dof
@@ -329,6 +366,8 @@ def _wahba_start(kf, t, z, field_eci_T, n) -> np.ndarray:
     the SVD of Σ B_I,k (R_rel,k z_k)ᵀ (Markley 1988): the global optimum, whatever the angle about B.
     """
     traj_q = _trajectory(kf, t, z, 1.0, n, jacobian=False).q
+    if _bias(kf) is not None:
+        z = np.asarray(z, float) - _bias(kf)
     C0t = rot.quat_to_dcm(kf.q).T
     Bm = np.zeros((3, 3))
     for k in range(n):
@@ -347,7 +386,7 @@ def _same_start(a, b, tol_rad: float = 0.02) -> bool:
 
 def _lm(kf, t, z, sb, n, free, prior_w, iterations, lam: float = 1e-3):
     """Levenberg–Marquardt on the first n samples from the filter's nominal start; (start, cost)."""
-    nn = kf.n
+    nn = _n_params(kf)
     cost = math.inf
     for _ in range(iterations):
         traj = _trajectory(kf, t, z, sb, n)
@@ -384,21 +423,24 @@ def _lm(kf, t, z, sb, n, free, prior_w, iterations, lam: float = 1e-3):
 
 
 def _prior_cost(kf, w) -> float:
-    if not kf.n_p:
-        return 0.0
-    return float(np.sum((w[6:6 + kf.n_p] * kf.p) ** 2))
+    cost = float(np.sum((w[6:6 + kf.n_p] * kf.p) ** 2)) if kf.n_p else 0.0
+    if _bias(kf) is not None:
+        cost += float(np.sum((w[kf.n:] * _bias(kf)) ** 2))
+    return cost
 
 
 def _prior_grad(kf, w) -> np.ndarray:
-    g = np.zeros(kf.n)
+    g = np.zeros(_n_params(kf))
     if kf.n_p:
         g[6:6 + kf.n_p] = w[6:6 + kf.n_p] ** 2 * kf.p
+    if _bias(kf) is not None:
+        g[kf.n:] = w[kf.n:] ** 2 * _bias(kf)
     return g
 
 
 def _apply(kf: ak.AttitudeRateKalman, step: np.ndarray, free: np.ndarray) -> ak.AttitudeRateKalman:
     """A copy of the filter's nominal start state moved by the error-state step."""
-    d = np.zeros(kf.n)
+    d = np.zeros(_n_params(kf))
     d[free] = step
     new = ak.AttitudeRateKalman.__new__(ak.AttitudeRateKalman)
     new.__dict__.update(kf.__dict__)
@@ -406,5 +448,7 @@ def _apply(kf: ak.AttitudeRateKalman, step: np.ndarray, free: np.ndarray) -> ak.
     new.q /= np.linalg.norm(new.q)
     new.w = kf.w + d[3:6]
     new.p = kf.p + d[6:6 + kf.n_p]
-    new.beta = kf.beta + d[kf.i_beta:] if kf.n_beta else kf.beta
+    new.beta = kf.beta + d[kf.i_beta:kf.n] if kf.n_beta else kf.beta
+    if _bias(kf) is not None:
+        new.bias_uT = _bias(kf) + d[kf.n:]
     return new
