@@ -351,16 +351,22 @@ def estimate(run: Run, sigma_b_T: float, methods=METHODS) -> dict[str, tuple[np.
         eu = er = None
         try:
             eu = sm.euler_fit_checked(t, b, sigma_b_T, field_eci_T=fld, init=rw)
-            out["euler"] = (eu.w_radps, eu.sigma_radps)
             er = sm.euler_rts_smooth(t, b, sigma_b_T, field_eci_T=fld, init=eu)
-            out["euler_rts"] = (er.w_radps, er.sigma_radps)
         except (RuntimeError, ValueError, np.linalg.LinAlgError):
             pass
+        eu_raw, er_raw = eu, er
+        eu, er = sm.model_error_checked(rw, eu, er)  # as ground.smoother.smooth returns them
+        if eu is not None:
+            out["euler"] = (eu.w_radps, eu.sigma_radps)
+        if er is not None:
+            out["euler_rts"] = (er.w_radps, er.sigma_radps)
         # "auto" as ground.smoother.smooth returns it (its choice, σ widened where the solutions disagree)
         auto = sm.auto_result(rw, eu, er)
         out["auto"] = (auto.w_radps, auto.sigma_radps)
         run.meta["euler_chi2_dof"] = None if eu is None else float(eu.chi2_dof)
-        run.meta["euler_vs_rts_z"] = None if eu is None or er is None else sm.disagreement(eu, er)
+        run.meta["euler_vs_rts_z"] = None if eu is None or er is None else sm.disagreement(eu_raw, er_raw)
+        run.meta["model_error_widened"] = [n for n, r in (("euler", eu), ("euler_rts", er))
+                                           if r is not None and "widened_for_model_error" in r.info]
         run.meta["auto_model"] = auto.info["auto_choice"]
         run.meta["auto_widened"] = "widened_to_cover" in auto.info
     return {k: v for k, v in out.items() if k in methods}

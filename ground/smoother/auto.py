@@ -115,6 +115,55 @@ def excludes(by: Smoothed, other: Smoothed, z: float = EXCLUDE_Z, share: float =
     return float(np.mean(np.max(d, axis=1) > z)) > share
 
 
+def _nll(res: Smoothed | None) -> float:
+    v = math.inf if res is None else res.info.get("nll", math.inf)
+    return float(v) if np.isfinite(v) else math.inf
+
+
+def widened_for_model_error(fit: Smoothed, ref: Smoothed) -> Smoothed:
+    """`fit` with its 1-σ made that of the solution `ref` plus the distance to it: σ² + (ω_fit − ω_ref)² +
+    σ_ref² per sample and axis (:func:`model_error_checked` says when). The fit's error is e_fit =
+    (ω_fit − ω_ref) + e_ref: its distance from the better-supported solution, taken as known, plus that
+    solution's own error, of variance σ_ref²."""
+    if "widened_for_model_error" in fit.info:
+        return fit  # once: a second call would count the same distance twice
+    d2 = (fit.w_radps - ref.w_radps) ** 2
+    var = fit.sigma_radps ** 2 + np.where(np.isfinite(d2), d2, 0.0) + ref.sigma_radps ** 2
+    info = dict(fit.info, widened_for_model_error=ref.method)
+    return Smoothed(fit.t_s, fit.w_radps, np.sqrt(var), fit.q, fit.method, fit.chi2_dof, fit.inertia_shape,
+                    info=info)
+
+
+def model_error_checked(rw: Smoothed, eu: Smoothed | None, er: Smoothed | None,
+                        chi2_accept: float = 1.5) -> tuple[Smoothed | None, Smoothed | None]:
+    """The batch fit and the Euler RTS smoother with a σ that holds their model's error where the data
+    show one: (eu, er), each widened by :func:`widened_for_model_error` or as it was.
+
+    A covariance says what the samples fix *given* the model. Euler's equations carry information
+    from every sample to every other, most of all about the rate along B, which the samples alone
+    barely see; when the motion is not what the model says (a libration held by the orbital frame, a
+    magnetic torque), that information is void and the error is a bias that no rescaling by χ²/dof
+    reaches (the accuracy benchmark's orbital rows: the batch fit 3–27 °/s off a 1.6 °/s libration
+    with a σ of a few tenths, covering 5–9 %; the Euler RTS smoother started from it 18–47 %).
+    Two tests of the model, both on the samples:
+
+    - the batch fit fails its χ² test (χ²/dof > `chi2_accept`: the torque-free motion does not explain
+      the samples): its σ is widened to the likelier (by the samples' likelihood, the passes'
+      innovation `nll`) of the two smoothers that do explain them, the Euler RTS smoother (Euler's
+      equations plus a process noise for what they miss) or the random-walk one (no dynamics);
+    - the Euler RTS smoother explains the samples (its process noise absorbs the torque) yet the
+      random-walk smoother, which assumes no dynamics, explains them better (lower `nll`) and its σ
+      excludes the Euler smoother's estimate (:func:`excludes`): the dynamics pulled the estimate where
+      the samples do not; its σ is widened to the random-walk smoother's.
+    """
+    likelier = er if er is not None and _nll(er) < _nll(rw) else rw
+    if eu is not None and not _explains(eu, chi2_accept):
+        eu = widened_for_model_error(eu, likelier)
+    if er is not None and likelier is rw and _nll(rw) < _nll(er) and excludes(rw, er):
+        er = widened_for_model_error(er, rw)
+    return eu, er
+
+
 def _explains(res: Smoothed | None, chi2_accept: float) -> bool:
     return res is not None and np.isfinite(res.chi2_dof) and res.chi2_dof <= chi2_accept
 
@@ -192,13 +241,16 @@ def smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: F
         if model == "auto":
             return rw
         raise
-    if model == "euler":
+    if model == "euler" and _explains(eu, chi2_accept):
         eu.info["rts_chi2_dof"] = rw.chi2_dof
         return eu
     er = euler_rts_smooth(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2, init=eu)
     z = disagreement(eu, er)
     for res in (rw, eu, er):
         res.info.update(euler_chi2_dof=eu.chi2_dof, rts_chi2_dof=rw.chi2_dof, euler_vs_rts_z=z)
+    eu, er = model_error_checked(rw, eu, er, chi2_accept)
+    if model == "euler":
+        return eu
     if model == "euler_rts":
         return er
     return auto_result(rw, eu, er, chi2_accept, z_accept)
@@ -207,7 +259,9 @@ def smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: F
 def auto_result(rw: Smoothed, eu: Smoothed | None, er: Smoothed | None, chi2_accept: float = 1.5,
                 z_accept: float = 3.0) -> Smoothed:
     """What "auto" returns: :func:`auto_choice`'s solution; when another solution that explains the data
-    excludes it (all of them exclude each other), with its σ widened to cover them (:func:`covering`)."""
+    excludes it (all of them exclude each other), with its σ widened to cover them (:func:`covering`). The
+    fits' σ first hold their model's error where the samples show one (:func:`model_error_checked`)."""
+    eu, er = model_error_checked(rw, eu, er, chi2_accept)
     sols = {"euler": eu, "euler_rts": er, "random_walk": rw}
     choice = auto_choice(eu, er, chi2_accept, z_accept, rw=rw)
     chosen = sols[choice]
