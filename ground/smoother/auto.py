@@ -134,6 +134,18 @@ def widened_for_model_error(fit: Smoothed, ref: Smoothed) -> Smoothed:
                     info=info)
 
 
+#: the χ² test of a fit's misfit: its normal approximation's z at 0.1 % (one-sided)
+CHI2_TEST_Z = 3.09
+
+
+def chi2_consistent(res: Smoothed, z: float = CHI2_TEST_Z) -> bool:
+    """Whether a fit's χ²/dof is within what the samples' noise alone gives: χ² over ν = 3N degrees of
+    freedom has mean ν and spread √(2ν), so χ²/dof ≤ 1 + z √(2/ν) (z = 3.09: exceeded by chance in 0.1 %
+    of records). A misfit beyond it is a model error, however small (1.3 on 360 samples is 5σ)."""
+    nu = 3 * max(len(res.t_s), 1)
+    return bool(np.isfinite(res.chi2_dof) and res.chi2_dof <= 1.0 + z * math.sqrt(2.0 / nu))
+
+
 def model_error_checked(rw: Smoothed, eu: Smoothed | None, er: Smoothed | None,
                         chi2_accept: float = 1.5) -> tuple[Smoothed | None, Smoothed | None]:
     """The batch fit and the Euler RTS smoother with a σ that holds their model's error where the data
@@ -147,17 +159,18 @@ def model_error_checked(rw: Smoothed, eu: Smoothed | None, er: Smoothed | None,
     with a σ of a few tenths, covering 5–9 %; the Euler RTS smoother started from it 18–47 %).
     Two tests of the model, both on the samples:
 
-    - the batch fit fails its χ² test (χ²/dof > `chi2_accept`: the torque-free motion does not explain
-      the samples): its σ is widened to the likelier (by the samples' likelihood, the passes'
-      innovation `nll`) of the two smoothers that do explain them, the Euler RTS smoother (Euler's
-      equations plus a process noise for what they miss) or the random-walk one (no dynamics);
+    - the batch fit fails its χ² test (:func:`chi2_consistent`, or χ²/dof > `chi2_accept`: the
+      torque-free motion does not explain the samples): its σ is widened to the likelier (by the
+      samples' likelihood, the passes' innovation `nll`) of the two smoothers that do explain them,
+      the Euler RTS smoother (Euler's equations plus a process noise for what they miss) or the
+      random-walk one (no dynamics);
     - the Euler RTS smoother explains the samples (its process noise absorbs the torque) yet the
       random-walk smoother, which assumes no dynamics, explains them better (lower `nll`) and its σ
       excludes the Euler smoother's estimate (:func:`excludes`): the dynamics pulled the estimate where
       the samples do not; its σ is widened to the random-walk smoother's.
     """
     likelier = er if er is not None and _nll(er) < _nll(rw) else rw
-    if eu is not None and not _explains(eu, chi2_accept):
+    if eu is not None and not (_explains(eu, chi2_accept) and chi2_consistent(eu)):
         eu = widened_for_model_error(eu, likelier)
     if er is not None and likelier is rw and _nll(rw) < _nll(er) and excludes(rw, er):
         er = widened_for_model_error(er, rw)
@@ -169,16 +182,21 @@ def _explains(res: Smoothed | None, chi2_accept: float) -> bool:
 
 
 def auto_order(eu: Smoothed | None, er: Smoothed | None, chi2_accept: float = 1.5,
-               z_accept: float = 3.0) -> list[str]:
+               z_accept: float = 3.0, rw: Smoothed | None = None) -> list[str]:
     """The candidates of "auto" in its order of preference: the batch fit when it explains the data and
-    agrees with the Euler RTS smoother, that smoother when it ran without a restart, the random walk."""
+    agrees with the Euler RTS smoother, that smoother when it ran without a restart, the random walk; the
+    random walk before the Euler RTS smoother when it explains the samples better (a lower `nll` than
+    that smoother's: Euler's equations then add nothing the samples support, as on a libration held by
+    the orbital frame, where they pulled the rate along B 3–24 °/s off)."""
     order = []
     if _explains(eu, chi2_accept) and (er is None or disagreement(eu, er) <= z_accept):
         order.append("euler")
-    if er is not None and er.info.get("resets", 1) == 0:
-        order.append("euler_rts")
-    order.append("random_walk")
-    return order
+    rest = ["euler_rts", "random_walk"]
+    if rw is not None and er is not None and _nll(rw) < _nll(er):
+        rest.reverse()
+    if er is None or er.info.get("resets", 1) != 0:
+        rest.remove("euler_rts")
+    return order + rest
 
 
 def auto_choice(eu: Smoothed | None, er: Smoothed | None, chi2_accept: float = 1.5, z_accept: float = 3.0,
@@ -186,14 +204,15 @@ def auto_choice(eu: Smoothed | None, er: Smoothed | None, chi2_accept: float = 1
     """The model "auto" keeps: "euler" (the batch fit) when it explains the data (χ²/dof ≤ `chi2_accept`)
     and agrees with the Euler RTS smoother (:func:`disagreement` ≤ `z_accept`; a χ² test alone accepts
     a fit in a wrong minimum: χ²/dof 1.12 with 5.7 °/s of error where the RTS smoother had 0.64 °/s);
-    else "euler_rts" when that smoother ran without a restart; else "random_walk".
+    else "euler_rts" when that smoother ran without a restart; else "random_walk" (that before "euler_rts"
+    when it explains the samples better, :func:`auto_order`).
 
     And never a fit that another solution's σ excludes (:func:`excludes`), among the candidates of that
     order (:func:`auto_order`) that explain the data (χ²/dof ≤ `chi2_accept`; the random-walk smoother
     `rw` always counts: it assumes least): the first that no other candidate excludes. When every one is excluded by
     another (the solutions disagree beyond their σ and the data do not say which is right), the first
     is kept and :func:`auto_smooth` widens its σ to cover the others."""
-    order = auto_order(eu, er, chi2_accept, z_accept)
+    order = auto_order(eu, er, chi2_accept, z_accept, rw)
     sols = {"euler": eu, "euler_rts": er, "random_walk": rw}
     judges = [(name, res) for name, res in sols.items() if res is not None and name in order
               and (name == "random_walk" or _explains(res, chi2_accept))]
@@ -265,7 +284,7 @@ def auto_result(rw: Smoothed, eu: Smoothed | None, er: Smoothed | None, chi2_acc
     sols = {"euler": eu, "euler_rts": er, "random_walk": rw}
     choice = auto_choice(eu, er, chi2_accept, z_accept, rw=rw)
     chosen = sols[choice]
-    order = auto_order(eu, er, chi2_accept, z_accept)
+    order = auto_order(eu, er, chi2_accept, z_accept, rw)
     others = [res for name, res in sols.items() if name != choice and res is not None and name in order
               and (name == "random_walk" or _explains(res, chi2_accept))]
     out = covering(chosen, others)

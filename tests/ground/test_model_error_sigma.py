@@ -92,3 +92,21 @@ def test_a_torque_the_fit_misses_is_measured_against_the_euler_smoother():
     assert eu2.info["widened_for_model_error"] == "euler_rts"
     assert 0.6 <= coverage(eu2, w) <= 0.9
     assert np.median(eu2.sigma_radps) < 0.2 * np.median(rw.sigma_radps)
+
+
+def test_a_misfit_beyond_the_noise_is_a_model_error_and_the_likelier_smoother_comes_first():
+    """χ²/dof of 1.3 on 120 samples (360 degrees of freedom) is 5σ beyond the noise: the fit is measured
+    against the likelier smoother even though it is below auto's 1.5; 1.1 is within the noise. The random
+    walk goes before the Euler RTS smoother in auto's order when it explains the samples better."""
+    n = 120
+    truth = np.tile([0.01, -0.02, 0.005], (n, 1))
+    rw = _smoothed(truth, 0.002, 1.0, nll=-10.0, method="smoother")
+    assert sm.chi2_consistent(_smoothed(truth, 0.001, 1.1, nll=0.0, method="euler"))
+    slight = _smoothed(truth + 0.004, 0.001, 1.3, nll=0.0, method="euler")
+    assert not sm.chi2_consistent(slight)
+    assert "widened_for_model_error" in sm.model_error_checked(rw, slight, None)[0].info
+    er = _smoothed(truth, 0.002, 1.0, nll=5.0, method="euler_rts")
+    assert sm.auto_order(None, er, rw=rw) == ["random_walk", "euler_rts"]
+    er_likely = _smoothed(truth, 0.002, 1.0, nll=-50.0, method="euler_rts")
+    assert sm.auto_order(None, er_likely, rw=rw) == ["euler_rts", "random_walk"]
+    assert sm.auto_order(None, er) == ["euler_rts", "random_walk"]  # no random walk to compare with
