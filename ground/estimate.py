@@ -198,13 +198,18 @@ def _estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, fi
         model = {"smoother": "random_walk", "euler": "euler", "auto": "auto"}[method]
         res = sm.smooth(t, b, sigma_b_T, field_eci_T=field, model=model, inertia_kgm2=inertia_kgm2)
         notes["model"] = res.method
-        if "variance_scale" in res.info and "widened_to_cover" not in res.info:
+        if ("variance_scale" in res.info and "widened_to_cover" not in res.info
+                and "widened_for_model_error" not in res.info):
             notes["variance_scale"] = float(res.info["variance_scale"])
         if "auto_choice" in res.info:  # the rule, with its k: said in the recording's metadata and summary
             notes["auto_rule"] = (f"no candidate that another's {sm.EXCLUDE_Z:g}-sigma band excludes at over "
                                   f"{100 * sm.EXCLUDE_SHARE:g} % of samples")
         if "widened_to_cover" in res.info:
             notes["sigma_covers"] = "solutions that disagree beyond their σ (ground.smoother.auto_result)"
+        if "widened_for_model_error" in res.info:
+            notes["sigma_model_error"] = (f"the model misses the motion: σ + the distance to the "
+                                          f"{res.info['widened_for_model_error']} solution "
+                                          "(ground.smoother.model_error_checked)")
         notes["chi2_per_dof"] = f"{res.chi2_dof:.3f}"
         if res.inertia_shape is not None:
             notes["inertia_shape"] = " ".join(f"{v:.4f}" for v in res.inertia_shape)
