@@ -62,7 +62,9 @@ publishing: filter_banks.RateModelBank); ground:
 ``smoother`` (RTS with the field model), ``euler`` (batch torque-free fit with the field model),
 ``euler_rts`` (RTS over the Euler filter), ``auto`` (ground.smoother.auto_result: the Euler fit when
 χ²/dof ≤ 1.5 and it agrees with the Euler RTS smoother within 3 combined σ, else that smoother, else
-the random-walk RTS smoother; never one that another's σ excludes, σ widened where all disagree).
+the random-walk RTS smoother — before it when likelier; never one that another's σ excludes, σ widened
+where all disagree). ``euler`` and ``euler_rts`` as ground.smoother.smooth returns them: σ widened for
+a model the samples reject (ground.smoother.model_error_checked; which, per run, in the JSON's meta).
 """
 from __future__ import annotations
 
