@@ -260,7 +260,7 @@ def smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: F
         if model == "auto":
             return rw
         raise
-    if model == "euler" and _explains(eu, chi2_accept):
+    if model == "euler" and _explains(eu, chi2_accept) and chi2_consistent(eu):  # else measured below
         eu.info["rts_chi2_dof"] = rw.chi2_dof
         return eu
     er = euler_rts_smooth(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2, init=eu)

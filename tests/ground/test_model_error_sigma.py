@@ -73,6 +73,9 @@ def test_a_libration_is_not_fitted_confidently_as_a_torque_free_tumble():
     assert auto.info["auto_choice"] == "random_walk"
     assert rms_dps(auto.w_radps - w) <= rms_dps(rw.w_radps - w) + 1e-9
     assert 0.5 <= coverage(auto, w) <= 0.9
+    # what `ground.estimate --method euler` returns: the same widened fit
+    alone = sm.smooth(t, b, sb, field_eci_T=fld, model="euler")
+    assert "widened_for_model_error" in alone.info and 0.5 <= coverage(alone, w) <= 0.9
 
 
 @pytest.mark.slow
