@@ -10,7 +10,7 @@ import numpy as np
 from fsw.estimation import attitude_kalman as ak
 from fsw.estimation.rate_formulas import unobserved_sigma
 from fsw.estimation import rate_kalman as rk
-from ground import rts_pass
+from ground import angle_sum, rts_pass
 
 from .batch_fit import euler_fit, euler_fit_checked
 from .rts import FieldFn, SHAPE_SIGMA_FLOOR, Smoothed, _chi2, rts, rts_smooth, tabulated, variance_scale
@@ -120,16 +120,20 @@ def _nll(res: Smoothed | None) -> float:
     return float(v) if np.isfinite(v) else math.inf
 
 
-def widened_for_model_error(fit: Smoothed, ref: Smoothed) -> Smoothed:
+def widened_for_model_error(fit: Smoothed, *refs: Smoothed) -> Smoothed:
     """`fit` with its 1-σ made that of the solution `ref` plus the distance to it: σ² + (ω_fit − ω_ref)² +
-    σ_ref² per sample and axis (:func:`model_error_checked` says when). The fit's error is e_fit =
-    (ω_fit − ω_ref) + e_ref: its distance from the better-supported solution, taken as known, plus that
-    solution's own error, of variance σ_ref²."""
-    if "widened_for_model_error" in fit.info:
+    σ_ref² per sample and axis (:func:`model_error_checked` says when), the largest over `refs` when the
+    samples prefer none of them. The fit's error is e_fit = (ω_fit − ω_ref) + e_ref: its distance from the
+    better-supported solution, taken as known, plus that solution's own error, of variance σ_ref²."""
+    if "widened_for_model_error" in fit.info or not refs:
         return fit  # once: a second call would count the same distance twice
-    d2 = (fit.w_radps - ref.w_radps) ** 2
-    var = fit.sigma_radps ** 2 + np.where(np.isfinite(d2), d2, 0.0) + ref.sigma_radps ** 2
-    info = dict(fit.info, widened_for_model_error=ref.method)
+    var = fit.sigma_radps ** 2
+    extra = np.zeros_like(var)
+    for ref in refs:
+        d2 = (fit.w_radps - ref.w_radps) ** 2
+        extra = np.fmax(extra, np.where(np.isfinite(d2), d2, 0.0) + ref.sigma_radps ** 2)
+    var = var + extra
+    info = dict(fit.info, widened_for_model_error="+".join(r.method for r in refs))
     return Smoothed(fit.t_s, fit.w_radps, np.sqrt(var), fit.q, fit.method, fit.chi2_dof, fit.inertia_shape,
                     info=info)
 
@@ -161,20 +165,31 @@ def model_error_checked(rw: Smoothed, eu: Smoothed | None, er: Smoothed | None,
 
     - the batch fit fails its χ² test (:func:`chi2_consistent`, or χ²/dof > `chi2_accept`: the
       torque-free motion does not explain the samples): its σ is widened to the likelier (by the
-      samples' likelihood, the passes' innovation `nll`) of the two smoothers that do explain them,
-      the Euler RTS smoother (Euler's equations plus a process noise for what they miss) or the
-      random-walk one (no dynamics);
+      samples' likelihood, the passes' innovation `nll`; both when they are within a few units,
+      :func:`likeliest`) of the two smoothers that do explain them, the Euler RTS smoother (Euler's
+      equations plus a process noise for what they miss) or the random-walk one (no dynamics);
     - the Euler RTS smoother explains the samples (its process noise absorbs the torque) yet the
-      random-walk smoother, which assumes no dynamics, explains them better (lower `nll`) and its σ
-      excludes the Euler smoother's estimate (:func:`excludes`): the dynamics pulled the estimate where
+      random-walk smoother, which assumes no dynamics, explains them as well or better (:func:`likeliest`)
+      and its σ excludes the Euler smoother's estimate (:func:`excludes`): the dynamics pulled the estimate where
       the samples do not; its σ is widened to the random-walk smoother's.
     """
-    likelier = er if er is not None and _nll(er) < _nll(rw) else rw
+    refs = likeliest(rw, er)
     if eu is not None and not (_explains(eu, chi2_accept) and chi2_consistent(eu)):
-        eu = widened_for_model_error(eu, likelier)
-    if er is not None and likelier is rw and _nll(rw) < _nll(er) and excludes(rw, er):
+        eu = widened_for_model_error(eu, *refs)
+    if er is not None and any(r is rw for r in refs) and excludes(rw, er):
         er = widened_for_model_error(er, rw)
     return eu, er
+
+
+def likeliest(rw: Smoothed, er: Smoothed | None, dnll: float = angle_sum.PASS_TEMPER) -> list[Smoothed]:
+    """The smoothers the samples prefer: the one of lower `nll` and the other too when it is within `dnll`
+    of it (the smoother's own temper of pass likelihoods, `ground.angle_sum.PASS_TEMPER`: the field model's
+    error shifts a pass's likelihood by a few units, so closer than that the samples prefer neither)."""
+    sols = [r for r in (er, rw) if r is not None]
+    best = min(_nll(r) for r in sols)
+    if not np.isfinite(best):
+        return [rw]
+    return [r for r in sols if _nll(r) <= best + dnll]
 
 
 def _explains(res: Smoothed | None, chi2_accept: float) -> bool:
