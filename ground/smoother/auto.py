@@ -176,7 +176,7 @@ def model_error_checked(rw: Smoothed, eu: Smoothed | None, er: Smoothed | None,
     refs = likeliest(rw, er)
     if eu is not None and not (_explains(eu, chi2_accept) and chi2_consistent(eu)):
         eu = widened_for_model_error(eu, *refs)
-    if er is not None and any(r is rw for r in refs) and excludes(rw, er):
+    if er is not None and np.isfinite(_nll(rw)) and any(r is rw for r in refs) and excludes(rw, er):
         er = widened_for_model_error(er, rw)
     return eu, er
 
