@@ -67,7 +67,9 @@ publishing: filter_banks.RateModelBank); ground:
 ``smoother`` (RTS with the field model), ``euler`` (batch torque-free fit with the field model),
 ``euler_rts`` (RTS over the Euler filter), ``auto`` (ground.smoother.auto_result: the Euler fit when
 χ²/dof ≤ 1.5 and it agrees with the Euler RTS smoother within 3 combined σ, else that smoother, else
-the random-walk RTS smoother; never one that another's σ excludes, σ widened where all disagree).
+the random-walk RTS smoother — before it when likelier; never one that another's σ excludes, σ widened
+where all disagree). ``euler`` and ``euler_rts`` as ground.smoother.smooth returns them: σ widened for
+a model the samples reject (ground.smoother.model_error_checked; which, per run, in the JSON's meta).
 """
 from __future__ import annotations
 
@@ -365,19 +367,25 @@ def estimate(run: Run, sigma_b_T: float, methods=METHODS) -> dict[str, tuple[np.
         try:
             eu = sm.euler_fit_checked(t, b, sigma_b_T, field_eci_T=fld, init=rw,
                                       hard_iron_sigma_T=run.hard_iron_sigma_T)
-            out["euler"] = (eu.w_radps, eu.sigma_radps)
             # the Euler RTS smoother on the samples less the offset the fit found (its model has none)
             off = eu.info.get("hard_iron_residual_uT")
             b_rts = b if off is None else b - np.asarray(off) / rk.UT_PER_T
             er = sm.euler_rts_smooth(t, b_rts, sigma_b_T, field_eci_T=fld, init=eu)
-            out["euler_rts"] = (er.w_radps, er.sigma_radps)
         except (RuntimeError, ValueError, np.linalg.LinAlgError):
             pass
+        eu_raw, er_raw = eu, er
+        eu, er = sm.model_error_checked(rw, eu, er)  # as ground.smoother.smooth returns them
+        if eu is not None:
+            out["euler"] = (eu.w_radps, eu.sigma_radps)
+        if er is not None:
+            out["euler_rts"] = (er.w_radps, er.sigma_radps)
         # "auto" as ground.smoother.smooth returns it (its choice, σ widened where the solutions disagree)
         auto = sm.auto_result(rw, eu, er)
         out["auto"] = (auto.w_radps, auto.sigma_radps)
         run.meta["euler_chi2_dof"] = None if eu is None else float(eu.chi2_dof)
-        run.meta["euler_vs_rts_z"] = None if eu is None or er is None else sm.disagreement(eu, er)
+        run.meta["euler_vs_rts_z"] = None if eu is None or er is None else sm.disagreement(eu_raw, er_raw)
+        run.meta["model_error_widened"] = [n for n, r in (("euler", eu), ("euler_rts", er))
+                                           if r is not None and "widened_for_model_error" in r.info]
         run.meta["auto_model"] = auto.info["auto_choice"]
         run.meta["auto_widened"] = "widened_to_cover" in auto.info
     return {k: v for k, v in out.items() if k in methods}

@@ -113,9 +113,13 @@ def field_error_rel(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float) -> float
 
 
 def estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, field=None,
-             inertia_kgm2=None,
-             field_turn_radps: float = rf.LEO_FIELD_TURN_RADPS) -> tuple[np.ndarray, np.ndarray, dict]:
+             inertia_kgm2=None, field_turn_radps: float = rf.LEO_FIELD_TURN_RADPS,
+             hard_iron_sigma_T=None) -> tuple[np.ndarray, np.ndarray, dict]:
     """ω (N, 3) and 1-σ (N, 3) in rad/s of `method`, NaN where it has none; and notes.
+
+    `hard_iron_sigma_T`: the applied host calibration's hard-iron 1-σ: the batch fit (`euler`, `auto`) then
+    also fits what is left of the hard iron as a constant offset in body axes with that prior
+    (`ground.smoother.euler_fit`; the note `hard_iron_residual_uT` gives it).
 
     Without a field model (`field` None) every method takes the field as fixed in inertial space and
     its σ is widened by the field's own turning, `field_turn_radps` (default: low Earth orbit's, 0.13 °/s;
@@ -124,7 +128,8 @@ def estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, fie
     whose |B| varies beyond the noise (:func:`field_error_rel` > 0.5 %: an uncalibrated host) has the σ
     of every method whose σ is the noise's alone (not the smoothers', which scale with their misfit)
     widened by that share of |ω| (`rate_formulas.widen_for_field_error`)."""
-    w, s, notes = _estimate(method, t, b, sigma_b_T, field=field, inertia_kgm2=inertia_kgm2)
+    w, s, notes = _estimate(method, t, b, sigma_b_T, field=field, inertia_kgm2=inertia_kgm2,
+                            hard_iron_sigma_T=hard_iron_sigma_T)
     scale = notes.pop("variance_scale", None)
     eps = field_error_rel(t, b, sigma_b_T) if method not in MISFIT_SCALED or scale is not None else 0.0
     if eps > FIELD_ERROR_NOTE:
@@ -153,7 +158,7 @@ def field_error_instead_of_misfit(sigma_radps: np.ndarray, w_radps: np.ndarray, 
 
 
 def _estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, field=None,
-              inertia_kgm2=None) -> tuple[np.ndarray, np.ndarray, dict]:
+              inertia_kgm2=None, hard_iron_sigma_T=None) -> tuple[np.ndarray, np.ndarray, dict]:
     notes: dict = {}
     if method == "boer":
         return rf.boer_rate(t, b), _diag_sigma(rf.boer_covariance(t, b, sigma_b_T)), notes
@@ -196,15 +201,23 @@ def _estimate(method: str, t: np.ndarray, b: np.ndarray, sigma_b_T: float, *, fi
         return w, s, notes
     if method in ("smoother", "euler", "auto"):
         model = {"smoother": "random_walk", "euler": "euler", "auto": "auto"}[method]
-        res = sm.smooth(t, b, sigma_b_T, field_eci_T=field, model=model, inertia_kgm2=inertia_kgm2)
+        res = sm.smooth(t, b, sigma_b_T, field_eci_T=field, model=model, inertia_kgm2=inertia_kgm2,
+                        hard_iron_sigma_T=hard_iron_sigma_T)
+        if "hard_iron_residual_uT" in res.info:
+            notes["hard_iron_residual_uT"] = " ".join(f"{v:.3f}" for v in res.info["hard_iron_residual_uT"])
         notes["model"] = res.method
-        if "variance_scale" in res.info and "widened_to_cover" not in res.info:
+        if ("variance_scale" in res.info and "widened_to_cover" not in res.info
+                and "widened_for_model_error" not in res.info):
             notes["variance_scale"] = float(res.info["variance_scale"])
         if "auto_choice" in res.info:  # the rule, with its k: said in the recording's metadata and summary
             notes["auto_rule"] = (f"no candidate that another's {sm.EXCLUDE_Z:g}-sigma band excludes at over "
                                   f"{100 * sm.EXCLUDE_SHARE:g} % of samples")
         if "widened_to_cover" in res.info:
             notes["sigma_covers"] = "solutions that disagree beyond their σ (ground.smoother.auto_result)"
+        if "widened_for_model_error" in res.info:
+            notes["sigma_model_error"] = (f"the model misses the motion: σ + the distance to the "
+                                          f"{res.info['widened_for_model_error']} solution "
+                                          "(ground.smoother.model_error_checked)")
         notes["chi2_per_dof"] = f"{res.chi2_dof:.3f}"
         if res.inertia_shape is not None:
             notes["inertia_shape"] = " ".join(f"{v:.4f}" for v in res.inertia_shape)
@@ -351,13 +364,13 @@ def main(argv=None) -> int:
             rec = decimate(rec, args.decimate_hz)
             check_samples(rec, args.method)
         sigma = args.sigma_uT * 1e-6 if args.sigma_uT is not None else noise_estimate_T(rec.b_T)
-        rec, calibrated = gm.calibrate(rec, args, field, sigma)
+        rec, calibrated, hard_sigma = gm.calibrate_with_sigma(rec, args, field, sigma)
         if calibrated:
             print(calibrated)
         warn_field(rec, args.input, field)
         inertia = args.known_inertia
         w, s, notes = estimate(args.method, rec.t_s, rec.b_T, sigma, field=field, inertia_kgm2=inertia,
-                               field_turn_radps=math.radians(args.field_turn_dps))
+                               field_turn_radps=math.radians(args.field_turn_dps), hard_iron_sigma_T=hard_sigma)
         meta = {"source": f"python -m ground.estimate {args.input}", "method": args.method,
                 "sigma_uT": f"{sigma * 1e6:.4g}" + ("" if args.sigma_uT is not None else " (estimated)"),
                 "field": "along the orbit" if field is not None else "fixed in inertial space", "orbit": orbit_how}

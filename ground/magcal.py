@@ -82,6 +82,14 @@ def load(path: str) -> mc.Calibration:
 def calibrate(rec: Recording, args, field, sigma_b_T: float) -> tuple[Recording, str | None]:
     """The recording with the calibration of `args` applied (unchanged without one) and a line saying
     what was applied. `field`: B_ECI(t) along the recording's orbit (callable) or None."""
+    rec, how, _ = calibrate_with_sigma(rec, args, field, sigma_b_T)
+    return rec, how
+
+
+def calibrate_with_sigma(rec: Recording, args, field, sigma_b_T: float
+                         ) -> tuple[Recording, str | None, np.ndarray | None]:
+    """:func:`calibrate`, and the applied calibration's hard-iron 1-σ per axis (T; None when none was applied
+    or its covariance is not known: a file without one)."""
     if getattr(args, "magcal", None):
         cal = load(args.magcal)
         how = f"host-magnetics calibration from {args.magcal}"
@@ -97,7 +105,7 @@ def calibrate(rec: Recording, args, field, sigma_b_T: float) -> tuple[Recording,
     else:
         cal = None if getattr(args, "no_magcal", False) else from_metadata(rec.metadata)
         if cal is None:
-            return rec, None
+            return rec, None, None
         md = rec.metadata
         how = (f"host-magnetics calibration from the recording's metadata (the box's, {md.get('magcal_state', '?')} "
                f"at t = {md.get('magcal_t_s', '?')} s; --no-magcal leaves it out)")
@@ -105,4 +113,18 @@ def calibrate(rec: Recording, args, field, sigma_b_T: float) -> tuple[Recording,
     how += (": hard iron " + ", ".join(f"{v * 1e6:.2f}" for v in cal.b_T) + " µT"
             + ("" if cal.cov is None else " (±" + ", ".join(f"{v * 1e6:.2f}" for v in s[:3]) + ")")
             + ", soft iron diagonal " + ", ".join(f"{cal.D[i, i]:+.4f}" for i in range(3)))
-    return Recording(rec.t_s, mc.apply(cal, rec.b_T), rec.m_Nm, rec.w_ref_radps, rec.metadata, rec.path), how
+    hard_sigma_T = None if cal.cov is None else np.asarray(s[:3], float)
+    if hard_sigma_T is None and not (getattr(args, "magcal", None) or getattr(args, "estimate_magcal", False)):
+        hard_sigma_T = _metadata_hard_iron_sigma_T(rec.metadata)
+    return (Recording(rec.t_s, mc.apply(cal, rec.b_T), rec.m_Nm, rec.w_ref_radps, rec.metadata, rec.path), how,
+            hard_sigma_T)
+
+
+def _metadata_hard_iron_sigma_T(md: dict) -> np.ndarray | None:
+    """The box's published hard-iron 1-σ (``magcal_hard_iron_sigma_uT``) in T; None when absent or not three
+    finite positive numbers (NaN before any calibration)."""
+    try:
+        s = np.array([float(v) for v in md.get("magcal_hard_iron_sigma_uT", "").split(",")]) * 1e-6
+    except ValueError:
+        return None
+    return s if s.shape == (3,) and np.all(np.isfinite(s)) and np.all(s > 0) else None

@@ -31,19 +31,29 @@ smoother; one excludes another when the other lies more than 3 of its σ away on
 a quarter of the samples (:func:`excludes`); only the candidates that explain the data judge (χ²/dof
 ≤ 1.5; the random-walk smoother always, it assumes least; a batch fit already rejected as in a wrong
 minimum does not). The first of the order Euler fit → Euler RTS →
-random walk that no judge excludes is returned; when each is excluded by another (they disagree beyond
+random walk (the random walk before the Euler RTS smoother when it explains the samples better: a lower
+innovation likelihood `nll`) that no judge excludes is returned; when each is excluded by another (they disagree beyond
 their σ and the data do not say which is right), the first is returned with its σ widened to cover
 the others (:func:`covering`). Without a field model the ground tool then widens every σ by the field's
 own turning (`fsw.estimation.rate_formulas.widen_for_field_turn`).
+
+A model the samples reject (:func:`model_error_checked`): a batch fit that fails the χ² test (0.1 %) or
+explains the data worse than χ²/dof 1.5 has σ² + (ω − ω_ref)² + σ_ref², ref the likelier of the Euler RTS
+and random-walk smoothers; the Euler RTS smoother has the same against the random walk when that is
+likelier and its σ excludes it. A covariance says what the samples fix given the model; Euler's
+equations carry the rate along B, which the samples barely see, and where the motion is not theirs (a
+libration, a torque) that part of σ is void.
 """
 from __future__ import annotations
 
-from .auto import (EXCLUDE_SHARE, EXCLUDE_Z, auto_choice, auto_order, auto_result, covering, disagreement,
-                   euler_rts_smooth, excludes, smooth)
+from .auto import (CHI2_TEST_Z, EXCLUDE_SHARE, EXCLUDE_Z, auto_choice, auto_order, auto_result, chi2_consistent,
+                   covering, disagreement, euler_rts_smooth, excludes, model_error_checked, smooth,
+                   widened_for_model_error)
 from .batch_fit import MODE_KEEP_DCHI2, MODE_SEARCH_DCHI2, euler_fit, euler_fit_checked, euler_fit_from_filter
 from .rts import SHAPE_SIGMA_FLOOR, FieldFn, Smoothed, rts, rts_smooth, tabulated, variance_scale
 
-__all__ = ["EXCLUDE_SHARE", "EXCLUDE_Z", "FieldFn", "MODE_KEEP_DCHI2", "MODE_SEARCH_DCHI2", "SHAPE_SIGMA_FLOOR",
-           "Smoothed", "auto_choice", "auto_order", "auto_result", "covering", "disagreement", "euler_fit",
-           "euler_fit_checked", "euler_fit_from_filter", "euler_rts_smooth", "excludes", "rts", "rts_smooth",
-           "smooth", "tabulated", "variance_scale"]
+__all__ = ["CHI2_TEST_Z", "EXCLUDE_SHARE", "EXCLUDE_Z", "FieldFn", "MODE_KEEP_DCHI2", "MODE_SEARCH_DCHI2",
+           "SHAPE_SIGMA_FLOOR", "Smoothed", "auto_choice", "auto_order", "auto_result", "chi2_consistent", "covering",
+           "disagreement", "euler_fit", "euler_fit_checked", "euler_fit_from_filter", "euler_rts_smooth", "excludes",
+           "model_error_checked", "rts", "rts_smooth", "smooth", "tabulated", "variance_scale",
+           "widened_for_model_error"]

@@ -93,7 +93,7 @@ def euler_fit(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T
               inertia_kgm2: np.ndarray | None = None, init: Smoothed | None = None,
               first_window: int = 8, growth: float = 1.4, iterations: int = 10, starts_about_b: int = 24,
               wahba_rounds: int = 2, max_substep_rad: float = 0.25,
-              hard_iron_sigma_T: float | None = None) -> Smoothed:
+              hard_iron_sigma_T=None) -> Smoothed:
     """Torque-free Euler + kinematics fitted to the whole record: :func:`_euler_minimum`, then the other minima
     as good in σ (:meth:`_Minimum.finish`)."""
     return _euler_minimum(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2, init=init,
@@ -106,7 +106,7 @@ def _euler_minimum(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_
                    inertia_kgm2: np.ndarray | None = None, init: Smoothed | None = None,
                    first_window: int = 8, growth: float = 1.4, iterations: int = 10, starts_about_b: int = 24,
                    wahba_rounds: int = 2, max_substep_rad: float = 0.25,
-                   hard_iron_sigma_T: float | None = None) -> "_Minimum":
+                   hard_iron_sigma_T=None) -> "_Minimum":
     """Torque-free Euler + kinematics fitted to the whole record (see the module docstring).
 
     `init` gives the starting attitude and rate (default: :func:`rts_smooth`). With a field model the
@@ -123,9 +123,10 @@ def _euler_minimum(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_
     weighted by e^(−Δχ²/2s²) and σ² is the mixture's second moment about the best: Σ wᵢ (σᵢ² +
     (ωᵢ − ω̂)²). The estimate stays the best minimum's.
 
-    `hard_iron_sigma_T` (> 0, with a field model): a constant offset in body axes fitted too, prior 1-σ that
-    per axis (a host calibration's residual); its estimate and 1-σ in the result's info
-    (`hard_iron_residual_uT`, `hard_iron_residual_sigma_uT`), its uncertainty in every σ.
+    `hard_iron_sigma_T` (> 0, one or per axis, with a field model): a constant offset in body axes fitted
+    too, prior 1-σ that (a host calibration's hard-iron σ; NaN or none: no offset fitted); its estimate
+    and 1-σ in the result's info (`hard_iron_residual_uT`, `hard_iron_residual_sigma_uT`), its
+    uncertainty in every σ.
     """
     t = np.asarray(t_s, float)
     b = np.asarray(b_T, float)
@@ -146,7 +147,8 @@ def _euler_minimum(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_
         kf.set_nominal(t[0], init.q[0], init.info.get("w_pass_radps", init.w_radps)[0], euler=True)
     z = b * rk.UT_PER_T
     sb = sigma_b_T * rk.UT_PER_T
-    fit_bias = hard_iron_sigma_T is not None and hard_iron_sigma_T > 0 and field_eci_T is not None
+    hi_sigma = None if hard_iron_sigma_T is None else np.broadcast_to(np.asarray(hard_iron_sigma_T, float), (3,))
+    fit_bias = hi_sigma is not None and bool(np.all(hi_sigma > 0)) and field_eci_T is not None
     if fit_bias:
         kf.bias_uT = np.zeros(3)
     nn = _n_params(kf)
@@ -156,7 +158,7 @@ def _euler_minimum(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_
     prior_w = np.zeros(nn)
     prior_w[6:6 + kf.n_p] = 1.0  # weak prior on the shape: 1-σ of a factor e
     if fit_bias:
-        prior_w[kf.n:] = 1.0 / (hard_iron_sigma_T * rk.UT_PER_T)
+        prior_w[kf.n:] = 1.0 / (hi_sigma * rk.UT_PER_T)
     windows = []
     n = min(N, max(first_window, 5))
     while True:
@@ -272,7 +274,7 @@ def _local_solution(kf, t, z, sb, n, free, prior_w, s2: float | None = None):
 
 
 def euler_fit_from_filter(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *,
-                          field_eci_T: FieldFn | None = None, hard_iron_sigma_T: float | None = None
+                          field_eci_T: FieldFn | None = None, hard_iron_sigma_T=None
                           ) -> Smoothed | None:
     """:func:`_minimum_from_filter`, finished (the other minima as good in σ); None where it gives none."""
     m = _minimum_from_filter(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T, hard_iron_sigma_T=hard_iron_sigma_T)
@@ -280,7 +282,7 @@ def euler_fit_from_filter(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *,
 
 
 def _minimum_from_filter(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *,
-                         field_eci_T: FieldFn | None = None, hard_iron_sigma_T: float | None = None
+                         field_eci_T: FieldFn | None = None, hard_iron_sigma_T=None
                          ) -> "_Reversed | None":
     """The batch fit of :func:`euler_fit` started from where the parallel-hypothesis Euler filter
     (:class:`fsw.estimation.filter_banks.EulerAcquisitionKalman`) ends, for the records where the random-walk
@@ -337,7 +339,7 @@ def _to_forward_time(rev: Smoothed, t: np.ndarray) -> Smoothed:
 
 def euler_fit_checked(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
                       inertia_kgm2: np.ndarray | None = None, init: Smoothed | None = None,
-                      chi2_accept: float = 1.5, hard_iron_sigma_T: float | None = None) -> Smoothed:
+                      chi2_accept: float = 1.5, hard_iron_sigma_T=None) -> Smoothed:
     """:func:`euler_fit`; when it does not explain the data (χ²/dof > `chi2_accept`) and the tensor is
     not known, again from the Euler filter's end (:func:`euler_fit_from_filter`), keeping the better."""
     # the two fits compared by their best minima's χ²/dof: only the one kept searches for other minima (the

@@ -109,3 +109,24 @@ def test_a_calibration_that_is_a_fifo_is_refused_not_waited_on(host_record, tmp_
     os.mkfifo(fifo)
     assert gi.main([str(path), str(tmp_path / "i.json"), "--magcal", str(fifo), "--quiet"]) == 1
     assert "not a regular file" in capsys.readouterr().err
+
+
+def test_the_applied_calibrations_hard_iron_sigma_goes_to_the_batch_fit():
+    """ground.estimate hands the batch fit the applied calibration's hard-iron 1-σ (the box's, from the
+    recording's metadata; an estimated one's own): what is left of the hard iron is fitted as an offset."""
+    from argparse import Namespace
+    from ground import magcal as gm
+    t = np.arange(5.0)
+    md = {"magcal_hard_iron_uT": "1, 2, 3", "magcal_soft_iron": "0, 0, 0, 0, 0, 0, 0, 0, 0",
+          "magcal_hard_iron_sigma_uT": "0.1, 0.2, 0.15"}
+    rec = Recording(t, np.full((5, 3), 30e-6), metadata=md)
+    args = Namespace(magcal=None, estimate_magcal=False, no_magcal=False)
+    out, how, sigma = gm.calibrate_with_sigma(rec, args, None, 1e-6)
+    np.testing.assert_allclose(out.b_T, np.tile(30e-6 - np.array([1e-6, 2e-6, 3e-6]), (5, 1)))
+    np.testing.assert_allclose(sigma, [0.1e-6, 0.2e-6, 0.15e-6])
+    # NaN (before any calibration), missing or malformed: no σ, so no offset is fitted
+    for bad in ("nan, nan, nan", "0.1, 0.2", "a, b, c", "0, 0.1, 0.1"):
+        rec = Recording(t, np.full((5, 3), 30e-6), metadata=dict(md, magcal_hard_iron_sigma_uT=bad))
+        assert gm.calibrate_with_sigma(rec, args, None, 1e-6)[2] is None
+    assert gm.calibrate_with_sigma(rec, Namespace(magcal=None, estimate_magcal=False, no_magcal=True), None,
+                                   1e-6)[2] is None
