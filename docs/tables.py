@@ -489,7 +489,19 @@ def accuracy_results(docs: Path) -> str:
     text = table(["mode", "body", "Δt s", "σ_B µT", "mean \\|ω\\| °/s", "Boer ⊥ RMS (max)", "derivative",
                   "Kotelnikov", "kalman", "kalman_euler", "kalman_mm", "best onboard (÷Boer⊥)", "smoother", "euler",
                   "best ground (÷Boer⊥)", "ground 1σ cov."], rows)
-    return text + ACCURACY_FOOT
+    return text + "\n\n" + _accuracy_targets(_accuracy_rows(docs, "dipole")) + ACCURACY_FOOT
+
+
+def _accuracy_targets(rows: list[dict]) -> str:
+    """How many rows meet sedelnikov2024's bars: best onboard ≤ 1/3 of Boer ⊥, best ground ≤ 1/10, and the best
+    ground method's 1-σ covering 60–80 % of its errors."""
+    onboard = sum(r["best_onboard"]["ratio_to_boer_perp"] <= 1 / 3 for r in rows)
+    ground = sum(r["best_ground"]["ratio_to_boer_perp"] <= 0.1 for r in rows)
+    cov = sum(60 <= round(100 * r["methods"].get(r["best_ground"]["method"] or "", {}).get("coverage_1sigma", -1))
+              <= 80 for r in rows)
+    n = len(rows)
+    return (f"Targets: best onboard ≤ 1/3 of Boer ⊥ in {onboard}/{n} rows, best ground ≤ 1/10 in {ground}/{n}, "
+            f"the best ground method's 1-σ covering 60–80 % in {cov}/{n}.")
 
 
 def accuracy_worlds(docs: Path) -> str:
@@ -513,7 +525,7 @@ def accuracy_worlds(docs: Path) -> str:
                   "IGRF ÷ dipole", "best ground, dipole (÷Boer⊥)", "IGRF", "IGRF ÷ dipole"], rows)
     n = len(igrf)
     return (text + f"\n\nWithin 10 % of the dipole row (ratio ≤ 1.10): best onboard {held['onboard']}/{n}, "
-            f"best ground {held['ground']}/{n} rows." + ACCURACY_FOOT)
+            f"best ground {held['ground']}/{n} rows. In this world: " + _accuracy_targets(igrf)[9:] + ACCURACY_FOOT)
 
 
 def accuracy_coverage(docs: Path) -> str:
