@@ -108,6 +108,7 @@ class AttitudeKalmanTuning:
     along_b_sweep_power: float = 3.0
     along_b_field_turn_rel: float = 0.5
     along_b_memory_s: float = 60.0
+    shape_step_cut_sigmas: float = 0.0
 
 
 class AttitudeRateKalman:
@@ -234,6 +235,7 @@ class AttitudeRateKalman:
         self._b_ref = None
         # a rate handed over with its covariance (another filter's, which has seen B move) needs no floor
         self._handed_over = rate_cov is not None and omega_radps is not None
+        self._p_before = self.p.copy()
         self._record_prediction(t_s, np.eye(n), restart=True)
         self._update(t_s, z)
         # a rate handed over with its covariance is an estimate from the first sample on
@@ -276,6 +278,7 @@ class AttitudeRateKalman:
             self.flags |= DATA_GAP
             return True
         marks = {k: len(v) for k, v in self.log.items()}
+        self._p_before = self.p.copy()  # the shape before this update (its step is cut at the physical edge)
         try:
             # a state that blows up is caught just below (non-finite → restart, counted), not warned about
             with np.errstate(invalid="ignore", over="ignore"):
@@ -419,6 +422,8 @@ class AttitudeRateKalman:
                                                                           z, b_i, self.R)
         self.nis = float(nis)
         self.nll += nll
+        if self.euler and self.n_p and not physical_shape(self.p):
+            self._cut_shape_step()  # the update's step in the shape stopped at the edge of the physical region
         if self._b_i0 is not None and not self.store and self.tuning.about_b_sigma_rad > 0:
             self._floor_about_b(t_s)
         self._track_sweep(z)
@@ -444,6 +449,32 @@ class AttitudeRateKalman:
         self._ref_t = self.t_s
         self._sweep0 = max(self._sweep0, _angle(u, self._b_first))
         self._sweep1 = _angle(u, self._b_ref)
+
+    def _cut_shape_step(self) -> bool:
+        """The last update took the shape out of the physical region from inside it: cut its step in the
+        shape back to the region's edge (the projection of a constrained Kalman filter's estimate, Simon 2010
+        §3, along the step), when the edge is within `shape_step_cut_sigmas` of the shape's 1-σ of the step
+        start. An elongated body (a 3U cubesat, J₃/J₁ = 0.19) lies 0.17 in ln J₂/J₁ from the edge, less than
+        the shape prior's σ: its first corrections crossed the edge and sent the right hypothesis back to
+        acquisition. False: no cut (a step from outside, or an edge too far: the filter is lost)."""
+        p0 = getattr(self, "_p_before", None)
+        k = self.tuning.shape_step_cut_sigmas
+        if p0 is None or not k > 0 or not physical_shape(p0):
+            return False
+        d = self.p - p0
+        lo, hi = 0.0, 1.0
+        for _ in range(30):
+            mid = 0.5 * (lo + hi)
+            if physical_shape(p0 + mid * d):
+                lo = mid
+            else:
+                hi = mid
+        ip = slice(6, 6 + self.n_p)
+        s = math.sqrt(max(float(d @ self.P[ip, ip] @ d) / max(float(d @ d), 1e-300), 0.0))
+        if not lo * float(np.linalg.norm(d)) <= k * s:
+            return False
+        self.p = p0 + lo * d
+        return True
 
     def rate_cov_published(self) -> np.ndarray:
         """The 3×3 covariance of ω to publish: the filter's own, its variance along the field held at or

@@ -32,8 +32,16 @@ def shape_grid(step: float = 0.35, half_width: int = SHAPE_GRID_HALF_WIDTH) -> t
 #: unmodelled torques up to √30 × `rate_accel_radps2`; above, a persistent NIS excess (e.g. a
 #: magnetorquer's field on the magnetometer) would let the poorly observed component along B wander.
 EULER_ADAPT_MAX = 30.0
-#: the shape trial's least step between the samples it takes (:class:`EulerAcquisitionKalman`)
-TRIAL_STEP_S = 0.5
+#: the shape trial's least step between the samples it takes (:class:`EulerAcquisitionKalman`): 1 s, two
+#: hypotheses per shape (68) at one update a second each cost what 34 at 0.5 s did
+TRIAL_STEP_S = 1.0
+#: the trial's hypotheses cut a step of their shape that leaves the physical region at its edge when the edge
+#: is within this many σ (`AttitudeKalmanTuning.shape_step_cut_sigmas`)
+SHAPE_STEP_CUT_SIGMAS = 3.0
+
+#: the share of the shape trial's window its hypotheses take to converge from the random-walk filter's
+#: state before their likelihoods are compared (:class:`EulerAcquisitionKalman`)
+TRIAL_BURN_IN = 0.5
 
 #: hypotheses over the attitude's angle about the field once Euler's equations run (:class:`EulerAcquisitionKalman`)
 ABOUT_B_HYPOTHESES = 6
@@ -61,6 +69,21 @@ ABOUT_B_SAME_RAD = math.radians(10.0)
 #: the angle about B (a wrong hypothesis leads the right one by 10–40 for minutes on some tumbles: the
 #: rate's random walk and the field model's error absorb part of the misfit)
 ABOUT_B_TEMPER = 10.0
+
+
+def widen_rate_along_b(kf: AttitudeRateKalman, sigma_radps: float) -> None:
+    """Hold the 1-σ of `kf`'s rate along the field (its last sample's direction) at `sigma_radps` or above.
+
+    A random walk of ω cannot tell the part of ω along B from the rate's change it allows: both bend B's
+    path in the body. On a body spinning near B (a cubesat at 27 °/s, ω 20–26 °/s along B) the
+    random-walk phase settled with ω along B near zero and a σ of 1–3 °/s there, 10–25 σ off; an Euler
+    hypothesis started from it kept that σ and could not reach the rate. Euler's equations do tell the
+    part along B (the precession it drives), so the hypotheses start with it unknown (the prior σ)."""
+    u = np.asarray(kf._u, float)
+    Pw = kf.P[3:6, 3:6]
+    v = float(u @ Pw @ u)
+    if v < sigma_radps ** 2:
+        Pw += (sigma_radps ** 2 - v) * np.outer(u, u)
 
 
 class _Bank:
@@ -135,9 +158,11 @@ class EulerAcquisitionKalman(_Bank):
                  trial_samples: int = 15, trial_s: float = 15.0, retry_samples: int = 15,
                  angle_about_b_rad: float = 0.0, trial_step_s: float = TRIAL_STEP_S,
                  about_b_hypotheses: int = 0, about_b_step_s: float = ABOUT_B_STEP_S,
-                 deferred: bool = False) -> None:
+                 deferred: bool = False, along_b_variants: bool = True) -> None:
         # the bank decides when Euler's equations start: the filters' own innovation test is off
-        tun = replace(tuning or AttitudeKalmanTuning(euler_adapt_max=EULER_ADAPT_MAX), euler_nis_max=-math.inf)
+        tun = replace(tuning or AttitudeKalmanTuning(euler_adapt_max=EULER_ADAPT_MAX,
+                                                     shape_step_cut_sigmas=SHAPE_STEP_CUT_SIGMAS),
+                      euler_nis_max=-math.inf)
         self.main = AttitudeRateKalman(sigma_b_T, field_eci_T=field_eci_T, estimate_inertia=True, tuning=tun,
                                        angle_about_b_rad=angle_about_b_rad)
         self.shapes = tuple(tuple(map(float, p)) for p in (shape_grid() if shapes is None else shapes))
@@ -145,7 +170,9 @@ class EulerAcquisitionKalman(_Bank):
         self.trial_samples = int(trial_samples)
         self.trial_s = float(trial_s)
         self.trial_step_s = float(trial_step_s)
+        self.along_b_variants = bool(along_b_variants)
         self._window = self.trial_samples  # the running trial's length in samples
+        self._burn = 0  # the samples of the running trial before its scores count
         self.retry_samples = int(retry_samples)
         #: the hypotheses' updates wait for :meth:`work` (the flight loop's ticks between samples) instead of
         #: running with each sample: a trial's ~30 filter updates a sample then never land in one tick
@@ -204,6 +231,8 @@ class EulerAcquisitionKalman(_Bank):
                 self._trial, self._samples = [], []
             elif not self._samples or t_s - self._samples[-1][0] >= self.trial_step_s - 1e-9:
                 self._samples.append((t_s, np.array(b_T, float)))
+                if self._ref is None and len(self._samples) == self._burn:
+                    self._nll0 = main.nll
                 if self._ref is None and len(self._samples) == self._window:
                     self._main_nll = main.nll - self._nll0
                 if not self.deferred:
@@ -243,6 +272,8 @@ class EulerAcquisitionKalman(_Bank):
             with np.errstate(all="ignore"):  # a wrong hypothesis may diverge: it is dropped below
                 kf.update(t, b)
             h[3] += 1
+            if h[3] == self._burn:
+                h[1] = kf.nll
             if h[3] == self._window:
                 h[4] = kf.nll - h[1]
             done += 1
@@ -261,6 +292,7 @@ class EulerAcquisitionKalman(_Bank):
         self._trial, self._samples = [], []
         dt = max(self.main._dt_nominal, self.trial_step_s)  # the trial's sample step
         self._window = max(self.trial_samples, int(math.ceil(self.trial_s / dt - 1e-9)) if dt > 0 else 0)
+        self._burn = int(TRIAL_BURN_IN * self._window)
         self._ref = None
         if self.main._dt_nominal < self.trial_step_s - 1e-9:  # the trial leaves samples out: score a copy
             ref = self.main.clone()
@@ -269,9 +301,12 @@ class EulerAcquisitionKalman(_Bank):
         self._nll0 = self.main.nll
         self._main_nll = math.nan
         for p in self.shapes:
-            kf = self.main.clone()
-            kf.start_euler(np.array(p), self.sigma_shape)
-            self._trial.append([kf, kf.nll, kf.resets, 0, math.nan])
+            for widen in ((False, True) if self.along_b_variants else (False,)):
+                kf = self.main.clone()
+                kf.start_euler(np.array(p), self.sigma_shape)
+                if widen:
+                    widen_rate_along_b(kf, kf.tuning.sigma_rate0_radps)
+                self._trial.append([kf, kf.nll, kf.resets, 0, math.nan])
 
     def _decide(self) -> None:
         best, best_nll = None, self._main_nll if self._ref is None else self._ref[4]
