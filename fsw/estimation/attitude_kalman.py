@@ -335,6 +335,22 @@ class AttitudeRateKalman:
         self.adapt = 1.0
         self._nis_mean = 3.0
 
+    def back_to_acquisition(self) -> None:
+        """Lost (innovations far outside S): back to the random-walk phase, the shape from a sphere with its
+        prior σ and the rate's covariance widened by its prior (counted in `resets`)."""
+        tun = self.tuning
+        self._bad = 0
+        self.resets += 1
+        self.euler = False
+        self._samples = 0
+        if self.n_p:
+            self.p[:] = 0.0
+            ip = slice(6, 6 + self.n_p)
+            self.P[ip, :] = 0.0
+            self.P[:, ip] = 0.0
+            self.P[ip, ip] = tun.sigma_log_inertia0 ** 2 * np.eye(self.n_p)
+        self.P[3:6, 3:6] += tun.sigma_rate0_radps ** 2 * np.eye(3)
+
     def rate_found(self) -> bool:
         """The acquisition test of the random-walk phase: enough samples and every published 1-σ of ω (its
         part along B floored by :meth:`rate_cov_published`: Euler's equations wait for it) below
@@ -504,6 +520,18 @@ class AttitudeRateKalman:
             Pw += (floor * floor - v) * np.outer(u, u)
         return Pw
 
+    def misfit_scale(self) -> float:
+        """The factor on the published rate σ for a misfit the covariance does not carry: in Euler's equations
+        with the innovation-driven process noise at its cap (`euler_adapt_max`), the innovations' excess over
+        their covariance, √(mean NIS / 3) (the running mean of `adapt_samples` samples; 3: the measurement's
+        dimension), at least 1 — as a batch fit's covariance is scaled by its χ²/dof. Below the cap the
+        adaptation carries the misfit into P itself; above it (an unmodelled torque, a detumble controller's)
+        the filter's own σ was 2–5 times too small (1-σ coverage 26–58 % on the −Ḃ rows)."""
+        cap = self.tuning.euler_adapt_max
+        if not self.euler or cap is None or self.adapt < cap:
+            return 1.0
+        return math.sqrt(max(1.0, self._nis_mean / 3.0))
+
     def about_b_floor_rad(self) -> float:
         """The floor of the attitude's 1-σ about the field at the inertial field's turn so far
         (`AttitudeKalmanTuning.about_b_turn_rad`, `about_b_sigma_rad`)."""
@@ -563,17 +591,7 @@ class AttitudeRateKalman:
         if amax > 1.0:
             self.adapt = adapt_noise(self, tun.adapt_samples, amax)
         if self._bad >= 3:  # lost: back to acquisition
-            self._bad = 0
-            self.resets += 1
-            self.euler = False
-            self._samples = 0
-            if self.n_p:
-                self.p[:] = 0.0
-                ip = slice(6, 6 + self.n_p)
-                self.P[ip, :] = 0.0
-                self.P[:, ip] = 0.0
-                self.P[ip, ip] = tun.sigma_log_inertia0 ** 2 * np.eye(self.n_p)
-            self.P[3:6, 3:6] += tun.sigma_rate0_radps ** 2 * np.eye(3)
+            self.back_to_acquisition()
             flags |= DEGENERATE
         elif (self.euler_model and not self.euler and self._samples >= tun.euler_after_samples
               and self._nis_mean < tun.euler_nis_max
@@ -592,7 +610,7 @@ class AttitudeRateKalman:
             flags |= DEGENERATE
         if s.max() > tun.sigma_flag_radps:
             flags |= DEGENERATE
-        s = np.sqrt(np.clip(np.diagonal(self.rate_cov_published()), 0.0, None))
+        s = np.sqrt(np.clip(np.diagonal(self.rate_cov_published()), 0.0, None)) * self.misfit_scale()
         self.omega_radps[:] = w
         self.sigma_radps[:] = np.minimum(s, SIGMA_UNOBSERVED_RADPS)
         self.flags = flags

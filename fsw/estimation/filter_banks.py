@@ -43,6 +43,12 @@ SHAPE_STEP_CUT_SIGMAS = 3.0
 #: state before their likelihoods are compared (:class:`EulerAcquisitionKalman`)
 TRIAL_BURN_IN = 0.5
 
+#: an Euler filter is lost when the exponential mean of its NIS (3 degrees of freedom: mean 3) stays above this
+#: with its process noise at the cap for a trial window (:meth:`EulerAcquisitionKalman._watch_lost`): ten
+#: samples' mean above 20 is a χ²₃₀ above 600, never by chance. (At 10 it also fired on a right winner still
+#: converging from the random-walk phase's rate on a 27 °/s cubesat tumble, NIS 5–15 for 10 s.)
+LOST_NIS_MEAN = 20.0
+
 #: hypotheses over the attitude's angle about the field once Euler's equations run (:class:`EulerAcquisitionKalman`)
 ABOUT_B_HYPOTHESES = 6
 #: their least step between the samples they take (s): the angle about B shows only as the field turns along
@@ -200,6 +206,9 @@ class EulerAcquisitionKalman(_Bank):
         self._about_b_mix: tuple[float, np.ndarray] = (1.0, np.zeros((3, 3)))
         self.about_b_switches = 0
         self.about_b_updates = 0
+        #: Euler filters found lost (:meth:`_watch_lost`), and the samples in a row the test has held
+        self.lost = 0
+        self._lost_run = 0
 
     @property
     def euler(self) -> bool:
@@ -226,6 +235,8 @@ class EulerAcquisitionKalman(_Bank):
         main = self.main
         resets = main.resets
         out = main.update(t_s, b_T)
+        if main.euler and main.resets == resets:
+            self._watch_lost(main)
         if self._trial:
             if main.resets != resets:  # the random-walk filter restarted: the trial's start is void
                 self._trial, self._samples = [], []
@@ -245,6 +256,21 @@ class EulerAcquisitionKalman(_Bank):
             self._start_trial()
         self._about_b_sample(t_s, b_T, main.resets != resets)
         return out
+
+    def _watch_lost(self, main: AttitudeRateKalman) -> None:
+        """An Euler filter whose innovations stay far outside S although its process noise is at its cap is
+        lost (a trial's wrong winner): back to acquisition, and the shape trial runs again. The test: the
+        exponential mean of NIS over ~`adapt_samples` samples above `LOST_NIS_MEAN` for a trial window's
+        samples in a row."""
+        cap = main.tuning.euler_adapt_max
+        if main._nis_mean > LOST_NIS_MEAN and (cap is None or main.adapt >= cap):
+            self._lost_run += 1
+        else:
+            self._lost_run = 0
+        if self._lost_run >= self._window:
+            self._lost_run = 0
+            self.lost += 1
+            main.back_to_acquisition()
 
     def work(self, max_updates: int | None = None) -> int:
         """Background work, at most `max_updates` filter updates (None: all): the shape trial's hypotheses
