@@ -96,6 +96,7 @@ class AttitudeKalmanTuning:
     nis_reset: float = 1e3
     adapt_samples: float = 10.0
     adapt_max: float = 1e4
+    adapt_min: float = 1.0
     euler_adapt_max: float | None = None
     max_rate_radps: float = 100.0
     max_step_angle_rad: float = 2.5
@@ -411,7 +412,7 @@ class AttitudeRateKalman:
             b0, b1, b2 = self._bhat
             w2 = w0 * w0 + w1 * w1 + w2_ * w2_
             wb = w0 * b0 + w1 * b1 + w2_ * b2
-            q_w += tun.kappa ** 2 * w2 * max(w2 - wb * wb, 0.0) / 3.0 * dt
+            q_w += min(self.adapt, 1.0) * tun.kappa ** 2 * w2 * max(w2 - wb * wb, 0.0) / 3.0 * dt
         # ω a random walk with per-step variance q_w; its effect on the attitude over the step
         return mekf.process_noise(self.n, self.n_p, float(q_w), dt, tun.inertia_shape_rate, tun.field_rate_radps,
                                   self.beta)
@@ -589,7 +590,7 @@ class AttitudeRateKalman:
         self._bad = self._bad + 1 if self.nis > tun.nis_reset else 0
         amax = tun.adapt_max if not self.euler or tun.euler_adapt_max is None else tun.euler_adapt_max
         if amax > 1.0:
-            self.adapt = adapt_noise(self, tun.adapt_samples, amax)
+            self.adapt = adapt_noise(self, tun.adapt_samples, amax, tun.adapt_min if not self.euler else 1.0)
         if self._bad >= 3:  # lost: back to acquisition
             self.back_to_acquisition()
             flags |= DEGENERATE

@@ -32,12 +32,19 @@ def shape_grid(step: float = 0.35, half_width: int = SHAPE_GRID_HALF_WIDTH) -> t
 #: unmodelled torques up to √30 × `rate_accel_radps2`; above, a persistent NIS excess (e.g. a
 #: magnetorquer's field on the magnetometer) would let the poorly observed component along B wander.
 EULER_ADAPT_MAX = 30.0
-#: the shape trial's least step between the samples it takes (:class:`EulerAcquisitionKalman`): 1 s, two
-#: hypotheses per shape (68) at one update a second each cost what 34 at 0.5 s did
-TRIAL_STEP_S = 1.0
+#: the shape trial's least step between the samples it takes (:class:`EulerAcquisitionKalman`)
+TRIAL_STEP_S = 0.5
 #: the trial's hypotheses cut a step of their shape that leaves the physical region at its edge when the edge
 #: is within this many σ (`AttitudeKalmanTuning.shape_step_cut_sigmas`)
 SHAPE_STEP_CUT_SIGMAS = 3.0
+#: a second hypothesis per shape in the trial, its rate along B widened to the prior (:func:`widen_rate_along_b`;
+#: `EulerAcquisitionKalman(along_b_variants=True)`). Off by default: on the 27 °/s cubesat tumble it made
+#: seeds 12 and 22 lock on (the random-walk phase 10–25 σ off along B), but on a 10 °/s, 1 s tumble flown
+#: as on board a winner of the widened kind settled with its attitude about B off, the published
+#: attitude's 3-σ coverage fell from ≥ 95 % to 76–86 %, and it doubles the trial's cost
+ALONG_B_VARIANTS = False
+#: a trial that falls behind catches up by this many rounds of its hypotheses with each sample it takes
+CATCH_UP_ROUNDS = 2
 
 #: the share of the shape trial's window its hypotheses take to converge from the random-walk filter's
 #: state before their likelihoods are compared (:class:`EulerAcquisitionKalman`)
@@ -121,26 +128,31 @@ class EulerAcquisitionKalman(_Bank):
     (e.g. ln J₃/J₁ = 1.1 for a true 0.49) and back to acquisition.
 
     Here the random-walk filter (`main`) runs until it has found the rate (:meth:`AttitudeRateKalman.
-    rate_found`); then one Euler hypothesis per shape of `shapes` (default :func:`shape_grid`, 1-σ
-    `sigma_shape` about each) is started from a copy of it, all run in parallel with the random-walk
-    filter for `trial_samples` samples and at least `trial_s` seconds (at a 0.5 s step 30 samples: with
-    15 the trial on a fast, noisy tumble of an elongated body sometimes kept a shape that fitted the
-    random-walk phase's lagging rate, and the filter then took a minute to walk to the right one), and
-    the one with the least negative log-likelihood of its
-    innovations over the trial (Σ ½(NIS + ln det S), Bar-Shalom et al. 2001 §11.6) becomes `main`.
-    A hypothesis that restarts or leaves the physical region is dropped. When the random-walk filter
+    rate_found`); then Euler hypotheses per shape of `shapes` (default :func:`shape_grid`, 1-σ
+    `sigma_shape` about each) are started from copies of it (with `along_b_variants` two per shape, the
+    second with its rate along the field widened to the prior, :func:`widen_rate_along_b`; see
+    `ALONG_B_VARIANTS`), all run in parallel
+    with the random-walk filter for `trial_samples` samples and at least `trial_s` seconds, and the one
+    with the least negative log-likelihood of its innovations (Σ ½(NIS + ln det S), Bar-Shalom et al.
+    2001 §11.6) over the window's last part (after `TRIAL_BURN_IN` of it: each hypothesis first converges
+    from the random-walk filter's rate; scored from the start, the right shape's transient lost it the
+    trial against the random-walk filter) becomes `main`. A hypothesis's step out of the physical region
+    is cut at its edge (`SHAPE_STEP_CUT_SIGMAS`: an elongated body lies within the shape prior's σ of
+    the edge); one that restarts or leaves the region anyway is dropped. When the random-walk filter
     wins, the trial is repeated after `retry_samples`. An Euler filter that is lost (its own NIS test,
-    a shape no body has) falls back to the random-walk phase and the bank acquires again. Causal: each
+    a shape no body has, or innovations far outside S with its process noise at the cap,
+    :meth:`_watch_lost`) falls back to the random-walk phase and the bank acquires again. Causal: each
     sample is used once, when it arrives; the published estimate is `main`'s (the random-walk filter's
     during a trial).
 
     The trial's cost is bounded whatever the sample rate: it takes samples at least `trial_step_s` apart
-    (0.5 s: at most two a second, ~70 filter updates a second for 34 shapes, which the loop's
-    background work keeps up with); when that leaves out samples `main` takes, the random-walk filter's
-    score over the window is that of a copy of it run on the trial's samples.
+    (`TRIAL_STEP_S`, 0.5 s: at most two a second, ~70 filter updates a second for 34 shapes, which the
+    loop's background work keeps up with; twice that with `along_b_variants`); when that leaves out
+    samples `main` takes, the random-walk filter's score over the window is that of a copy of it
+    run on the trial's samples.
     A trial that falls behind anyway (a loop too slow, or one that never calls :meth:`work`) catches
-    up by two rounds of its hypotheses with each sample it takes, never all at once (a 50 Hz sensor
-    once stalled the loop for 27 s that way).
+    up by `CATCH_UP_ROUNDS` rounds of its hypotheses with each sample it takes, never all at once (a 50 Hz
+    sensor once stalled the loop for 27 s that way).
 
     The attitude's angle about the field shows only as the field turns along the orbit, and a single
     filter can settle 100–180° off there with a σ of a few degrees. With `about_b_hypotheses` (the flown
@@ -164,11 +176,12 @@ class EulerAcquisitionKalman(_Bank):
                  trial_samples: int = 15, trial_s: float = 15.0, retry_samples: int = 15,
                  angle_about_b_rad: float = 0.0, trial_step_s: float = TRIAL_STEP_S,
                  about_b_hypotheses: int = 0, about_b_step_s: float = ABOUT_B_STEP_S,
-                 deferred: bool = False, along_b_variants: bool = True) -> None:
+                 deferred: bool = False, along_b_variants: bool | None = None) -> None:
         # the bank decides when Euler's equations start: the filters' own innovation test is off
-        tun = replace(tuning or AttitudeKalmanTuning(euler_adapt_max=EULER_ADAPT_MAX,
-                                                     shape_step_cut_sigmas=SHAPE_STEP_CUT_SIGMAS),
-                      euler_nis_max=-math.inf)
+        tun = replace(tuning or AttitudeKalmanTuning(euler_adapt_max=EULER_ADAPT_MAX), euler_nis_max=-math.inf)
+        #: the trial's hypotheses cut a shape step at the physical edge; the winner, as `main`, does not (a shape
+        #: pushed to the edge there is a model that does not fit: back to acquisition)
+        self._trial_tuning = replace(tun, shape_step_cut_sigmas=SHAPE_STEP_CUT_SIGMAS)
         self.main = AttitudeRateKalman(sigma_b_T, field_eci_T=field_eci_T, estimate_inertia=True, tuning=tun,
                                        angle_about_b_rad=angle_about_b_rad)
         self.shapes = tuple(tuple(map(float, p)) for p in (shape_grid() if shapes is None else shapes))
@@ -176,7 +189,7 @@ class EulerAcquisitionKalman(_Bank):
         self.trial_samples = int(trial_samples)
         self.trial_s = float(trial_s)
         self.trial_step_s = float(trial_step_s)
-        self.along_b_variants = bool(along_b_variants)
+        self.along_b_variants = ALONG_B_VARIANTS if along_b_variants is None else bool(along_b_variants)
         self._window = self.trial_samples  # the running trial's length in samples
         self._burn = 0  # the samples of the running trial before its scores count
         self.retry_samples = int(retry_samples)
@@ -248,8 +261,8 @@ class EulerAcquisitionKalman(_Bank):
                     self._main_nll = main.nll - self._nll0
                 if not self.deferred:
                     self._work_trial()
-                elif len(self._samples) > 2 * self._window:  # a loop too slow for the trial: two rounds of
-                    self._work_trial(2 * len(self._trial))    # the hypotheses a sample, never all at once
+                elif len(self._samples) > 2 * self._window:  # a loop too slow for the trial: a few rounds
+                    self._work_trial(CATCH_UP_ROUNDS * len(self._trial))  # a sample, never all at once
         elif self._wait > 0:
             self._wait -= 1
         elif not main.euler and main.rate_found():
@@ -329,6 +342,7 @@ class EulerAcquisitionKalman(_Bank):
         for p in self.shapes:
             for widen in ((False, True) if self.along_b_variants else (False,)):
                 kf = self.main.clone()
+                kf.tuning = self._trial_tuning
                 kf.start_euler(np.array(p), self.sigma_shape)
                 if widen:
                     widen_rate_along_b(kf, kf.tuning.sigma_rate0_radps)
@@ -344,6 +358,7 @@ class EulerAcquisitionKalman(_Bank):
         if best is None:
             self._wait = self.retry_samples
         else:
+            best.tuning = self.main.tuning
             self.main = best
             self._stop_about_b()
             self._about_b_want = True
