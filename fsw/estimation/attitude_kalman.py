@@ -72,6 +72,12 @@ class AttitudeKalmanTuning:
       about_b_floor_rad`). The rotation about B is seen only through that turn; without the floor the
       linearised update takes the large early corrections about B as information and the σ collapses to
       a few degrees within a minute while the angle is still 100–180° off.
+    adapt_min: the floor of the innovation-driven noise factor in the random-walk phase, as
+      :class:`~.rate_kalman.RateKalmanTuning`'s (below 1 it scales the κ term too; off by default).
+    shape_step_cut_sigmas: in Euler's equations, an update that takes the shape out of the physical region
+      from inside it has its step in the shape cut at the edge when the edge is within this many σ of the
+      shape along the step (:meth:`AttitudeRateKalman._cut_shape_step`); 0 (the default): no cut, the filter
+      goes back to acquisition. The shape trial's hypotheses cut (`filter_banks.SHAPE_STEP_CUT_SIGMAS`).
     rate_tau_s: with a finite value the random-walk phase's ω is a first-order Gauss–Markov process
       instead, ω̇ = −ω/τ + w (stationary 1-σ per axis `rate_accel_radps2`·√(τ/2)): a motion that stays
       bounded about zero (a libration about a held attitude). The component of ω along B, which the
@@ -521,18 +527,6 @@ class AttitudeRateKalman:
             Pw += (floor * floor - v) * np.outer(u, u)
         return Pw
 
-    def misfit_scale(self) -> float:
-        """The factor on the published rate σ for a misfit the covariance does not carry: in Euler's equations
-        with the innovation-driven process noise at its cap (`euler_adapt_max`), the innovations' excess over
-        their covariance, √(mean NIS / 3) (the running mean of `adapt_samples` samples; 3: the measurement's
-        dimension), at least 1 — as a batch fit's covariance is scaled by its χ²/dof. Below the cap the
-        adaptation carries the misfit into P itself; above it (an unmodelled torque, a detumble controller's)
-        the filter's own σ was 2–5 times too small (1-σ coverage 26–58 % on the −Ḃ rows)."""
-        cap = self.tuning.euler_adapt_max
-        if not self.euler or cap is None or self.adapt < cap:
-            return 1.0
-        return math.sqrt(max(1.0, self._nis_mean / 3.0))
-
     def about_b_floor_rad(self) -> float:
         """The floor of the attitude's 1-σ about the field at the inertial field's turn so far
         (`AttitudeKalmanTuning.about_b_turn_rad`, `about_b_sigma_rad`)."""
@@ -611,7 +605,7 @@ class AttitudeRateKalman:
             flags |= DEGENERATE
         if s.max() > tun.sigma_flag_radps:
             flags |= DEGENERATE
-        s = np.sqrt(np.clip(np.diagonal(self.rate_cov_published()), 0.0, None)) * self.misfit_scale()
+        s = np.sqrt(np.clip(np.diagonal(self.rate_cov_published()), 0.0, None))
         self.omega_radps[:] = w
         self.sigma_radps[:] = np.minimum(s, SIGMA_UNOBSERVED_RADPS)
         self.flags = flags
