@@ -72,6 +72,12 @@ class AttitudeKalmanTuning:
       about_b_floor_rad`). The rotation about B is seen only through that turn; without the floor the
       linearised update takes the large early corrections about B as information and the σ collapses to
       a few degrees within a minute while the angle is still 100–180° off.
+    adapt_min: the floor of the innovation-driven noise factor in the random-walk phase, as
+      :class:`~.rate_kalman.RateKalmanTuning`'s (below 1 it scales the κ term too; off by default).
+    shape_step_cut_sigmas: in Euler's equations, an update that takes the shape out of the physical region
+      from inside it has its step in the shape cut at the edge when the edge is within this many σ of the
+      shape along the step (:meth:`AttitudeRateKalman._cut_shape_step`); 0 (the default): no cut, the filter
+      goes back to acquisition. The shape trial's hypotheses cut (`filter_banks.SHAPE_STEP_CUT_SIGMAS`).
     rate_tau_s: with a finite value the random-walk phase's ω is a first-order Gauss–Markov process
       instead, ω̇ = −ω/τ + w (stationary 1-σ per axis `rate_accel_radps2`·√(τ/2)): a motion that stays
       bounded about zero (a libration about a held attitude). The component of ω along B, which the
@@ -96,6 +102,7 @@ class AttitudeKalmanTuning:
     nis_reset: float = 1e3
     adapt_samples: float = 10.0
     adapt_max: float = 1e4
+    adapt_min: float = 1.0
     euler_adapt_max: float | None = None
     max_rate_radps: float = 100.0
     max_step_angle_rad: float = 2.5
@@ -108,6 +115,7 @@ class AttitudeKalmanTuning:
     along_b_sweep_power: float = 3.0
     along_b_field_turn_rel: float = 0.5
     along_b_memory_s: float = 60.0
+    shape_step_cut_sigmas: float = 0.0
 
 
 class AttitudeRateKalman:
@@ -234,6 +242,7 @@ class AttitudeRateKalman:
         self._b_ref = None
         # a rate handed over with its covariance (another filter's, which has seen B move) needs no floor
         self._handed_over = rate_cov is not None and omega_radps is not None
+        self._p_before = self.p.copy()
         self._record_prediction(t_s, np.eye(n), restart=True)
         self._update(t_s, z)
         # a rate handed over with its covariance is an estimate from the first sample on
@@ -276,6 +285,7 @@ class AttitudeRateKalman:
             self.flags |= DATA_GAP
             return True
         marks = {k: len(v) for k, v in self.log.items()}
+        self._p_before = self.p.copy()  # the shape before this update (its step is cut at the physical edge)
         try:
             # a state that blows up is caught just below (non-finite → restart, counted), not warned about
             with np.errstate(invalid="ignore", over="ignore"):
@@ -331,6 +341,22 @@ class AttitudeRateKalman:
         self.P[ip, ip] = sigma_p ** 2 * np.eye(self.n_p)
         self.adapt = 1.0
         self._nis_mean = 3.0
+
+    def back_to_acquisition(self) -> None:
+        """Lost (innovations far outside S): back to the random-walk phase, the shape from a sphere with its
+        prior σ and the rate's covariance widened by its prior (counted in `resets`)."""
+        tun = self.tuning
+        self._bad = 0
+        self.resets += 1
+        self.euler = False
+        self._samples = 0
+        if self.n_p:
+            self.p[:] = 0.0
+            ip = slice(6, 6 + self.n_p)
+            self.P[ip, :] = 0.0
+            self.P[:, ip] = 0.0
+            self.P[ip, ip] = tun.sigma_log_inertia0 ** 2 * np.eye(self.n_p)
+        self.P[3:6, 3:6] += tun.sigma_rate0_radps ** 2 * np.eye(3)
 
     def rate_found(self) -> bool:
         """The acquisition test of the random-walk phase: enough samples and every published 1-σ of ω (its
@@ -392,7 +418,7 @@ class AttitudeRateKalman:
             b0, b1, b2 = self._bhat
             w2 = w0 * w0 + w1 * w1 + w2_ * w2_
             wb = w0 * b0 + w1 * b1 + w2_ * b2
-            q_w += tun.kappa ** 2 * w2 * max(w2 - wb * wb, 0.0) / 3.0 * dt
+            q_w += min(self.adapt, 1.0) * tun.kappa ** 2 * w2 * max(w2 - wb * wb, 0.0) / 3.0 * dt
         # ω a random walk with per-step variance q_w; its effect on the attitude over the step
         return mekf.process_noise(self.n, self.n_p, float(q_w), dt, tun.inertia_shape_rate, tun.field_rate_radps,
                                   self.beta)
@@ -419,6 +445,8 @@ class AttitudeRateKalman:
                                                                           z, b_i, self.R)
         self.nis = float(nis)
         self.nll += nll
+        if self.euler and self.n_p and not physical_shape(self.p):
+            self._cut_shape_step()  # the update's step in the shape stopped at the edge of the physical region
         if self._b_i0 is not None and not self.store and self.tuning.about_b_sigma_rad > 0:
             self._floor_about_b(t_s)
         self._track_sweep(z)
@@ -444,6 +472,32 @@ class AttitudeRateKalman:
         self._ref_t = self.t_s
         self._sweep0 = max(self._sweep0, _angle(u, self._b_first))
         self._sweep1 = _angle(u, self._b_ref)
+
+    def _cut_shape_step(self) -> bool:
+        """The last update took the shape out of the physical region from inside it: cut its step in the
+        shape back to the region's edge (the projection of a constrained Kalman filter's estimate, Simon 2010
+        §3, along the step), when the edge is within `shape_step_cut_sigmas` of the shape's 1-σ of the step
+        start. An elongated body (a 3U cubesat, J₃/J₁ = 0.19) lies 0.17 in ln J₂/J₁ from the edge, less than
+        the shape prior's σ: its first corrections crossed the edge and sent the right hypothesis back to
+        acquisition. False: no cut (a step from outside, or an edge too far: the filter is lost)."""
+        p0 = getattr(self, "_p_before", None)
+        k = self.tuning.shape_step_cut_sigmas
+        if p0 is None or not k > 0 or not physical_shape(p0):
+            return False
+        d = self.p - p0
+        lo, hi = 0.0, 1.0
+        for _ in range(30):
+            mid = 0.5 * (lo + hi)
+            if physical_shape(p0 + mid * d):
+                lo = mid
+            else:
+                hi = mid
+        ip = slice(6, 6 + self.n_p)
+        s = math.sqrt(max(float(d @ self.P[ip, ip] @ d) / max(float(d @ d), 1e-300), 0.0))
+        if not lo * float(np.linalg.norm(d)) <= k * s:
+            return False
+        self.p = p0 + lo * d
+        return True
 
     def rate_cov_published(self) -> np.ndarray:
         """The 3×3 covariance of ω to publish: the filter's own, its variance along the field held at or
@@ -530,19 +584,9 @@ class AttitudeRateKalman:
         self._bad = self._bad + 1 if self.nis > tun.nis_reset else 0
         amax = tun.adapt_max if not self.euler or tun.euler_adapt_max is None else tun.euler_adapt_max
         if amax > 1.0:
-            self.adapt = adapt_noise(self, tun.adapt_samples, amax)
+            self.adapt = adapt_noise(self, tun.adapt_samples, amax, tun.adapt_min if not self.euler else 1.0)
         if self._bad >= 3:  # lost: back to acquisition
-            self._bad = 0
-            self.resets += 1
-            self.euler = False
-            self._samples = 0
-            if self.n_p:
-                self.p[:] = 0.0
-                ip = slice(6, 6 + self.n_p)
-                self.P[ip, :] = 0.0
-                self.P[:, ip] = 0.0
-                self.P[ip, ip] = tun.sigma_log_inertia0 ** 2 * np.eye(self.n_p)
-            self.P[3:6, 3:6] += tun.sigma_rate0_radps ** 2 * np.eye(3)
+            self.back_to_acquisition()
             flags |= DEGENERATE
         elif (self.euler_model and not self.euler and self._samples >= tun.euler_after_samples
               and self._nis_mean < tun.euler_nis_max

@@ -34,6 +34,27 @@ def shape_grid(step: float = 0.35, half_width: int = SHAPE_GRID_HALF_WIDTH) -> t
 EULER_ADAPT_MAX = 30.0
 #: the shape trial's least step between the samples it takes (:class:`EulerAcquisitionKalman`)
 TRIAL_STEP_S = 0.5
+#: the trial's hypotheses cut a step of their shape that leaves the physical region at its edge when the edge
+#: is within this many σ (`AttitudeKalmanTuning.shape_step_cut_sigmas`)
+SHAPE_STEP_CUT_SIGMAS = 3.0
+#: a second hypothesis per shape in the trial, its rate along B widened to the prior (:func:`widen_rate_along_b`;
+#: `EulerAcquisitionKalman(along_b_variants=True)`). Off by default: on the 27 °/s cubesat tumble it made
+#: seeds 12 and 22 lock on (the random-walk phase 10–25 σ off along B), but on a 10 °/s, 1 s tumble flown
+#: as on board a winner of the widened kind settled with its attitude about B off, the published
+#: attitude's 3-σ coverage fell from ≥ 95 % to 76–86 %, and it doubles the trial's cost
+ALONG_B_VARIANTS = False
+#: a trial that falls behind catches up by this many rounds of its hypotheses with each sample it takes
+CATCH_UP_ROUNDS = 2
+
+#: the share of the shape trial's window its hypotheses take to converge from the random-walk filter's
+#: state before their likelihoods are compared (:class:`EulerAcquisitionKalman`)
+TRIAL_BURN_IN = 0.5
+
+#: an Euler filter is lost when the exponential mean of its NIS (3 degrees of freedom: mean 3) stays above this
+#: with its process noise at the cap for a trial window (:meth:`EulerAcquisitionKalman._watch_lost`): ten
+#: samples' mean above 20 is a χ²₃₀ above 600, never by chance. (At 10 it also fired on a right winner still
+#: converging from the random-walk phase's rate on a 27 °/s cubesat tumble, NIS 5–15 for 10 s.)
+LOST_NIS_MEAN = 20.0
 
 #: hypotheses over the attitude's angle about the field once Euler's equations run (:class:`EulerAcquisitionKalman`)
 ABOUT_B_HYPOTHESES = 6
@@ -61,6 +82,21 @@ ABOUT_B_SAME_RAD = math.radians(10.0)
 #: the angle about B (a wrong hypothesis leads the right one by 10–40 for minutes on some tumbles: the
 #: rate's random walk and the field model's error absorb part of the misfit)
 ABOUT_B_TEMPER = 10.0
+
+
+def widen_rate_along_b(kf: AttitudeRateKalman, sigma_radps: float) -> None:
+    """Hold the 1-σ of `kf`'s rate along the field (its last sample's direction) at `sigma_radps` or above.
+
+    A random walk of ω cannot tell the part of ω along B from the rate's change it allows: both bend B's
+    path in the body. On a body spinning near B (a cubesat at 27 °/s, ω 20–26 °/s along B) the
+    random-walk phase settled with ω along B near zero and a σ of 1–3 °/s there, 10–25 σ off; an Euler
+    hypothesis started from it kept that σ and could not reach the rate. Euler's equations do tell the
+    part along B (the precession it drives), so the hypotheses start with it unknown (the prior σ)."""
+    u = np.asarray(kf._u, float)
+    Pw = kf.P[3:6, 3:6]
+    v = float(u @ Pw @ u)
+    if v < sigma_radps ** 2:
+        Pw += (sigma_radps ** 2 - v) * np.outer(u, u)
 
 
 class _Bank:
@@ -92,26 +128,31 @@ class EulerAcquisitionKalman(_Bank):
     (e.g. ln J₃/J₁ = 1.1 for a true 0.49) and back to acquisition.
 
     Here the random-walk filter (`main`) runs until it has found the rate (:meth:`AttitudeRateKalman.
-    rate_found`); then one Euler hypothesis per shape of `shapes` (default :func:`shape_grid`, 1-σ
-    `sigma_shape` about each) is started from a copy of it, all run in parallel with the random-walk
-    filter for `trial_samples` samples and at least `trial_s` seconds (at a 0.5 s step 30 samples: with
-    15 the trial on a fast, noisy tumble of an elongated body sometimes kept a shape that fitted the
-    random-walk phase's lagging rate, and the filter then took a minute to walk to the right one), and
-    the one with the least negative log-likelihood of its
-    innovations over the trial (Σ ½(NIS + ln det S), Bar-Shalom et al. 2001 §11.6) becomes `main`.
-    A hypothesis that restarts or leaves the physical region is dropped. When the random-walk filter
+    rate_found`); then Euler hypotheses per shape of `shapes` (default :func:`shape_grid`, 1-σ
+    `sigma_shape` about each) are started from copies of it (with `along_b_variants` two per shape, the
+    second with its rate along the field widened to the prior, :func:`widen_rate_along_b`; see
+    `ALONG_B_VARIANTS`), all run in parallel
+    with the random-walk filter for `trial_samples` samples and at least `trial_s` seconds, and the one
+    with the least negative log-likelihood of its innovations (Σ ½(NIS + ln det S), Bar-Shalom et al.
+    2001 §11.6) over the window's last part (after `TRIAL_BURN_IN` of it: each hypothesis first converges
+    from the random-walk filter's rate; scored from the start, the right shape's transient lost it the
+    trial against the random-walk filter) becomes `main`. A hypothesis's step out of the physical region
+    is cut at its edge (`SHAPE_STEP_CUT_SIGMAS`: an elongated body lies within the shape prior's σ of
+    the edge); one that restarts or leaves the region anyway is dropped. When the random-walk filter
     wins, the trial is repeated after `retry_samples`. An Euler filter that is lost (its own NIS test,
-    a shape no body has) falls back to the random-walk phase and the bank acquires again. Causal: each
+    a shape no body has, or innovations far outside S with its process noise at the cap,
+    :meth:`_watch_lost`) falls back to the random-walk phase and the bank acquires again. Causal: each
     sample is used once, when it arrives; the published estimate is `main`'s (the random-walk filter's
     during a trial).
 
     The trial's cost is bounded whatever the sample rate: it takes samples at least `trial_step_s` apart
-    (0.5 s: at most two a second, ~70 filter updates a second for 34 shapes, which the loop's
-    background work keeps up with); when that leaves out samples `main` takes, the random-walk filter's
-    score over the window is that of a copy of it run on the trial's samples.
+    (`TRIAL_STEP_S`, 0.5 s: at most two a second, ~70 filter updates a second for 34 shapes, which the
+    loop's background work keeps up with; twice that with `along_b_variants`); when that leaves out
+    samples `main` takes, the random-walk filter's score over the window is that of a copy of it
+    run on the trial's samples.
     A trial that falls behind anyway (a loop too slow, or one that never calls :meth:`work`) catches
-    up by two rounds of its hypotheses with each sample it takes, never all at once (a 50 Hz sensor
-    once stalled the loop for 27 s that way).
+    up by `CATCH_UP_ROUNDS` rounds of its hypotheses with each sample it takes, never all at once (a 50 Hz
+    sensor once stalled the loop for 27 s that way).
 
     The attitude's angle about the field shows only as the field turns along the orbit, and a single
     filter can settle 100–180° off there with a σ of a few degrees. With `about_b_hypotheses` (the flown
@@ -135,9 +176,12 @@ class EulerAcquisitionKalman(_Bank):
                  trial_samples: int = 15, trial_s: float = 15.0, retry_samples: int = 15,
                  angle_about_b_rad: float = 0.0, trial_step_s: float = TRIAL_STEP_S,
                  about_b_hypotheses: int = 0, about_b_step_s: float = ABOUT_B_STEP_S,
-                 deferred: bool = False) -> None:
+                 deferred: bool = False, along_b_variants: bool | None = None) -> None:
         # the bank decides when Euler's equations start: the filters' own innovation test is off
         tun = replace(tuning or AttitudeKalmanTuning(euler_adapt_max=EULER_ADAPT_MAX), euler_nis_max=-math.inf)
+        #: the trial's hypotheses cut a shape step at the physical edge; the winner, as `main`, does not (a shape
+        #: pushed to the edge there is a model that does not fit: back to acquisition)
+        self._trial_tuning = replace(tun, shape_step_cut_sigmas=SHAPE_STEP_CUT_SIGMAS)
         self.main = AttitudeRateKalman(sigma_b_T, field_eci_T=field_eci_T, estimate_inertia=True, tuning=tun,
                                        angle_about_b_rad=angle_about_b_rad)
         self.shapes = tuple(tuple(map(float, p)) for p in (shape_grid() if shapes is None else shapes))
@@ -145,7 +189,9 @@ class EulerAcquisitionKalman(_Bank):
         self.trial_samples = int(trial_samples)
         self.trial_s = float(trial_s)
         self.trial_step_s = float(trial_step_s)
+        self.along_b_variants = ALONG_B_VARIANTS if along_b_variants is None else bool(along_b_variants)
         self._window = self.trial_samples  # the running trial's length in samples
+        self._burn = 0  # the samples of the running trial before its scores count
         self.retry_samples = int(retry_samples)
         #: the hypotheses' updates wait for :meth:`work` (the flight loop's ticks between samples) instead of
         #: running with each sample: a trial's ~30 filter updates a sample then never land in one tick
@@ -173,6 +219,9 @@ class EulerAcquisitionKalman(_Bank):
         self._about_b_mix: tuple[float, np.ndarray] = (1.0, np.zeros((3, 3)))
         self.about_b_switches = 0
         self.about_b_updates = 0
+        #: Euler filters found lost (:meth:`_watch_lost`), and the samples in a row the test has held
+        self.lost = 0
+        self._lost_run = 0
 
     @property
     def euler(self) -> bool:
@@ -199,23 +248,42 @@ class EulerAcquisitionKalman(_Bank):
         main = self.main
         resets = main.resets
         out = main.update(t_s, b_T)
+        if main.euler and main.resets == resets:
+            self._watch_lost(main)
         if self._trial:
             if main.resets != resets:  # the random-walk filter restarted: the trial's start is void
                 self._trial, self._samples = [], []
             elif not self._samples or t_s - self._samples[-1][0] >= self.trial_step_s - 1e-9:
                 self._samples.append((t_s, np.array(b_T, float)))
+                if self._ref is None and len(self._samples) == self._burn:
+                    self._nll0 = main.nll
                 if self._ref is None and len(self._samples) == self._window:
                     self._main_nll = main.nll - self._nll0
                 if not self.deferred:
                     self._work_trial()
-                elif len(self._samples) > 2 * self._window:  # a loop too slow for the trial: two rounds of
-                    self._work_trial(2 * len(self._trial))    # the hypotheses a sample, never all at once
+                elif len(self._samples) > 2 * self._window:  # a loop too slow for the trial: a few rounds
+                    self._work_trial(CATCH_UP_ROUNDS * len(self._trial))  # a sample, never all at once
         elif self._wait > 0:
             self._wait -= 1
         elif not main.euler and main.rate_found():
             self._start_trial()
         self._about_b_sample(t_s, b_T, main.resets != resets)
         return out
+
+    def _watch_lost(self, main: AttitudeRateKalman) -> None:
+        """An Euler filter whose innovations stay far outside S although its process noise is at its cap is
+        lost (a trial's wrong winner): back to acquisition, and the shape trial runs again. The test: the
+        exponential mean of NIS over ~`adapt_samples` samples above `LOST_NIS_MEAN` for a trial window's
+        samples in a row."""
+        cap = main.tuning.euler_adapt_max
+        if main._nis_mean > LOST_NIS_MEAN and (cap is None or main.adapt >= cap):
+            self._lost_run += 1
+        else:
+            self._lost_run = 0
+        if self._lost_run >= self._window:
+            self._lost_run = 0
+            self.lost += 1
+            main.back_to_acquisition()
 
     def work(self, max_updates: int | None = None) -> int:
         """Background work, at most `max_updates` filter updates (None: all): the shape trial's hypotheses
@@ -243,6 +311,8 @@ class EulerAcquisitionKalman(_Bank):
             with np.errstate(all="ignore"):  # a wrong hypothesis may diverge: it is dropped below
                 kf.update(t, b)
             h[3] += 1
+            if h[3] == self._burn:
+                h[1] = kf.nll
             if h[3] == self._window:
                 h[4] = kf.nll - h[1]
             done += 1
@@ -261,6 +331,7 @@ class EulerAcquisitionKalman(_Bank):
         self._trial, self._samples = [], []
         dt = max(self.main._dt_nominal, self.trial_step_s)  # the trial's sample step
         self._window = max(self.trial_samples, int(math.ceil(self.trial_s / dt - 1e-9)) if dt > 0 else 0)
+        self._burn = int(TRIAL_BURN_IN * self._window)
         self._ref = None
         if self.main._dt_nominal < self.trial_step_s - 1e-9:  # the trial leaves samples out: score a copy
             ref = self.main.clone()
@@ -269,9 +340,13 @@ class EulerAcquisitionKalman(_Bank):
         self._nll0 = self.main.nll
         self._main_nll = math.nan
         for p in self.shapes:
-            kf = self.main.clone()
-            kf.start_euler(np.array(p), self.sigma_shape)
-            self._trial.append([kf, kf.nll, kf.resets, 0, math.nan])
+            for widen in ((False, True) if self.along_b_variants else (False,)):
+                kf = self.main.clone()
+                kf.tuning = self._trial_tuning
+                kf.start_euler(np.array(p), self.sigma_shape)
+                if widen:
+                    widen_rate_along_b(kf, kf.tuning.sigma_rate0_radps)
+                self._trial.append([kf, kf.nll, kf.resets, 0, math.nan])
 
     def _decide(self) -> None:
         best, best_nll = None, self._main_nll if self._ref is None else self._ref[4]
@@ -283,6 +358,7 @@ class EulerAcquisitionKalman(_Bank):
         if best is None:
             self._wait = self.retry_samples
         else:
+            best.tuning = self.main.tuning
             self.main = best
             self._stop_about_b()
             self._about_b_want = True
