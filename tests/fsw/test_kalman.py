@@ -431,15 +431,16 @@ def test_an_euler_filter_on_a_wrong_shape_is_found_lost_and_acquires_again():
     """The issue's cubesat tumble (27 °/s, 0.5 s, here 0.5 µT; true ln J₂/J₁, ln J₃/J₁ = 0, −1.66): once the bank
     runs Euler's equations, its filter is put on a wrong shape (0.1, −0.5) held with a σ of 0.001. Its
     innovations then stay at NIS 40–90 with the process noise at its cap, below the single filter's reset
-    (NIS > 1000 three times): before, it stayed 3–9 °/s off for three minutes. The bank finds it lost
-    (mean NIS > 20 at the cap for a trial window), goes back to acquisition and the next trial lands near the
+    (NIS > 1000 three times): before, it stayed 3–9 °/s off for three minutes. With the watch on
+    (`lost_nis_mean` 20; off by default, see `LOST_NIS_MEAN`) the bank finds it lost (mean NIS > 20 at the cap
+    for a trial window), goes back to acquisition and the next trial lands near the
     body: from 120 s on the error is within 2 °/s RMS of the simulator's truth."""
     from bench import lockon
     from fsw.estimation.onboard_field import InterpolatedOrbitField
     from hil.ident_sitl import field_model
     scn, t, b, bt, w, q = lockon.tumble(3, 27.0, 0.5, 0.5e-6, 240.0)
     kf = fb.EulerAcquisitionKalman(math.hypot(0.5e-6, lockon.CHIP_NOISE_T),
-                                   field_eci_T=InterpolatedOrbitField(field_model(scn)).b_eci_T)
+                                   field_eci_T=InterpolatedOrbitField(field_model(scn)).b_eci_T, lost_nis_mean=20.0)
     spoiled = False
     w_est = np.full_like(w, np.nan)
     for k in range(len(t)):
