@@ -5,6 +5,7 @@
                                 [--fits full,shape] [--shape-data all|free] [--no-linear]
     python -m bench.inertia --crb 1500,3000,6000 [--scenarios ...] [--json FILE]
     python -m bench.inertia --world realistic [...]   # IGRF-13 + SGP4 + host iron + 3-day-old TLE + clock 2 s
+    python -m bench.inertia --field-error none [...]   # the field model taken as exact (as before 2026-11-25)
 
 For each scenario the simulator integrates the truth once over the record (``--duration``; by default
 the shortest of 1500, 3000, 4500, 6000 s whose Cramér–Rao bound on the shape ratios is at most
@@ -13,7 +14,10 @@ the known moment), and ``--runs`` records are drawn from it with independent
 sensor noise (the scenario's noise_uT and the chip's, per axis, at the scenario's sample rate;
 seeded). On each record:
 
-- **full**: the output-error fit of the whole record, six components (`fsw.estimation.euler_fit`);
+- **full**: the output-error fit of the whole record, six components (`fsw.estimation.euler_fit`); by
+  default (``--field-error fit``) every fit also fits the field model's error along the record (a smooth
+  offset of the inertial field, `fsw.estimation.euler_fit.field_error`) and its intervals include that
+  error's uncertainty;
 - **shape**: the tensor up to scale without the torque's size (the cellular-rotation-slowdown paper's
   torque-free null space, done on the samples), scored on the principal-moment ratios I1/I3, I2/I3.
   By default the whole record: torque-free on both sides of the pulses, each pulse fitted as a
@@ -257,8 +261,10 @@ def fit_options(t_s: np.ndarray, field_error: str, **kw) -> ef.FitOptions:
     the field model taken as exact."""
     if field_error not in FIELD_ERROR:
         raise ValueError(f"field error must be one of {', '.join(FIELD_ERROR)}, got {field_error!r}")
-    deg = fe.degree_for(float(t_s[-1] - t_s[0])) if field_error == "fit" else None
-    return ef.FitOptions(field_error_degree=deg, **kw)
+    if field_error == "none":
+        return ef.FitOptions(**kw)
+    from bench.realistic import SOFT_RESIDUAL
+    return ef.FitOptions(field_error_degree=fe.degree_for(float(t_s[-1] - t_s[0])), soft_iron_sigma=SOFT_RESIDUAL, **kw)
 
 
 def _chi2_exact_model(r: ef.FitResult) -> float:
@@ -271,6 +277,7 @@ def _field_error_stats(res: list) -> dict:
     coef = np.array([r.field_error.coef_T for r in res]) * 1e6
     sig = np.array([r.field_error.sigma_T for r in res]) * 1e6
     return {"degree": res[0].field_error.degree, "coef_uT_abs_max": float(np.abs(coef).max()),
+            "rms_uT_mean": float(np.mean([r.field_error.rms_T for r in res])) * 1e6,
             "coef_uT_rms": float(np.sqrt(np.mean(coef ** 2))), "sigma_uT_mean": float(sig.mean())}
 
 
@@ -446,7 +453,7 @@ def table(r: dict) -> str:
             e = f["field_error"]
             lines.append(f"   field model's error fitted (Legendre degree {e['degree']} in time, inertial axes): "
                          f"coefficients rms {e['coef_uT_rms']:.3f} µT, largest {e['coef_uT_abs_max']:.3f} µT, "
-                         f"1-σ {e['sigma_uT_mean']:.3f} µT")
+                         f"1-σ {e['sigma_uT_mean']:.3f} µT; its RMS from |B| {e['rms_uT_mean']:.3f} µT")
     if "shape" in r:
         lines.extend(_shape_lines(r))
     if "linear" in r:

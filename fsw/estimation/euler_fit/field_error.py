@@ -36,8 +36,11 @@ from ..rotations import quat_to_dcm
 #: the field's direction turns about once per half orbit on a low orbit (2 × the orbital rate):
 #: 0.133 °/s, ground.field.LEO_FIELD_TURN_DPS
 FIELD_TURN_PERIOD_S = 360.0 / 0.133
-#: prior 1-σ of each coefficient [T]: the dipole is 8.6 µT RMS off the degree-13 field
-PRIOR_SIGMA_T = 10e-6
+#: the window of the |B| residual's moving average [s] (the field's error is smooth over it, the noise
+#: averages down by its number of samples)
+SMOOTH_S = 60.0
+#: the error's RMS taken when the |B| residual shows none [T] (a prior so tight the coefficients stay at 0)
+FLOOR_T = 1e-9
 
 
 def degree_for(duration_s: float, turn_period_s: float = FIELD_TURN_PERIOD_S) -> int:
@@ -72,13 +75,58 @@ class FieldError:
     coef_T: np.ndarray
     sigma_T: np.ndarray
     chi2_model_exact: float         # the fit's χ² before (the field model taken as exact)
+    rms_T: float = 0.0              # the error's RMS |B| showed (the coefficients' prior)
+    drift_T: np.ndarray | None = None   # (D, 3) the host's hard-iron drift, Legendre 1…D, body axes
+    soft_iron: np.ndarray | None = None  # (3, 3) the soft iron's error, when modelled
 
     def as_dict(self) -> dict:
         return {"degree": self.degree, "coef_uT": (self.coef_T * 1e6).tolist(),
-                "sigma_uT": (self.sigma_T * 1e6).tolist(), "chi2_model_exact": self.chi2_model_exact}
+                "sigma_uT": (self.sigma_T * 1e6).tolist(), "chi2_model_exact": self.chi2_model_exact,
+                "rms_uT": self.rms_T * 1e6}
 
 
-def apply(ss, theta: np.ndarray, prior, result, degree: int, run: int = 0, prior_sigma_T: float = PRIOR_SIGMA_T):
+def error_rms_T(t_s: np.ndarray, b_meas_T: np.ndarray, b_model_norm_T: np.ndarray, smooth_s: float = SMOOTH_S) -> float:
+    """The field error's RMS that |B| shows: d = |B_measured| − |B_model| does not depend on the attitude.
+    The white noise's variance σ² per axis is half that of d's first differences; it biases |B_measured|
+    up by σ²/|B| (the two axes across B), which is taken off. The moving average of d over `smooth_s`
+    keeps the smooth error and 1/m of the noise's variance (m samples a window): RMS² = mean(d̄²) − σ²/m,
+    ≥ 0 (the mean kept: a constant error of |B| is an error too)."""
+    bm = np.asarray(b_model_norm_T, float)
+    d = np.linalg.norm(b_meas_T, axis=1) - bm
+    dt = float(np.median(np.diff(t_s))) if len(t_s) > 1 else 1.0
+    m = int(max(1, min(len(d) // 4, round(smooth_s / max(dt, 1e-9)))))
+    if len(d) < 8 or m < 2:
+        return 0.0
+    white = 0.5 * float(np.var(np.diff(d)))
+    d = d - white / np.maximum(bm, 1e-12)
+    dbar = np.convolve(d, np.ones(m) / m, mode="valid")
+    return math.sqrt(max(float(np.mean(dbar * dbar)) - white / m, 0.0))
+
+
+def prior_sigmas_T(rms_T: float, degree: int) -> np.ndarray:
+    """Prior 1-σ of the coefficients (D+1, 3) [T] of an error of RMS `rms_T` per axis shared equally among
+    the D+1 polynomials (Parseval over the record: RMS² = Σ_j c_j² / (2j+1))."""
+    s = max(float(rms_T), FLOOR_T)
+    j = np.arange(degree + 1)
+    return np.repeat((s * np.sqrt((2 * j + 1) / (degree + 1)))[:, None], 3, axis=1)
+
+
+def body_columns(t_s: np.ndarray, b_body_T: np.ndarray, degree: int, sigma_b_T: float,
+                 soft_iron: bool) -> np.ndarray:
+    """∂r/∂c (m, n, 3) of the host's errors left by the calibration, in body axes (r whitened by
+    `sigma_b_T`): the hard iron's drift, Legendre degree 1…D per axis (the constant is the fit's own
+    offset; index 3(j−1) + a, per unit c = δb / σ_B), then, with `soft_iron`, the soft iron's 3×3 error δS
+    (row-major, per unit δS) acting on the field `b_body_T` (n, 3)."""
+    phi = basis(t_s, degree)[:, 1:]                             # (n, D)
+    n = len(phi)
+    drift = np.einsum("nj,ab->janb", phi, np.eye(3)).reshape(3 * degree, n, 3)
+    if not soft_iron:
+        return drift
+    soft = np.einsum("ac,nb->abnc", np.eye(3), np.asarray(b_body_T, float) / sigma_b_T).reshape(9, n, 3)
+    return np.concatenate([drift, soft])
+
+
+def apply(ss, theta: np.ndarray, prior, result, degree: int, run: int = 0, soft_iron_sigma: float | None = None):
     """`result` (a FitResult of run `run` of the single-shooting problem `ss` at `theta`) with the field
     error of `degree` fitted by one Gauss–Newton step and marginalised (see the module's docstring): a new
     FitResult with the tensor, motion, offset, χ², dof and covariances of the joint problem, and
@@ -87,12 +135,20 @@ def apply(ss, theta: np.ndarray, prior, result, degree: int, run: int = 0, prior
     r, J = ss.residuals_jacobian(theta[None], np.array([run]))
     r, J = r[0], J[0]                                          # (n, 3), (k, n, 3)
     q = ss.trajectory(theta, run)["q"]
-    Jc = columns(ss.t[:ss.n], q, degree)                        # per unit c = δB / σ_B
+    t = ss.t[:ss.n]
+    b = ss.b_meas[run, :ss.n] - result.bias_T
+    b_model = b + r * ss.sigma                                  # the predicted field less the offset
+    rms = error_rms_T(t, b, np.linalg.norm(b_model, axis=1))
+    soft = soft_iron_sigma is not None and soft_iron_sigma > 0
+    Jc = np.concatenate([columns(t, q, degree),                 # per unit c = δB / σ_B
+                         body_columns(t, b_model, degree, ss.sigma, soft)])
     Ja = np.concatenate([J, Jc])
     m = len(Jc)
     H = np.einsum("kna,lna->kl", Ja, Ja)
-    w_c = ss.sigma / prior_sigma_T
-    w2 = np.concatenate([prior.w ** 2 if prior is not None else np.zeros(k), np.full(m, w_c * w_c)])
+    sig = prior_sigmas_T(rms, degree)
+    w_c = np.concatenate([ss.sigma / sig.ravel(), ss.sigma / sig[1:].ravel()]
+                         + ([np.full(9, 1.0 / soft_iron_sigma)] if soft else []))
+    w2 = np.concatenate([prior.w ** 2 if prior is not None else np.zeros(k), w_c * w_c])
     H[np.diag_indices_from(H)] += w2
     g = np.einsum("kna,na->k", Ja, r)
     if prior is not None:
@@ -111,8 +167,11 @@ def apply(ss, theta: np.ndarray, prior, result, degree: int, run: int = 0, prior
     _, q0, w0, bias = ss.unpack(th[None], np.array([run]))
     cov_th = cov[:k, :k]
     mom, cov_m = par.moments_of(th[:n_I], cov_th[:n_I, :n_I]) if par.n_moments else (None, None)
-    fe = FieldError(degree, (delta[k:] * ss.sigma).reshape(degree + 1, 3),
-                    (np.sqrt(np.diag(cov)[k:]) * ss.sigma).reshape(degree + 1, 3), float(result.chi2))
+    ni = 3 * (degree + 1)
+    fe = FieldError(degree, (delta[k:k + ni] * ss.sigma).reshape(degree + 1, 3),
+                    (np.sqrt(np.diag(cov)[k:k + ni]) * ss.sigma).reshape(degree + 1, 3), float(result.chi2), rms,
+                    (delta[k + ni:k + ni + 3 * degree] * ss.sigma).reshape(degree, 3),
+                    delta[k + ni + 3 * degree:].reshape(3, 3) if soft else None)
     return dataclasses.replace(result, p=p, cov_p=T @ cov_th[:n_I, :n_I] @ T.T, omega0_radps=w0[0], q0=q0[0],
                                bias_T=bias[0], chi2=chi2, dof=dof, theta=th, cov_theta=cov_th, moments_Nm=mom,
                                cov_moments=cov_m, field_error=fe)

@@ -100,6 +100,8 @@ class FitOptions:
     # the field model's error along the record fitted and marginalised (`field_error`): the Legendre degree
     # in time (`field_error.degree_for` gives it for a record's length), None: the field model taken as exact
     field_error_degree: int | None = None
+    # with it, the soft iron's error left by the host's calibration: its 1-σ per element (None: not fitted)
+    soft_iron_sigma: float | None = None
 
 
 def identify(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, action: KnownAction,
@@ -242,7 +244,8 @@ def identify_steps(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, act
         j = int(idx[int(np.argmin(np.where(np.isfinite(costs), costs, np.inf)))])
         res = allres[j]
         if opts.field_error_degree is not None and np.isfinite(res.chi2):
-            res = field_error.apply(ss, sruns.theta[j], prior, res, int(opts.field_error_degree), run=j)
+            res = field_error.apply(ss, sruns.theta[j], prior, res, int(opts.field_error_degree), run=j,
+                                    soft_iron_sigma=opts.soft_iron_sigma)
             if chunk is not None:
                 yield
         out.append(res)
