@@ -66,7 +66,7 @@ def test_a_fit_that_takes_its_field_model_as_exact_is_confidently_wrong_one_that
     # 6 coefficients of the inertial offset, 3 of the host's drift (soft iron not asked for)
     assert fitted.dof == exact.dof - 9 and fitted.chi2 < exact.chi2 and e.soft_iron is None
     assert 0.7 < fitted.s2 < 1.3
-    assert 0.5e-6 < e.rms_T < 5e-6                           # |B| shows an error of the offset's size
+    assert 0.2e-6 < e.rms_T < 5e-6          # |B| shows an error (the fitted offset takes a part of it)
 
 
 def test_degree_grows_with_the_record_and_the_basis_is_legendre():
