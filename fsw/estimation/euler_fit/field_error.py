@@ -9,19 +9,28 @@ which is exactly where that error lives, so a white-noise σ is too small (the r
 mean (error/σ)² 1.3–2.1 instead of 1). The fit's residuals cannot show it: what of it the parameters
 absorb is missing from them.
 
-Rule: the error is modelled as an offset of the inertial field δB_I(t) = Σ_j c_j P_j(x(t)), Legendre
-polynomials of degree 0…D over the record in each inertial axis, D = 1 + ⌊T / (T_turn/2)⌋ for a record
-of T seconds (:func:`degree_for`; T_turn ≈ 2,700 s, the field's turn period on a low orbit: a degree
-per half turn, at least a linear drift), each coefficient with a weak prior of 10 µT (no field model in
-use is off by more than the dipole is, 8.6 µT RMS). From the converged fit, one Gauss–Newton step of
-the problem with the 3(D+1) coefficients added moves the tensor by what the error's fitted part
-explains, and the covariance is the joint one's block of the tensor and the motion: the uncertainty of
-the field's error is marginalised into the tensor's (:func:`apply`). The measurement model is linear in
-δB_I (B_body = R(q)ᵀ (B_I + δB_I) + b), so its derivatives are analytic at the fitted attitudes; the
-change of the torque m × B through δB_I is of second order and left out.
+Rule: the error is modelled as
+- an offset of the inertial field δB_I(t) = Σ_j c_j P_j(x(t)), Legendre polynomials of degree 0…D over
+  the record in each inertial axis, D = 1 + ⌊T / (T_turn/2)⌋ for a record of T seconds
+  (:func:`degree_for`; T_turn ≈ 2,700 s, the field's turn period on a low orbit: a degree per half turn,
+  at least a linear drift);
+- the host's hard-iron drift left by a constant calibration: Legendre degree 1…D per body axis (the
+  constant is the fit's own offset);
+- optionally the calibration's soft-iron error δS (3×3, acting on the body field) with the 1-σ the
+  calibration states (``FitOptions.soft_iron_sigma``).
+The size of the first two comes from the data, attitude-free: |B_measured| − |B_model| does not depend
+on the attitude, and its smooth part's RMS (:func:`error_rms_T`) is shared equally among the
+polynomials as their prior 1-σ (:func:`prior_sigmas_T`); a record whose |B| agrees with the model's
+gets priors so tight that nothing changes. From the converged fit, one Gauss–Newton step of the problem
+with these coefficients added (taken only as far as it lowers the cost: :data:`STEP_LENGTHS`) moves the
+tensor by what the errors' fitted part explains, and the covariance is the joint one's block of the
+tensor and the motion: the uncertainty of the errors is marginalised into the tensor's
+(:func:`apply`). The measurement model is linear in them (B_body = (I + δS) R(q)ᵀ (B_I + δB_I) + b +
+δb(t) to first order), so their derivatives are analytic at the fitted attitudes; the change of the
+torque m × B through δB_I is of second order and left out.
 
-With a perfect field model the coefficients come out at zero within their σ and the intervals are
-wider by what estimating them costs (the price of not assuming the model exact).
+With a perfect field model the coefficients come out at zero within their σ and the intervals are at
+most as much wider as estimating them costs (the price of not assuming the model exact).
 """
 from __future__ import annotations
 
@@ -126,6 +135,36 @@ def body_columns(t_s: np.ndarray, b_body_T: np.ndarray, degree: int, sigma_b_T: 
     return np.concatenate([drift, soft])
 
 
+#: step lengths tried, longest first: the Gauss–Newton step is taken only as far as it lowers the cost
+STEP_LENGTHS = (1.0, 0.5, 0.25, 0.125, 0.0625)
+
+
+def _accepted_step(ss, theta: np.ndarray, prior, r: np.ndarray, Jc: np.ndarray, w_c: np.ndarray,
+                   step: np.ndarray, run: int) -> tuple[np.ndarray, float]:
+    """The joint step scaled by the longest of :data:`STEP_LENGTHS` whose cost (χ² with the trajectory
+    integrated at the new θ and the error's columns linear, plus the priors) is not above the fit's; none
+    such: no step. Returns (step, χ² of the data there)."""
+    k = len(theta)
+    n = ss.n
+
+    def cost(alpha: float) -> tuple[float, float]:
+        d = alpha * step
+        th = theta + d[:k]
+        ps = ss.start(th[None], np.array([run]))
+        ps.advance()
+        rr = (ps.pred[0, :n] - ss.b_meas[run, :n]) / ss.sigma + np.einsum("m,mna->na", d[k:], Jc)
+        chi2 = float(np.sum(rr * rr))
+        pc = float(prior.cost(th)) if prior is not None else 0.0
+        return chi2 + pc + float(np.sum((w_c * d[k:]) ** 2)), chi2
+
+    c0 = float(np.sum(r * r)) + (float(prior.cost(theta)) if prior is not None else 0.0)
+    for alpha in STEP_LENGTHS:
+        c, chi2 = cost(alpha)
+        if np.isfinite(c) and c <= c0 + 1e-6 * abs(c0):
+            return alpha * step, chi2
+    return np.zeros_like(step), float(np.sum(r * r))
+
+
 def apply(ss, theta: np.ndarray, prior, result, degree: int, run: int = 0, soft_iron_sigma: float | None = None):
     """`result` (a FitResult of run `run` of the single-shooting problem `ss` at `theta`) with the field
     error of `degree` fitted by one Gauss–Newton step and marginalised (see the module's docstring): a new
@@ -154,9 +193,8 @@ def apply(ss, theta: np.ndarray, prior, result, degree: int, run: int = 0, soft_
     if prior is not None:
         g[:k] += prior.w * prior.residual(theta)
     Hinv = np.linalg.pinv(H)
-    delta = -Hinv @ g
-    r_new = r + np.einsum("k,kna->na", delta, Ja)
-    chi2 = float(np.sum(r_new * r_new))
+    step = -Hinv @ g
+    delta, chi2 = _accepted_step(ss, theta, prior, r, Jc, w_c, step, run)
     dof = max(3 * ss.n - k - m, 1)
     cov = chi2 / dof * Hinv
     th = theta + delta[:k]
