@@ -356,10 +356,8 @@ def bench_scenario(name: str, runs: int, seed: int, duration_s: float,
                         "chi2_above_truth_start_max": float(np.max(chi2 - polish))}
         log(f"{name}: shape done ({time.time() - t0:.0f} s)")
         pshape = np.array([r.p for r in sh])
-        # κ with the field model taken as exact: with the field's error fitted too, one realistic scale fit
-        # (asymmetric, 2026-11-25) went to 77-90 × κ at a lower cost (κ nearly free against the errors' terms)
-        sc = ef.identify(tr.t_s, bm, tr.b_inertial, tr.action, tr.sigma_b_T, pshape[0], ef.FitOptions(mode="scale"),
-                         p_shape=pshape, b_samples=bs)
+        sc = ef.identify(tr.t_s, bm, tr.b_inertial, tr.action, tr.sigma_b_T, pshape[0],
+                         fit_options(tr.t_s, field_error, mode="scale"), p_shape=pshape, b_samples=bs)
         kappa = np.array([np.linalg.norm(r.p) / np.linalg.norm(p_true) for r in sc])
         out["kappa"] = {"kappa_true": float(np.linalg.norm(p_true)), "ratio_min": float(kappa.min()),
                         "ratio_max": float(kappa.max()),
