@@ -5,6 +5,7 @@
                                 [--fits full,shape] [--shape-data all|free] [--no-linear]
     python -m bench.inertia --crb 1500,3000,6000 [--scenarios ...] [--json FILE]
     python -m bench.inertia --world realistic [...]   # IGRF-13 + SGP4 + host iron + 3-day-old TLE + clock 2 s
+    python -m bench.inertia --field-error none [...]   # the field model taken as exact (as before 2026-11-25)
 
 For each scenario the simulator integrates the truth once over the record (``--duration``; by default
 the shortest of 1500, 3000, 4500, 6000 s whose Cramér–Rao bound on the shape ratios is at most
@@ -13,7 +14,10 @@ the known moment), and ``--runs`` records are drawn from it with independent
 sensor noise (the scenario's noise_uT and the chip's, per axis, at the scenario's sample rate;
 seeded). On each record:
 
-- **full**: the output-error fit of the whole record, six components (`fsw.estimation.euler_fit`);
+- **full**: the output-error fit of the whole record, six components (`fsw.estimation.euler_fit`); by
+  default (``--field-error fit``) every fit also fits the field model's error along the record (a smooth
+  offset of the inertial field, `fsw.estimation.euler_fit.field_error`) and its intervals include that
+  error's uncertainty;
 - **shape**: the tensor up to scale without the torque's size (the cellular-rotation-slowdown paper's
   torque-free null space, done on the samples), scored on the principal-moment ratios I1/I3, I2/I3.
   By default the whole record: torque-free on both sides of the pulses, each pulse fitted as a
@@ -52,6 +56,7 @@ from bench.campaign import Run
 from bench.campaign import options as campaign_options
 from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range
 from fsw.estimation import euler_fit as ef
+from fsw.estimation.euler_fit import field_error as fe
 from fsw.estimation import inertia as inr
 from fsw.files import write_atomic
 from hil.sitl import BANDWIDTH
@@ -66,6 +71,8 @@ LINEAR_SIGMA_OMEGA_RADPS = math.radians(0.05)
 #: seed of the box's calibration residual
 REALISTIC_ORBIT_FROM, REALISTIC_CLOCK_OFFSET_S, REALISTIC_CAL_SEED = "isoi_sgp4", 2.0, 15
 LINEAR_SIGMA_OMEGA_DOT_RADPS2 = math.radians(0.005)
+#: --field-error: the field model's error fitted and marginalised (default), or the model taken as exact
+FIELD_ERROR = ("fit", "none")
 
 #: What the papers report, printed next to the results.
 PAPERS = {
@@ -248,12 +255,39 @@ def wilson(k: float, n: int, beta: float = 0.95) -> tuple[float, float]:
     return c - h, c + h
 
 
+def fit_options(t_s: np.ndarray, field_error: str, **kw) -> ef.FitOptions:
+    """The fit's options for samples at `t_s`: with ``field_error`` "fit" the field model's error fitted
+    and marginalised at the degree its length calls for (`fsw.estimation.euler_fit.field_error`), "none"
+    the field model taken as exact."""
+    if field_error not in FIELD_ERROR:
+        raise ValueError(f"field error must be one of {', '.join(FIELD_ERROR)}, got {field_error!r}")
+    if field_error == "none":
+        return ef.FitOptions(**kw)
+    from bench.realistic import SOFT_RESIDUAL
+    return ef.FitOptions(field_error_degree=fe.degree_for(float(t_s[-1] - t_s[0])), soft_iron_sigma=SOFT_RESIDUAL, **kw)
+
+
+def _chi2_exact_model(r: ef.FitResult) -> float:
+    """χ² of a fit with the field model taken as exact (before its error was fitted, when it was)."""
+    return r.field_error.chi2_model_exact if r.field_error is not None else r.chi2
+
+
+def _field_error_stats(res: list) -> dict:
+    """The fitted field errors of the runs: degree, the largest |coefficient| and mean 1-σ [µT]."""
+    coef = np.array([r.field_error.coef_T for r in res]) * 1e6
+    sig = np.array([r.field_error.sigma_T for r in res]) * 1e6
+    return {"degree": res[0].field_error.degree, "coef_uT_abs_max": float(np.abs(coef).max()),
+            "rms_uT_mean": float(np.mean([r.field_error.rms_T for r in res])) * 1e6,
+            "coef_uT_rms": float(np.sqrt(np.mean(coef ** 2))), "sigma_uT_mean": float(sig.mean())}
+
+
 def bench_scenario(name: str, runs: int, seed: int, duration_s: float,
                    log=lambda m: None, linear: bool = True, fits: tuple = ("full", "shape"),
-                   shape_from: str = "all", truth: TruthRecord | None = None, world: str = "ideal") -> dict:
+                   shape_from: str = "all", truth: TruthRecord | None = None, world: str = "ideal",
+                   field_error: str = "fit") -> dict:
     """The fits of one scenario over ``runs`` noise draws (``fits``: "full" and/or "shape", which
     includes κ; ``shape_from``: see :func:`shape_data`; ``truth``: the noise-free record of `duration_s`
-    if already simulated); a JSON-ready dict."""
+    if already simulated; ``field_error``: see :func:`fit_options`); a JSON-ready dict."""
     t0 = time.time()
     tr = truth if truth is not None else truth_record(name, duration_s, world=world)
     rng = np.random.default_rng(seed)
@@ -264,10 +298,11 @@ def bench_scenario(name: str, runs: int, seed: int, duration_s: float,
     bs = np.asarray(tr.b_inertial(tr.t_s))
     out: dict = {"scenario": name, "world": world, "description": tr.scenario.description, "runs": runs, "seed": seed,
                  "duration_s": duration_s, "samples": len(tr.t_s), "sigma_uT": tr.sigma_b_T * 1e6,
-                 "paper": PAPERS.get(name, "")}
+                 "paper": PAPERS.get(name, ""), "field_error": field_error}
     if "full" in fits:
         # full tensor
-        res = ef.identify(tr.t_s, bm, tr.b_inertial, tr.action, tr.sigma_b_T, p_guess, ef.FitOptions(), b_samples=bs)
+        res = ef.identify(tr.t_s, bm, tr.b_inertial, tr.action, tr.sigma_b_T, p_guess,
+                          fit_options(tr.t_s, field_error), b_samples=bs)
         P = np.array([r.p for r in res])
         H95 = np.array([inr.half_width(r.cov_p, 0.95) for r in res])
         H99 = np.array([inr.half_width(r.cov_p, 0.99) for r in res])
@@ -280,17 +315,19 @@ def bench_scenario(name: str, runs: int, seed: int, duration_s: float,
                      "positive_definite_runs": float(np.mean([inr.physical_checks(inr.tensor(p))["positive_definite"]
                                                               for p in P])),
                      "triangle_runs": float(np.mean([inr.physical_checks(inr.tensor(p))["triangle"] for p in P]))})
-        chi2 = np.array([r.chi2 for r in res])
+        chi2 = np.array([_chi2_exact_model(r) for r in res])
         polish = chi2_from_truth(tr, np.ones(len(tr.t_s), bool), [], bm, ef.FitOptions(), tr.action)
         full.update({"local_minimum_runs": int(np.sum(chi2 - polish > 1.0)),
                      "chi2_above_truth_start_max": float(np.max(chi2 - polish))})
+        if res[0].field_error is not None:
+            full["field_error"] = _field_error_stats(res)
         out["full"] = full
         log(f"{name}: full tensor done ({time.time() - t0:.0f} s)")
     if "shape" in fits:
         # the shape (tensor up to scale) without the torque's size, then κ from the known torque
         sel, unknown = shape_data(tr, shape_from)
         ts, bms, bss = tr.t_s[sel], bm[:, sel], bs[sel]
-        opts = ef.FitOptions(mode="shape")
+        opts = fit_options(ts, field_error, mode="shape")
         sh = ef.identify(ts, bms, tr.b_inertial, ef.KnownAction.none(), tr.sigma_b_T, p_guess, opts,
                          b_samples=bss, unknown_moments=unknown)
         ratios_true = inr.principal_ratios(tr.scenario.inertia_kgm2)
@@ -302,8 +339,8 @@ def bench_scenario(name: str, runs: int, seed: int, duration_s: float,
         R_est, R_sd = np.array(R_est), np.array(R_sd)
         rerr = 100 * (R_est / ratios_true - 1)
         crb = shape_crb(tr, sel, unknown)
-        polish = chi2_from_truth(tr, sel, unknown, bms, opts)
-        chi2 = np.array([r.chi2 for r in sh])
+        polish = chi2_from_truth(tr, sel, unknown, bms, ef.FitOptions(mode="shape"))
+        chi2 = np.array([_chi2_exact_model(r) for r in sh])
         out["shape"] = {"data": shape_from, "from_s": float(ts[0]), "to_s": float(ts[-1]), "samples": int(sel.sum()),
                         "unknown_moments_s": [list(u) for u in unknown], "ratios_truth": ratios_true.tolist(),
                         "ratio_err_pct_rms": np.sqrt(np.mean(rerr ** 2, axis=0)).tolist(),
@@ -319,8 +356,8 @@ def bench_scenario(name: str, runs: int, seed: int, duration_s: float,
                         "chi2_above_truth_start_max": float(np.max(chi2 - polish))}
         log(f"{name}: shape done ({time.time() - t0:.0f} s)")
         pshape = np.array([r.p for r in sh])
-        sc = ef.identify(tr.t_s, bm, tr.b_inertial, tr.action, tr.sigma_b_T, pshape[0], ef.FitOptions(mode="scale"),
-                         p_shape=pshape, b_samples=bs)
+        sc = ef.identify(tr.t_s, bm, tr.b_inertial, tr.action, tr.sigma_b_T, pshape[0],
+                         fit_options(tr.t_s, field_error, mode="scale"), p_shape=pshape, b_samples=bs)
         kappa = np.array([np.linalg.norm(r.p) / np.linalg.norm(p_true) for r in sc])
         out["kappa"] = {"kappa_true": float(np.linalg.norm(p_true)), "ratio_min": float(kappa.min()),
                         "ratio_max": float(kappa.max()),
@@ -412,6 +449,11 @@ def table(r: dict) -> str:
                          f"  {f['z2_mean'][k]:6.2f}")
         lines.append(f"   local minima {f['local_minimum_runs']} of {r['runs']} runs (χ² vs single shooting from the "
                      f"truth: at most {f['chi2_above_truth_start_max']:+.2f})")
+        if "field_error" in f:
+            e = f["field_error"]
+            lines.append(f"   field model's error fitted (Legendre degree {e['degree']} in time, inertial axes): "
+                         f"coefficients rms {e['coef_uT_rms']:.3f} µT, largest {e['coef_uT_abs_max']:.3f} µT, "
+                         f"1-σ {e['sigma_uT_mean']:.3f} µT; its RMS from |B| {e['rms_uT_mean']:.3f} µT")
     if "shape" in r:
         lines.extend(_shape_lines(r))
     if "linear" in r:
@@ -562,7 +604,7 @@ def crb_lines(table_: dict) -> str:
 
 
 def scenario_task(run: Run, *, runs: int, duration: str, world: str, linear: bool, fits: list,
-                  shape_from: str) -> dict:
+                  shape_from: str, field_error: str = "fit") -> dict:
     """A campaign's task: one scenario's fits over its noise draws (seeded by the run's seed); the record's
     length designed first when `duration` is "auto". The time taken is left out (a run's result depends on
     its scenario and seed only)."""
@@ -580,7 +622,8 @@ def scenario_task(run: Run, *, runs: int, duration: str, world: str, linear: boo
     else:
         length = float(duration)
     r = bench_scenario(name, runs, seed, length, log=lambda m: print("  " + m, file=sys.stderr, flush=True),
-                       linear=linear, fits=tuple(fits), shape_from=shape_from, truth=truth, world=world)
+                       linear=linear, fits=tuple(fits), shape_from=shape_from, truth=truth, world=world,
+                       field_error=field_error)
     if design is not None:
         r["record_design"] = design
     r.pop("seconds", None)
@@ -600,6 +643,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--world", choices=("ideal", "realistic"), default="ideal",
                     help="realistic: IGRF degree 13 on an SGP4 orbit, the host's iron after the box's calibration, "
                          "a 3-day-old box TLE, the box's clock 2 s ahead (default ideal)")
+    ap.add_argument("--field-error", choices=FIELD_ERROR, default="fit",
+                    help="fit: the field model's error along the record fitted with the tensor and its uncertainty "
+                         "in the intervals (default); none: the field model taken as exact")
     ap.add_argument("--quick", action="store_true", help="3 runs of 900 s: a smoke run")
     ap.add_argument("--no-linear", action="store_true", help="skip the linear-methods rows")
     ap.add_argument("--fits", default="full,shape", help="which fits: full and/or shape (shape includes κ)")
@@ -647,7 +693,8 @@ def main(argv: list[str] | None = None) -> int:
     # a scenario is a campaign's run (bench.campaign): its noise draws are seeded by --seed as before
     specs = [Run(name, (args.seed,), {"scenario": name}) for name in names]
     config = {"benchmark": "bench.inertia", "runs": args.runs, "duration": args.duration, "world": args.world,
-              "linear": not args.no_linear, "fits": list(fits), "shape_from": args.shape_data}
+              "linear": not args.no_linear, "fits": list(fits), "shape_from": args.shape_data,
+              "field_error": args.field_error}
     fn = functools.partial(scenario_task, **{k: v for k, v in config.items() if k != "benchmark"})
     elapsed: dict = {}
     try:

@@ -27,6 +27,11 @@ each inertial axis in turn, and the three shifts of the tensor are added to its 
 (Σ_k d_k d_kᵀ: a turn of that size about any axis). Three more fits: the run takes about four times as
 long. The JSON says so in ``field_turn``; the running estimate of ``--plot`` is not widened.
 
+``--field-error`` fits the field model's error along the record with the tensor — a smooth offset of the
+inertial field (an old TLE, a clock off) and a drift of the host's hard iron, their size from |B|
+against the model's |B| (`fsw.estimation.euler_fit.field_error`) — and puts its uncertainty in the
+intervals (JSON ``field_error``).
+
 The host's hard and soft iron are taken out of the samples first with ``--magcal FILE.json`` or
 ``--estimate-magcal`` (`ground/magcal.py`; the JSON then says which in ``magcal``). Before that the de-orbit
 kit's field the box recorded (``kit_b*_uT``) is subtracted and the samples flagged KIT_MOVING are skipped
@@ -53,6 +58,7 @@ import numpy as np
 from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range, iso_time
 from fsw.config import MAX_SIGMA_UT
 from fsw.estimation import euler_fit as ef
+from fsw.estimation.euler_fit import field_error
 from fsw.estimation import field_check as fc
 from fsw.estimation import inertia as inr
 from fsw.estimation import sampled_moment as sm
@@ -190,6 +196,10 @@ def run(rec: Recording, b_inertial: Callable, *, sigma_b_T: float = 1.5e-6, mode
     b_samples = np.asarray(b_inertial(t), float)
     fit = ef.identify(t, b[None], b_inertial, action, sigma_b_T, p_guess, opts, b_samples=b_samples, log=log)[0]
     est = fit.estimate(f"output-error fit of Euler + kinematics to the samples ({mode})")
+    if fit.field_error is not None:
+        est.extra["field_error"] = {"assumed": "the field model's error along the record fitted (a smooth offset of "
+                                               "the inertial field, the host's drift) and its uncertainty in the "
+                                               "intervals", **fit.field_error.as_dict()}
     est.extra.update({"omega0_dps": np.degrees(fit.omega0_radps).tolist(), "offset_uT": (fit.bias_T * 1e6).tolist(),
                       "t0_s": float(t[0]), "sigma_uT": sigma_b_T * 1e6,
                       "moment_unknown": {"samples": unknown, "held": plan.held,
@@ -332,6 +342,9 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--plot", metavar="FILE", help="draw the running estimate with its 95 %% band (PNG)")
     ap.add_argument("--running", type=int_range(1), default=12, metavar="N",
                     help="points of the running estimate drawn by --plot (default 12)")
+    ap.add_argument("--field-error", action="store_true",
+                    help="fit the field model's error along the record with the tensor (an old TLE, a clock off, "
+                         "the host's drift) and put its uncertainty in the intervals")
     ap.add_argument("--quiet", action="store_true", help="no progress lines")
     gm.add_arguments(ap)
     kit_field.add_arguments(ap)
@@ -379,6 +392,8 @@ def run_cli(input_path: str, output_path: str, args) -> int:
         log = None if args.quiet else (lambda m: print("  " + m, flush=True))
         fit = dict(sigma_b_T=args.sigma_uT * 1e-6, mode="diag" if args.diag else "full", guess_kgm2=args.guess,
                    hold=args.hold)
+        if getattr(args, "field_error", False):
+            fit["opts"] = ef.FitOptions(field_error_degree=field_error.degree_for(float(rec.t_s[-1] - rec.t_s[0])))
         report = run(rec, b_inertial, running_points=args.running if args.plot else 0, log=log, **fit)
         turn = getattr(args, "field_turn_dps", LEO_FIELD_TURN_DPS)
         if no_orbit and turn > 0:

@@ -70,6 +70,19 @@ def test_command_line_short_run(tmp_path, capsys, monkeypatch):
     assert all(0.0 <= c <= 1.0 for c in f["coverage95"] + f["coverage99"])
     assert all(a <= b for a, b in zip(f["coverage95"], f["coverage99"]))
     assert 0.7 < f["chi2_per_dof_mean"] < 1.3
+    # the field model's error fitted by default: a linear offset over 420 s, the host's drift and soft iron
+    assert r["field_error"] == "fit" and f["field_error"]["degree"] == 1
+    assert f["field_error"]["rms_uT_mean"] < 0.5                  # the ideal world: |B| shows (almost) none
+
+
+def test_fit_options_of_the_field_error():
+    t = np.arange(0.5, 1500.0, 1.0)
+    o = ib.fit_options(t, "fit", mode="shape")
+    assert o.mode == "shape" and o.field_error_degree == 2 and o.soft_iron_sigma == pytest.approx(0.002)
+    o = ib.fit_options(t, "none")
+    assert o.field_error_degree is None and o.soft_iron_sigma is None
+    with pytest.raises(ValueError):
+        ib.fit_options(t, "guess")
 
 
 def test_binomial_interval_and_shape_data():
@@ -92,7 +105,7 @@ def test_shape_command_line_reports_the_cramer_rao_bound(tmp_path, capsys, monke
     # the fits on their own terms: a calibrated magnetometer (the calibration takes an orbit)
     pin_flight_assumptions(monkeypatch)
     assert ib.main(["--runs", "2", "--duration", "330", "--scenarios", "aist2d", "--no-linear", "--fits", "shape",
-                    "--json", str(out)]) == 0
+                    "--field-error", "none", "--json", str(out)]) == 0
     text = capsys.readouterr().out
     assert "fitted as unknown moments" in text and "Cramér–Rao" in text and "shape ratios within 0.5 %" in text
     s = json.loads(out.read_text())["results"][0]["shape"]

@@ -173,3 +173,17 @@ def test_a_recording_without_orbit_gets_a_tensor_whose_widened_intervals_cover_t
     assert np.any(err > before[:3])                   # the fixed-field fit alone is confidently wrong
     assert np.all(np.abs(I - np.diag(TRUTH[:3])) <= ci)   # widened: the truth inside every 95 % interval
     assert np.all(np.diag(ci) < 0.5 * TRUTH[:3])      # and still an estimate
+
+
+@pytest.mark.slow  # one fit of 420 samples and the field error's step
+def test_the_field_models_error_fitted_on_request(recording_csv, tmp_path):
+    """--field-error: the field model's error fitted with the tensor (said in the JSON); on a record whose
+    model is exact the coefficients are within their σ and the truth inside the intervals."""
+    out = tmp_path / "fe.json"
+    assert gi.main([str(recording_csv), str(out), "--field-error", "--quiet"]) == 0
+    doc = json.loads(out.read_text())
+    fe = doc["field_error"]
+    assert fe["degree"] == 1 and "fitted" in fe["assumed"]
+    assert np.all(np.abs(fe["coef_uT"]) <= 4 * np.array(fe["sigma_uT"]) + 1e-3)
+    I, ci = np.array(doc["I_kgm2"]), np.array(doc["ci95_kgm2"])
+    assert np.all(np.abs(I - np.diag(TRUTH[:3])) <= 1.5 * ci + 1e-6)

@@ -32,6 +32,7 @@ import numpy as np
 from .. import inertia as inr
 from .. import sampled_moment as sm
 from ..rotations import quat_exp, quat_mul, quat_to_dcm
+from . import field_error
 from .initial import chain_attitudes, initial_rates, segment_length
 from .model import FieldFn, InertiaParam, KnownAction
 from .propagation import segment_bounds
@@ -62,6 +63,7 @@ class FitResult:
     moments_Nm: np.ndarray | None = None       # (K, 3) their fitted values (in the tensor's scale)
     cov_moments: np.ndarray | None = None      # (3K, 3K)
     moment_unknown_samples: int = 0            # samples whose moment was unknown (NaN): fitted
+    field_error: object = None                 # field_error.FieldError when fitted (FitOptions.field_error_degree)
 
     @property
     def s2(self) -> float:
@@ -95,6 +97,11 @@ class FitOptions:
     chain_candidates: tuple = ((0, 0), (90, 0), (180, 0), (270, 0), (0, -0.3), (0, 0.3))
     starts_about_b: int = 2                # single-shooting starts turned about B_I(t0) (best kept)
     omega_scale: float = 0.01
+    # the field model's error along the record fitted and marginalised (`field_error`): the Legendre degree
+    # in time (`field_error.degree_for` gives it for a record's length), None: the field model taken as exact
+    field_error_degree: int | None = None
+    # with it, the soft iron's error left by the host's calibration: its 1-σ per element (None: not fitted)
+    soft_iron_sigma: float | None = None
 
 
 def identify(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, action: KnownAction,
@@ -232,9 +239,16 @@ def identify_steps(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, act
         res.moment_unknown_samples = sm.samples_in(t, action.unknown_intervals)
     out = []
     for r in range(R):
-        cand = [allres[j] for j in np.flatnonzero(vrun[alive] == r)]
-        costs = np.array([c.chi2 + prior.cost(c.theta) for c in cand])
-        out.append(cand[int(np.argmin(np.where(np.isfinite(costs), costs, np.inf)))])
+        idx = np.flatnonzero(vrun[alive] == r)
+        costs = np.array([allres[j].chi2 + prior.cost(allres[j].theta) for j in idx])
+        j = int(idx[int(np.argmin(np.where(np.isfinite(costs), costs, np.inf)))])
+        res = allres[j]
+        if opts.field_error_degree is not None and np.isfinite(res.chi2):
+            res = field_error.apply(ss, sruns.theta[j], prior, res, int(opts.field_error_degree), run=j,
+                                    soft_iron_sigma=opts.soft_iron_sigma)
+            if chunk is not None:
+                yield
+        out.append(res)
     return out
 
 

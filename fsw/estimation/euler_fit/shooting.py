@@ -67,12 +67,22 @@ class SingleShooting:
     def evaluate(self, thetas: np.ndarray, runs: np.ndarray):
         return complete(evaluate_steps(self, thetas, runs, None))
 
+    def residuals_jacobian(self, thetas: np.ndarray, runs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The whitened residuals (R, n, 3) and their Jacobian (R, k, n, 3) at ``thetas``."""
+        ps, (runs, R, k) = self.begin(thetas, runs)
+        ps.advance()
+        return self._residuals_jacobian(ps, runs, R, k)
+
+    def _residuals_jacobian(self, ps: Pass, runs: np.ndarray, R: int, k: int) -> tuple[np.ndarray, np.ndarray]:
+        n = self.n
+        pred = ps.pred[:, :n].reshape(R, k + 1, n, 3)
+        return (pred[:, 0] - self.b_meas[runs, :n]) / self.sigma, (pred[:, 1:] - pred[:, :1]) / (self.step * self.sigma)
+
     def finish(self, ps: Pass, ctx: tuple):
         runs, R, k = ctx
         n = self.n
-        pred = ps.pred[:, :n].reshape(R, k + 1, n, 3)
-        r = ((pred[:, 0] - self.b_meas[runs, :n]) / self.sigma).reshape(R, -1)
-        Jm = ((pred[:, 1:] - pred[:, :1]) / (self.step * self.sigma)).reshape(R, k, -1)
+        r, Jm = self._residuals_jacobian(ps, runs, R, k)
+        r, Jm = r.reshape(R, -1), Jm.reshape(R, k, -1)
         bad = ~(np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(Jm), axis=(1, 2)))
         r = np.where(bad[:, None], 0.0, r)
         Jm = np.where(bad[:, None, None], 0.0, Jm)
