@@ -564,6 +564,9 @@ TABLES: dict[str, Callable[[Path], str]] = {
     "soak-figures": soak_figures,
     "speed-rates": speed_rates,
     "mission-results": mission_results,
+    "accuracy-results": accuracy_results,
+    "accuracy-worlds": accuracy_worlds,
+    "accuracy-coverage": accuracy_coverage,
 }
 
 
