@@ -72,8 +72,6 @@ class AttitudeKalmanTuning:
       about_b_floor_rad`). The rotation about B is seen only through that turn; without the floor the
       linearised update takes the large early corrections about B as information and the σ collapses to
       a few degrees within a minute while the angle is still 100–180° off.
-    adapt_min: the floor of the innovation-driven noise factor in the random-walk phase, as
-      :class:`~.rate_kalman.RateKalmanTuning`'s (below 1 it scales the κ term too; off by default).
     shape_step_cut_sigmas: in Euler's equations, an update that takes the shape out of the physical region
       from inside it has its step in the shape cut at the edge when the edge is within this many σ of the
       shape along the step (:meth:`AttitudeRateKalman._cut_shape_step`); 0 (the default): no cut, the filter
@@ -102,7 +100,6 @@ class AttitudeKalmanTuning:
     nis_reset: float = 1e3
     adapt_samples: float = 10.0
     adapt_max: float = 1e4
-    adapt_min: float = 1.0
     euler_adapt_max: float | None = None
     max_rate_radps: float = 100.0
     max_step_angle_rad: float = 2.5
@@ -242,7 +239,7 @@ class AttitudeRateKalman:
         self._b_ref = None
         # a rate handed over with its covariance (another filter's, which has seen B move) needs no floor
         self._handed_over = rate_cov is not None and omega_radps is not None
-        self._p_before = self.p.copy()
+        self._keep_shape_before()
         self._record_prediction(t_s, np.eye(n), restart=True)
         self._update(t_s, z)
         # a rate handed over with its covariance is an estimate from the first sample on
@@ -285,7 +282,7 @@ class AttitudeRateKalman:
             self.flags |= DATA_GAP
             return True
         marks = {k: len(v) for k, v in self.log.items()}
-        self._p_before = self.p.copy()  # the shape before this update (its step is cut at the physical edge)
+        self._keep_shape_before()
         try:
             # a state that blows up is caught just below (non-finite → restart, counted), not warned about
             with np.errstate(invalid="ignore", over="ignore"):
@@ -418,7 +415,7 @@ class AttitudeRateKalman:
             b0, b1, b2 = self._bhat
             w2 = w0 * w0 + w1 * w1 + w2_ * w2_
             wb = w0 * b0 + w1 * b1 + w2_ * b2
-            q_w += min(self.adapt, 1.0) * tun.kappa ** 2 * w2 * max(w2 - wb * wb, 0.0) / 3.0 * dt
+            q_w += tun.kappa ** 2 * w2 * max(w2 - wb * wb, 0.0) / 3.0 * dt
         # ω a random walk with per-step variance q_w; its effect on the attitude over the step
         return mekf.process_noise(self.n, self.n_p, float(q_w), dt, tun.inertia_shape_rate, tun.field_rate_radps,
                                   self.beta)
@@ -472,6 +469,12 @@ class AttitudeRateKalman:
         self._ref_t = self.t_s
         self._sweep0 = max(self._sweep0, _angle(u, self._b_first))
         self._sweep1 = _angle(u, self._b_ref)
+
+    def _keep_shape_before(self) -> None:
+        """The shape before this update, for :meth:`_cut_shape_step`: kept only where the cut is on (the
+        shape trial's hypotheses), so the flown filter's update allocates nothing for it."""
+        if self.n_p and self.tuning.shape_step_cut_sigmas > 0:
+            self._p_before = self.p.copy()
 
     def _cut_shape_step(self) -> bool:
         """The last update took the shape out of the physical region from inside it: cut its step in the
@@ -584,7 +587,7 @@ class AttitudeRateKalman:
         self._bad = self._bad + 1 if self.nis > tun.nis_reset else 0
         amax = tun.adapt_max if not self.euler or tun.euler_adapt_max is None else tun.euler_adapt_max
         if amax > 1.0:
-            self.adapt = adapt_noise(self, tun.adapt_samples, amax, tun.adapt_min if not self.euler else 1.0)
+            self.adapt = adapt_noise(self, tun.adapt_samples, amax)
         if self._bad >= 3:  # lost: back to acquisition
             self.back_to_acquisition()
             flags |= DEGENERATE

@@ -37,12 +37,6 @@ TRIAL_STEP_S = 0.5
 #: the trial's hypotheses cut a step of their shape that leaves the physical region at its edge when the edge
 #: is within this many σ (`AttitudeKalmanTuning.shape_step_cut_sigmas`)
 SHAPE_STEP_CUT_SIGMAS = 3.0
-#: a second hypothesis per shape in the trial, its rate along B widened to the prior (:func:`widen_rate_along_b`;
-#: `EulerAcquisitionKalman(along_b_variants=True)`). Off by default: on the 27 °/s cubesat tumble it made
-#: seeds 12 and 22 lock on (the random-walk phase 10–25 σ off along B), but on a 10 °/s, 1 s tumble flown
-#: as on board a winner of the widened kind settled with its attitude about B off, the published
-#: attitude's 3-σ coverage fell from ≥ 95 % to 76–86 %, and it doubles the trial's cost
-ALONG_B_VARIANTS = False
 #: a trial that falls behind catches up by this many rounds of its hypotheses with each sample it takes
 CATCH_UP_ROUNDS = 2
 
@@ -88,21 +82,6 @@ ABOUT_B_SAME_RAD = math.radians(10.0)
 ABOUT_B_TEMPER = 10.0
 
 
-def widen_rate_along_b(kf: AttitudeRateKalman, sigma_radps: float) -> None:
-    """Hold the 1-σ of `kf`'s rate along the field (its last sample's direction) at `sigma_radps` or above.
-
-    A random walk of ω cannot tell the part of ω along B from the rate's change it allows: both bend B's
-    path in the body. On a body spinning near B (a cubesat at 27 °/s, ω 20–26 °/s along B) the
-    random-walk phase settled with ω along B near zero and a σ of 1–3 °/s there, 10–25 σ off; an Euler
-    hypothesis started from it kept that σ and could not reach the rate. Euler's equations do tell the
-    part along B (the precession it drives), so the hypotheses start with it unknown (the prior σ)."""
-    u = np.asarray(kf._u, float)
-    Pw = kf.P[3:6, 3:6]
-    v = float(u @ Pw @ u)
-    if v < sigma_radps ** 2:
-        Pw += (sigma_radps ** 2 - v) * np.outer(u, u)
-
-
 class _Bank:
     """Several :class:`AttitudeRateKalman` run side by side; the one in `main` publishes."""
 
@@ -133,9 +112,7 @@ class EulerAcquisitionKalman(_Bank):
 
     Here the random-walk filter (`main`) runs until it has found the rate (:meth:`AttitudeRateKalman.
     rate_found`); then Euler hypotheses per shape of `shapes` (default :func:`shape_grid`, 1-σ
-    `sigma_shape` about each) are started from copies of it (with `along_b_variants` two per shape, the
-    second with its rate along the field widened to the prior, :func:`widen_rate_along_b`; see
-    `ALONG_B_VARIANTS`), all run in parallel
+    `sigma_shape` about each) are started from copies of it, all run in parallel
     with the random-walk filter for `trial_samples` samples and at least `trial_s` seconds, and the one
     with the least negative log-likelihood of its innovations (Σ ½(NIS + ln det S), Bar-Shalom et al.
     2001 §11.6) over the window's last part (after `TRIAL_BURN_IN` of it: each hypothesis first converges
@@ -151,7 +128,7 @@ class EulerAcquisitionKalman(_Bank):
 
     The trial's cost is bounded whatever the sample rate: it takes samples at least `trial_step_s` apart
     (`TRIAL_STEP_S`, 0.5 s: at most two a second, ~70 filter updates a second for 34 shapes, which the
-    loop's background work keeps up with; twice that with `along_b_variants`); when that leaves out
+    loop's background work keeps up with); when that leaves out
     samples `main` takes, the random-walk filter's score over the window is that of a copy of it
     run on the trial's samples.
     A trial that falls behind anyway (a loop too slow, or one that never calls :meth:`work`) catches
@@ -180,7 +157,7 @@ class EulerAcquisitionKalman(_Bank):
                  trial_samples: int = 15, trial_s: float = 15.0, retry_samples: int = 15,
                  angle_about_b_rad: float = 0.0, trial_step_s: float = TRIAL_STEP_S,
                  about_b_hypotheses: int = 0, about_b_step_s: float = ABOUT_B_STEP_S,
-                 deferred: bool = False, along_b_variants: bool | None = None,
+                 deferred: bool = False,
                  lost_nis_mean: float = LOST_NIS_MEAN) -> None:
         # the bank decides when Euler's equations start: the filters' own innovation test is off
         tun = replace(tuning or AttitudeKalmanTuning(euler_adapt_max=EULER_ADAPT_MAX), euler_nis_max=-math.inf)
@@ -194,7 +171,6 @@ class EulerAcquisitionKalman(_Bank):
         self.trial_samples = int(trial_samples)
         self.trial_s = float(trial_s)
         self.trial_step_s = float(trial_step_s)
-        self.along_b_variants = ALONG_B_VARIANTS if along_b_variants is None else bool(along_b_variants)
         self._window = self.trial_samples  # the running trial's length in samples
         self._burn = 0  # the samples of the running trial before its scores count
         self.retry_samples = int(retry_samples)
@@ -346,13 +322,10 @@ class EulerAcquisitionKalman(_Bank):
         self._nll0 = self.main.nll
         self._main_nll = math.nan
         for p in self.shapes:
-            for widen in ((False, True) if self.along_b_variants else (False,)):
-                kf = self.main.clone()
-                kf.tuning = self._trial_tuning
-                kf.start_euler(np.array(p), self.sigma_shape)
-                if widen:
-                    widen_rate_along_b(kf, kf.tuning.sigma_rate0_radps)
-                self._trial.append([kf, kf.nll, kf.resets, 0, math.nan])
+            kf = self.main.clone()
+            kf.tuning = self._trial_tuning
+            kf.start_euler(np.array(p), self.sigma_shape)
+            self._trial.append([kf, kf.nll, kf.resets, 0, math.nan])
 
     def _decide(self) -> None:
         best, best_nll = None, self._main_nll if self._ref is None else self._ref[4]

@@ -52,10 +52,6 @@ class RateKalmanTuning:
       doubles while it exceeds 1.5, shrinks by 1.25 while it is below 0.7): a body driven by
       torques the model does not know (flywheels, magnetorquers) gets the process noise it needs, and
       an honest σ, without hand tuning.
-    adapt_min: the factor's floor; below 1 the factor also scales the κ term down while the innovations
-      are small (a body whose rate changes far less than κ|ω|², a near-symmetric one). Off (1) by default:
-      at 1/16 the near-symmetric rows' error halved and their 1-σ coverage fell from 96 % to 87–91 %, but
-      the random-walk member of the rate-model bank then beat the Gauss–Markov ones on a libration.
     max_step_angle_rad: a step longer than this many radians of rotation at the current rate (or than
       `max_gap_s`) restarts the filter: beyond about half a turn the samples cannot say which way B went.
     sigma_flag_radps: an axis whose 1-σ exceeds this is reported DEGENERATE (not to be trusted).
@@ -73,7 +69,6 @@ class RateKalmanTuning:
     nis_reset: float = 1e4
     adapt_samples: float = 10.0
     adapt_max: float = 1e4
-    adapt_min: float = 1.0
 
 
 class RateKalman:
@@ -170,7 +165,7 @@ class RateKalman:
         # κ|ω||ω⊥| rather than κ|ω|²: the part of ω along B is seen only through the dynamics, and a
         # noise that grew with its (unobserved) size would let it run away
         acc = tun.kappa * math.sqrt(w2 * wp2)
-        q_w = (min(self.adapt, 1.0) * acc * acc / 3.0 + self.adapt * tun.rate_accel_radps2 ** 2) * dt
+        q_w = (acc * acc / 3.0 + self.adapt * tun.rate_accel_radps2 ** 2) * dt
         q_b = tun.field_rate_radps ** 2 * b2 * dt * dt
         phi = math.exp(-dt / tun.rate_time_constant_s)
         rate_kf.predict(x, self._P, dt, q_w, q_b, phi, self._F, self._T)
@@ -213,7 +208,7 @@ class RateKalman:
             return
         tun = self.tuning
         self._bad = self._bad + 1 if self.nis > tun.nis_reset else 0
-        self.adapt = adapt_noise(self, tun.adapt_samples, tun.adapt_max, tun.adapt_min)
+        self.adapt = adapt_noise(self, tun.adapt_samples, tun.adapt_max)
         sx, sy, sz = math.sqrt(p0), math.sqrt(p4), math.sqrt(p8)
         if max(sx, sy, sz) > tun.sigma_flag_radps or bx * bx + by * by + bz * bz < 9.0 * self._r:
             flags |= DEGENERATE
@@ -229,7 +224,7 @@ class RateKalman:
         self.flags = flags
 
 
-def adapt_noise(kf, samples: float, max_factor: float, min_factor: float = 1.0) -> float:
+def adapt_noise(kf, samples: float, max_factor: float) -> float:
     """Innovation-driven scale of the rate's process noise (a fading-memory variant of Mehra 1970):
     the exponential mean of NIS/3 over about `samples` samples; the factor doubles while the mean
     exceeds 1.5 and shrinks by 1.25 while it is below 0.7, within [1, `max_factor`]."""
@@ -238,7 +233,7 @@ def adapt_noise(kf, samples: float, max_factor: float, min_factor: float = 1.0) 
     if kf._nis_mean > 4.5:
         f = min(2.0 * f, max_factor)
     elif kf._nis_mean < 2.1:
-        f = max(f / 1.25, min_factor)
+        f = max(f / 1.25, 1.0)
     return f
 
 
