@@ -204,10 +204,7 @@ def estimate(run: Run, sigma_b_T: float, methods=METHODS) -> dict[str, tuple[np.
         try:
             eu = sm.euler_fit_checked(t, b, sigma_b_T, field_eci_T=fld, init=rw,
                                       hard_iron_sigma_T=run.hard_iron_sigma_T)
-            # the Euler RTS smoother on the samples less the offset the fit found (its model has none)
-            off = eu.info.get("hard_iron_residual_uT")
-            b_rts = b if off is None else b - np.asarray(off) / rk.UT_PER_T
-            er = sm.euler_rts_smooth(t, b_rts, sigma_b_T, field_eci_T=fld, init=eu)
+            er = sm.euler_rts_after_fit(t, b, sigma_b_T, eu, field_eci_T=fld)
         except (RuntimeError, ValueError, np.linalg.LinAlgError):
             pass
         eu_raw, er_raw = eu, er

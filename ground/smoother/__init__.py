@@ -47,13 +47,13 @@ libration, a torque) that part of σ is void.
 from __future__ import annotations
 
 from .auto import (CHI2_TEST_Z, EXCLUDE_SHARE, EXCLUDE_Z, auto_choice, auto_order, auto_result, chi2_consistent,
-                   covering, disagreement, euler_rts_smooth, excludes, model_error_checked, smooth,
-                   widened_for_model_error)
+                   covering, disagreement, euler_rts_after_fit, euler_rts_smooth, excludes, model_error_checked,
+                   smooth, widened_for_model_error)
 from .batch_fit import MODE_KEEP_DCHI2, MODE_SEARCH_DCHI2, euler_fit, euler_fit_checked, euler_fit_from_filter
 from .rts import SHAPE_SIGMA_FLOOR, FieldFn, Smoothed, rts, rts_smooth, tabulated, variance_scale
 
 __all__ = ["CHI2_TEST_Z", "EXCLUDE_SHARE", "EXCLUDE_Z", "FieldFn", "MODE_KEEP_DCHI2", "MODE_SEARCH_DCHI2",
            "SHAPE_SIGMA_FLOOR", "Smoothed", "auto_choice", "auto_order", "auto_result", "chi2_consistent", "covering",
-           "disagreement", "euler_fit", "euler_fit_checked", "euler_fit_from_filter", "euler_rts_smooth", "excludes",
-           "model_error_checked", "rts", "rts_smooth", "smooth", "tabulated", "variance_scale",
-           "widened_for_model_error"]
+           "disagreement", "euler_fit", "euler_fit_checked", "euler_fit_from_filter", "euler_rts_after_fit",
+           "euler_rts_smooth", "excludes", "model_error_checked", "rts", "rts_smooth", "smooth", "tabulated",
+           "variance_scale", "widened_for_model_error"]

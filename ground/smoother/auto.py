@@ -280,9 +280,7 @@ def smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: F
     if model == "euler" and _explains(eu, chi2_accept) and chi2_consistent(eu):  # else measured below
         eu.info["rts_chi2_dof"] = rw.chi2_dof
         return eu
-    off = eu.info.get("hard_iron_residual_uT")
-    b_rts = b_T if off is None else np.asarray(b_T, float) - np.asarray(off) / rk.UT_PER_T
-    er = euler_rts_smooth(t_s, b_rts, sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2, init=eu)
+    er = euler_rts_after_fit(t_s, b_T, sigma_b_T, eu, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2)
     z = disagreement(eu, er)
     for res in (rw, eu, er):
         res.info.update(euler_chi2_dof=eu.chi2_dof, rts_chi2_dof=rw.chi2_dof, euler_vs_rts_z=z)
@@ -292,6 +290,15 @@ def smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: F
     if model == "euler_rts":
         return er
     return auto_result(rw, eu, er, chi2_accept, z_accept)
+
+
+def euler_rts_after_fit(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, fit: Smoothed, *,
+                        field_eci_T: FieldFn | None = None, inertia_kgm2: np.ndarray | None = None) -> Smoothed:
+    """:func:`euler_rts_smooth` started from the batch fit `fit`, on the samples less the constant offset in
+    body axes the fit found (`hard_iron_residual_uT`; its own model has none)."""
+    off = fit.info.get("hard_iron_residual_uT")
+    b = b_T if off is None else np.asarray(b_T, float) - np.asarray(off) / rk.UT_PER_T
+    return euler_rts_smooth(t_s, b, sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2, init=fit)
 
 
 def auto_result(rw: Smoothed, eu: Smoothed | None, er: Smoothed | None, chi2_accept: float = 1.5,
