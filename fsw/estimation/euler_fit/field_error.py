@@ -63,7 +63,7 @@ def basis(t_s: np.ndarray, degree: int) -> np.ndarray:
     t = np.asarray(t_s, float)
     span = max(t[-1] - t[0], 1e-9)
     x = 2.0 * (t - t[0]) / span - 1.0
-    return np.stack([legendre.legval(x, np.eye(degree + 1)[j]) for j in range(degree + 1)], axis=1)
+    return legendre.legvander(x, degree)
 
 
 def columns(t_s: np.ndarray, q_body_to_inertial: np.ndarray, degree: int) -> np.ndarray:
