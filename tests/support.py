@@ -325,13 +325,15 @@ def pymavlink_with_debris(directory) -> Path:
     return root
 
 
-def accuracy_record(mode: str, body: str, dt_s: float, sigma_uT: float, run_index: int, seed: int = 2024):
-    """The scored record of run `run_index` of bench.accuracy's dipole row (mode, body, dt_s, sigma_uT), seeded
+def accuracy_record(mode: str, body: str, dt_s: float, sigma_uT: float, run_index: int, seed: int = 2024,
+                    world: str = "dipole"):
+    """The scored record of run `run_index` of bench.accuracy's row (mode, body, dt_s, sigma_uT) in `world`, seeded
     as the benchmark seeds it: t, B, true ω, true B, σ_B (with the chip's noise), the field along the orbit."""
     from bench import accuracy as acc
     from ground import smoother as sm
-    row = acc.Row(mode, body, dt_s, sigma_uT)
-    run = acc.simulate(mode, body, dt_s, sigma_uT * 1e-6, np.random.default_rng(acc.row_seed(row, seed) + [run_index]))
+    row = acc.Row(mode, body, dt_s, sigma_uT, world)
+    run = acc.simulate(mode, body, dt_s, sigma_uT * 1e-6, np.random.default_rng(acc.row_seed(row, seed) + [run_index]),
+                       world=world)
     rec = run.record
     t = run.t_s[rec]
     return (t, run.b_T[rec], run.w_true_radps[rec], run.b_true_T[rec], math.hypot(sigma_uT * 1e-6, acc.CHIP_NOISE_T),

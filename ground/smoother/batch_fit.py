@@ -144,7 +144,8 @@ def _euler_minimum(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_
         beta = rot.quat_to_dcm(init.q[0]) @ (b[0] * rk.UT_PER_T)
         kf.set_nominal(t[0], np.array([1.0, 0.0, 0.0, 0.0]), init.w_radps[0], beta_uT=beta, euler=True)
     else:
-        kf.set_nominal(t[0], init.q[0], init.info.get("w_pass_radps", init.w_radps)[0], euler=True)
+        p0 = None if init.inertia_shape is None or kf.n_p == 0 else np.log(np.asarray(init.inertia_shape, float)[1:])
+        kf.set_nominal(t[0], init.q[0], init.info.get("w_pass_radps", init.w_radps)[0], p=p0, euler=True)
     z = b * rk.UT_PER_T
     sb = sigma_b_T * rk.UT_PER_T
     hi_sigma = None if hard_iron_sigma_T is None else np.broadcast_to(np.asarray(hard_iron_sigma_T, float), (3,))
@@ -341,24 +342,80 @@ def euler_fit_checked(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, fie
                       inertia_kgm2: np.ndarray | None = None, init: Smoothed | None = None,
                       chi2_accept: float = 1.5, hard_iron_sigma_T=None) -> Smoothed:
     """:func:`euler_fit`; when it does not explain the data (χ²/dof > `chi2_accept`) and the tensor is
-    not known, again from the Euler filter's end (:func:`euler_fit_from_filter`), keeping the better."""
-    # the two fits compared by their best minima's χ²/dof: only the one kept searches for other minima (the
+    not known, again from other starts, keeping the lowest χ²/dof: the same start with a longer first window
+    (:func:`_longer_first_windows`: in a few samples the fit can wander off a good start, the shape being
+    unseen there), the start's rate along B moved by `ALONG_B_START_SIGMAS` of its own 1-σ there
+    (:func:`_along_b_starts`), and the Euler filter's end (:func:`euler_fit_from_filter`); the search stops at
+    the first that explains the data."""
+    # the fits compared by their best minima's χ²/dof: only the one kept searches for other minima (the
     # search, which widens σ only, polishes every start within 30·s² of the best: all of them on a fit that
     # does not explain the data, most of the cost of the fit)
-    eu = _euler_minimum(t_s, b_T, sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2, init=init,
-                        hard_iron_sigma_T=hard_iron_sigma_T)
-    if inertia_kgm2 is not None or (np.isfinite(eu.chi2_dof) and eu.chi2_dof <= chi2_accept):
-        return eu.finish()
-    try:
-        other = _minimum_from_filter(t_s, b_T, sigma_b_T, field_eci_T=tabulated(field_eci_T, t_s),
-                                     hard_iron_sigma_T=hard_iron_sigma_T)
-        if other is not None and np.isfinite(other.chi2_dof) and not other.chi2_dof >= eu.chi2_dof:
-            res = other.finish()
-            res.info["first_chi2_dof"] = eu.chi2_dof
-            return res
-    except (RuntimeError, ValueError, np.linalg.LinAlgError):
-        pass
-    return eu.finish()
+    t = np.asarray(t_s, float)
+    field_eci_T = tabulated(field_eci_T, t)
+    init = init or rts_smooth(t, b_T, sigma_b_T, field_eci_T=field_eci_T)
+    best = _euler_minimum(t, b_T, sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=inertia_kgm2, init=init,
+                          hard_iron_sigma_T=hard_iron_sigma_T)
+    if inertia_kgm2 is not None:
+        return best.finish()
+    first, tried = best.chi2_dof, 1
+
+    def others():
+        for fw in _longer_first_windows(len(t)):
+            yield lambda fw=fw: _euler_minimum(t, b_T, sigma_b_T, field_eci_T=field_eci_T, init=init, first_window=fw,
+                                               hard_iron_sigma_T=hard_iron_sigma_T)
+        for start in _along_b_starts(init, b_T):
+            yield lambda s=start: _euler_minimum(t, b_T, sigma_b_T, field_eci_T=field_eci_T, init=s,
+                                                 hard_iron_sigma_T=hard_iron_sigma_T)
+        yield lambda: _minimum_from_filter(t, b_T, sigma_b_T, field_eci_T=field_eci_T,
+                                           hard_iron_sigma_T=hard_iron_sigma_T)
+
+    for fit in others():
+        if np.isfinite(best.chi2_dof) and best.chi2_dof <= chi2_accept:
+            break
+        try:
+            other = fit()
+        except (RuntimeError, ValueError, np.linalg.LinAlgError):
+            continue
+        tried += 1
+        if other is not None and np.isfinite(other.chi2_dof) and not other.chi2_dof >= best.chi2_dof:
+            best = other
+    res = best.finish()
+    if tried > 1:
+        res.info["first_chi2_dof"] = first
+        res.info["starts_tried"] = tried
+    return res
+
+
+#: the batch fit's other starts where the first is rejected: the start's rate along B at t₀ (what the random-walk
+#: smoother sees least: 20 °/s off at 23 °/s and 1.5 µT) moved by these multiples of its own 1-σ there
+ALONG_B_START_SIGMAS = (1.0, -1.0, 2.0, -2.0, 3.0, -3.0)
+
+
+def _longer_first_windows(n: int, first_window: int = 8, factor: int = 4) -> list[int]:
+    """The growing windows' first window, longer by `factor` each time up to the whole record of `n` samples."""
+    out, fw = [], first_window * factor
+    while fw < n:
+        out.append(fw)
+        fw *= factor
+    return out + [n]
+
+
+def _along_b_starts(init: Smoothed, b_T: np.ndarray):
+    """`init` with its rate at t₀ moved along the first sample's field by ALONG_B_START_SIGMAS of its 1-σ along it."""
+    b0 = np.asarray(b_T, float)[0]
+    bh = b0 / np.linalg.norm(b0)
+    sig = float(np.sqrt(np.sum((bh * init.sigma_radps[0]) ** 2)))
+    if not (np.isfinite(sig) and sig > 0.0):
+        return
+    for k in ALONG_B_START_SIGMAS:
+        w = init.w_radps.copy()
+        w[0] += k * sig * bh
+        info = dict(init.info)
+        if "w_pass_radps" in info:
+            wp = np.array(info["w_pass_radps"], float)
+            wp[0] += k * sig * bh
+            info["w_pass_radps"] = wp
+        yield Smoothed(init.t_s, w, init.sigma_radps, init.q, init.method, init.chi2_dof, init.inertia_shape, info)
 
 
 def _wahba_start(kf, t, z, field_eci_T, n) -> np.ndarray:
