@@ -36,7 +36,7 @@ def cramer_rao(t_s: np.ndarray, b_inertial: FieldFn, action: KnownAction, sigma_
     _, _, A, _, _ = ss.evaluate(theta[None], np.zeros(1, int))
     prior = fit_prior(ss.n_params, par.n, theta[:par.n], opts, sigma_b_T, par)
     cov = A.inverse((prior.w ** 2)[None])[0]
-    T, _ = par.affine()
+    T = par.jacobian(theta[:par.n])
     nI, nt = par.n, par.n_tensor
     s = par.moment_scale_Nm
     return T @ cov[:nI, :nI] @ T.T, cov[nt:nI, nt:nI] * s * s
