@@ -199,16 +199,44 @@ def _true_moments(tr: TruthRecord, unknown) -> np.ndarray | None:
     return np.array([by[u] for u in unknown]) if unknown else None
 
 
-def shape_crb(tr: TruthRecord, sel: np.ndarray, unknown) -> np.ndarray:
-    """Cramér–Rao bound [%] of the principal-moment ratios of the shape fit on these data: the smallest
-    standard deviation any unbiased estimator reaches with this σ_B, sampling and interval."""
+def field_error_rms(tr: TruthRecord, sel: np.ndarray | None = None) -> float:
+    """The field model's error [T] the noise-free samples' |B| show against the model's
+    (`fe.error_rms_T`): what the fit's prior on that error would be, known before any noise is drawn."""
+    sel = np.ones(len(tr.t_s), bool) if sel is None else sel
+    t = tr.t_s[sel]
+    return fe.error_rms_T(t, tr.b_T[sel], np.linalg.norm(np.asarray(tr.b_inertial(t)), axis=1))
+
+
+def _crb(tr: TruthRecord, sel: np.ndarray, unknown, mode: str, field_error: str,
+         action: ef.KnownAction | None = None) -> np.ndarray:
+    """Cramér–Rao bound of the fit of `mode` on these data: cov_p (6, 6); with ``field_error`` "fit" the
+    field model's error fitted alongside as the benchmark's fits do (:func:`fit_options`) and
+    marginalised, its prior from the noise-free samples (:func:`field_error_rms`)."""
     i0 = int(np.flatnonzero(sel)[0])
     p = inr.params(tr.scenario.inertia_kgm2)
-    cov_p, _ = ef.cramer_rao(tr.t_s[sel], tr.b_inertial, ef.KnownAction.none(), tr.sigma_b_T, p, tr.q[i0],
-                             tr.omega_radps[i0], ef.FitOptions(mode="shape"), unknown_moments=unknown,
-                             moments_Nm=_true_moments(tr, unknown))
-    r, c = inr.principal_ratios_cov(p, cov_p)
+    ts = tr.t_s[sel]
+    cov_p, _ = ef.cramer_rao(ts, tr.b_inertial, action or ef.KnownAction.none(), tr.sigma_b_T, p, tr.q[i0],
+                             tr.omega_radps[i0], fit_options(ts, field_error, mode=mode), unknown_moments=unknown,
+                             moments_Nm=_true_moments(tr, unknown),
+                             field_error_rms_T=field_error_rms(tr, sel) if field_error == "fit" else None)
+    return cov_p
+
+
+def shape_crb(tr: TruthRecord, sel: np.ndarray, unknown, field_error: str = "none") -> np.ndarray:
+    """Cramér–Rao bound [%] of the principal-moment ratios of the shape fit on these data: the smallest
+    standard deviation any unbiased estimator reaches with this σ_B, sampling and interval (``field_error``
+    "fit": and the field model's error fitted, :func:`_crb`)."""
+    p = inr.params(tr.scenario.inertia_kgm2)
+    r, c = inr.principal_ratios_cov(p, _crb(tr, sel, unknown, "shape", field_error))
     return 100 * np.sqrt(np.diag(c)) / r
+
+
+def tensor_crb(tr: TruthRecord, field_error: str = "none") -> np.ndarray:
+    """Cramér–Rao bound σ of the six components of the full fit (the whole record, the known torque) in %
+    of the largest principal moment (``field_error``: see :func:`_crb`)."""
+    p = inr.params(tr.scenario.inertia_kgm2)
+    cov = _crb(tr, np.ones(len(tr.t_s), bool), [], "full", field_error, tr.action)
+    return 100 * np.sqrt(np.diag(cov)) / inr.principal_axes(inr.tensor(p))[0][-1]
 
 
 def chi2_from_truth(tr: TruthRecord, sel: np.ndarray, unknown, bms: np.ndarray, opts: ef.FitOptions,
@@ -322,6 +350,8 @@ def bench_scenario(name: str, runs: int, seed: int, duration_s: float,
         polish = chi2_from_truth(tr, np.ones(len(tr.t_s), bool), [], bm, ef.FitOptions(), tr.action)
         full.update({"local_minimum_runs": int(np.sum(chi2 - polish > 1.0)),
                      "chi2_above_truth_start_max": float(np.max(chi2 - polish))})
+        # the bound of the six components, noise alone and with the field model's error fitted as the fits do
+        full["crb_pct_of_Imax"] = {k: tensor_crb(tr, k).tolist() for k in dict.fromkeys(("none", field_error))}
         if res[0].field_error is not None:
             full["field_error"] = _field_error_stats(res)
         out["full"] = full
@@ -456,6 +486,10 @@ def table(r: dict) -> str:
                          f"{f['ci95_mean'][k]:9.3f}   {100 * f['coverage95'][k]:5.1f} %  "
                          f"{100 * f['coverage99'][k]:5.1f} %"
                          f"  {f['z2_mean'][k]:6.2f}")
+        if "crb_pct_of_Imax" in f:
+            lines.append("   Cramér–Rao σ of Ixx…Iyz in % of Imax: " + "; ".join(
+                f"{'noise alone' if k == 'none' else 'with the field error fitted'} "
+                + " ".join(f"{x:.3f}" for x in v) for k, v in f["crb_pct_of_Imax"].items()))
         lines.append(f"   local minima {f['local_minimum_runs']} of {r['runs']} runs (χ² vs single shooting from the "
                      f"truth: at most {f['chi2_above_truth_start_max']:+.2f})")
         if "field_error" in f:

@@ -157,6 +157,22 @@ def test_the_scale_of_a_shape_from_the_known_torque(shape_fit):
     assert abs(kappa - kappa_ref) < 0.01 * sd and abs(kappa / kappa_true - 1) < 0.01, (kappa, kappa_ref, kappa_true)
 
 
+def test_the_bound_with_the_field_models_error_fitted():
+    """Estimating the field model's error alongside costs information: the bound widens with that error's
+    prior size, and with an error |B| does not show (the prior's floor) it is the noise's own."""
+    t = np.arange(0.5, 400.0, 1.0)
+    p, w0 = inr.params(ASYM), np.radians([1.0, 0.6, -0.9])
+    action = ef.KnownAction.pulses([(PULSE[0], PULSE[1] - PULSE[0], M_PULSE)])
+    exact, _ = ef.cramer_rao(t, FIELD.b_eci_T, action, 1.5e-6, p, Q0, w0)
+    with_error = ef.FitOptions(field_error_degree=1)
+    sd = {rms: np.sqrt(np.diag(ef.cramer_rao(t, FIELD.b_eci_T, action, 1.5e-6, p, Q0, w0, with_error,
+                                             field_error_rms_T=rms)[0])) for rms in (0.0, 0.1e-6, 0.5e-6)}
+    np.testing.assert_allclose(sd[0.0], np.sqrt(np.diag(exact)), rtol=1e-3)
+    assert np.all(sd[0.0] <= sd[0.1e-6] + 1e-12) and np.all(sd[0.1e-6] < sd[0.5e-6])
+    with pytest.raises(ValueError, match="RMS"):
+        ef.cramer_rao(t, FIELD.b_eci_T, action, 1.5e-6, p, Q0, w0, with_error)
+
+
 def test_an_unknown_moment_outside_the_record_is_refused():
     t = np.arange(0.5, 50.0, 1.0)
     b = np.tile([2e-5, 0.0, 1e-5], (len(t), 1))
