@@ -22,8 +22,10 @@ seeded). On each record:
   torque-free null space, done on the samples), scored on the principal-moment ratios I1/I3, I2/I3.
   By default the whole record: torque-free on both sides of the pulses, each pulse fitted as a
   constant moment of unknown size (``--shape-data free``: the longest torque-free interval alone);
-- **κ**: the scale of that shape from the known torque (the whole record, shape fixed), scored as
-  κ̂/κ = |p̂|/|p| like the paper; for a single short impulse also the paper's eq. 17–19 with the rates
+- **κ**: the scale of that shape from the known torque (the whole record, shape fixed; fitted as its
+  inverse, in which the torque's effect is linear: `fsw.estimation.euler_fit.InertiaParam`), scored as
+  κ̂/κ = |p̂|/|p| like the paper (negative for a tensor that came out negative), checked for local
+  minima like the other fits; for a single short impulse also the paper's eq. 17–19 with the rates
   before and after it taken from torque-free fits on each side;
 - **linear** (on the simulation's true rates plus noise of 0.05 °/s and 0.005 °/s²): ordinary least
   squares, total least squares and the errors-in-variables fit of Euler's equations, to show the
@@ -197,33 +199,62 @@ def _true_moments(tr: TruthRecord, unknown) -> np.ndarray | None:
     return np.array([by[u] for u in unknown]) if unknown else None
 
 
-def shape_crb(tr: TruthRecord, sel: np.ndarray, unknown) -> np.ndarray:
-    """Cramér–Rao bound [%] of the principal-moment ratios of the shape fit on these data: the smallest
-    standard deviation any unbiased estimator reaches with this σ_B, sampling and interval."""
+def field_error_rms(tr: TruthRecord, sel: np.ndarray | None = None) -> float:
+    """The field model's error [T] the noise-free samples' |B| show against the model's
+    (`fe.error_rms_T`): what the fit's prior on that error would be, known before any noise is drawn."""
+    sel = np.ones(len(tr.t_s), bool) if sel is None else sel
+    t = tr.t_s[sel]
+    return fe.error_rms_T(t, tr.b_T[sel], np.linalg.norm(np.asarray(tr.b_inertial(t)), axis=1))
+
+
+def _crb(tr: TruthRecord, sel: np.ndarray, unknown, mode: str, field_error: str,
+         action: ef.KnownAction | None = None) -> np.ndarray:
+    """Cramér–Rao bound of the fit of `mode` on these data: cov_p (6, 6); with ``field_error`` "fit" the
+    field model's error fitted alongside as the benchmark's fits do (:func:`fit_options`) and
+    marginalised, its prior from the noise-free samples (:func:`field_error_rms`)."""
     i0 = int(np.flatnonzero(sel)[0])
     p = inr.params(tr.scenario.inertia_kgm2)
-    cov_p, _ = ef.cramer_rao(tr.t_s[sel], tr.b_inertial, ef.KnownAction.none(), tr.sigma_b_T, p, tr.q[i0],
-                             tr.omega_radps[i0], ef.FitOptions(mode="shape"), unknown_moments=unknown,
-                             moments_Nm=_true_moments(tr, unknown))
-    r, c = inr.principal_ratios_cov(p, cov_p)
+    ts = tr.t_s[sel]
+    cov_p, _ = ef.cramer_rao(ts, tr.b_inertial, action or ef.KnownAction.none(), tr.sigma_b_T, p, tr.q[i0],
+                             tr.omega_radps[i0], fit_options(ts, field_error, mode=mode), unknown_moments=unknown,
+                             moments_Nm=_true_moments(tr, unknown),
+                             field_error_rms_T=field_error_rms(tr, sel) if field_error == "fit" else None)
+    return cov_p
+
+
+def shape_crb(tr: TruthRecord, sel: np.ndarray, unknown, field_error: str = "none") -> np.ndarray:
+    """Cramér–Rao bound [%] of the principal-moment ratios of the shape fit on these data: the smallest
+    standard deviation any unbiased estimator reaches with this σ_B, sampling and interval (``field_error``
+    "fit": and the field model's error fitted, :func:`_crb`)."""
+    p = inr.params(tr.scenario.inertia_kgm2)
+    r, c = inr.principal_ratios_cov(p, _crb(tr, sel, unknown, "shape", field_error))
     return 100 * np.sqrt(np.diag(c)) / r
 
 
+def tensor_crb(tr: TruthRecord, field_error: str = "none") -> np.ndarray:
+    """Cramér–Rao bound σ of the six components of the full fit (the whole record, the known torque) in %
+    of the largest principal moment (``field_error``: see :func:`_crb`)."""
+    p = inr.params(tr.scenario.inertia_kgm2)
+    cov = _crb(tr, np.ones(len(tr.t_s), bool), [], "full", field_error, tr.action)
+    return 100 * np.sqrt(np.diag(cov)) / inr.principal_axes(inr.tensor(p))[0][-1]
+
+
 def chi2_from_truth(tr: TruthRecord, sel: np.ndarray, unknown, bms: np.ndarray, opts: ef.FitOptions,
-                    action: ef.KnownAction | None = None) -> np.ndarray:
+                    action: ef.KnownAction | None = None, p_shape: np.ndarray | None = None) -> np.ndarray:
     """χ² of single shooting started at the truth on each run (a check for local minima: a fit whose χ²
-    is above it by more than 1 stopped in another minimum)."""
+    is above it by more than 1 stopped in another minimum). Mode "scale": each run's fixed shape in
+    `p_shape` (R, 6), started at the scale that comes closest to the true tensor."""
     i0 = int(np.flatnonzero(sel)[0])
     R = len(bms)
     p = inr.params(tr.scenario.inertia_kgm2)
-    par = ef.InertiaParam(opts.mode, float(p[0]) if opts.mode == "shape" else float(np.mean(p[:3])), None,
+    par = ef.InertiaParam(opts.mode, float(p[0]) if opts.mode == "shape" else float(np.mean(p[:3])), p_shape,
                           tuple(unknown))
     ts = tr.t_s[sel]
     ss = ef.SingleShooting(ts, bms, np.asarray(tr.b_inertial(ts)), action or ef.KnownAction.none(), tr.b_inertial, par,
                            np.repeat(tr.q[i0][None], R, axis=0), tr.sigma_b_T, fit_bias=opts.fit_bias,
                            omega_scale=opts.omega_scale, h_max_s=opts.h_max_s)
     theta = np.zeros((R, ss.n_params))
-    theta[:, :par.n] = par.from_p(p, moments_Nm=_true_moments(tr, unknown))
+    theta[:, :par.n] = [par.from_p(p, r, moments_Nm=_true_moments(tr, unknown)) for r in range(R)]
     theta[:, par.n:par.n + 3] = tr.omega_radps[i0] / opts.omega_scale
     runs = ef.lm(ss, ef.LMRuns(theta), None, opts.ss_iter)
     return runs.data_cost
@@ -319,6 +350,8 @@ def bench_scenario(name: str, runs: int, seed: int, duration_s: float,
         polish = chi2_from_truth(tr, np.ones(len(tr.t_s), bool), [], bm, ef.FitOptions(), tr.action)
         full.update({"local_minimum_runs": int(np.sum(chi2 - polish > 1.0)),
                      "chi2_above_truth_start_max": float(np.max(chi2 - polish))})
+        # the bound of the six components, noise alone and with the field model's error fitted as the fits do
+        full["crb_pct_of_Imax"] = {k: tensor_crb(tr, k).tolist() for k in dict.fromkeys(("none", field_error))}
         if res[0].field_error is not None:
             full["field_error"] = _field_error_stats(res)
         out["full"] = full
@@ -358,11 +391,17 @@ def bench_scenario(name: str, runs: int, seed: int, duration_s: float,
         pshape = np.array([r.p for r in sh])
         sc = ef.identify(tr.t_s, bm, tr.b_inertial, tr.action, tr.sigma_b_T, pshape[0],
                          fit_options(tr.t_s, field_error, mode="scale"), p_shape=pshape, b_samples=bs)
-        kappa = np.array([np.linalg.norm(r.p) / np.linalg.norm(p_true) for r in sc])
+        # |p̂|/|p|, negative for a tensor turned negative (a scale fit that crossed κ = 0)
+        kappa = np.array([np.sign(r.p @ p_true) * np.linalg.norm(r.p) / np.linalg.norm(p_true) for r in sc])
+        polish = chi2_from_truth(tr, np.ones(len(tr.t_s), bool), [], bm, ef.FitOptions(mode="scale"), tr.action,
+                                 p_shape=pshape)
+        chi2 = np.array([_chi2_exact_model(r) for r in sc])
         out["kappa"] = {"kappa_true": float(np.linalg.norm(p_true)), "ratio_min": float(kappa.min()),
                         "ratio_max": float(kappa.max()),
                         "ratio_rms_dev_pct": float(100 * np.sqrt(np.mean((kappa - 1) ** 2))),
-                        "within_3pct_runs": float(np.mean(np.abs(kappa - 1) <= 0.03))}
+                        "within_3pct_runs": float(np.mean(np.abs(kappa - 1) <= 0.03)),
+                        "local_minimum_runs": int(np.sum(chi2 - polish > 1.0)),
+                        "chi2_above_truth_start_max": float(np.max(chi2 - polish))}
         if len(tr.scenario.torques) == 1 and tr.scenario.torques[0].duration_s <= 5.0:
             out["kappa"]["paper_eq18"] = _kappa_paper(tr, bm, p_guess, bs)
         log(f"{name}: κ done ({time.time() - t0:.0f} s)")
@@ -447,6 +486,10 @@ def table(r: dict) -> str:
                          f"{f['ci95_mean'][k]:9.3f}   {100 * f['coverage95'][k]:5.1f} %  "
                          f"{100 * f['coverage99'][k]:5.1f} %"
                          f"  {f['z2_mean'][k]:6.2f}")
+        if "crb_pct_of_Imax" in f:
+            lines.append("   Cramér–Rao σ of Ixx…Iyz in % of Imax: " + "; ".join(
+                f"{'noise alone' if k == 'none' else 'with the field error fitted'} "
+                + " ".join(f"{x:.3f}" for x in v) for k, v in f["crb_pct_of_Imax"].items()))
         lines.append(f"   local minima {f['local_minimum_runs']} of {r['runs']} runs (χ² vs single shooting from the "
                      f"truth: at most {f['chi2_above_truth_start_max']:+.2f})")
         if "field_error" in f:
@@ -486,7 +529,10 @@ def _shape_lines(r: dict) -> list[str]:
                  f"{100 * s['ratio_coverage95'][1]:.0f} %; local minima {s['local_minimum_runs']} of {r['runs']} runs "
                  f"(χ² vs single shooting from the truth: at most {s['chi2_above_truth_start_max']:+.2f})")
     lines.append(f"   κ from the known torque (output-error, shape fixed): κ̂/κ in [{kp['ratio_min']:.4f}, "
-                 f"{kp['ratio_max']:.4f}], rms deviation {kp['ratio_rms_dev_pct']:.2f} %")
+                 f"{kp['ratio_max']:.4f}], rms deviation {kp['ratio_rms_dev_pct']:.2f} %"
+                 + (f"; local minima {kp['local_minimum_runs']} of {r['runs']} runs (χ² vs single shooting from "
+                    f"the truth: at most {kp['chi2_above_truth_start_max']:+.2f})" if "local_minimum_runs" in kp
+                    else ""))
     if "paper_eq18" in kp:
         q = kp["paper_eq18"]
         lines.append(f"   κ by the paper's eq. 17–19 (rates on each side from torque-free fits): κ̂/κ in "

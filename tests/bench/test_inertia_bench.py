@@ -108,8 +108,11 @@ def test_shape_command_line_reports_the_cramer_rao_bound(tmp_path, capsys, monke
                     "--field-error", "none", "--json", str(out)]) == 0
     text = capsys.readouterr().out
     assert "fitted as unknown moments" in text and "Cramér–Rao" in text and "shape ratios within 0.5 %" in text
-    s = json.loads(out.read_text())["results"][0]["shape"]
+    r = json.loads(out.read_text())["results"][0]
+    s, k = r["shape"], r["kappa"]
     assert s["data"] == "all" and s["samples"] == 330 and len(s["unknown_moments_s"]) == 3
+    # the scale from the known torque: signed, checked against the start at the truth like the fits
+    assert k["local_minimum_runs"] == 0 and 0.95 < k["ratio_min"] <= k["ratio_max"] < 1.05
     crb = np.array(s["ratio_crb_pct"])
     assert np.all(crb > 0.05) and np.all(crb < 2.0)
     # each fit's own σ is the bound (white noise); no run stopped in another minimum than the truth's

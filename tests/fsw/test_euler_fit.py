@@ -124,6 +124,55 @@ def test_the_fits_covariance_is_the_cramer_rao_bound(shape_fit):
     np.testing.assert_allclose(np.sqrt(np.diag(fit.cov_moments)), np.sqrt(np.diag(crb_m)) * scale, rtol=0.2)
 
 
+def test_the_scale_is_fitted_as_its_inverse():
+    """Mode "scale" fits θ = 1/κ (p = p_shape/θ): the known action's acceleration is linear in θ, so θ
+    can pass through 0 (torque-free) and a negative θ is a finite, reversed tensor, not a wall."""
+    ps = inr.params(ASYM)
+    par = ef.InertiaParam("scale", 200.0, np.array([ps, 2 * ps]))
+    th = par.from_p(1.5 * ps, run=1)
+    assert th[0] == pytest.approx(2 / 1.5)
+    np.testing.assert_allclose(par.to_p(th[None], np.array([1]))[0], 1.5 * ps)
+    np.testing.assert_allclose(par.to_p(np.array([[-0.5]]), np.array([0]))[0], -2 * ps)
+    h = 1e-7
+    fd = (par.to_p(np.array([[0.8 + h]]), np.array([0])) - par.to_p(np.array([[0.8 - h]]), np.array([0])))[0] / (2 * h)
+    np.testing.assert_allclose(par.jacobian(np.array([0.8]))[:, 0], fd, rtol=1e-6)
+    with pytest.raises(ValueError, match="not affine"):
+        par.affine()
+
+
+def test_the_scale_of_a_shape_from_the_known_torque(shape_fit):
+    """The shape of the fit above (its scale arbitrary) scaled by the known pulse: from a start three times
+    too large the fit ends where the one started at the true scale does, near the true scale (the shape's
+    own error aside)."""
+    fit = shape_fit[0]
+    sigma = 0.5e-6
+    t, b, _ = simulate(ASYM, [1.0, 0.6, -0.9], 400.0, pulse, sigma=sigma)
+    action = ef.KnownAction.pulses([(PULSE[0], PULSE[1] - PULSE[0], M_PULSE)])
+    kappa_true = float(inr.params(ASYM) @ fit.p) / float(fit.p @ fit.p)
+    sc, ref = (ef.identify(t, b[None], FIELD.b_eci_T, action, sigma, k * fit.p, ef.FitOptions(mode="scale"),
+                           p_shape=fit.p[None])[0] for k in (3.0, kappa_true))
+    kappa, kappa_ref = sc.p[0] / fit.p[0], ref.p[0] / fit.p[0]
+    sd = np.sqrt(sc.cov_p[0, 0]) / fit.p[0]
+    assert sc.converged and 0.8 < sc.s2 < 1.2
+    assert abs(kappa - kappa_ref) < 0.01 * sd and abs(kappa / kappa_true - 1) < 0.01, (kappa, kappa_ref, kappa_true)
+
+
+def test_the_bound_with_the_field_models_error_fitted():
+    """Estimating the field model's error alongside costs information: the bound widens with that error's
+    prior size, and with an error |B| does not show (the prior's floor) it is the noise's own."""
+    t = np.arange(0.5, 400.0, 1.0)
+    p, w0 = inr.params(ASYM), np.radians([1.0, 0.6, -0.9])
+    action = ef.KnownAction.pulses([(PULSE[0], PULSE[1] - PULSE[0], M_PULSE)])
+    exact, _ = ef.cramer_rao(t, FIELD.b_eci_T, action, 1.5e-6, p, Q0, w0)
+    with_error = ef.FitOptions(field_error_degree=1)
+    sd = {rms: np.sqrt(np.diag(ef.cramer_rao(t, FIELD.b_eci_T, action, 1.5e-6, p, Q0, w0, with_error,
+                                             field_error_rms_T=rms)[0])) for rms in (0.0, 0.1e-6, 0.5e-6)}
+    np.testing.assert_allclose(sd[0.0], np.sqrt(np.diag(exact)), rtol=1e-3)
+    assert np.all(sd[0.0] <= sd[0.1e-6] + 1e-12) and np.all(sd[0.1e-6] < sd[0.5e-6])
+    with pytest.raises(ValueError, match="RMS"):
+        ef.cramer_rao(t, FIELD.b_eci_T, action, 1.5e-6, p, Q0, w0, with_error)
+
+
 def test_an_unknown_moment_outside_the_record_is_refused():
     t = np.arange(0.5, 50.0, 1.0)
     b = np.tile([2e-5, 0.0, 1e-5], (len(t), 1))

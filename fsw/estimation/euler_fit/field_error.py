@@ -135,6 +135,21 @@ def body_columns(t_s: np.ndarray, b_body_T: np.ndarray, degree: int, sigma_b_T: 
     return np.concatenate([drift, soft])
 
 
+def joint_columns(t_s: np.ndarray, q_body_to_inertial: np.ndarray, b_model_T: np.ndarray, sigma_b_T: float,
+                  rms_T: float, degree: int, soft_iron_sigma: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The errors' columns of the whitened residuals (m, n, 3) — the inertial field's offset
+    (:func:`columns`), then the host's (:func:`body_columns`) — at the attitudes q and the model's field
+    `b_model_T` (body axes, the offset left out), and their prior weights (m,) (σ_B / prior 1-σ: the
+    offset's and drift's from `rms_T`, :func:`prior_sigmas_T`; the soft iron's 1/`soft_iron_sigma`)."""
+    soft = soft_iron_sigma is not None and soft_iron_sigma > 0
+    Jc = np.concatenate([columns(t_s, q_body_to_inertial, degree),      # per unit c = δB / σ_B
+                         body_columns(t_s, b_model_T, degree, sigma_b_T, soft)])
+    sig = prior_sigmas_T(rms_T, degree)
+    w_c = np.concatenate([sigma_b_T / sig.ravel(), sigma_b_T / sig[1:].ravel()]
+                         + ([np.full(9, 1.0 / soft_iron_sigma)] if soft else []))
+    return Jc, w_c
+
+
 #: step lengths tried, longest first: the Gauss–Newton step is taken only as far as it lowers the cost
 STEP_LENGTHS = (1.0, 0.5, 0.25, 0.125, 0.0625)
 
@@ -179,14 +194,10 @@ def apply(ss, theta: np.ndarray, prior, result, degree: int, run: int = 0, soft_
     b_model = b + r * ss.sigma                                  # the predicted field less the offset
     rms = error_rms_T(t, b, np.linalg.norm(b_model, axis=1))
     soft = soft_iron_sigma is not None and soft_iron_sigma > 0
-    Jc = np.concatenate([columns(t, q, degree),                 # per unit c = δB / σ_B
-                         body_columns(t, b_model, degree, ss.sigma, soft)])
+    Jc, w_c = joint_columns(t, q, b_model, ss.sigma, rms, degree, soft_iron_sigma)
     Ja = np.concatenate([J, Jc])
     m = len(Jc)
     H = np.einsum("kna,lna->kl", Ja, Ja)
-    sig = prior_sigmas_T(rms, degree)
-    w_c = np.concatenate([ss.sigma / sig.ravel(), ss.sigma / sig[1:].ravel()]
-                         + ([np.full(9, 1.0 / soft_iron_sigma)] if soft else []))
     w2 = np.concatenate([prior.w ** 2 if prior is not None else np.zeros(k), w_c * w_c])
     H[np.diag_indices_from(H)] += w2
     g = np.einsum("kna,na->k", Ja, r)
@@ -200,8 +211,8 @@ def apply(ss, theta: np.ndarray, prior, result, degree: int, run: int = 0, soft_
     th = theta + delta[:k]
     par = ss.inertia
     n_I = par.n
-    T, c0 = par.affine(run)
-    p = T @ th[:n_I] + c0
+    T = par.jacobian(th[:n_I], run)
+    p = par.to_p(th[None, :n_I], np.array([run]))[0]
     _, q0, w0, bias = ss.unpack(th[None], np.array([run]))
     cov_th = cov[:k, :k]
     mom, cov_m = par.moments_of(th[:n_I], cov_th[:n_I, :n_I]) if par.n_moments else (None, None)

@@ -343,8 +343,8 @@ def results(ss: SingleShooting, runs: LMRuns, prior: Prior | None) -> list[FitRe
     for r in range(R):
         s2 = runs.data_cost[r] / max(runs.dof, 1)
         cov = s2 * inv[r]
-        T, c = par.affine(r)
-        p = T @ runs.theta[r, :n_I] + c
+        T = par.jacobian(runs.theta[r, :n_I], r)
+        p = par.to_p(runs.theta[r:r + 1, :n_I], np.array([r]))[0]
         pp, q0, w0, bias = ss.unpack(runs.theta[r:r + 1], np.array([r]))
         mom, cov_m = par.moments_of(runs.theta[r, :n_I], cov[:n_I, :n_I]) if par.n_moments else (None, None)
         out.append(FitResult(p, T @ cov[:n_I, :n_I] @ T.T, w0[0], q0[0], bias[0], float(runs.data_cost[r]),

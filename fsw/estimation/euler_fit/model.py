@@ -134,11 +134,20 @@ class InertiaParam:
 
     θ_I = [tensor part | unknown moments]. The tensor part: p = T θ_I + c with ``full`` p/I_ref (6),
     ``diag`` (Ixx, Iyy, Izz)/I_ref (3), ``shape`` the tensor with Ixx fixed to I_ref (5: the others
-    /I_ref), ``shape_diag`` (Iyy, Izz)/I_ref (2), ``scale`` κ with p = κ·p_shape (1). Then one constant
+    /I_ref), ``shape_diag`` (Iyy, Izz)/I_ref (2), ``scale`` the inverse θ = 1/κ of the scale κ of a fixed
+    shape, p = p_shape/θ (1). Then one constant
     moment vector (3 parameters, N·m / (I_ref · MOMENT_SCALE_RADPS2)) per interval of
     ``unknown_intervals`` ((t0, t1) pairs, not overlapping): a torque known to act there but not known
     in size — e.g. a tug pulse, for a shape that must not rely on the torque's calibration; its prior
     1-σ (3,) [N·m] in ``moment_sigma_Nm`` (free when not given or inf).
+
+    Why ``scale`` fits the inverse: with J = κ J_s the motion is J_s ω̇ + ω × J_s ω = (M + p_m × B)/κ —
+    the gyroscopic part does not depend on κ and the known action's acceleration is linear in θ = 1/κ.
+    θ = 0 is the torque-free motion and a sign change of θ reverses the action, a smooth path for the
+    fit; in κ itself J is singular at κ = 0, a wall of infinite acceleration the fit cannot cross back
+    once a step has jumped it (a loose first stage that sees little of the torque could end at κ < 0,
+    and from there every stage drove κ towards −∞, the torque-free side nearest the data, ending
+    unconverged at κ̂/κ of −40…−80).
     """
 
     mode: str
@@ -183,8 +192,20 @@ class InertiaParam:
             return self
         return InertiaParam(self.mode, self.I_ref, self.p_shape[runs], self.unknown_intervals, self.moment_sigma_Nm)
 
+    def jacobian(self, theta_I: np.ndarray, run: int = 0) -> np.ndarray:
+        """∂p/∂θ_I (6, n) at θ_I (n,) (zero columns for the moments): T of :meth:`affine` for the modes
+        linear in θ; for ``scale`` −p_shape/θ²."""
+        if self.mode == "scale":
+            T = np.zeros((6, self.n))
+            T[:, 0] = -self.p_shape[run] / float(theta_I[0]) ** 2
+            return T
+        return self.affine(run)[0]
+
     def affine(self, run: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """T (6, n), c (6,) with p = T θ_I + c (zero columns for the moments)."""
+        """T (6, n), c (6,) with p = T θ_I + c (zero columns for the moments); not for ``scale`` (p is
+        not affine in θ there: :meth:`jacobian`, :meth:`to_p`)."""
+        if self.mode == "scale":
+            raise ValueError("the scale mode's p = p_shape/θ is not affine in θ")
         T = np.zeros((6, self.n))
         c = np.zeros(6)
         if self.mode == "full":
@@ -197,14 +218,13 @@ class InertiaParam:
         elif self.mode == "shape_diag":
             c[0] = self.I_ref
             T[1:3, :2] = np.eye(2) * self.I_ref
-        else:
-            T[:, 0] = self.p_shape[run]
         return T, c
 
     def to_p(self, theta_I: np.ndarray, runs: np.ndarray) -> np.ndarray:
         """θ_I (nb, n) → p (nb, 6)."""
         if self.mode == "scale":
-            return theta_I[:, :1] * self.p_shape[runs]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                return self.p_shape[runs] / theta_I[:, :1]
         T, c = self.affine()
         return theta_I @ T.T + c
 
@@ -217,10 +237,14 @@ class InertiaParam:
 
     def from_p(self, p: np.ndarray, run: int = 0, moments_Nm: np.ndarray | None = None) -> np.ndarray:
         """θ_I of a tensor p (and of the unknown moments (K, 3), zero when not given)."""
-        T, c = self.affine(run)
         th = np.zeros(self.n)
         nt = self.n_tensor
-        th[:nt] = np.linalg.lstsq(T[:, :nt], np.asarray(p, float) - c, rcond=None)[0]
+        if self.mode == "scale":
+            ps = self.p_shape[run]
+            th[0] = float(ps @ ps) / float(ps @ np.asarray(p, float))    # 1/κ, κ the least-squares scale
+        else:
+            T, c = self.affine(run)
+            th[:nt] = np.linalg.lstsq(T[:, :nt], np.asarray(p, float) - c, rcond=None)[0]
         if moments_Nm is not None and self.n_moments:
             th[nt:] = np.asarray(moments_Nm, float).ravel() / self.moment_scale_Nm
         return th
