@@ -61,7 +61,8 @@ carry the information limit of the random-walk model on the record (:func:`infor
 Methods: ``boer`` (perpendicular), ``derivative``, ``kotelnikov`` (series, analytic form); onboard:
 ``kalman`` (fsw RateKalman, fixed field, the filter flown by default), ``kalman_orbit`` (attitude
 filter with the field along the orbit), ``kalman_euler`` (that plus Euler's equations with the inertia
-shape estimated, acquired by parallel shape hypotheses: filter_banks.EulerAcquisitionKalman), ``kalman_mm``
+shape estimated, acquired by parallel shape hypotheses, with the hypotheses over the angle about B as flown:
+filter_banks.EulerAcquisitionKalman), ``kalman_mm``
 (the attitude filter as a bank of rate models, random walk and Gauss–Markov, the likeliest
 publishing: filter_banks.RateModelBank); ground:
 ``smoother`` (RTS with the field model), ``euler`` (batch torque-free fit with the field model),
@@ -189,7 +190,8 @@ def estimate(run: Run, sigma_b_T: float, methods=METHODS) -> dict[str, tuple[np.
     onboard = {
         "kalman": lambda: rk.kalman_rate(run.t_s, run.b_T, sigma_b_T),
         "kalman_orbit": lambda: ak.attitude_kalman_rate(run.t_s, run.b_T, sigma_b_T, field_eci_T=field),
-        "kalman_euler": lambda: fb.euler_acquisition_rate(run.t_s, run.b_T, sigma_b_T, field_eci_T=field),
+        "kalman_euler": lambda: fb.euler_acquisition_rate(run.t_s, run.b_T, sigma_b_T, field_eci_T=field,
+                                                          about_b_hypotheses=fb.ABOUT_B_HYPOTHESES),
         "kalman_mm": lambda: fb.rate_model_bank_rate(run.t_s, run.b_T, sigma_b_T, field_eci_T=field),
     }
     for name, fn in onboard.items():

@@ -326,15 +326,16 @@ def pymavlink_with_debris(directory) -> Path:
 
 
 def accuracy_record(mode: str, body: str, dt_s: float, sigma_uT: float, run_index: int, seed: int = 2024,
-                    world: str = "dipole"):
+                    world: str = "dipole", whole: bool = False):
     """The scored record of run `run_index` of bench.accuracy's row (mode, body, dt_s, sigma_uT) in `world`, seeded
-    as the benchmark seeds it: t, B, true ω, true B, σ_B (with the chip's noise), the field along the orbit."""
+    as the benchmark seeds it: t, B, true ω, true B, σ_B (with the chip's noise), the field along the orbit;
+    `whole`: the onboard filters' warm-up before the record too."""
     from bench import accuracy as acc
     from ground import smoother as sm
     row = acc.Row(mode, body, dt_s, sigma_uT, world)
     run = acc.simulate(mode, body, dt_s, sigma_uT * 1e-6, np.random.default_rng(acc.row_seed(row, seed) + [run_index]),
                        world=world)
-    rec = run.record
+    rec = slice(None) if whole else run.record
     t = run.t_s[rec]
     return (t, run.b_T[rec], run.w_true_radps[rec], run.b_true_T[rec], math.hypot(sigma_uT * 1e-6, acc.CHIP_NOISE_T),
             sm.tabulated(run.field, t))

@@ -198,6 +198,8 @@ class EulerAcquisitionKalman(_Bank):
         #: the hypotheses' share of the attitude's covariance: (the reference's weight, Σ the others' weight ×
         #: (covariance + offset offsetᵀ)), from their last full round
         self._about_b_mix: tuple[float, np.ndarray] = (1.0, np.zeros((3, 3)))
+        #: the same for the rate's covariance (each hypothesis's own and its rate's offset from the reference's)
+        self._about_b_rate_mix: tuple[float, np.ndarray] = (1.0, np.zeros((3, 3)))
         self.about_b_switches = 0
         self.about_b_updates = 0
         #: Euler filters found lost (:meth:`_watch_lost`), and the samples in a row the test has held
@@ -208,6 +210,17 @@ class EulerAcquisitionKalman(_Bank):
     @property
     def euler(self) -> bool:
         return self.main.euler
+
+    @property
+    def sigma_radps(self) -> np.ndarray:
+        """`main`'s 1-σ of ω; with the hypotheses over the angle about B running, the mixture's (as
+        :meth:`attitude`'s): another attitude about B is another field turn read as rate."""
+        s = self.main.sigma_radps
+        if not self._about_b:
+            return s
+        w_ref, spread = self._about_b_rate_mix
+        with np.errstate(invalid="ignore"):
+            return np.sqrt(w_ref * s ** 2 + np.diag(spread))
 
     @property
     def inertia_shape(self) -> np.ndarray:
@@ -384,14 +397,14 @@ class EulerAcquisitionKalman(_Bank):
             kf.tuning = tun
             if j:
                 kf.q = quat_mul(quat_exp(b_i * (2.0 * math.pi * j / k)), kf.q)
-            v = float(u @ kf.P[:3, :3] @ u)
-            kf.P[:3, :3] += (tun.about_b_sigma_rad ** 2 - v) * np.outer(u, u)
+            _condition_about_b(kf, u, tun.about_b_sigma_rad)
             self._about_b.append([kf, kf.nll, kf.resets, 0])
         self._about_b_ref = self._about_b[0]
 
     def _stop_about_b(self) -> None:
         self._about_b, self._about_b_ref, self._about_b_samples = [], None, []
         self._about_b_mix = (1.0, np.zeros((3, 3)))
+        self._about_b_rate_mix = (1.0, np.zeros((3, 3)))
 
     def _work_about_b(self, max_updates: int | None = None) -> int:
         """Advance the hypotheses over the angle about B through their samples, at most `max_updates` filter
@@ -425,7 +438,8 @@ class EulerAcquisitionKalman(_Bank):
         the reference dropped so, `main` becomes a copy of the best; the mixture's covariance about the
         reference is kept for :meth:`attitude`."""
         ref = self._about_b_ref
-        live = [h for h in self._about_b if h[0].resets == h[2] and h[0].euler]
+        live = [h for h in self._about_b if h[0].resets == h[2] and h[0].euler
+                and np.all(np.isfinite(h[0].omega_radps)) and np.all(np.isfinite(h[0].P))]
         if ref not in live:  # `main`'s copy lost while `main` goes on: the hypotheses start again from it
             self._stop_about_b()
             self._about_b_want = True
@@ -447,7 +461,7 @@ class EulerAcquisitionKalman(_Bank):
             return
         w = np.exp(-(scores - scores.min()) / ABOUT_B_TEMPER)
         w /= w.sum()
-        spread = np.zeros((3, 3))
+        spread, rate_spread = np.zeros((3, 3)), np.zeros((3, 3))
         w_ref = 1.0
         for wj, h in zip(w, live):
             if h is ref:
@@ -455,7 +469,10 @@ class EulerAcquisitionKalman(_Bank):
                 continue
             d = quat_log(quat_mul(quat_conj(ref[0].q), h[0].q))
             spread += wj * (h[0].P[:3, :3] + np.outer(d, d))
+            dw = h[0].omega_radps - ref[0].omega_radps
+            rate_spread += wj * (h[0].rate_cov_published() + np.outer(dw, dw))
         self._about_b_mix = (w_ref, spread)
+        self._about_b_rate_mix = (w_ref, rate_spread)
 
     def _switch_about_b(self, best: list) -> None:
         """`main` becomes a copy of the hypothesis `best` (at its last sample; `main`'s samples since then are
@@ -477,6 +494,24 @@ class EulerAcquisitionKalman(_Bank):
         hypotheses not yet excluded."""
         w_ref, spread = self._about_b_mix
         return np.array(self.main.q, float), w_ref * attitude_cov(self.main) + spread
+
+
+def _condition_about_b(kf: AttitudeRateKalman, u: np.ndarray, sigma_rad: float) -> None:
+    """`kf`'s attitude variance about the body axis `u` set to `sigma_rad`²: lowered by conditioning on a
+    pseudo-measurement of that angle (the correlated rate, shape and field lowered with it), raised by adding
+    along `u` alone. Overwriting a lowered variance in place, the correlations kept, left the covariance
+    indefinite (a rate variance below zero within 20 s on a libration the Euler filter does not fit)."""
+    H = np.zeros(kf.n)
+    H[:3] = u
+    v = float(H @ kf.P @ H)
+    s2 = sigma_rad ** 2
+    if v > s2:
+        r = s2 * v / (v - s2)   # posterior v·r/(v + r) = σ²
+        PH = kf.P @ H
+        kf.P = kf.P - np.outer(PH, PH) / (v + r)
+        kf.P = 0.5 * (kf.P + kf.P.T)
+    else:
+        kf.P[:3, :3] += (s2 - v) * np.outer(u, u)
 
 
 #: the process models of :class:`RateModelBank`: (τ s, a rad/s²) of a Gauss–Markov rate, stationary 1-σ
