@@ -334,6 +334,9 @@ def pool_row(row: Row, per_run: list[dict], methods=METHODS) -> dict:
                 a = np.concatenate(d[part])
                 res[f"{part}_rms_dps"] = math.degrees(float(np.sqrt(np.mean(a ** 2)))) if a.size else math.nan
                 res[f"{part}_max_dps"] = math.degrees(float(np.max(a))) if a.size else math.nan
+        if d["full"]:  # each run's own RMS: the paired runs of the two worlds resampled (docs/tables.py)
+            res["run_rms_dps"] = [math.degrees(float(np.sqrt(np.mean(a ** 2)))) if a.size else math.nan
+                                  for a in d["full"]]
         res["failed_runs"] = list(d["failed"])
         res["missing_samples"] = int(sum(d["missing"]))
         if d["z"]:
