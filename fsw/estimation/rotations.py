@@ -95,8 +95,8 @@ def quat_conj(q: np.ndarray) -> np.ndarray:
 def quat_exp(phi: np.ndarray) -> np.ndarray:
     """Unit quaternion(s) (..., 4) of rotation vector(s) φ (..., 3)."""
     phi = np.asarray(phi, float)
-    if phi.ndim == 1:
-        th = math.sqrt(float(phi @ phi))
+    if phi.ndim == 1:  # the squares summed in the stack's order (a BLAS dot may fuse them: 1 ulp apart)
+        th = math.sqrt(float(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]))
         s = 0.5 if th < 1e-12 else math.sin(0.5 * th) / th
         return np.array([math.cos(0.5 * th), s * phi[0], s * phi[1], s * phi[2]])
     th = np.linalg.norm(phi, axis=-1, keepdims=True)
