@@ -2,10 +2,12 @@
 relative link resolves inside the repository, and the README stays a short front door."""
 import importlib.util
 import json
+import math
 import re
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -129,3 +131,17 @@ def test_readme_is_a_front_door():
     assert len(headings) == len(set(headings)), "a heading appears twice"
     for needed in ("make sitl", "make test", "Dependencies and why", "Quick start", "Layout"):
         assert needed in text
+
+
+def test_the_ratio_interval_is_a_paired_bootstrap():
+    """An IGRF row's ratio to its dipole row (docs/tables.py `ratio_interval`): runs that differ by one factor
+    give that factor exactly; unpaired noise widens it around the pooled ratio; too few runs give none."""
+    assert tables.ratio_interval([2.0, 4.0, 6.0, 1.0], [1.0, 2.0, 3.0, 0.5]) == pytest.approx((2.0, 2.0))
+    rng = np.random.default_rng(5)
+    den = list(rng.uniform(0.5, 1.5, 20))
+    num = [d * f for d, f in zip(den, rng.uniform(0.8, 1.6, 20))]
+    lo, hi = tables.ratio_interval(num, den)
+    pooled = math.sqrt(sum(x * x for x in num) / sum(x * x for x in den))
+    assert lo < pooled < hi and 0.8 < lo and hi < 1.6
+    assert tables.ratio_interval(num, den) == (lo, hi)  # seeded
+    assert all(math.isnan(x) for x in tables.ratio_interval([1.0], [1.0]))
