@@ -82,6 +82,12 @@ ABOUT_B_SAME_RAD = math.radians(10.0)
 ABOUT_B_TEMPER = 10.0
 
 
+#: no hypotheses over the angle about B: the reference alone, nothing added to its covariances (read-only)
+_NO_SPREAD = np.zeros((3, 3))
+_NO_SPREAD.flags.writeable = False
+_NO_MIX = (1.0, _NO_SPREAD, _NO_SPREAD)
+
+
 class _Bank:
     """Several :class:`AttitudeRateKalman` run side by side; the one in `main` publishes."""
 
@@ -195,11 +201,10 @@ class EulerAcquisitionKalman(_Bank):
         self._about_b_ref: list | None = None
         self._about_b_samples: list[tuple[float, np.ndarray]] = []
         self._about_b_want = False  # start them at the next sample (main in Euler's equations, none running)
-        #: the hypotheses' share of the attitude's covariance: (the reference's weight, Σ the others' weight ×
-        #: (covariance + offset offsetᵀ)), from their last full round
-        self._about_b_mix: tuple[float, np.ndarray] = (1.0, np.zeros((3, 3)))
-        #: the same for the rate's covariance (each hypothesis's own and its rate's offset from the reference's)
-        self._about_b_rate_mix: tuple[float, np.ndarray] = (1.0, np.zeros((3, 3)))
+        #: the hypotheses' share of the attitude's and the rate's covariance, from their last full round: (the
+        #: reference's weight, Σ the others' weight × (covariance + offset offsetᵀ) of the attitude, the same of
+        #: the rate)
+        self._about_b_mix: tuple[float, np.ndarray, np.ndarray] = _NO_MIX
         self.about_b_switches = 0
         self.about_b_updates = 0
         #: Euler filters found lost (:meth:`_watch_lost`), and the samples in a row the test has held
@@ -218,7 +223,7 @@ class EulerAcquisitionKalman(_Bank):
         s = self.main.sigma_radps
         if not self._about_b:
             return s
-        w_ref, spread = self._about_b_rate_mix
+        w_ref, _, spread = self._about_b_mix
         with np.errstate(invalid="ignore"):
             return np.sqrt(w_ref * s ** 2 + np.diag(spread))
 
@@ -403,8 +408,7 @@ class EulerAcquisitionKalman(_Bank):
 
     def _stop_about_b(self) -> None:
         self._about_b, self._about_b_ref, self._about_b_samples = [], None, []
-        self._about_b_mix = (1.0, np.zeros((3, 3)))
-        self._about_b_rate_mix = (1.0, np.zeros((3, 3)))
+        self._about_b_mix = _NO_MIX
 
     def _work_about_b(self, max_updates: int | None = None) -> int:
         """Advance the hypotheses over the angle about B through their samples, at most `max_updates` filter
@@ -438,8 +442,7 @@ class EulerAcquisitionKalman(_Bank):
         the reference dropped so, `main` becomes a copy of the best; the mixture's covariance about the
         reference is kept for :meth:`attitude`."""
         ref = self._about_b_ref
-        live = [h for h in self._about_b if h[0].resets == h[2] and h[0].euler
-                and np.all(np.isfinite(h[0].omega_radps)) and np.all(np.isfinite(h[0].P))]
+        live = [h for h in self._about_b if h[0].resets == h[2] and h[0].euler]
         if ref not in live:  # `main`'s copy lost while `main` goes on: the hypotheses start again from it
             self._stop_about_b()
             self._about_b_want = True
@@ -471,8 +474,7 @@ class EulerAcquisitionKalman(_Bank):
             spread += wj * (h[0].P[:3, :3] + np.outer(d, d))
             dw = h[0].omega_radps - ref[0].omega_radps
             rate_spread += wj * (h[0].rate_cov_published() + np.outer(dw, dw))
-        self._about_b_mix = (w_ref, spread)
-        self._about_b_rate_mix = (w_ref, rate_spread)
+        self._about_b_mix = (w_ref, spread, rate_spread)
 
     def _switch_about_b(self, best: list) -> None:
         """`main` becomes a copy of the hypothesis `best` (at its last sample; `main`'s samples since then are
@@ -492,7 +494,7 @@ class EulerAcquisitionKalman(_Bank):
         with the hypotheses over the angle about B running, the mixture's about it (each hypothesis weighted
         by its tempered likelihood, its offset from `main`'s copy included), so that the σ covers the
         hypotheses not yet excluded."""
-        w_ref, spread = self._about_b_mix
+        w_ref, spread, _ = self._about_b_mix
         return np.array(self.main.q, float), w_ref * attitude_cov(self.main) + spread
 
 
