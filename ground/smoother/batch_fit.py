@@ -10,7 +10,7 @@ left in doubles the error."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -23,6 +23,8 @@ from ground import euler_trajectory as et
 
 from .rts import FieldFn, Smoothed, rts_smooth, tabulated
 
+#: the growing windows' first, in samples
+FIRST_WINDOW = 8
 #: other minima of the batch fit: polished when within MODE_SEARCH_DCHI2 of the best after their first
 #: iterations, kept in σ (weight e^(−Δχ²/2)) when within MODE_KEEP_DCHI2 after polishing
 MODE_SEARCH_DCHI2, MODE_KEEP_DCHI2 = 30.0, 20.0
@@ -91,7 +93,7 @@ def _field_at_samples(field_eci_T: FieldFn, t: np.ndarray, n: int) -> np.ndarray
 
 def euler_fit(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
               inertia_kgm2: np.ndarray | None = None, init: Smoothed | None = None,
-              first_window: int = 8, growth: float = 1.4, iterations: int = 10, starts_about_b: int = 24,
+              first_window: int = FIRST_WINDOW, growth: float = 1.4, iterations: int = 10, starts_about_b: int = 24,
               wahba_rounds: int = 2, max_substep_rad: float = 0.25,
               hard_iron_sigma_T=None) -> Smoothed:
     """Torque-free Euler + kinematics fitted to the whole record: :func:`_euler_minimum`, then the other minima
@@ -104,8 +106,8 @@ def euler_fit(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T
 
 def _euler_minimum(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
                    inertia_kgm2: np.ndarray | None = None, init: Smoothed | None = None,
-                   first_window: int = 8, growth: float = 1.4, iterations: int = 10, starts_about_b: int = 24,
-                   wahba_rounds: int = 2, max_substep_rad: float = 0.25,
+                   first_window: int = FIRST_WINDOW, growth: float = 1.4, iterations: int = 10,
+                   starts_about_b: int = 24, wahba_rounds: int = 2, max_substep_rad: float = 0.25,
                    hard_iron_sigma_T=None) -> "_Minimum":
     """Torque-free Euler + kinematics fitted to the whole record (see the module docstring).
 
@@ -144,8 +146,7 @@ def _euler_minimum(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, field_
         beta = rot.quat_to_dcm(init.q[0]) @ (b[0] * rk.UT_PER_T)
         kf.set_nominal(t[0], np.array([1.0, 0.0, 0.0, 0.0]), init.w_radps[0], beta_uT=beta, euler=True)
     else:
-        p0 = None if init.inertia_shape is None or kf.n_p == 0 else np.log(np.asarray(init.inertia_shape, float)[1:])
-        kf.set_nominal(t[0], init.q[0], init.info.get("w_pass_radps", init.w_radps)[0], p=p0, euler=True)
+        kf.set_nominal(t[0], init.q[0], _start_rate(init), euler=True)
     z = b * rk.UT_PER_T
     sb = sigma_b_T * rk.UT_PER_T
     hi_sigma = None if hard_iron_sigma_T is None else np.broadcast_to(np.asarray(hard_iron_sigma_T, float), (3,))
@@ -391,9 +392,10 @@ def euler_fit_checked(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, fie
 ALONG_B_START_SIGMAS = (1.0, -1.0, 2.0, -2.0, 3.0, -3.0)
 
 
-def _longer_first_windows(n: int, first_window: int = 8, factor: int = 4) -> list[int]:
-    """The growing windows' first window, longer by `factor` each time up to the whole record of `n` samples."""
-    out, fw = [], first_window * factor
+def _longer_first_windows(n: int, factor: int = 4) -> list[int]:
+    """The growing windows' first window, longer than FIRST_WINDOW by `factor` each time up to the whole record of
+    `n` samples."""
+    out, fw = [], FIRST_WINDOW * factor
     while fw < n:
         out.append(fw)
         fw *= factor
@@ -407,15 +409,16 @@ def _along_b_starts(init: Smoothed, b_T: np.ndarray):
     sig = float(np.sqrt(np.sum((bh * init.sigma_radps[0]) ** 2)))
     if not (np.isfinite(sig) and sig > 0.0):
         return
+    w0 = _start_rate(init)
     for k in ALONG_B_START_SIGMAS:
         w = init.w_radps.copy()
-        w[0] += k * sig * bh
-        info = dict(init.info)
-        if "w_pass_radps" in info:
-            wp = np.array(info["w_pass_radps"], float)
-            wp[0] += k * sig * bh
-            info["w_pass_radps"] = wp
-        yield Smoothed(init.t_s, w, init.sigma_radps, init.q, init.method, init.chi2_dof, init.inertia_shape, info)
+        w[0] = w0 + k * sig * bh
+        yield replace(init, w_radps=w, info={})  # the fit starts from (q[0], w[0])
+
+
+def _start_rate(init: Smoothed) -> np.ndarray:
+    """The rate at t₀ the fit starts from: the smoother's forward pass's where it has one (`w_pass_radps`)."""
+    return np.asarray(init.info.get("w_pass_radps", init.w_radps), float)[0]
 
 
 def _wahba_start(kf, t, z, field_eci_T, n) -> np.ndarray:
