@@ -95,7 +95,6 @@ from ground import smoother as sm
 from bench.campaign import Run as Run_
 from bench.campaign import options as campaign_options
 from bench.campaign import run_campaign
-from bench.accuracy_world import BDOT_DISTURB_T  # noqa: F401 (the benchmark's names: tests read it here)
 from bench.accuracy_world import BODIES, CHIP_NOISE_T, IGRF_EXACT, MODES, WORLDS, Run, simulate
 
 
