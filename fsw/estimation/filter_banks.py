@@ -166,9 +166,7 @@ class EulerAcquisitionKalman(_Bank):
                  deferred: bool = False,
                  lost_nis_mean: float = LOST_NIS_MEAN) -> None:
         # the bank decides when Euler's equations start: the filters' own innovation test is off
-        # (its acquisition's random walk keeps the full κ bound, adapt_min = 1: the hypotheses start from it)
-        tun = replace(tuning or AttitudeKalmanTuning(euler_adapt_max=EULER_ADAPT_MAX, adapt_min=1.0),
-                      euler_nis_max=-math.inf)
+        tun = replace(tuning or AttitudeKalmanTuning(euler_adapt_max=EULER_ADAPT_MAX), euler_nis_max=-math.inf)
         #: the trial's hypotheses cut a shape step at the physical edge; the winner, as `main`, does not (a shape
         #: pushed to the edge there is a model that does not fit: back to acquisition)
         self._trial_tuning = replace(tun, shape_step_cut_sigmas=SHAPE_STEP_CUT_SIGMAS)
@@ -537,16 +535,13 @@ class RateModelBank(_Bank):
     `kappa_gm`. Causal, one sample at a time; a member that restarts keeps its score (its restarts show
     in its innovations). The likelihood judges the part of the motion the samples see; along B, where
     they see little, it cannot tell the models apart, and a random walk that fits the perpendicular part
-    a little better can still win there (see the README's orbital rows). For the same reason the members'
-    process noise is not let shrink below the tuning's (``adapt_min`` = 1): a random walk whose noise has
-    shrunk wins the likelihood on a libration and lets the rate along B wander (orbital rows, 4 runs:
-    0.83 → 1.21 °/s at 1 s, 1.5 µT).
+    a little better can still win there (see the README's orbital rows).
     """
 
     def __init__(self, sigma_b_T: float, *, field_eci_T: FieldFn | None = None,
                  tuning: AttitudeKalmanTuning | None = None, models=RATE_MODELS, memory_samples: float = 200.0,
                  kappa_gm: float = 0.03, angle_about_b_rad: float = 0.0) -> None:
-        base = tuning or AttitudeKalmanTuning(adapt_min=1.0)   # see the class's docstring
+        base = tuning or AttitudeKalmanTuning()
         if not memory_samples >= 1.0:
             raise ValueError(f"memory_samples must be >= 1, got {memory_samples!r}")
         self.models = tuple((float(tau), a) for tau, a in models)

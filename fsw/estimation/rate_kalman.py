@@ -53,8 +53,9 @@ class RateKalmanTuning:
       the floor: a body driven by torques the model does not know (flywheels, magnetorquers) gets the
       process noise it needs, and an honest σ, without hand tuning. Below 1 it scales the whole: the
       κ bound is sized for moments up to 2× apart, and a near-symmetric body's rate changes far less
-      (accuracy benchmark, near-symmetric rows: RMS 0.3–0.6 of what the fixed bound gives, 1-σ coverage
-      95–99 % → 65–90 %). From 1/256 back to 1 takes eight samples of large innovations.
+      (accuracy benchmark, the 16 near-symmetric tumbling rows: RMS ×0.51–0.90 of what the fixed bound
+      gives, 1-σ coverage 89–99 % → 59–81 %; the realistic slow heavy tumble 64 → 77 %, RMS +0.7 %). From
+      1/256 back to 1 takes eight samples of large innovations.
     max_step_angle_rad: a step longer than this many radians of rotation at the current rate (or than
       `max_gap_s`) restarts the filter: beyond about half a turn the samples cannot say which way B went.
     sigma_flag_radps: an axis whose 1-σ exceeds this is reported DEGENERATE (not to be trusted).

@@ -42,7 +42,7 @@ def euler_rts_smooth(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, *, fiel
             J = np.eye(3)
 
     def run(accel, store):
-        tun = ak.AttitudeKalmanTuning(rate_accel_radps2=accel, adapt_max=1.0, adapt_min=1.0, max_substep_rad=0.25,
+        tun = ak.AttitudeKalmanTuning(rate_accel_radps2=accel, adapt_max=1.0, max_substep_rad=0.25,
                                       max_substeps=400)
         kf = ak.AttitudeRateKalman(sigma_b_T, field_eci_T=field_eci_T, inertia_kgm2=J,
                                    estimate_inertia=shape is not None, store=store, tuning=tun)

@@ -97,7 +97,7 @@ def _forward(t, b, sigma_b_T, field_eci_T, noise, angle, start=None, store=False
     kappa, accel, sfac, tau = noise
     kf = ak.AttitudeRateKalman(sigma_b_T * sfac, field_eci_T=field_eci_T,
                                tuning=ak.AttitudeKalmanTuning(kappa=kappa, rate_accel_radps2=accel, adapt_max=1.0,
-                                                              adapt_min=1.0, rate_tau_s=tau),
+                                                              rate_tau_s=tau),
                                angle_about_b_rad=angle, store=store)
     return rts_pass.forward(kf, t, b, start or {})  # compiled (the filter's own updates where it cannot be)
 

@@ -395,8 +395,7 @@ def test_rate_model_bank_holds_a_libration_and_keeps_the_random_walk_for_a_tumbl
     """The bank of rate models (filter_banks.RateModelBank) on the benchmark's records: on a slow libration about
     the orbital frame (1 s step, 1.5 µT) a Gauss–Markov member publishes and the full-vector error is well
     below the random-walk attitude filter's and below the motion's own RMS; on a free tumble at 15 °/s
-    the random walk publishes, the same estimates as the attitude filter alone (with the bank's floor of its
-    noise adaptation). Never a non-finite
+    the random walk publishes, the same estimates as the attitude filter alone. Never a non-finite
     estimate."""
     from ground import smoother as sm
     from bench import accuracy as acc
@@ -419,9 +418,7 @@ def test_rate_model_bank_holds_a_libration_and_keeps_the_random_walk_for_a_tumbl
     fld = sm.tabulated(tumble.field, tumble.t_s)
     bank = fb.RateModelBank(sb, field_eci_T=fld)
     w_mm, _, _ = rk.run_stream(bank, tumble.t_s, tumble.b_T)
-    # the bank's members keep the tuning's process noise as the least (adapt_min = 1)
-    w_rw, _, _ = ak.attitude_kalman_rate(tumble.t_s, tumble.b_T, sb, field_eci_T=fld,
-                                         tuning=ak.AttitudeKalmanTuning(adapt_min=1.0))
+    w_rw, _, _ = ak.attitude_kalman_rate(tumble.t_s, tumble.b_T, sb, field_eci_T=fld)
     w = tumble.w_true_radps[tumble.record]
     assert bank.model == (math.inf, None)
     np.testing.assert_allclose(w_mm[tumble.record], w_rw[tumble.record])
