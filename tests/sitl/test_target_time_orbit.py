@@ -3,7 +3,6 @@ and a TLE by signed commands from `ground.command`, keeps the TLE in its file, a
 identification experiment it refused without them; and, on a simulated tumbling body flying that TLE,
 runs the experiment to its end while `ground.decode` records the telemetry: the decoded estimate against
 the simulator's truth, the recording carrying the TLE and the UTC the box flew."""
-import dataclasses
 import functools
 import math
 import threading
@@ -18,6 +17,7 @@ from sgp4.api import jday
 import fsw.ident
 from fsw import main as fsw_main
 from fsw.estimation.field_motion import gmst_rad
+from fsw.estimation.inertia import z_value
 from fsw.telemetry import dialect
 from fsw.telemetry.signing import write_key
 from ground import command as ground_command
@@ -26,17 +26,12 @@ from ground.recorder import Recorder
 from ground.recording import read_recording
 from hil import scenario as scenarios
 from hil.mmc5983ma import EmulatedMmc5983ma
+from hil.ident_sitl import SimTug
 from hil.pty_link import PtyBridge, RealTimeDevice
-from hil.scenario import TorquePulse
 from hil.sim import Simulator
-from support import circular_tle, flight_assumptions_file, free_udp_port
+from support import circular_tle, flight_assumptions_file, free_udp_port, tle_epoch_field
 
 KEY = bytes(range(90, 122))
-
-
-def epoch_field(dt):
-    start = datetime(dt.year, 1, 1, tzinfo=timezone.utc)
-    return f"{dt.year % 100:02d}{(dt - start).total_seconds() / 86400 + 1:012.8f}"
 
 
 @pytest.mark.slow  # 12 s of real time on target
@@ -44,7 +39,7 @@ def test_target_takes_time_and_tle_then_runs_the_identification(tmp_path, capsys
     key = tmp_path / "mission.key"
     write_key(key, KEY)
     tle_file = tmp_path / "tle.txt"
-    l1, l2 = circular_tle(epoch=epoch_field(datetime.now(timezone.utc) - timedelta(days=2)))
+    l1, l2 = circular_tle(epoch=tle_epoch_field(datetime.now(timezone.utc) - timedelta(days=2)))
     t0 = time.monotonic()
     emu = EmulatedMmc5983ma(lambda t: np.array([20e-6, -5e-6, 45e-6]), lambda: time.monotonic() - t0,
                             np.random.default_rng(5))
@@ -82,7 +77,7 @@ TRUTH = np.array([175.0, 200.0, 285.0, 0.0, 0.0, 0.0])      # Aist-2D, kg·m²
 FREE, TORQUE, AFTER = 5.0, 12.0, 23.0
 M = (5.0, 4.0, -3.0)
 NODE_LONGITUDE_DEG = 315.0
-JOINT_99 = 3.144 / 2.576        # two-sided 1 - 0.01/6 over 2.576: the six components jointly at 99 % (Bonferroni)
+JOINT_99 = z_value(1 - 0.01 / 6) / z_value(0.99)   # the six components jointly at 99 % (Bonferroni): 1.22
 
 
 def tumbling_world(tmp_path, line1, line2, utc0):
@@ -100,29 +95,22 @@ def tumbling_world(tmp_path, line1, line2, utc0):
     return scenarios.load(str(path))
 
 
-class WorldTug:
-    """The tug of the world (`fsw.ident.Tug`, as the box drives it): a pulse in the simulator's schedule from
-    the instant the box says apply until the instant it says stop, world time = the wall clock since
-    `mono0`. The box's phase times are what its fit assumes, so the tug keeps to them, not to the
-    telemetry that reports them a link's latency later (0.1 s late shifts the fitted tensor by twice its
-    99 % interval in this experiment)."""
+class WorldTug(SimTug):
+    """The tug of the world (`fsw.ident.Tug`, as the box drives it): SimTug's pulse in the simulator's
+    schedule, from the instant the box says apply until the instant it says stop, world time = the wall
+    clock since `mono0` (the box's loop time has another zero). The box's phase times are what its fit
+    assumes, so the tug keeps to them, not to the telemetry that reports them a link's latency later (0.1 s
+    late shifts the fitted tensor by twice its 99 % interval in this experiment)."""
 
     def __init__(self, sim, mono0):
-        self.sim, self.mono0 = sim, mono0
-        self.pulse = None
-
-    def _now(self):
-        return time.monotonic() - self.mono0
+        super().__init__(sim)
+        self.mono0 = mono0
 
     def apply(self, start_s, duration_s, moment_Nm):
-        self.pulse = TorquePulse(self._now(), float(duration_s), np.array(moment_Nm, float))
-        self.sim.scenario = dataclasses.replace(self.sim.scenario, torques=self.sim.scenario.torques + (self.pulse,))
+        super().apply(time.monotonic() - self.mono0, duration_s, moment_Nm)
 
     def stop(self, now_s):
-        cut = TorquePulse(self.pulse.start_s, self._now() - self.pulse.start_s, self.pulse.moment_Nm)
-        self.sim.scenario = dataclasses.replace(self.sim.scenario, torques=tuple(
-            cut if q is self.pulse else q for q in self.sim.scenario.torques))
-        self.pulse = cut
+        super().stop(time.monotonic() - self.mono0)
 
 
 class Ground:
@@ -173,7 +161,7 @@ def test_target_runs_the_identification_to_its_end_and_the_ground_decodes_it(tmp
     mono0, wall0 = time.monotonic(), time.time()
     utc0 = datetime.fromtimestamp(wall0, timezone.utc)
     epoch = utc0 - timedelta(days=2)
-    l1, l2 = circular_tle(490.0, 97.3, raan_deg=node_over_fixed_longitude(epoch), epoch=epoch_field(epoch))
+    l1, l2 = circular_tle(490.0, 97.3, raan_deg=node_over_fixed_longitude(epoch), epoch=tle_epoch_field(epoch))
     sim = Simulator(tumbling_world(tmp_path, l1, l2, utc0), seed=7, max_step_s=0.005)
     tug = WorldTug(sim, mono0)
     monkeypatch.setattr(fsw.ident, "AnnouncedTug", lambda: tug)     # the box drives the world's tug
@@ -203,7 +191,7 @@ def test_target_runs_the_identification_to_its_end_and_the_ground_decodes_it(tmp
     finally:
         ground.close()
     assert out["status"] == 0
-    assert tug.pulse is not None and tug.pulse.duration_s == pytest.approx(TORQUE, abs=0.5)
+    assert len(tug.pulses) == 1 and tug.pulses[0].duration_s == pytest.approx(TORQUE, abs=0.5)
     decoder = ground.decoder
     states = [e["state_name"] for e in decoder.inertia_estimates]
     assert {"observe_free", "torque", "observe_after", "done"} <= set(states), states
