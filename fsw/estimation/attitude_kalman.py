@@ -81,13 +81,13 @@ class AttitudeKalmanTuning:
       bounded about zero (a libration about a held attitude). The component of ω along B, which the
       samples see only as B turns in the body, then falls back to zero with a σ that grows back to
       the stationary one instead of wandering off. Infinite (the default): a random walk.
-    adapt_samples, adapt_max, adapt_min: the innovation-driven scale of the process noise, as
-      :class:`~.rate_kalman.RateKalmanTuning`'s; once Euler's equations run, `euler_adapt_max` (when set)
-      caps it instead, and it does not go below 1 (the model's own bound is then the torque's). Here
-      `adapt_min` is 1 by default: at 1/256, as `RateKalman` flies, the near-symmetric rows' RMS fell ×0.53–0.80
-      but on the realistic slow heavy tumble (`bench.realistic slow_heavy --score`, seed 0, with the TLE) the
-      1-σ covered 50 % instead of 65 %, and a bank of these filters (`RateModelBank`) lets its random walk
-      win a libration (orbital/asymmetric/1 s/1.5 µT 0.83 → 1.21 °/s, 4 runs).
+    adapt_samples, adapt_max: the innovation-driven scale of the process noise's floor, as
+      :class:`~.rate_kalman.RateKalmanTuning`'s (`euler_adapt_max` once Euler's equations run), never below 1
+      here: letting it shrink the κ bound too, as `RateKalman` does, was tried (1/256) and not kept. The
+      near-symmetric rows' RMS fell ×0.53–0.80, but on the realistic slow heavy tumble (`bench.realistic
+      slow_heavy --score`, seed 0, with the TLE) the 1-σ covered 50 % instead of 65 %, and in a bank of these
+      filters (`RateModelBank`) the random walk won a libration (orbital/asymmetric/1 s/1.5 µT 0.83 → 1.21 °/s,
+      4 runs).
     """
 
     kappa: float = 0.5
@@ -107,7 +107,6 @@ class AttitudeKalmanTuning:
     nis_reset: float = 1e3
     adapt_samples: float = 10.0
     adapt_max: float = 1e4
-    adapt_min: float = 1.0
     euler_adapt_max: float | None = None
     max_rate_radps: float = 100.0
     max_step_angle_rad: float = 2.5
@@ -423,7 +422,7 @@ class AttitudeRateKalman:
             b0, b1, b2 = self._bhat
             w2 = w0 * w0 + w1 * w1 + w2_ * w2_
             wb = w0 * b0 + w1 * b1 + w2_ * b2
-            q_w += min(self.adapt, 1.0) * tun.kappa ** 2 * w2 * max(w2 - wb * wb, 0.0) / 3.0 * dt
+            q_w += tun.kappa ** 2 * w2 * max(w2 - wb * wb, 0.0) / 3.0 * dt
         # ω a random walk with per-step variance q_w; its effect on the attitude over the step
         return mekf.process_noise(self.n, self.n_p, float(q_w), dt, tun.inertia_shape_rate, tun.field_rate_radps,
                                   self.beta)
@@ -594,9 +593,8 @@ class AttitudeRateKalman:
         self._samples += 1
         self._bad = self._bad + 1 if self.nis > tun.nis_reset else 0
         amax = tun.adapt_max if not self.euler or tun.euler_adapt_max is None else tun.euler_adapt_max
-        amin = tun.adapt_min if not self.euler else 1.0
-        if amax > 1.0 or amin < 1.0:
-            self.adapt = adapt_noise(self, tun.adapt_samples, max(amax, 1.0), amin)
+        if amax > 1.0:
+            self.adapt = adapt_noise(self, tun.adapt_samples, amax)
         if self._bad >= 3:  # lost: back to acquisition
             self.back_to_acquisition()
             flags |= DEGENERATE

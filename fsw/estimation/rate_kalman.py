@@ -236,10 +236,10 @@ def adapt_noise(kf, samples: float, max_factor: float, min_factor: float = 1.0) 
     kf._nis_mean += (min(kf.nis, 100.0) - kf._nis_mean) / samples
     f = kf.adapt
     if kf._nis_mean > 4.5:
-        f *= 2.0
+        f = min(2.0 * f, max_factor)
     elif kf._nis_mean < 2.1:
-        f /= 1.25
-    return min(max(f, min_factor), max_factor)
+        f = max(f / 1.25, min_factor)
+    return f
 
 
 def kalman_rate(t_s: np.ndarray, b_T: np.ndarray, sigma_b_T: float, tuning: RateKalmanTuning | None = None
