@@ -10,9 +10,12 @@ term uniform in ±10 %, optionally a thermal drift of the hard iron (``--drift-u
 sine over one orbit along a random direction), a torque-free tumble of a random asymmetric body
 (rates 1–6 °/s, `hil.dynamics`), the truth field of the simulator (`hil.field`, along its circular
 485 km / 97.5° orbit) and the measurement ``B_meas = S B_true + h(t) + noise`` (σ per axis: ``--noise-uT``
-and the chip's 0.04 µT at 100 Hz bandwidth) at ``--sample-rate``. The flight form (`magcal.MagCal`, the
-hard iron's drift followed as a harmonic of the orbit's period unless ``--constant-host``) takes every
-sample with |B_model| from the flight software's own field (`fsw.estimation.field_motion`).
+and the chip's 0.04 µT at 100 Hz bandwidth) at ``--sample-rate`` (default 5 Hz: what the flight's
+calibration step takes, one sample every `fsw.host_calibration.HostCalibration.sample_every_s`, of a
+magnetometer sampled faster, as on target; the shipped scenarios sample at 1 Hz: ``--sample-rate 1``). The
+flight form (`magcal.MagCal` with the flight's field-model σ `MODEL_SIGMA_T`, the hard iron's drift followed
+as a harmonic of the orbit's period unless ``--constant-host``) takes every sample with |B_model| from the
+flight software's own field (`fsw.estimation.field_motion`).
 
 Reported: per host the per-axis RMS of the calibrated field's error over the first orbit, with the
 calibration at its end (its hard iron along its drift model) applied to the noise-free measurements
@@ -58,6 +61,7 @@ from fsw.estimation import field_motion as fm
 from fsw.estimation import magcal as mc
 from fsw.estimation.onboard_field import flight_field
 from fsw.files import write_atomic
+from fsw.host_calibration import SAMPLE_EVERY_S
 from fsw.config import RunConfig
 from fsw.system import NullLink
 from fsw.telemetry.dialect import mavlink
@@ -71,6 +75,8 @@ ALTITUDE_M, INCLINATION_DEG, EPOCH = 485e3, 97.5, 2025.5
 CHIP_NOISE_UT = 0.04
 TARGET_RESIDUAL_UT = 0.3
 TARGET_KIT_RESIDUAL_UT = 1.5
+#: the rate the flight's calibration step takes samples at (one every HostCalibration.sample_every_s)
+FLIGHT_RATE_HZ = 1.0 / SAMPLE_EVERY_S
 KIT_SCENARIO = "amds_deorbit"
 #: manufacturing errors of the truth's magnets: moment fraction, position per axis [m], leakage range
 KIT_MOMENT_ERROR, KIT_POSITION_ERROR_M, KIT_LEAKAGE = 0.10, 0.003, (0.01, 0.02)
@@ -139,7 +145,7 @@ def run_host(seed: int, t: np.ndarray, b_eci: np.ndarray, b_model_mag: np.ndarra
     sigma_T = math.hypot(noise_uT, CHIP_NOISE_UT) * 1e-6
     meas = clean + rng.normal(0.0, sigma_T, clean.shape)
     # as the flight loop sets it: the drift's period the orbit's (or a constant host: --constant-host)
-    cal = mc.MagCal(sigma_T, drift_period_s=period_s if drift_model else None)
+    cal = mc.MagCal(sigma_T, sigma_model_T=mc.MODEL_SIGMA_T, drift_period_s=period_s if drift_model else None)
     first = t < period_s
     applied = np.full(clean.shape, np.nan)  # what the flight loop hands on: the calibration in effect then
     b_first_T = None  # b(t) over the first orbit, of the solution at its end
@@ -206,8 +212,9 @@ def task(config: dict):
     return functools.partial(run_task, **{k: v for k, v in config.items() if k != "benchmark"})
 
 
-def run_bench(hosts: int = 20, seed: int = 1, orbits: float = 1.0, noise_uT: float = 1.5, rate_hz: float = 1.0,
-              drift_uT: float = 0.0, drift_model: bool = True, **campaign_options) -> dict:
+def run_bench(hosts: int = 20, seed: int = 1, orbits: float = 1.0, noise_uT: float = 1.5,
+              rate_hz: float = FLIGHT_RATE_HZ, drift_uT: float = 0.0, drift_model: bool = True,
+              **campaign_options) -> dict:
     """The hosts' figures (`campaign_options`: bench.campaign.run_campaign's; default: in this process)."""
     runs, config = campaign(hosts, seed, orbits, noise_uT, rate_hz, drift_uT, drift_model)
     elapsed: dict = {}
@@ -391,8 +398,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="record length in orbits (default 1)")
     ap.add_argument("--noise-uT", type=finite_float(0, 100, min_exclusive=True), default=1.5,
                     help="sensor noise per axis besides the chip's (default 1.5 uT, the scenarios')")
-    ap.add_argument("--sample-rate", type=finite_float(0.01, 10), default=1.0, metavar="HZ",
-                    help="sample rate (default 1 Hz)")
+    ap.add_argument("--sample-rate", type=finite_float(0.01, 10), default=FLIGHT_RATE_HZ, metavar="HZ",
+                    help=f"sample rate (default {FLIGHT_RATE_HZ:g} Hz, what the flight's calibration takes; "
+                         "the shipped scenarios sample at 1 Hz)")
     ap.add_argument("--drift-uT", type=finite_float(0, 10), default=0.0,
                     help="amplitude of the hard iron's thermal drift over an orbit (default 0)")
     ap.add_argument("--constant-host", action="store_true",

@@ -43,8 +43,8 @@ db/dt, with which the applied hard iron follows the drift between solutions. A r
 (process noise) was the other candidate: to follow 1 µT per orbit it must forget b's information
 within minutes, so its σ of b stays at ~0.2 µT with a 1.5 µT sensor (~0.07 µT with the isoi chip) and
 never reaches the σ goal; the harmonic keeps all the information and costs three parameters per axis
-(bench.calibration, 20 hosts at 1.5 µT: the σ goals reached after a median 4,699 s instead of 3,379 s
-for a constant host, 17 of 20 hosts within the orbit either way). The cost of a real
+(bench.calibration, 20 hosts at 1.5 µT and 5 Hz: the σ goals reached after a median 2,640 s instead of
+1,260 s for a constant host, 19 of 20 hosts within the orbit either way). The cost of a real
 thermal cycle that is not a pure sine: its higher harmonics stay in the residual. A sudden jump of b is
 not drift: it is flagged, then learned again (:meth:`MagCal.solve`).
 
