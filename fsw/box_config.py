@@ -27,6 +27,8 @@ What a box needs that does not change from run to run, in one place (an example:
     debounce_ms = 5
     [kit.lines]                            # the kit's lines (fsw.drivers.gpio) -> the chip's line names
     "0.step" = "GPIO17"                    # (or offsets)
+    [kit.mission]                          # optional: the whole mission on the kit (fsw/deorbit/mission.py)
+    inertia_guess_kgm2 = [18.0, 20.7, 15.3]  # the box's rough guess of the host's principal moments
 
 Every key is checked when the file is read, with the same rules as its command-line option; a key that
 is wrong, of the wrong type, out of range or unknown (a typo) is a `BoxConfigError` naming the file,
@@ -64,6 +66,9 @@ class KitLines:
     chip: str
     lines: dict = field(default_factory=dict)
     debounce_s: float = 0.005
+    #: [kit.mission]: the box's guess of the host's principal moments [kg·m²] (3,): the mission is flown on
+    #: the kit (`fsw.deorbit.mission`); None: no mission, the kit's controller alone
+    mission_inertia_guess_kgm2: tuple | None = None
 
 
 @dataclass(frozen=True)
@@ -132,6 +137,29 @@ class _Table:
         unknown = [k for k in self.data if k not in known]
         if unknown:
             raise self.error(unknown[0], "unknown key")
+
+
+#: the largest principal moment the mission's guess may name [kg·m²] (a spacecraft of a few tonnes)
+MAX_MOMENT_KGM2 = 1e5
+
+
+def _moments(table: _Table, key: str) -> tuple[float, float, float]:
+    """Three principal moments [kg·m²]: finite, > 0, each at most the sum of the other two."""
+    value = table.data.pop(key, None)
+    if value is None:
+        raise table.error(key, "missing")
+    if not (isinstance(value, list) and len(value) == 3
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)):
+        raise table.error(key, f"must be three numbers [Ixx, Iyy, Izz], got {value!r}")
+    check = finite_float(0, MAX_MOMENT_KGM2, min_exclusive=True)
+    try:
+        moments = tuple(check(str(v)) for v in value)
+    except argparse.ArgumentTypeError as e:
+        raise table.error(key, str(e)) from None
+    if 2 * max(moments) > sum(moments):
+        raise table.error(key, f"{list(moments)} cannot be a body's principal moments: the largest exceeds the "
+                               "sum of the other two")
+    return moments
 
 
 def _nonempty(text: str) -> str:
@@ -216,8 +244,13 @@ def load_box_config(path: str) -> BoxConfig:
             raise lines_table.error(f'"{taken[-1]}"', f"chip line {lines[taken[-1]]!r} given to two lines")
         if not lines:
             raise k.error("lines", "missing: name the kit's lines")
+        guess = None
+        if "mission" in k.data:
+            m = _Table(path, "kit.mission", k.data.pop("mission"))
+            guess = _moments(m, "inertia_guess_kgm2")
+            m.finish()
         k.finish()
-        kit = KitLines(chip, lines, 5e-3 if debounce_ms is None else debounce_ms * 1e-3)
+        kit = KitLines(chip, lines, 5e-3 if debounce_ms is None else debounce_ms * 1e-3, guess)
     top.finish()
     return BoxConfig(path, system_id, key_file, state_dir, rate_hz, sample_rate_hz, mag, link, baud, uplink, kit,
                      rate_filter)

@@ -166,9 +166,18 @@ def run(cfg: RunConfig, mag: MagBus, kit: KitLines | None = None, out=sys.stdout
             apps.append(DeorbitKit(lines, EstimatedAttitude(cfg.sigma_T)))
             notes.append(f"de-orbit kit: {len(kit.lines)} lines on {kit.chip}; controller attitude from the "
                          "onboard estimate (the design's spacecraft model)")
+            if kit.mission_inertia_guess_kgm2 is not None:  # [kit.mission]: the whole mission on the kit
+                from .deorbit.mission import over_kit
+                mission = over_kit(apps[-1], apps[0], kit.mission_inertia_guess_kgm2)
+                apps.append(mission)
+                notes.append("mission: from a tumble to a stabilised sail on the kit, the box's guess of the "
+                             f"moments {', '.join(f'{x:g}' for x in kit.mission_inertia_guess_kgm2)} kg·m² "
+                             "(the identification's magnets are the kit's)")
         flight = build_flight(cfg, source, sigma_b_T=cfg.sigma_T, sample_rate_hz=cfg.sample_rate_hz, apps=apps,
                               timeorbit=timeorbit)
         fsw = flight.fsw
+        if "mission" in fsw.apps:
+            fsw.apps["mission"].rates = fsw.estimators["kalman"]  # the flown rate filter
         if state is not None:
             state.restore(fsw.uplink.verifier if fsw.uplink is not None else None, timeorbit)
             state.restore_apps(cfg.system_id, calibration=fsw.calibration, kit_field=fsw.kit_field, ident=apps[0])

@@ -121,6 +121,18 @@ class KitMagnets:
         return self.kit.known_dipole_body_Am2()
 
 
+def over_kit(kit: DeorbitKit, ident, inertia_guess_kgm2, **options) -> "Mission":
+    """The mission composed over the kit `kit` and the experiment `ident` (SITL's and the target's one
+    composition): the experiment's magnets are the kit's (:class:`KitMagnets`), its fit starts from the box's
+    rough guess `inertia_guess_kgm2` (3,) (the mean of its diagonal: a weak prior); `options`:
+    :class:`Mission`'s keywords. Its `rates` is the flown rate filter, handed over once the flight software
+    exists."""
+    guess = np.asarray(inertia_guess_kgm2, float)
+    ident.magnets = KitMagnets(kit)
+    ident.cfg.inertia_guess_kgm2 = float(np.mean(guess))
+    return Mission(kit, ident, inertia_guess_kgm2=tuple(float(x) for x in guess), **options)
+
+
 def ci95_pct(estimate) -> float:
     """The worst 95 % half-width of a tensor estimate (`fsw.estimation.inertia.InertiaEstimate` or the
     fields of DEBRIS_INERTIA_ESTIMATE) in % of its largest moment."""

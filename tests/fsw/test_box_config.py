@@ -36,6 +36,15 @@ def test_relative_paths_are_the_files_directory(tmp_path):
     assert box.mag == MagBus("spi", "/dev/spidev1.0", 0x30, 4_000_000) and box.kit is None
 
 
+KIT = "[kit]\nchip = \"/dev/gpiochip0\"\n[kit.lines]\n\"0.step\" = 1\n"
+
+
+def test_the_mission_on_the_kit(tmp_path):
+    box = load_box_config(write(tmp_path, KIT + "[kit.mission]\ninertia_guess_kgm2 = [18, 20.7, 15.3]\n"))
+    assert box.kit.mission_inertia_guess_kgm2 == (18.0, 20.7, 15.3)
+    assert load_box_config(write(tmp_path, KIT)).kit.mission_inertia_guess_kgm2 is None
+
+
 @pytest.mark.parametrize("text, words", [
     ("system_id = 0", ["system_id", "<= 255"]),
     ("system_id = 1.5", ["system_id", "integer"]),
@@ -63,6 +72,13 @@ def test_relative_paths_are_the_files_directory(tmp_path):
     ("[kit]\nchip = \"/dev/gpiochip0\"\n[kit.lines]\n\"0.step\" = true", ['"0.step"', "offset"]),
     ("[kit]\nchip = \"/dev/gpiochip0\"\ndebounce_ms = -1\n[kit.lines]\n\"0.step\" = 1", ["[kit] debounce_ms"]),
     ("system_id = ", ["not valid TOML"]),
+    (KIT + "[kit.mission]\n", ["[kit.mission] inertia_guess_kgm2", "missing"]),
+    (KIT + "[kit.mission]\ninertia_guess_kgm2 = [18.0, 20.7]", ["inertia_guess_kgm2", "three numbers"]),
+    (KIT + "[kit.mission]\ninertia_guess_kgm2 = [18.0, true, 15]", ["inertia_guess_kgm2", "three numbers"]),
+    (KIT + "[kit.mission]\ninertia_guess_kgm2 = [18.0, -20.7, 15.3]", ["inertia_guess_kgm2", "> 0"]),
+    (KIT + "[kit.mission]\ninertia_guess_kgm2 = [18.0, nan, 15.3]", ["inertia_guess_kgm2", "finite"]),
+    (KIT + "[kit.mission]\ninertia_guess_kgm2 = [1.0, 1.0, 5.0]", ["inertia_guess_kgm2", "principal moments"]),
+    (KIT + "[kit.mission]\ninertia_guess_kgm2 = [18, 20, 15]\nguess = 1", ["[kit.mission] guess", "unknown key"]),
 ])
 def test_a_bad_key_is_named_in_one_line(tmp_path, text, words):
     path = write(tmp_path, text)

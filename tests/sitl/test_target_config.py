@@ -2,6 +2,7 @@
 through the real smbus2 code path and the de-orbit kit through gpiod's request API, both answered by the
 emulators (`hil.linux_buses`, `hil.gpiod_fake`); the kit's lines left at their safe levels and released
 after SIGTERM and after an exception in the loop."""
+import io
 import os
 import signal
 import sys
@@ -146,3 +147,32 @@ def test_an_exception_in_the_loop_leaves_the_kit_safe(box, monkeypatch):
     (req,) = fake.requests
     assert req.released and req.levels_at_release == SAFE
     assert not fake.kit.channels[0].enable and fake.kit.channels[1].release and smbuses[0].closed
+
+
+def test_the_mission_flies_on_target_from_the_kit_table(box, monkeypatch):
+    """[kit.mission] in the box's file: the mission composed on target as in SITL — over the kit, the
+    experiment's magnets the kit's, the flown rate filter its rates — ticked by the loop and reported."""
+    from fsw.deorbit.mission import KitMagnets, Phase
+    from fsw.telemetry.telemetry import Telemetry
+
+    path, _, _, fake, _ = box
+    with open(path, "a") as f:
+        f.write("\n[kit.mission]\ninertia_guess_kgm2 = [18.0, 20.7, 15.3]\n")
+    sent = []
+    send = Telemetry._send
+
+    def recording(self, msg):
+        sent.append(msg.get_type())
+        return send(self, msg)
+    monkeypatch.setattr(Telemetry, "_send", recording)
+    cfg, mag, kit = fsw_main.parse_args(["--config", path, "--quiet", "--duration", "4"])
+    out = io.StringIO()
+    fsw, _, _ = fsw_main.run(cfg, mag, kit, out=out)
+    mission = fsw.apps["mission"]
+    assert mission.rates is fsw.estimators["kalman"] and mission.phase is Phase.TUMBLING
+    assert isinstance(fsw.apps["ident"].magnets, KitMagnets) and fsw.apps["ident"].magnets.kit is fsw.apps["deorbit"]
+    assert mission.inertia_guess.tolist() == [18.0, 20.7, 15.3]
+    assert sent.count("DEBRIS_MISSION_STATUS") >= 2
+    assert "mission: from a tumble" in out.getvalue()
+    (req,) = fake.requests
+    assert req.released and req.levels_at_release == SAFE
