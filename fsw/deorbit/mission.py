@@ -95,6 +95,12 @@ class MissionConfig:
     spin_up_factor: float = 1.3
     spin_up_margin_radps: float = math.radians(0.5)
     spin_up_smoothing_s: float = 300.0     # the guard watches |ω| smoothed over this (the estimate's noise)
+    #: while detumbling, the controller's attitude estimate (identified tensor, the kit's p × B in its
+    #: dynamics) starts once the smoothed |ω| is below this, and again if it is not trusted `estimate_retry_s`
+    #: after; trusted for `detumbled_hold_s`, it hands over to STABILISING (the rate filter, which does not
+    #: know the kit's torques, is a few tenths of a °/s off on a body the kit has nearly stopped)
+    estimate_start_radps: float = math.radians(0.5)
+    estimate_retry_s: float = 2400.0
     stabilised_rad: float = 0.2
     stabilised_hold_s: float = 1800.0
     status_period_s: float = 1.0
@@ -170,6 +176,7 @@ class Mission:
         # the controller's attitude source waits for STABILISING (its filter needs the identified tensor):
         # taken off the kit at the first tick, after the flight software's composition gave it its field
         self._attitude_template = None
+        self._estimate_t_s = self._estimate_since = math.nan  # the detumbling's attitude estimate: started, trusted
         self.phase = Phase.TUMBLING
         self.reason = Reason.START
         self.reason_text = "start"
@@ -321,6 +328,28 @@ class Mission:
                 return
         if self._held(now_s, trusted and w <= c.detumbled_radps, c.detumbled_hold_s):
             self._enter(now_s, Phase.STABILISING, Reason.AUTOMATIC, f"rate {math.degrees(w):.3f} dps")
+            return
+        self._watch_estimate(now_s, trusted)
+
+    def _watch_estimate(self, now_s: float, trusted: bool) -> None:
+        """The controller's attitude estimate while the kit detumbles: started (again) on a slow enough
+        tumble, and STABILISING once it has been trusted for `detumbled_hold_s`."""
+        c, kit = self.cfg, self.kit
+        est = kit.attitude
+        if est is None or now_s - self._estimate_t_s > c.estimate_retry_s and not getattr(est, "trusted", False):
+            if trusted and self._smooth_rate <= c.estimate_start_radps and self._attitude_template is not None:
+                kit.attitude = self._estimate_for(self.J_kgm2)
+                self._estimate_t_s, self._estimate_since = now_s, math.nan
+                self._say(f"mission: attitude estimate started at {math.degrees(self._smooth_rate):.2f} dps")
+            return
+        est.attitude(now_s)  # its trust, as the controller would see it
+        if not est.trusted:
+            self._estimate_since = math.nan
+        elif math.isnan(self._estimate_since):
+            self._estimate_since = now_s
+        elif now_s - self._estimate_since >= c.detumbled_hold_s:
+            self._enter(now_s, Phase.STABILISING, Reason.AUTOMATIC,
+                        f"attitude estimate trusted for {now_s - self._estimate_since:.0f} s")
 
     def _in_stabilising(self, now_s: float) -> None:
         att = self.kit.attitude
@@ -375,6 +404,7 @@ class Mission:
             seq.enter_safe(now_s, f"mission: {self.reason_text}")
         elif phase is Phase.DETUMBLING:
             self._min_rate, self._smooth_rate = math.inf, math.nan
+            self._estimate_t_s = self._estimate_since = math.nan
             kit.attitude = None
             kit.law = self.law
             if seq.mode is not KitMode.RUNNING:
@@ -385,6 +415,14 @@ class Mission:
         elif phase is Phase.STABILISING:
             self._hand_over(now_s)
 
+    def _estimate_for(self, J):
+        """A new attitude source like the kit's own (its template) with the tensor `J` (3, 3) in its model."""
+        tpl = self._attitude_template
+        if tpl is not None and hasattr(tpl, "model") and J is not None:
+            return type(tpl)(tpl.sigma_b_T, replace(tpl.model, inertia_kgm2=tuple(map(tuple, J))),
+                             tpl.tuning, tpl.gate, tpl.provider)
+        return tpl
+
     def _hand_over(self, now_s: float) -> None:
         """The controller and its attitude filter get the identified tensor; the controller drives the kit."""
         kit, seq = self.kit, self.kit.sequencer
@@ -392,12 +430,8 @@ class Mission:
         J = self.J_kgm2 if self.J_kgm2 is not None else np.diag(self.inertia_guess)
         cfg = kit.controller.config
         kit.controller = DiscreteController(replace(cfg, inertia_kgm2=tuple(float(x) for x in np.diag(J))))
-        tpl = self._attitude_template
-        if tpl is not None and hasattr(tpl, "model"):
-            kit.attitude = type(tpl)(tpl.sigma_b_T, replace(tpl.model, inertia_kgm2=tuple(map(tuple, J))),
-                                     tpl.tuning, tpl.gate, tpl.provider)
-        else:
-            kit.attitude = tpl
+        if kit.attitude is None or not getattr(kit.attitude, "trusted", False):  # else the one that ran on
+            kit.attitude = self._estimate_for(J)
         if seq.mode is not KitMode.RUNNING:
             seq.start_controller(now_s)
         kit.next_decision_s = now_s

@@ -3,6 +3,7 @@ commands, safe mode, the kit's magnets as the experiment's, telemetry decoded on
 the flight software's on the emulator; the rate filter and the experiment's fit are stand-ins whose
 numbers the tests set."""
 import math
+from dataclasses import dataclass, field
 from types import SimpleNamespace
 
 import numpy as np
@@ -13,6 +14,7 @@ from fsw.deorbit.kit import DeorbitKit
 from fsw.deorbit.mission import KitMagnets, Mission, MissionConfig, Phase, Reason, ci95_pct
 from fsw.deorbit.onboard_attitude import EstimatedAttitude
 from fsw.deorbit.sequencer import KitMode
+from fsw.estimation.orbital_attitude import SpacecraftModel
 from fsw.estimation.inertia import InertiaEstimate
 from fsw.ident import ABORTED, DONE, IDLE, MAGNETS, OBSERVE_FREE
 from fsw.telemetry.dialect import mavlink
@@ -183,6 +185,54 @@ def test_detumbled_hands_over_to_the_controller_with_the_identified_tensor(box):
     assert box.kit.controller.config.inertia_kgm2 == pytest.approx(tuple(TRUE_P[:3]))
     assert isinstance(box.kit.attitude, EstimatedAttitude)
     np.testing.assert_allclose(box.kit.attitude.model.J(), box.mission.J_kgm2)
+
+
+@dataclass
+class StubEstimate:
+    """The controller's attitude source as the mission sees it: built like EstimatedAttitude, trusted when
+    the test says so."""
+
+    sigma_b_T: float
+    model: SpacecraftModel = field(default_factory=SpacecraftModel)
+    tuning: object = None
+    gate: object = None
+    provider: object = None
+    trusted: bool = False
+    reason: str = "stand-in"
+    trust = False      # what every instance's `attitude` finds (set by the test)
+
+    def observe(self, t_s, b_T, dipole_body_Am2):
+        pass
+
+    def attitude(self, now_s):
+        self.trusted = StubEstimate.trust
+        return None
+
+
+def test_while_detumbling_the_attitude_estimate_starts_and_hands_over_once_trusted():
+    """A slow tumble the rate filter cannot call detumbled (0.35 °/s, above 0.15): the controller's estimate
+    (the identified tensor) starts once the smoothed rate is below 0.5 °/s, again if still untrusted after
+    `estimate_retry_s`, and STABILISING follows 300 s after it is trusted, with that estimate kept."""
+    StubEstimate.trust = False
+    box = Box(MissionConfig(estimate_retry_s=1200.0))
+    box.kit.attitude = StubEstimate(1.5e-6)
+    box.to_detumbling()
+    box.rates.omega_radps = np.radians([0.2, 0.2, -0.2])
+    box.run(600.0)
+    assert box.kit.attitude is None                      # smoothed from 3.5 °/s: not yet below 0.5
+    box.run(600.0)
+    first = box.kit.attitude
+    assert isinstance(first, StubEstimate) and first.model.J() == pytest.approx(box.mission.J_kgm2)
+    box.run(1300.0)
+    assert box.kit.attitude is not first and box.mission.phase is Phase.DETUMBLING   # started again
+    StubEstimate.trust = True
+    kept = box.kit.attitude
+    box.run(290.0)
+    assert box.mission.phase is Phase.DETUMBLING
+    box.run(20.0)
+    assert box.mission.phase is Phase.STABILISING and "attitude estimate trusted" in box.mission.reason_text
+    assert box.kit.attitude is kept and box.kit.law is None
+    assert box.emu.interlock_violations == 0
 
 
 def test_a_growing_tumble_sends_the_mission_to_safe(box):
