@@ -114,6 +114,8 @@ class DetumbleLaw:
         self.b_T: np.ndarray | None = None
         self.t_b_s = -math.inf
         self.reason = "no rate yet"
+        #: set by the mission: every capsule stays closed, and this is why (e.g. an estimate converging)
+        self.quiet_reason = ""
         self.decisions = 0
         self.held = 0
 
@@ -128,6 +130,8 @@ class DetumbleLaw:
 
     def _why_not(self, now_s: float) -> str:
         c = self.config
+        if self.quiet_reason:
+            return self.quiet_reason
         if self.omega_radps is None:
             return "no rate yet"
         if not self.rate_sigma_radps <= c.max_rate_sigma_radps:

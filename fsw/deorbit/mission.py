@@ -96,9 +96,11 @@ class MissionConfig:
     spin_up_margin_radps: float = math.radians(0.5)
     spin_up_smoothing_s: float = 300.0     # the guard watches |ω| smoothed over this (the estimate's noise)
     #: while detumbling, the controller's attitude estimate (identified tensor, the kit's p × B in its
-    #: dynamics) starts once the smoothed |ω| is below this, and again if it is not trusted `estimate_retry_s`
-    #: after; trusted for `detumbled_hold_s`, it hands over to STABILISING (the rate filter, which does not
-    #: know the kit's torques, is a few tenths of a °/s off on a body the kit has nearly stopped)
+    #: dynamics) starts once the smoothed |ω| is below this, the kit's pulses held meanwhile (a slow body,
+    #: and the estimate converges on it undisturbed); trusted for `detumbled_hold_s`, it hands over to
+    #: STABILISING; not trusted `estimate_retry_s` after its start, it is dropped and the pulses resume for
+    #: as long before the next start (the rate filter, which does not know the kit's torques, is a few
+    #: tenths of a °/s off on a body the kit has nearly stopped)
     estimate_start_radps: float = math.radians(0.5)
     estimate_retry_s: float = 2400.0
     stabilised_rad: float = 0.2
@@ -176,7 +178,9 @@ class Mission:
         # the controller's attitude source waits for STABILISING (its filter needs the identified tensor):
         # taken off the kit at the first tick, after the flight software's composition gave it its field
         self._attitude_template = None
-        self._estimate_t_s = self._estimate_since = math.nan  # the detumbling's attitude estimate: started, trusted
+        # the detumbling's attitude estimate: started, trusted since, the earliest next start
+        self._estimate_t_s = self._estimate_since = math.nan
+        self._estimate_next_s = -math.inf
         self.phase = Phase.TUMBLING
         self.reason = Reason.START
         self.reason_text = "start"
@@ -314,6 +318,7 @@ class Mission:
             self._enter(now_s, Phase.SAFE, Reason.TIMEOUT, f"still {math.degrees(w):.2f} dps")
             return
         trusted = self.rate_sigma_radps <= self.law.config.max_rate_sigma_radps
+        quiet = bool(self.law.quiet_reason)  # no pulse while the estimate converges: nothing to spin up
         if trusted:
             if math.isnan(self._smooth_rate):
                 self._smooth_rate, self._smooth_t = w, now_s
@@ -322,7 +327,7 @@ class Mission:
             self._smooth_t = now_s
             ws = self._smooth_rate
             self._min_rate = min(self._min_rate, ws)
-            if ws > c.spin_up_factor * self._min_rate and ws > self._min_rate + c.spin_up_margin_radps:
+            if not quiet and ws > c.spin_up_factor * self._min_rate and ws > self._min_rate + c.spin_up_margin_radps:
                 self._enter(now_s, Phase.SAFE, Reason.SPIN_UP,
                             f"rate {math.degrees(ws):.2f} dps up from {math.degrees(self._min_rate):.2f}")
                 return
@@ -336,13 +341,22 @@ class Mission:
         tumble, and STABILISING once it has been trusted for `detumbled_hold_s`."""
         c, kit = self.cfg, self.kit
         est = kit.attitude
-        if est is None or now_s - self._estimate_t_s > c.estimate_retry_s and not getattr(est, "trusted", False):
-            if trusted and self._smooth_rate <= c.estimate_start_radps and self._attitude_template is not None:
+        if est is None:
+            if (now_s >= self._estimate_next_s and trusted and self._smooth_rate <= c.estimate_start_radps
+                    and self._attitude_template is not None):
                 kit.attitude = self._estimate_for(self.J_kgm2)
                 self._estimate_t_s, self._estimate_since = now_s, math.nan
-                self._say(f"mission: attitude estimate started at {math.degrees(self._smooth_rate):.2f} dps")
+                self.law.quiet_reason = "attitude estimate converging"
+                self._say(f"mission: attitude estimate started at {math.degrees(self._smooth_rate):.2f} dps, "
+                          "pulses held")
             return
         est.attitude(now_s)  # its trust, as the controller would see it
+        if not est.trusted and now_s - self._estimate_t_s > c.estimate_retry_s:
+            kit.attitude, self.law.quiet_reason = None, ""
+            self._estimate_next_s = now_s + c.estimate_retry_s
+            self._say(f"mission: attitude estimate not trusted after {c.estimate_retry_s:.0f} s "
+                      f"({getattr(est, 'reason', '')}): dropped, pulses resume")
+            return
         if not est.trusted:
             self._estimate_since = math.nan
         elif math.isnan(self._estimate_since):
@@ -405,6 +419,8 @@ class Mission:
         elif phase is Phase.DETUMBLING:
             self._min_rate, self._smooth_rate = math.inf, math.nan
             self._estimate_t_s = self._estimate_since = math.nan
+            self._estimate_next_s = -math.inf
+            self.law.quiet_reason = ""
             kit.attitude = None
             kit.law = self.law
             if seq.mode is not KitMode.RUNNING:

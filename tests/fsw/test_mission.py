@@ -211,8 +211,9 @@ class StubEstimate:
 
 def test_while_detumbling_the_attitude_estimate_starts_and_hands_over_once_trusted():
     """A slow tumble the rate filter cannot call detumbled (0.35 °/s, above 0.15): the controller's estimate
-    (the identified tensor) starts once the smoothed rate is below 0.5 °/s, again if still untrusted after
-    `estimate_retry_s`, and STABILISING follows 300 s after it is trusted, with that estimate kept."""
+    (the identified tensor) starts once the smoothed rate is below 0.5 °/s, the kit's pulses held meanwhile;
+    still untrusted after `estimate_retry_s` it is dropped and the pulses resume for as long; started again,
+    and trusted for 300 s, it hands over to STABILISING and runs on."""
     StubEstimate.trust = False
     box = Box(MissionConfig(estimate_retry_s=1200.0))
     box.kit.attitude = StubEstimate(1.5e-6)
@@ -220,13 +221,25 @@ def test_while_detumbling_the_attitude_estimate_starts_and_hands_over_once_trust
     box.rates.omega_radps = np.radians([0.2, 0.2, -0.2])
     box.run(600.0)
     assert box.kit.attitude is None                      # smoothed from 3.5 °/s: not yet below 0.5
+
+    def openings():
+        return sum(ch.capsule.openings for ch in box.kit.sequencer.channels)
     box.run(600.0)
     first = box.kit.attitude
     assert isinstance(first, StubEstimate) and first.model.J() == pytest.approx(box.mission.J_kgm2)
-    box.run(1300.0)
-    assert box.kit.attitude is not first and box.mission.phase is Phase.DETUMBLING   # started again
-    StubEstimate.trust = True
+    started = box.mission._estimate_t_s
+    box.run(10.0)
+    held = openings()
+    box.run(started + 1150.0 - box.t)
+    assert box.kit.attitude is first and openings() == held and box.mission.law.reason   # pulses held
+    box.run(100.0)
+    assert box.kit.attitude is None and box.mission.phase is Phase.DETUMBLING            # dropped
+    box.run(1100.0)
+    assert box.kit.attitude is None and openings() > held                                # pulses resumed
+    box.run(150.0)
     kept = box.kit.attitude
+    assert isinstance(kept, StubEstimate) and kept is not first                          # started again
+    StubEstimate.trust = True
     box.run(290.0)
     assert box.mission.phase is Phase.DETUMBLING
     box.run(20.0)
