@@ -23,8 +23,7 @@ channel between two rest states A → B is a known change of its field, Δ = c_a
 c_a = s_B cos φ_B − s_A cos φ_A (c_b likewise with sin). The body turns meanwhile, so the step is
 estimated against the field's trend: one least-squares fit of the raw samples, compensated with the
 current model, on both sides of the motion (up to ``window_s`` each, cut at the neighbouring steps of an
-open field before and any motion after; halved while the residual exceeds ``misfit`` times the noise or
-while two more degrees of the trend move the step by more than its σ)
+open field before and any motion after; halved while the residual exceeds ``misfit`` times the noise)
 to a shared polynomial in time (``degree``) plus a step at the motion, per axis. The fitted step d is
 what the model missed. Motions of several channels that overlap (the controller closes one capsule
 as it opens the other) are one step, so the channels' F_a are estimated jointly: x = (F_a,pitch,
