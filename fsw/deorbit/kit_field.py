@@ -303,11 +303,8 @@ class KitFieldModel:
 
     def _evaluate(self, c: _Cluster, t_next_s: float) -> None:
         """The step of the field across the motions of `c`, from a fit on both sides: over `window_s`
-        each side, halved while the fit's residual exceeds `misfit` times the sensor's noise or the step
-        moves by more than its σ when the trend is given two degrees more (a polynomial follows a fast
-        tumble's field only so far, and what it misses near the motion goes into the step while the
-        residual, at 1 Hz and 1.5 µT, still looks like noise: 2–3 µT on a 4.5 °/s tumble over 30 s a side),
-        down to `min_window_s`."""
+        each side, halved while the fit's residual exceeds `misfit` times the sensor's noise (a
+        polynomial follows a fast tumble's field only so far), down to `min_window_s`."""
         involved = [self.models[i] for i in c.channels]
         if float(np.max(np.abs(c.c_a))) < 0.5:  # no step of the open field (a turn while closed)
             for m in involved:
@@ -318,24 +315,21 @@ class KitFieldModel:
             trial = self._fit(c, t_next_s, w)
             if trial is not None:
                 fit = trial
-            if trial is None or (trial[2] <= self.misfit * self.sigma_T and trial[3] <= 1.0) \
-                    or w / 2 < self.min_window_s:
+            if trial is None or trial[2] <= self.misfit * self.sigma_T or w / 2 < self.min_window_s:
                 break
             w /= 2
         if fit is None:
             for m in involved:
                 m.ill_conditioned += 1
             return
-        d, R, rms, _ = fit
+        d, R, rms = fit
         for m in involved:
             m.last_fit_rms_T = rms
         self._update(c, d, R)
 
-    def _fit(self, c: _Cluster, t_next_s: float, w: float) -> tuple[np.ndarray, np.ndarray, float, float] | None:
-        """(the step d the model missed, its covariance, the residual RMS per axis, how far the step moves
-        with two more degrees of the trend in units of that fit's σ, largest axis; 0 when there are too few
-        samples for it) from the samples within `w` of the motions, or None (too few samples on a side,
-        rank-deficient).
+    def _fit(self, c: _Cluster, t_next_s: float, w: float) -> tuple[np.ndarray, np.ndarray, float] | None:
+        """(the step d the model missed, its covariance, the residual RMS per axis) from the samples
+        within `w` of the motions, or None (too few samples on a side, rank-deficient).
 
         d = Σ c_a,i (F_a,i true − F_a,i) + noise."""
         g = self.guard_s
@@ -360,16 +354,7 @@ class KitFieldModel:
             return None
         resid = y - X @ coef
         var = np.maximum(np.sum(resid ** 2, axis=0) / max(len(rows) - X.shape[1], 1), self.sigma_T ** 2)
-        moved = 0.0
-        if min(n_pre, len(rows) - n_pre) >= need + 2:
-            Xh = np.column_stack([X[:, :-1], tau ** (self.degree + 1), tau ** (self.degree + 2), X[:, -1]])
-            ch, _, rank_h, _ = np.linalg.lstsq(Xh, y, rcond=None)
-            if rank_h == Xh.shape[1]:
-                vh = np.maximum(np.sum((y - Xh @ ch) ** 2, axis=0) / max(len(rows) - Xh.shape[1], 1),
-                                self.sigma_T ** 2)
-                sh = np.sqrt(vh * np.linalg.inv(Xh.T @ Xh)[-1, -1])
-                moved = float(np.max(np.abs(ch[-1] - coef[-1]) / sh))
-        return coef[-1], np.diag(var * np.linalg.inv(X.T @ X)[-1, -1]), float(np.sqrt(np.mean(var))), moved
+        return coef[-1], np.diag(var * np.linalg.inv(X.T @ X)[-1, -1]), float(np.sqrt(np.mean(var)))
 
     def _model(self, states: tuple) -> np.ndarray:
         """The modelled field of the channels in `states` (a channel whose state is None: none)."""
