@@ -11,7 +11,7 @@ sine over one orbit along a random direction), a torque-free tumble of a random 
 (rates 1–6 °/s, `hil.dynamics`), the truth field of the simulator (`hil.field`, along its circular
 485 km / 97.5° orbit) and the measurement ``B_meas = S B_true + h(t) + noise`` (σ per axis: ``--noise-uT``
 and the chip's 0.04 µT at 100 Hz bandwidth) at ``--sample-rate`` (default 5 Hz: what the flight's
-calibration step takes, one sample every `fsw.host_calibration.HostCalibration.sample_every_s`, of a
+calibration step takes, one sample every `fsw.host_calibration.SAMPLE_EVERY_S`, of a
 magnetometer sampled faster, as on target; the shipped scenarios sample at 1 Hz: ``--sample-rate 1``). The
 flight form (`magcal.MagCal` with the flight's field-model σ `MODEL_SIGMA_T`, the hard iron's drift followed
 as a harmonic of the orbit's period unless ``--constant-host``) takes every sample with |B_model| from the

@@ -155,7 +155,8 @@ def run(cfg: RunConfig, mag: MagBus, kit: KitLines | None = None, out=sys.stdout
         timeorbit = TimeOrbit(tle_file=cfg.tle_file, max_tle_age_d=cfg.tle_max_age_d)
         # the identification experiment: its field along the orbit from the TLE and UTC on board (refused
         # without them), the tug commanded on its own (the START command announces its moment)
-        apps = [IdentExperiment(sigma_b_T=cfg.sigma_T, b_inertial=timeorbit, tug=AnnouncedTug())]
+        ident = IdentExperiment(sigma_b_T=cfg.sigma_T, b_inertial=timeorbit, tug=AnnouncedTug())
+        apps = [ident]
         notes = []
         if kit is not None:
             from .deorbit.kit import DeorbitKit
@@ -163,24 +164,22 @@ def run(cfg: RunConfig, mag: MagBus, kit: KitLines | None = None, out=sys.stdout
             from .drivers.gpiod_lines import GpiodLines
 
             lines = GpiodLines(kit.chip, kit.lines, burst_period_s=1.0 / DeorbitKit.rate_hz, debounce_s=kit.debounce_s)
-            apps.append(DeorbitKit(lines, EstimatedAttitude(cfg.sigma_T)))
+            deorbit = DeorbitKit(lines, EstimatedAttitude(cfg.sigma_T))
+            apps.append(deorbit)
             notes.append(f"de-orbit kit: {len(kit.lines)} lines on {kit.chip}; controller attitude from the "
                          "onboard estimate (the design's spacecraft model)")
             if kit.mission_inertia_guess_kgm2 is not None:  # [kit.mission]: the whole mission on the kit
                 from .deorbit.mission import over_kit
-                mission = over_kit(apps[-1], apps[0], kit.mission_inertia_guess_kgm2)
-                apps.append(mission)
+                apps.append(over_kit(deorbit, ident, kit.mission_inertia_guess_kgm2))
                 notes.append("mission: from a tumble to a stabilised sail on the kit, the box's guess of the "
                              f"moments {', '.join(f'{x:g}' for x in kit.mission_inertia_guess_kgm2)} kg·m² "
                              "(the identification's magnets are the kit's)")
         flight = build_flight(cfg, source, sigma_b_T=cfg.sigma_T, sample_rate_hz=cfg.sample_rate_hz, apps=apps,
                               timeorbit=timeorbit)
         fsw = flight.fsw
-        if "mission" in fsw.apps:
-            fsw.apps["mission"].rates = fsw.estimators["kalman"]  # the flown rate filter
         if state is not None:
             state.restore(fsw.uplink.verifier if fsw.uplink is not None else None, timeorbit)
-            state.restore_apps(cfg.system_id, calibration=fsw.calibration, kit_field=fsw.kit_field, ident=apps[0])
+            state.restore_apps(cfg.system_id, calibration=fsw.calibration, kit_field=fsw.kit_field, ident=ident)
             notes += state.notes
         print("\n".join([f"target: MMC5983MA on {mag.describe()}, loop {cfg.rate_hz:g} Hz, link {cfg.link}",
                          *flight.notes, *notes, *([warning] if warning else [])]), file=out, flush=True)

@@ -118,6 +118,9 @@ def build_flight(cfg: RunConfig, source: FieldSource, *, sigma_b_T: float, sampl
         source = getattr(app, "attitude", None)
         if source is not None and hasattr(source, "provider") and source.provider is None:
             source.provider = CalibratedField(fsw.calibration.provider, fsw.calibration)
+    mission = fsw.apps.get("mission")  # the mission reads its rates from the flown rate filter
+    if mission is not None and mission.rates is None:
+        mission.rates = fsw.estimators["kalman"]
     notes = [f"mission key {key_fingerprint(key)}: commands must be signed, telemetry is signed" if key else
              "no mission key: commands that change state are refused"]
     if uplink is not link:

@@ -1,7 +1,7 @@
 """SITL side of the mission (`fsw.deorbit.mission`): the mission over the kit and the identification
 experiment among the SITL's applications, with the box's guess of the tensor from the scenario's [mission]
 table (`fsw.deorbit.mission.over_kit`, the composition the target uses too). The flown rate filter is
-handed to the mission by `hil.sitl.build` once the flight software exists.
+handed to the mission by `fsw.system.build_flight` once the flight software exists.
 """
 from __future__ import annotations
 

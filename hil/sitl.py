@@ -235,16 +235,12 @@ def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, 
         from .deorbit_sim import build_kit
         mission_kit = {"attitude": "estimate"} if scn.mission is not None else {}  # on its own estimate
         onboard.append(build_kit(sim, **{"sigma_b_T": sigma_b, **mission_kit, **(kit_options or {})}))
-    mission = None
     if scn.mission is not None:  # the whole mission: the experiment's magnets are the kit's
         from .mission_sitl import build_mission
-        mission = build_mission(scn, onboard, **(mission_options or {}))
-        onboard.append(mission)
+        onboard.append(build_mission(scn, onboard, **(mission_options or {})))
     flight = build_flight(r, driver, sigma_b_T=sigma_b, sample_rate_hz=rate_hz, truth=box_truth(sim), apps=onboard,
                           link=link, uplink=uplink, key=key, clock=clock, run_id=run_id, field=field,
                           timeorbit=timeorbit)
-    if mission is not None:
-        mission.rates = flight.fsw.estimators["kalman"]  # the flown rate filter
     if cfg.work_clock == "cpu":  # a lockstep world loses nothing to the OS's preemption: the loop's own work
         flight.fsw.scheduler.work_timer = time.thread_time
     return Sitl(cfg, scn, sim, driver, flight, sigma_b, warning)

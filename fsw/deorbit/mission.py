@@ -33,8 +33,8 @@ tumble up for long. The kit going to its own safe mode (a latched fault) sends t
 kit's reason. After a restart the mission starts again in TUMBLING; an identified tensor kept across the
 restart (`fsw.persist`) that meets the accuracy is used without a new experiment.
 
-Rates: `rates` is the flown rate filter (``omega_radps``, ``sigma_radps``, ``flags``), handed over by the
-composition. Time is the loop's `now_s`.
+Rates: `rates` is the flown rate filter (``omega_radps``, ``sigma_radps``, ``flags``), handed over by
+`fsw.system.build_flight`. Time is the loop's `now_s`.
 """
 from __future__ import annotations
 
@@ -133,8 +133,8 @@ def over_kit(kit: DeorbitKit, ident, inertia_guess_kgm2, **options) -> "Mission"
     """The mission composed over the kit `kit` and the experiment `ident` (SITL's and the target's one
     composition): the experiment's magnets are the kit's (:class:`KitMagnets`), its fit starts from the box's
     rough guess `inertia_guess_kgm2` (3,) (the mean of its diagonal: a weak prior); `options`:
-    :class:`Mission`'s keywords. Its `rates` is the flown rate filter, handed over once the flight software
-    exists."""
+    :class:`Mission`'s keywords. Its `rates` is the flown rate filter, handed over by
+    `fsw.system.build_flight`."""
     guess = np.asarray(inertia_guess_kgm2, float)
     ident.magnets = KitMagnets(kit)
     ident.cfg.inertia_guess_kgm2 = float(np.mean(guess))
@@ -178,8 +178,9 @@ class Mission:
         # the controller's attitude source waits for STABILISING (its filter needs the identified tensor):
         # taken off the kit at the first tick, after the flight software's composition gave it its field
         self._attitude_template = None
-        # the detumbling's attitude estimate: started, trusted since, the earliest next start
-        self._estimate_t_s = self._estimate_since = math.nan
+        # the detumbling's attitude estimate: started, trusted since, the sample it was last judged at,
+        # the earliest next start
+        self._estimate_t_s = self._estimate_since = self._estimate_seen_t_s = math.nan
         self._estimate_next_s = -math.inf
         self.phase = Phase.TUMBLING
         self.reason = Reason.START
@@ -350,6 +351,9 @@ class Mission:
                 self._say(f"mission: attitude estimate started at {math.degrees(self._smooth_rate):.2f} dps, "
                           "pulses held")
             return
+        if self.law.t_b_s == self._estimate_seen_t_s:  # it changes with a sample only (a check is ~0.2 ms)
+            return
+        self._estimate_seen_t_s = self.law.t_b_s
         est.attitude(now_s)  # its trust, as the controller would see it
         if not est.trusted and now_s - self._estimate_t_s > c.estimate_retry_s:
             kit.attitude, self.law.quiet_reason = None, ""
@@ -418,7 +422,7 @@ class Mission:
             seq.enter_safe(now_s, f"mission: {self.reason_text}")
         elif phase is Phase.DETUMBLING:
             self._min_rate, self._smooth_rate = math.inf, math.nan
-            self._estimate_t_s = self._estimate_since = math.nan
+            self._estimate_t_s = self._estimate_since = self._estimate_seen_t_s = math.nan
             self._estimate_next_s = -math.inf
             self.law.quiet_reason = ""
             kit.attitude = None
