@@ -78,6 +78,10 @@ FREE, TORQUE, AFTER = 5.0, 12.0, 23.0
 M = (5.0, 4.0, -3.0)
 NODE_LONGITUDE_DEG = 315.0
 JOINT_99 = z_value(1 - 0.01 / 6) / z_value(0.99)   # the six components jointly at 99 % (Bonferroni): 1.22
+# The world's tug starts when the box's call reaches it in wall time: up to a late tick (the loop's summary
+# reports ≤ ~30 ms on a loaded machine) after the instant the box's fit assumes. 0.1 s late shifts the tensor
+# by ~2 × its 99 % interval (WorldTug), so 30 ms adds ~0.6 of it: the real-time world's own error, not the fit's
+TUG_LATENESS_99 = 0.6
 
 
 def tumbling_world(tmp_path, line1, line2, utc0):
@@ -200,8 +204,8 @@ def test_target_runs_the_identification_to_its_end_and_the_ground_decodes_it(tmp
     assert final["samples"] >= 350 and final["flags"] & 1                       # 40 s at 10 Hz; positive definite
     # the truth within the joint 99 % box of the six components (Bonferroni: each within its own
     # 99.83 %, z = 3.14, i.e. 1.22 × its 99 % half-width): six separate 99 % intervals all hold the truth
-    # only ~94 % of the time, and the noise of this one run is fixed by the seeds
-    assert np.all(np.abs(p - TRUTH) <= JOINT_99 * ci99), (p, ci99)
+    # only ~94 % of the time; the noise is fixed by the seeds, the tug's timing by the machine's load
+    assert np.all(np.abs(p - TRUTH) <= (JOINT_99 + TUG_LATENESS_99) * ci99), (p, ci99)
     assert np.all(np.abs(p - TRUTH) <= 0.01 * TRUTH.max()), p                     # within 1 % of the largest
     assert np.all(ci99[:3] < 0.5 * TRUTH[:3])                                     # and it says something
     # the recording of the same telemetry carries what the box flew: its TLE and the UTC of its t = 0
