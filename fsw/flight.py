@@ -432,8 +432,10 @@ class FlightSoftware:
         if self.new_sample:
             self.raw_b_T[:] = self.latched.b_T
             kit = self.kit_T if self.kit_field is not None else None
-            # the calibration's 1 Hz update (~0.3 ms) is held for `_calibration_take`, at the tick's end
-            self.latched.b_T[:] = self.calibration.process(self.sample_t_s, self.raw_b_T, kit, self.kit_skip,
+            # the calibration's 1 Hz update (~0.3 ms) is held for `_calibration_take`, at the tick's end; it
+            # learns from no sample taken while a magnet is unscreened (`KitFieldModel.unscreened`)
+            keep_out = self.kit_skip or (self.kit_field is not None and self.kit_field.unscreened)
+            self.latched.b_T[:] = self.calibration.process(self.sample_t_s, self.raw_b_T, kit, keep_out,
                                                            hold=True)
             if not self.kit_skip:
                 self._raw_kit_T[:] = self.kit_T

@@ -23,6 +23,7 @@ board); the field in force at the start is the one the experiment's fits use.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -31,6 +32,7 @@ import numpy as np
 
 from .commands import BadParam, float_param, int_param
 from .estimation import euler_fit as ef
+from .estimation.euler_fit import field_error
 from .estimation import inertia as inr
 from .telemetry.dialect import mavlink
 
@@ -102,6 +104,15 @@ class IdentConfig:
     tlm_period_s: float = 5.0                # DEBRIS_INERTIA_ESTIMATE period while not idle
     max_samples: int = 20000
     fit: ef.FitOptions = field(default_factory=ef.FitOptions)
+    # with the kit's magnets as the torque: prior 1-σ of the offset their compensation may leave while they
+    # are open, fitted (`FitOptions.kit_offset_sigma_T`); None: the compensation taken as exact
+    kit_offset_sigma_T: float | None = 10e-6
+    # the host's hard iron drifting from its calibration over the experiment, fitted (`FitOptions.drift_degree`:
+    # `field_error.degree_for` the record's length; prior 1-σ `drift_rate_T_per_s` × its length, at most
+    # `drift_max_T`: a thermal cycle of ~2 µT over an orbit changes by at most ~2.2 nT/s); False: constant
+    drift: bool = True
+    drift_rate_T_per_s: float = 2.2e-9
+    drift_max_T: float = 2e-6
 
 
 @dataclass
@@ -315,9 +326,15 @@ class IdentExperiment:
         b = np.array(self.b)
         g = self.cfg.inertia_guess_kgm2
         b_fit = self._b_fit if self._b_fit is not None else self.b_inertial
+        opts = self.cfg.fit
+        if self.source == MAGNETS and opts.kit_offset_sigma_T is None:
+            opts = dataclasses.replace(opts, kit_offset_sigma_T=self.cfg.kit_offset_sigma_T)
+        if self.cfg.drift and opts.drift_degree is None:
+            span = float(t[-1] - t[0])
+            opts = dataclasses.replace(opts, drift_degree=field_error.degree_for(span),
+                                       drift_sigma_T=min(self.cfg.drift_max_T, self.cfg.drift_rate_T_per_s * span))
         self._job = ef.identify_steps(t, b[None], b_fit, self.known_action(), self.sigma_b_T,
-                                      np.array([g, g, g, 0.0, 0.0, 0.0]), self.cfg.fit,
-                                      chunk=self.cfg.work_per_tick)
+                                      np.array([g, g, g, 0.0, 0.0, 0.0]), opts, chunk=self.cfg.work_per_tick)
         self._job_meta = (len(t), float(t[-1]), final)
         self._last_job_s = now_s
         self.jobs_started += 1

@@ -263,6 +263,14 @@ class KitFieldModel:
             self._strong.append((c.t0_s, c.t1_s))
         self.pending = []
 
+    @property
+    def unscreened(self) -> bool:
+        """Whether a capsule is open (or not known closed): its magnet's field at the sensor (~80 µT at
+        0.3 m) is then taken out with a model a few µT off (what its calibration's steps leave on a
+        tumble), an error the host's calibration would take for hard iron and carry into the closed
+        samples after. Closed, the leakage's error is a few hundredths of a µT."""
+        return any(r is None or r.s >= 1.0 for r in self.rest)
+
     def moving(self, t_s: float, channel: int | None = None) -> bool:
         """Whether a sample at `t_s` falls in (or within `guard_s` of) a motion of `channel` (None: any)."""
         g = self.guard_s

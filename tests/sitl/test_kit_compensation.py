@@ -27,6 +27,7 @@ def closed_loop(compensate: bool):
     reset = kf.reset
     kf.reset = lambda: (resets.append(sim.t_s), reset())
     err, resid = [], []
+    flight.kept_out = 0  # samples the host calibration did not learn from: a shutter moved or a capsule open
     for k in range(int(DURATION_S * 10) + 1):
         t = k * 0.1
         sim.advance_to(t)
@@ -36,6 +37,8 @@ def closed_loop(compensate: bool):
         flight.tick(t)
         if flight.new_sample and not flight.kit_skip:
             resid.append(b_kit_true - flight.kit_T)
+        if flight.new_sample and compensate and (flight.kit_skip or flight.kit_field.unscreened):
+            flight.kept_out += 1
         if flight.new_estimate["kalman"] and not kf.flags & kf.NO_ESTIMATE:
             tr = sim.truth(t)
             err.append((t, np.degrees(np.linalg.norm(sitl.perpendicular(kf.omega_radps - tr.omega_radps,
@@ -63,7 +66,9 @@ def test_the_kit_field_is_taken_out_and_the_flown_filter_runs_through_capsule_ev
     assert len(events) >= 3  # the controller opened capsules
     assert resets == [] and flight.estimator_resets == 0
     assert flight.kit_skipped >= 2 * len(events)  # the samples while the shutters moved
-    assert flight.calibration.skipped == flight.kit_skipped and flight.gate.rejected == 0
+    # the host's calibration learns from no sample taken while a shutter moved or a capsule was open (the
+    # kit's model is a few µT off there, which it would take for hard iron)
+    assert flight.calibration.skipped == flight.kept_out > flight.kit_skipped and flight.gate.rejected == 0
     # the field the flight software took out against the simulator's (with a kit field of ~55 µT)
     assert np.max(np.sqrt(np.mean(resid ** 2, axis=0))) < 1.5e-6
     jumps = jumps_dps(err, events)
@@ -98,7 +103,8 @@ def test_samples_taken_while_a_shutter_opens_are_sent_flagged_and_not_used():
     assert all(s in (0.0, 1.0) for _, _, s in used)
     assert any(s == 0.0 for _, _, s in used) and any(s == 1.0 for _, _, s in used)
     assert sum(1 for _, _, s in skipped if 0.0 < s < 1.0) >= 1
-    assert flight.calibration.skipped == len(skipped) and flight.estimator_resets == 0
+    open_used = sum(1 for _, _, s in used if s == 1.0)  # used by the estimators, not by the host calibration
+    assert flight.calibration.skipped == len(skipped) + open_used and flight.estimator_resets == 0
     samples = [m for m in link.messages() if m.get_type() == "DEBRIS_MAG_SAMPLE"]
     flagged = [m for m in samples if m.flags & mavlink.DEBRIS_SAMPLE_FLAGS_KIT_MOVING]
     assert len(flagged) == len(skipped) and len(samples) == len(used) + len(skipped)

@@ -191,7 +191,9 @@ def apply(ss, theta: np.ndarray, prior, result, degree: int, run: int = 0, soft_
     q = ss.trajectory(theta, run)["q"]
     t = ss.t[:ss.n]
     b = ss.b_meas[run, :ss.n] - result.bias_T
-    b_model = b + r * ss.sigma                                  # the predicted field less the offset
+    if len(ss.columns):                                         # and less the error terms
+        b = b - ss.errors_T(theta[None])[0]
+    b_model = b + r * ss.sigma                                  # the predicted field less the offsets
     rms = error_rms_T(t, b, np.linalg.norm(b_model, axis=1))
     soft = soft_iron_sigma is not None and soft_iron_sigma > 0
     Jc, w_c = joint_columns(t, q, b_model, ss.sigma, rms, degree, soft_iron_sigma)

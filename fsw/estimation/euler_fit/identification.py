@@ -42,6 +42,58 @@ from .solver import LMRuns, Prior, complete, lm, lm_steps
 # --- the identification pipeline --------------------------------------------------------------------
 
 @dataclass
+class ErrorTerms:
+    """Errors of the samples fitted as terms linear in their own parameters (SingleShooting's columns):
+    one offset (3,) per dipole state of the known action (``kit_T`` (G, 3)), then the hard iron's drift,
+    Legendre degree 1…D over the record per body axis (``drift_T`` (D, 3)); with their 1-σ."""
+
+    kit_T: np.ndarray
+    kit_sigma_T: np.ndarray
+    drift_T: np.ndarray
+    drift_sigma_T: np.ndarray
+
+
+def error_columns(t_s: np.ndarray, action: KnownAction, opts: "FitOptions") -> tuple[np.ndarray, np.ndarray, int]:
+    """The error terms of `opts` over the record `t_s`: their columns (m, n, 3) (per unit parameter, in
+    units of σ_B), their prior 1-σ (m,) [T], and the number of dipole states G (the first 3G terms)."""
+    t = np.asarray(t_s, float)
+    cols, sig = [], []
+    G = 0
+    if opts.kit_offset_sigma_T is not None:
+        groups = action.dipole_groups(t)
+        G = int(groups.max()) + 1 if groups.size else 0
+        for g in range(G):
+            on = (groups == g).astype(float)
+            for a in range(3):
+                c = np.zeros((len(t), 3))
+                c[:, a] = on
+                cols.append(c)
+                sig.append(opts.kit_offset_sigma_T)
+    if opts.drift_degree:
+        phi = field_error.basis(t, int(opts.drift_degree))[:, 1:]
+        for j in range(phi.shape[1]):
+            for a in range(3):
+                c = np.zeros((len(t), 3))
+                c[:, a] = phi[:, j]
+                cols.append(c)
+                sig.append(opts.drift_sigma_T)
+    if not cols:
+        return np.zeros((0, len(t), 3)), np.zeros(0), 0
+    return np.array(cols), np.array(sig), G
+
+
+def error_terms(ss: SingleShooting, theta: np.ndarray, cov: np.ndarray, G: int) -> ErrorTerms | None:
+    """The fitted error terms of single-shooting θ (P,) with covariance `cov` (P, P) (None without)."""
+    m = len(ss.columns)
+    if not m:
+        return None
+    i = ss.error_index
+    v = theta[i:i + m] * ss.sigma
+    s = np.sqrt(np.clip(np.diag(cov)[i:i + m], 0.0, None)) * ss.sigma
+    return ErrorTerms(v[:3 * G].reshape(G, 3), s[:3 * G].reshape(G, 3), v[3 * G:].reshape(-1, 3),
+                      s[3 * G:].reshape(-1, 3))
+
+@dataclass
 class FitResult:
     """Outcome of an output-error fit (one run)."""
 
@@ -64,6 +116,7 @@ class FitResult:
     cov_moments: np.ndarray | None = None      # (3K, 3K)
     moment_unknown_samples: int = 0            # samples whose moment was unknown (NaN): fitted
     field_error: object = None                 # field_error.FieldError when fitted (FitOptions.field_error_degree)
+    errors: ErrorTerms | None = None           # the samples' error terms fitted (FitOptions' kit and drift)
 
     @property
     def s2(self) -> float:
@@ -102,6 +155,17 @@ class FitOptions:
     field_error_degree: int | None = None
     # with it, the soft iron's error left by the host's calibration: its 1-σ per element (None: not fitted)
     soft_iron_sigma: float | None = None
+    # the field at the sensor of the magnets that make the known dipole, left by their compensation: an
+    # offset of its own (body axes, constant) per dipole state, fitted by single shooting with this prior
+    # 1-σ [T] (None: the samples taken as compensated exactly). The compensation is calibrated from the
+    # field's steps as the capsules open, against the trend of a tumbling body's field; a few µT left in
+    # it act like the torque's own signature on the samples while the torque acts
+    kit_offset_sigma_T: float | None = None
+    # the host's hard iron drifting from its calibration over the record (a thermal cycle of about an
+    # orbit: ~1 µT): Legendre polynomials of degree 1…`drift_degree` in time per body axis, fitted by single
+    # shooting, each coefficient with prior 1-σ `drift_sigma_T` (None: the calibration taken as constant)
+    drift_degree: int | None = None
+    drift_sigma_T: float = 2e-6
 
 
 def identify(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, action: KnownAction,
@@ -154,6 +218,7 @@ def identify_steps(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, act
         seg = np.zeros((G, 6))
         seg[:, :3] = w_g / opts.omega_scale
         theta0[r, n_I:n_I + 6 * G] = seg.ravel()
+    cols, cols_sigma, n_kit = error_columns(t, action, opts)
     ms = MultipleShooting(t, b_meas, b_samples, action, b_inertial, par, bounds, q_ref, sigma_b_T,
                           fit_bias=opts.fit_bias, omega_scale=opts.omega_scale, h_max_s=opts.h_max_s)
     prior = fit_prior(ms.n_params, n_I, th_I0[0], opts, sigma_b_T, par)
@@ -209,19 +274,20 @@ def identify_steps(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, act
     q0 = quat_mul(best_q[:, 0], quat_exp(best_theta[:, n_I + 3:n_I + 6]))[vrun]
     bI0 = b_samples[0] / np.linalg.norm(b_samples[0])
     q0 = quat_mul(quat_exp(np.outer(2 * np.pi * (np.arange(V) % S) / S, bI0)), q0)
-    theta = np.zeros((V, n_I + 6 + (3 if opts.fit_bias else 0)))
+    theta = np.zeros((V, n_I + 6 + (3 if opts.fit_bias else 0) + len(cols)))
     theta[:, :n_I] = best_theta[vrun, :n_I]
     theta[:, n_I:n_I + 3] = best_theta[vrun, n_I:n_I + 3]
     if opts.fit_bias:
-        theta[:, n_I + 6:] = best_theta[vrun, -3:]
+        theta[:, n_I + 6:n_I + 9] = best_theta[vrun, -3:]
     alive = np.arange(V)
     windows = _ss_windows(n, opts.ss_first_window, opts.ss_growth)
     for wi, nw in enumerate(windows):
         pv = InertiaParam(opts.mode, I_ref, None if p_shape_v is None else p_shape_v[alive], par.unknown_intervals,
                           par.moment_sigma_Nm)
         ss = SingleShooting(t, bv[alive], b_samples, action, b_inertial, pv, q0[alive], sigma_b_T, n=nw,
-                            fit_bias=opts.fit_bias, omega_scale=opts.omega_scale, h_max_s=opts.h_max_s)
-        prior = fit_prior(ss.n_params, n_I, th_I0[0], opts, sigma_b_T, pv)
+                            fit_bias=opts.fit_bias, omega_scale=opts.omega_scale, h_max_s=opts.h_max_s,
+                            error_columns=cols)
+        prior = fit_prior(ss.n_params, n_I, th_I0[0], opts, sigma_b_T, pv, cols_sigma)
         # the tensor stays at the multiple-shooting value until the whole record is fitted: a prefix
         # alone determines it less well and would pull it off
         frozen = np.arange(ss.n_params) < n_I if wi < len(windows) - 1 else None
@@ -234,7 +300,7 @@ def identify_steps(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, act
         if wi < len(windows) - 1:
             phys = np.delete(theta[alive], np.arange(n_I + 3, n_I + 6), axis=1)
             alive = alive[_distinct_best(vrun[alive], phys, sruns.cost)]
-    allres = results(ss, sruns, prior)
+    allres = results(ss, sruns, prior, n_kit)
     for res in allres:
         res.moment_unknown_samples = sm.samples_in(t, action.unknown_intervals)
     out = []
@@ -315,10 +381,11 @@ def _ss_windows(n: int, first: int, growth: float) -> list[int]:
 
 
 def fit_prior(P: int, n_I: int, th_I0: np.ndarray, opts: FitOptions, sigma_b_T: float,
-              par: InertiaParam) -> Prior:
+              par: InertiaParam, errors_sigma_T: np.ndarray | None = None) -> Prior:
     """The fit's prior on θ (P parameters, the first n_I dynamic): the tensor part about its guess
     ``th_I0`` (1-σ ``opts.inertia_prior_rel``), the unknown moments free unless ``par`` gives their 1-σ,
-    the offset with 1-σ ``opts.bias_sigma_T``; none on the initial states."""
+    the offset with 1-σ ``opts.bias_sigma_T`` and the error terms that follow it (the last of θ) with
+    ``errors_sigma_T`` [T]; none on the initial states."""
     mean = np.zeros(P)
     sig = np.full(P, np.inf)
     mean[:n_I] = th_I0
@@ -327,12 +394,15 @@ def fit_prior(P: int, n_I: int, th_I0: np.ndarray, opts: FitOptions, sigma_b_T: 
     sig[:nt] = rel if par.mode != "scale" else rel * max(abs(th_I0[0]), 1.0)
     for k, s in enumerate(par.moment_sigma_Nm):                  # the unknown moments: free unless given
         sig[nt + 3 * k:nt + 3 * k + 3] = np.asarray(s, float) / par.moment_scale_Nm
+    m = 0 if errors_sigma_T is None else len(errors_sigma_T)
     if opts.fit_bias:
-        sig[-3:] = opts.bias_sigma_T / sigma_b_T
+        sig[P - m - 3:P - m] = opts.bias_sigma_T / sigma_b_T
+    if m:
+        sig[P - m:] = np.asarray(errors_sigma_T, float) / sigma_b_T
     return Prior(mean, sig)
 
 
-def results(ss: SingleShooting, runs: LMRuns, prior: Prior | None) -> list[FitResult]:
+def results(ss: SingleShooting, runs: LMRuns, prior: Prior | None, n_kit: int = 0) -> list[FitResult]:
     """FitResults of single-shooting runs: tensor, covariance s²(JᵀJ + prior)⁻¹ with s² = χ²/dof."""
     par = ss.inertia
     n_I = par.n
@@ -349,7 +419,8 @@ def results(ss: SingleShooting, runs: LMRuns, prior: Prior | None) -> list[FitRe
         mom, cov_m = par.moments_of(runs.theta[r, :n_I], cov[:n_I, :n_I]) if par.n_moments else (None, None)
         out.append(FitResult(p, T @ cov[:n_I, :n_I] @ T.T, w0[0], q0[0], bias[0], float(runs.data_cost[r]),
                              runs.dof, ss.n, int(runs.iterations[r]), bool(runs.converged[r]), par.mode,
-                             runs.theta[r].copy(), cov, par.unknown_intervals, par.moment_sigma_Nm, mom, cov_m))
+                             runs.theta[r].copy(), cov, par.unknown_intervals, par.moment_sigma_Nm, mom, cov_m,
+                             errors=error_terms(ss, runs.theta[r], cov, n_kit)))
     return out
 
 
@@ -366,14 +437,17 @@ def single_shooting_for(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn
     par = InertiaParam(result.mode, float(np.mean(p_ref[:3])) if result.mode != "shape" else float(result.p[0]),
                        None if p_shape is None else np.atleast_2d(p_shape), result.unknown_intervals,
                        result.moment_sigma_Nm)
+    cols = error_columns(t, action, opts)[0]
     ss = SingleShooting(t, np.asarray(b_meas, float)[None], b_samples, action, b_inertial, par,
                         result.q0[None], sigma_b_T, n=n, fit_bias=opts.fit_bias, omega_scale=opts.omega_scale,
-                        h_max_s=opts.h_max_s)
+                        h_max_s=opts.h_max_s, error_columns=cols)
     theta = np.zeros(ss.n_params)
     theta[:par.n] = par.from_p(result.p, moments_Nm=result.moments_Nm)
     theta[par.n:par.n + 3] = result.omega0_radps / opts.omega_scale
     if opts.fit_bias:
-        theta[par.n + 6:] = result.bias_T / sigma_b_T
+        theta[par.n + 6:par.n + 9] = result.bias_T / sigma_b_T
+    if len(cols) and len(result.theta) == ss.n_params:
+        theta[ss.error_index:] = result.theta[ss.error_index:]
     return ss, theta
 
 
@@ -400,7 +474,8 @@ def prefix_fits(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, action
         ss, theta = single_shooting_for(t, b_meas, b_inertial, action, sigma_b_T, final, opts, n=int(n),
                                         b_samples=b_samples)
         th_I0 = ss.inertia.from_p(np.asarray(p_guess, float))
-        prior = fit_prior(ss.n_params, ss.inertia.n, th_I0, opts, sigma_b_T, ss.inertia)
+        prior = fit_prior(ss.n_params, ss.inertia.n, th_I0, opts, sigma_b_T, ss.inertia,
+                          error_columns(t, action, opts)[1])
         runs = lm(ss, LMRuns(theta[None].copy()), prior, opts.ss_iter)
         out.append(results(ss, runs, prior)[0])
     return out

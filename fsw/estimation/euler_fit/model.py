@@ -98,6 +98,18 @@ class KnownAction:
     def dipole_at(self, t: np.ndarray) -> np.ndarray:
         return self._at(self.dipole_Am2, t)
 
+    def dipole_groups(self, t: np.ndarray) -> np.ndarray:
+        """Per time in `t`: the index of the distinct non-zero dipole acting then (in order of first
+        appearance), −1 where none acts. The magnets' field at the sensor is one per dipole state, so is
+        its compensation's error (`FitOptions.kit_offset_sigma_T`)."""
+        d = self.dipole_at(t)
+        out = np.full(len(d), -1, int)
+        on = np.any(d != 0, axis=1)
+        if np.any(on):
+            _, first, inv = np.unique(d[on], axis=0, return_index=True, return_inverse=True)
+            out[on] = np.argsort(np.argsort(first))[inv.ravel()]
+        return out
+
     def switch_times(self) -> np.ndarray:
         return self.t_s[np.isfinite(self.t_s)]
 

@@ -19,15 +19,19 @@ from .solver import BlockArrow, Dense, complete, evaluate_steps
 # --- single shooting ----------------------------------------------------------------------------------
 
 class SingleShooting:
-    """One trajectory per run over the first ``n`` samples: θ = [θ_I | ω₀/ω_s (3) | δθ₀ (3) | b/σ_B (3)].
+    """One trajectory per run over the first ``n`` samples:
+    θ = [θ_I | ω₀/ω_s (3) | δθ₀ (3) | b/σ_B (3) | e (m)].
 
     ``q_ref`` (R, 4) the attitude the rotation vector δθ₀ perturbs (body side); ``b_meas`` (R, n_all, 3).
+    ``error_columns`` (m, n_all, 3): errors of the samples linear in parameters e of their own, added to
+    the prediction as σ_B Σ_j e_j C_j (`error_terms`: the kit field's compensation error while the
+    magnets act, the host's hard-iron drift); their Jacobian is C itself, so they cost no trajectories.
     """
 
     def __init__(self, t_s: np.ndarray, b_meas: np.ndarray, b_samples: np.ndarray, action: KnownAction,
                  b_inertial: FieldFn, inertia: InertiaParam, q_ref: np.ndarray, sigma_b_T: float, *,
                  n: int | None = None, fit_bias: bool = True, omega_scale: float = 0.01,
-                 h_max_s: float = 1.0, fd_step: float = 1e-6) -> None:
+                 h_max_s: float = 1.0, fd_step: float = 1e-6, error_columns: np.ndarray | None = None) -> None:
         self.t = np.asarray(t_s, float)
         self.n = len(self.t) if n is None else int(n)
         self.b_meas = np.asarray(b_meas, float)
@@ -40,10 +44,17 @@ class SingleShooting:
         self.seg = Segments.build(self.t[:self.n], [0, self.n - 1], action, b_inertial, h_max_s,
                                   b_samples=np.asarray(b_samples)[:self.n],
                                   unknown_intervals=inertia.unknown_intervals)
+        cols = np.zeros((0, len(self.t), 3)) if error_columns is None else np.asarray(error_columns, float)
+        self.columns = cols[:, :self.n]
+
+    @property
+    def error_index(self) -> int:
+        """Index in θ of the first error term."""
+        return self.inertia.n + 6 + (3 if self.fit_bias else 0)
 
     @property
     def n_params(self) -> int:
-        return self.inertia.n + 6 + (3 if self.fit_bias else 0)
+        return self.error_index + len(self.columns)
 
     def unpack(self, theta: np.ndarray, runs: np.ndarray):
         n = self.inertia.n
@@ -53,22 +64,29 @@ class SingleShooting:
         bias = theta[:, n + 6:n + 9] * self.sigma if self.fit_bias else np.zeros((len(theta), 3))
         return p, q0, w0, bias
 
+    def errors_T(self, theta: np.ndarray) -> np.ndarray | None:
+        """The error terms' part of the prediction (nb, n, 3) [T] at θ (nb, P); None without terms."""
+        if not len(self.columns):
+            return None
+        return self.sigma * np.einsum("bm,mna->bna", theta[:, self.error_index:], self.columns)
+
     def start(self, thetas: np.ndarray, runs: np.ndarray, keep_states: bool = False) -> Pass:
         p, q0, w0, bias = self.unpack(thetas, runs)
         return Pass(self.seg, np.zeros(len(thetas), int), p.T, q0.T, w0.T, bias.T, keep_states,
-                    u=self.inertia.to_moments(thetas[:, :self.inertia.n]))
+                    u=self.inertia.to_moments(thetas[:, :self.inertia.n]), extra=self.errors_T(thetas))
 
     def begin(self, thetas: np.ndarray, runs: np.ndarray) -> tuple[Pass, tuple]:
-        R, k = thetas.shape
+        R, P = thetas.shape
+        k = self.error_index                          # perturbed: the rest is linear (its columns)
         th = np.repeat(thetas[:, None, :], k + 1, axis=1)
-        th[:, 1:, :] += self.step * np.eye(k)[None]
-        return self.start(th.reshape(-1, k), np.repeat(runs, k + 1)), (runs, R, k)
+        th[:, 1:, :k] += self.step * np.eye(k)[None]
+        return self.start(th.reshape(-1, P), np.repeat(runs, k + 1)), (runs, R, k)
 
     def evaluate(self, thetas: np.ndarray, runs: np.ndarray):
         return complete(evaluate_steps(self, thetas, runs, None))
 
     def residuals_jacobian(self, thetas: np.ndarray, runs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The whitened residuals (R, n, 3) and their Jacobian (R, k, n, 3) at ``thetas``."""
+        """The whitened residuals (R, n, 3) and their Jacobian (R, P, n, 3) at ``thetas``."""
         ps, (runs, R, k) = self.begin(thetas, runs)
         ps.advance()
         return self._residuals_jacobian(ps, runs, R, k)
@@ -76,19 +94,23 @@ class SingleShooting:
     def _residuals_jacobian(self, ps: Pass, runs: np.ndarray, R: int, k: int) -> tuple[np.ndarray, np.ndarray]:
         n = self.n
         pred = ps.pred[:, :n].reshape(R, k + 1, n, 3)
-        return (pred[:, 0] - self.b_meas[runs, :n]) / self.sigma, (pred[:, 1:] - pred[:, :1]) / (self.step * self.sigma)
+        J = (pred[:, 1:] - pred[:, :1]) / (self.step * self.sigma)
+        if len(self.columns):
+            J = np.concatenate([J, np.broadcast_to(self.columns[None], (R,) + self.columns.shape)], axis=1)
+        return (pred[:, 0] - self.b_meas[runs, :n]) / self.sigma, J
 
     def finish(self, ps: Pass, ctx: tuple):
         runs, R, k = ctx
         n = self.n
         r, Jm = self._residuals_jacobian(ps, runs, R, k)
-        r, Jm = r.reshape(R, -1), Jm.reshape(R, k, -1)
+        P = Jm.shape[1]
+        r, Jm = r.reshape(R, -1), Jm.reshape(R, P, -1)
         bad = ~(np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(Jm), axis=(1, 2)))
         r = np.where(bad[:, None], 0.0, r)
         Jm = np.where(bad[:, None, None], 0.0, Jm)
         cost = np.where(bad, np.inf, np.sum(r * r, axis=1))
         return (cost, cost, Dense(np.einsum("rkm,rlm->rkl", Jm, Jm)), np.einsum("rkm,rm->rk", Jm, r),
-                max(3 * n - k, 1))
+                max(3 * n - P, 1))
 
     def trajectory(self, theta: np.ndarray, run: int = 0) -> dict:
         ps = self.start(theta[None, :], np.array([run]), keep_states=True)
