@@ -179,3 +179,13 @@ def test_an_unknown_moment_outside_the_record_is_refused():
     with pytest.raises(ValueError, match="outside the record"):
         ef.identify(t, b[None], FIELD.b_eci_T, ef.KnownAction.none(), 1e-6, np.array([1.0] * 3 + [0.0] * 3),
                     ef.FitOptions(mode="shape"), unknown_moments=[(60.0, 70.0)])
+
+
+def test_dipole_groups_number_the_distinct_dipoles_in_order_of_first_appearance():
+    a = ef.KnownAction.pulses(dipole_pulses=[(10.0, 5.0, np.array([0.0, 15.0, 0.0])),
+                                             (20.0, 5.0, np.array([15.0, 0.0, 0.0])),
+                                             (30.0, 5.0, np.array([0.0, 15.0, 0.0]))])
+    g = a.dipole_groups(np.arange(0.0, 40.0, 1.0))
+    assert np.all(g[:10] == -1) and np.all(g[10:15] == 0) and np.all(g[15:20] == -1)
+    assert np.all(g[20:25] == 1) and np.all(g[30:35] == 0) and np.all(g[35:] == -1)
+    assert np.all(ef.KnownAction.none().dipole_groups(np.arange(3.0)) == -1)

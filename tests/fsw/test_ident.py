@@ -149,46 +149,8 @@ class FakeMagnets:
         return self.p if self.is_open else np.zeros(3)
 
 
-@pytest.mark.slow
-def test_magnets_experiment_identifies_the_tensor_from_p_cross_b():
-    """MAGNETS: the known moment is p × B, a function of the attitude the fit estimates. A 30 A·m² dipole
-    for 240 s on a small body (diag(6, 7, 8.5) kg·m²). The sensor is quiet here (0.05 µT) so that a
-    wrong moment model would show: with the sign of p × B flipped the fit is far off (checked below)."""
-    J = np.diag([6.0, 7.0, 8.5])
-    p = np.array([0.0, 15.0, 26.0])
-    t_on, t_off = 40.0, 280.0
-    sigma = 0.05e-6
-    t, b = simulate(J, [0.6, -0.4, 0.8], 420.0, dipole_fn=lambda tt: p if t_on <= tt < t_off else np.zeros(3),
-                    sigma=sigma)
-    mags = FakeMagnets(p)
-    ex = IdentExperiment(sigma_b_T=sigma, b_inertial=FIELD.b_eci_T, magnets=mags,
-                         config=IdentConfig(inertia_guess_kgm2=5.0, update_every_s=1e9, work_per_tick=10**9))
-    router = CommandRouter()
-    ex.register(router)
-    assert router.handle(start(MAGNETS, t_on, t_off - t_on, 420.0 - t_off), 0.0) == mavlink.MAV_RESULT_ACCEPTED
-    k = 0
-    now = 0.0
-    while ex.state not in (DONE, ABORTED) and now < 2000.0:
-        if k < len(t) and t[k] <= now:
-            ex.on_sample(t[k], b[k])
-            k += 1
-        ex.step(now)
-        now = round(now + 0.5, 6)
-    assert ex.state == DONE
-    a = ex.known_action()
-    assert np.allclose(a.dipole_at(np.array([100.0]))[0], p) and not np.any(a.dipole_at(np.array([300.0])))
-    e = ex.result.estimate
-    err = np.abs(e.p - inr.params(J))
-    assert np.all(err[:3] / np.diag(J) < 0.01), e.p
-    assert np.all(err <= 3 * e.ci95 + 1e-4)
-    assert e.flags == 7 and e.samples_used == len(t)
-    flipped = ef.KnownAction(a.t_s, a.moment_Nm, -a.dipole_Am2)
-    quick = ef.FitOptions(ms_iter=(20, 10, 10), ss_iter=10, chain_candidates=((0, 0),), starts_about_b=1)
-    wrong = ef.identify(t, b[None], FIELD.b_eci_T, flipped, sigma, np.array([5.0, 5.0, 5.0, 0, 0, 0]), quick)[0]
-    assert wrong.s2 > 5.0 and np.max(np.abs(wrong.p[:3] / np.diag(J) - 1)) > 0.1
-
-
 def run_magnets(t, b, p, t_on, t_off, sigma, guess, **cfg):
+    """The MAGNETS experiment on the samples (t, b) of a dipole p on [t_on, t_off), run to its end."""
     ex = IdentExperiment(sigma_b_T=sigma, b_inertial=FIELD.b_eci_T, magnets=FakeMagnets(p),
                          config=IdentConfig(inertia_guess_kgm2=guess, update_every_s=1e9, work_per_tick=10**9, **cfg))
     router = CommandRouter()
@@ -202,7 +164,32 @@ def run_magnets(t, b, p, t_on, t_off, sigma, guess, **cfg):
         ex.step(now)
         now = round(now + 0.5, 6)
     assert ex.state == DONE
-    return ex.result
+    return ex
+
+
+@pytest.mark.slow
+def test_magnets_experiment_identifies_the_tensor_from_p_cross_b():
+    """MAGNETS: the known moment is p × B, a function of the attitude the fit estimates. A 30 A·m² dipole
+    for 240 s on a small body (diag(6, 7, 8.5) kg·m²). The sensor is quiet here (0.05 µT) so that a
+    wrong moment model would show: with the sign of p × B flipped the fit is far off (checked below)."""
+    J = np.diag([6.0, 7.0, 8.5])
+    p = np.array([0.0, 15.0, 26.0])
+    t_on, t_off = 40.0, 280.0
+    sigma = 0.05e-6
+    t, b = simulate(J, [0.6, -0.4, 0.8], 420.0, dipole_fn=lambda tt: p if t_on <= tt < t_off else np.zeros(3),
+                    sigma=sigma)
+    ex = run_magnets(t, b, p, t_on, t_off, sigma, 5.0)
+    a = ex.known_action()
+    assert np.allclose(a.dipole_at(np.array([100.0]))[0], p) and not np.any(a.dipole_at(np.array([300.0])))
+    e = ex.result.estimate
+    err = np.abs(e.p - inr.params(J))
+    assert np.all(err[:3] / np.diag(J) < 0.01), e.p
+    assert np.all(err <= 3 * e.ci95 + 1e-4)
+    assert e.flags == 7 and e.samples_used == len(t)
+    flipped = ef.KnownAction(a.t_s, a.moment_Nm, -a.dipole_Am2)
+    quick = ef.FitOptions(ms_iter=(20, 10, 10), ss_iter=10, chain_candidates=((0, 0),), starts_about_b=1)
+    wrong = ef.identify(t, b[None], FIELD.b_eci_T, flipped, sigma, np.array([5.0, 5.0, 5.0, 0, 0, 0]), quick)[0]
+    assert wrong.s2 > 5.0 and np.max(np.abs(wrong.p[:3] / np.diag(J) - 1)) > 0.1
 
 
 @pytest.mark.slow
@@ -226,10 +213,10 @@ def test_magnets_experiment_fits_what_the_calibrations_leave_in_the_samples():
     b[on] += left
     b += drift
     truth = inr.params(J)
-    taken = run_magnets(t, b, p, t_on, t_off, sigma, 5.0, kit_offset_sigma_T=None, drift=False)
+    taken = run_magnets(t, b, p, t_on, t_off, sigma, 5.0, kit_offset_sigma_T=None, drift=False).result
     assert taken.fit.errors is None
     assert np.any(np.abs(taken.estimate.p - truth) > taken.estimate.ci95), (taken.estimate.p, taken.estimate.ci95)
-    fitted = run_magnets(t, b, p, t_on, t_off, sigma, 5.0)
+    fitted = run_magnets(t, b, p, t_on, t_off, sigma, 5.0).result
     e, terms = fitted.estimate, fitted.fit.errors
     assert np.all(np.abs(e.p - truth) <= e.ci95), (e.p, e.ci95)
     assert np.all(np.abs(e.p[:3] / np.diag(J) - 1) < 0.01)
