@@ -87,7 +87,7 @@ class HostCalibration:
         self.tlm_every_s = tlm_every_s
         self.field_errors = 0
         self.applied = 0  # samples the last good calibration was applied to
-        self.skipped = 0  # samples not taken in: the kit's field at the sensor unknown or unscreened (process's skip)
+        self.skipped = 0  # samples not taken in: the kit's field unknown or unscreened (process's skip)
         self._t_taken: float | None = None
         #: a sample due to be taken in, held for `take_held` (process's `hold`): (t, b) or None
         self.held: tuple[float, np.ndarray] | None = None
@@ -149,9 +149,9 @@ class HostCalibration:
         field at the sensor known on board, taken out first (the de-orbit kit's magnets,
         `fsw.deorbit.kit_field`); `skip`: that field is not known now (a shutter moves) or not well enough
         (a magnet is unscreened): the sample is not taken into the calibration (counted in `skipped`),
-        only corrected. `hold`: a sample due is
-        copied into `held` instead (the field along the orbit and the calibration's update, about 0.3 ms,
-        left to :meth:`take_held` in a tick with room: the flight loop's choice)."""
+        only corrected. `hold`: a sample due is copied into `held` instead (the field along the orbit and
+        the calibration's update, about 0.3 ms, left to :meth:`take_held` in a tick with room: the flight
+        loop's choice)."""
         if extra_T is not None:
             b_meas_T = b_meas_T - extra_T
         if skip:

@@ -167,7 +167,7 @@ def _accepted_step(ss, theta: np.ndarray, prior, r: np.ndarray, Jc: np.ndarray, 
         th = theta + d[:k]
         ps = ss.start(th[None], np.array([run]))
         ps.advance()
-        rr = (ps.pred[0, :n] - ss.b_meas[run, :n]) / ss.sigma + np.einsum("m,mna->na", d[k:], Jc)
+        rr = (ss.predicted_T(ps.pred, th[None])[0] - ss.b_meas[run, :n]) / ss.sigma + np.einsum("m,mna->na", d[k:], Jc)
         chi2 = float(np.sum(rr * rr))
         pc = float(prior.cost(th)) if prior is not None else 0.0
         return chi2 + pc + float(np.sum((w_c * d[k:]) ** 2)), chi2
@@ -218,6 +218,7 @@ def apply(ss, theta: np.ndarray, prior, result, degree: int, run: int = 0, soft_
     _, q0, w0, bias = ss.unpack(th[None], np.array([run]))
     cov_th = cov[:k, :k]
     mom, cov_m = par.moments_of(th[:n_I], cov_th[:n_I, :n_I]) if par.n_moments else (None, None)
+    n_kit = 0 if result.errors is None else len(result.errors.kit_T)
     ni = 3 * (degree + 1)
     fe = FieldError(degree, (delta[k:k + ni] * ss.sigma).reshape(degree + 1, 3),
                     (np.sqrt(np.diag(cov)[k:k + ni]) * ss.sigma).reshape(degree + 1, 3), float(result.chi2), rms,
@@ -225,4 +226,5 @@ def apply(ss, theta: np.ndarray, prior, result, degree: int, run: int = 0, soft_
                     delta[k + ni + 3 * degree:].reshape(3, 3) if soft else None)
     return dataclasses.replace(result, p=p, cov_p=T @ cov_th[:n_I, :n_I] @ T.T, omega0_radps=w0[0], q0=q0[0],
                                bias_T=bias[0], chi2=chi2, dof=dof, theta=th, cov_theta=cov_th, moments_Nm=mom,
-                               cov_moments=cov_m, field_error=fe)
+                               cov_moments=cov_m, field_error=fe,
+                               errors=ss.error_terms(th, cov_th, n_kit))

@@ -36,62 +36,30 @@ from . import field_error
 from .initial import chain_attitudes, initial_rates, segment_length
 from .model import FieldFn, InertiaParam, KnownAction
 from .propagation import segment_bounds
-from .shooting import MultipleShooting, SingleShooting
+from .shooting import ErrorTerms, MultipleShooting, SingleShooting
 from .solver import LMRuns, Prior, complete, lm, lm_steps
 
 # --- the identification pipeline --------------------------------------------------------------------
 
-@dataclass
-class ErrorTerms:
-    """Errors of the samples fitted as terms linear in their own parameters (SingleShooting's columns):
-    one offset (3,) per dipole state of the known action (``kit_T`` (G, 3)), then the hard iron's drift,
-    Legendre degree 1…D over the record per body axis (``drift_T`` (D, 3)); with their 1-σ."""
-
-    kit_T: np.ndarray
-    kit_sigma_T: np.ndarray
-    drift_T: np.ndarray
-    drift_sigma_T: np.ndarray
-
-
 def error_columns(t_s: np.ndarray, action: KnownAction, opts: "FitOptions") -> tuple[np.ndarray, np.ndarray, int]:
-    """The error terms of `opts` over the record `t_s`: their columns (m, n, 3) (per unit parameter, in
-    units of σ_B), their prior 1-σ (m,) [T], and the number of dipole states G (the first 3G terms)."""
+    """The error terms of `opts` over the record `t_s` (:class:`~.shooting.ErrorTerms`): their columns
+    (m, n, 3) (per unit parameter, in units of σ_B), their prior 1-σ (m,) [T], and the number of dipole
+    states G (the first 3G terms)."""
     t = np.asarray(t_s, float)
-    cols, sig = [], []
+    cols, sig = [np.zeros((0, len(t), 3))], [np.zeros(0)]
     G = 0
     if opts.kit_offset_sigma_T is not None:
         groups = action.dipole_groups(t)
         G = int(groups.max()) + 1 if groups.size else 0
-        for g in range(G):
-            on = (groups == g).astype(float)
-            for a in range(3):
-                c = np.zeros((len(t), 3))
-                c[:, a] = on
-                cols.append(c)
-                sig.append(opts.kit_offset_sigma_T)
-    if opts.drift_degree:
-        phi = field_error.basis(t, int(opts.drift_degree))[:, 1:]
-        for j in range(phi.shape[1]):
-            for a in range(3):
-                c = np.zeros((len(t), 3))
-                c[:, a] = phi[:, j]
-                cols.append(c)
-                sig.append(opts.drift_sigma_T)
-    if not cols:
-        return np.zeros((0, len(t), 3)), np.zeros(0), 0
-    return np.array(cols), np.array(sig), G
+        on = (groups[None, :] == np.arange(G)[:, None]).astype(float)             # (G, n)
+        cols.append(np.einsum("gn,ab->ganb", on, np.eye(3)).reshape(3 * G, len(t), 3))
+        sig.append(np.full(3 * G, float(opts.kit_offset_sigma_T)))
+    if opts.drift_degree:                          # the host's drift as the field-error model has it
+        d = int(opts.drift_degree)
+        cols.append(field_error.body_columns(t, None, d, 1.0, soft_iron=False))
+        sig.append(np.full(3 * d, float(opts.drift_sigma_T)))
+    return np.concatenate(cols), np.concatenate(sig), G
 
-
-def error_terms(ss: SingleShooting, theta: np.ndarray, cov: np.ndarray, G: int) -> ErrorTerms | None:
-    """The fitted error terms of single-shooting θ (P,) with covariance `cov` (P, P) (None without)."""
-    m = len(ss.columns)
-    if not m:
-        return None
-    i = ss.error_index
-    v = theta[i:i + m] * ss.sigma
-    s = np.sqrt(np.clip(np.diag(cov)[i:i + m], 0.0, None)) * ss.sigma
-    return ErrorTerms(v[:3 * G].reshape(G, 3), s[:3 * G].reshape(G, 3), v[3 * G:].reshape(-1, 3),
-                      s[3 * G:].reshape(-1, 3))
 
 @dataclass
 class FitResult:
@@ -420,7 +388,7 @@ def results(ss: SingleShooting, runs: LMRuns, prior: Prior | None, n_kit: int = 
         out.append(FitResult(p, T @ cov[:n_I, :n_I] @ T.T, w0[0], q0[0], bias[0], float(runs.data_cost[r]),
                              runs.dof, ss.n, int(runs.iterations[r]), bool(runs.converged[r]), par.mode,
                              runs.theta[r].copy(), cov, par.unknown_intervals, par.moment_sigma_Nm, mom, cov_m,
-                             errors=error_terms(ss, runs.theta[r], cov, n_kit)))
+                             errors=ss.error_terms(runs.theta[r], cov, n_kit)))
     return out
 
 
@@ -469,13 +437,13 @@ def prefix_fits(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, action
     t = np.asarray(t_s, float)
     if b_samples is None:
         b_samples = np.asarray(b_inertial(t), float).reshape(-1, 3)
+    _, cols_sigma, n_kit = error_columns(t, action, opts)
     out = []
     for n in lengths:
         ss, theta = single_shooting_for(t, b_meas, b_inertial, action, sigma_b_T, final, opts, n=int(n),
                                         b_samples=b_samples)
         th_I0 = ss.inertia.from_p(np.asarray(p_guess, float))
-        prior = fit_prior(ss.n_params, ss.inertia.n, th_I0, opts, sigma_b_T, ss.inertia,
-                          error_columns(t, action, opts)[1])
+        prior = fit_prior(ss.n_params, ss.inertia.n, th_I0, opts, sigma_b_T, ss.inertia, cols_sigma)
         runs = lm(ss, LMRuns(theta[None].copy()), prior, opts.ss_iter)
-        out.append(results(ss, runs, prior)[0])
+        out.append(results(ss, runs, prior, n_kit)[0])
     return out

@@ -173,15 +173,13 @@ class Pass:
 
     ``group`` (nb,) segment of each trajectory; ``J6`` (6, nb); ``q0`` (4, nb); ``w0`` (3, nb);
     ``bias`` (3, nb); ``u`` (K, 3, nb) the moments [N·m] on the segments' unknown-moment intervals
-    (``seg.unknown``), added to the known one; ``extra`` (nb, L, 3) an offset per local sample added to
-    the prediction (single shooting's error terms: `SingleShooting`'s columns). When :meth:`advance`
-    returns True, ``pred`` (nb, L, 3) holds the predicted field at each trajectory's local samples,
-    ``y`` (7, nb) the end states, and ``states`` (nb, L, 7) the states at the samples when ``keep_states``.
+    (``seg.unknown``), added to the known one. When :meth:`advance` returns True, ``pred`` (nb, L, 3)
+    holds the predicted field at each trajectory's local samples, ``y`` (7, nb) the end states, and
+    ``states`` (nb, L, 7) the states at the samples when ``keep_states``.
     """
 
     def __init__(self, seg: Segments, group: np.ndarray, J6: np.ndarray, q0: np.ndarray, w0: np.ndarray,
-                 bias: np.ndarray, keep_states: bool = False, u: np.ndarray | None = None,
-                 extra: np.ndarray | None = None) -> None:
+                 bias: np.ndarray, keep_states: bool = False, u: np.ndarray | None = None) -> None:
         self.seg = seg
         self.g = np.asarray(group, int)
         self.single = bool(np.all(self.g == self.g[0]))
@@ -192,7 +190,6 @@ class Pass:
         nb = J6.shape[1]
         self.y = np.concatenate([q0, w0]).astype(float)
         self.bias = bias
-        self.extra = extra
         L = seg.b_local.shape[1]
         self.pred = np.full((nb, L, 3), np.nan)
         self.keep = keep_states
@@ -207,13 +204,13 @@ class Pass:
     def _record(self, traj: np.ndarray, loc: np.ndarray) -> None:
         bI = self.seg.b_local[self.g[traj], loc].T                        # (3, m)
         b = body_from_inertial(self.y[:4, traj], bI) + self.bias[:, traj]
-        self.pred[traj, loc, :] = b.T if self.extra is None else b.T + self.extra[traj, loc]
+        self.pred[traj, loc, :] = b.T
         if self.keep:
             self.states[traj, loc, :] = self.y[:, traj].T
 
     def _record_all(self, k: int) -> None:
         b = body_from_inertial(self.y[:4], self.seg.b_local[self.g[0], k]) + self.bias
-        self.pred[:, k, :] = b.T if self.extra is None else b.T + self.extra[:, k]
+        self.pred[:, k, :] = b.T
         if self.keep:
             self.states[:, k, :] = self.y.T
 

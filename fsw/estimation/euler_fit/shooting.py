@@ -8,6 +8,8 @@ together by continuity defects whose weights the caller tightens from loose to t
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from ..rotations import quat_conj, quat_exp, quat_mul
@@ -18,6 +20,18 @@ from .solver import BlockArrow, Dense, complete, evaluate_steps
 
 # --- single shooting ----------------------------------------------------------------------------------
 
+@dataclass
+class ErrorTerms:
+    """The error terms a single-shooting fit estimated (its columns, `identification.error_columns`): one
+    offset (3,) per dipole state of the known action (``kit_T`` (G, 3)), then the host's hard-iron drift,
+    Legendre degree 1…D over the record per body axis (``drift_T`` (D, 3)); with their 1-σ."""
+
+    kit_T: np.ndarray
+    kit_sigma_T: np.ndarray
+    drift_T: np.ndarray
+    drift_sigma_T: np.ndarray
+
+
 class SingleShooting:
     """One trajectory per run over the first ``n`` samples:
     θ = [θ_I | ω₀/ω_s (3) | δθ₀ (3) | b/σ_B (3) | e (m)].
@@ -25,7 +39,8 @@ class SingleShooting:
     ``q_ref`` (R, 4) the attitude the rotation vector δθ₀ perturbs (body side); ``b_meas`` (R, n_all, 3).
     ``error_columns`` (m, n_all, 3): errors of the samples linear in parameters e of their own, added to
     the prediction as σ_B Σ_j e_j C_j (`error_terms`: the kit field's compensation error while the
-    magnets act, the host's hard-iron drift); their Jacobian is C itself, so they cost no trajectories.
+    magnets act, the host's hard-iron drift); their Jacobian is C itself, so they cost no trajectories
+    and are added to the nominal trajectory's prediction only (:meth:`predicted_T`).
     """
 
     def __init__(self, t_s: np.ndarray, b_meas: np.ndarray, b_samples: np.ndarray, action: KnownAction,
@@ -70,39 +85,59 @@ class SingleShooting:
             return None
         return self.sigma * np.einsum("bm,mna->bna", theta[:, self.error_index:], self.columns)
 
+    def error_terms(self, theta: np.ndarray, cov: np.ndarray, n_kit: int) -> ErrorTerms | None:
+        """The error terms at θ (P,) with covariance `cov` (P, P), the first `n_kit` × 3 the dipole states'
+        offsets (None without terms)."""
+        m = len(self.columns)
+        if not m:
+            return None
+        i, G = self.error_index, int(n_kit)
+        v = theta[i:i + m] * self.sigma
+        s = np.sqrt(np.clip(np.diag(cov)[i:i + m], 0.0, None)) * self.sigma
+        return ErrorTerms(v[:3 * G].reshape(G, 3), s[:3 * G].reshape(G, 3), v[3 * G:].reshape(-1, 3),
+                          s[3 * G:].reshape(-1, 3))
+
+    def predicted_T(self, pred: np.ndarray, thetas: np.ndarray) -> np.ndarray:
+        """The predicted samples (nb, n, 3) [T]: the trajectories' `pred` (nb, ≥n, 3) at θ (nb, P) with
+        their error terms."""
+        e = self.errors_T(thetas)
+        return pred[:, :self.n] if e is None else pred[:, :self.n] + e
+
     def start(self, thetas: np.ndarray, runs: np.ndarray, keep_states: bool = False) -> Pass:
+        """The trajectories of θ (their `pred` without the error terms: :meth:`predicted_T`)."""
         p, q0, w0, bias = self.unpack(thetas, runs)
         return Pass(self.seg, np.zeros(len(thetas), int), p.T, q0.T, w0.T, bias.T, keep_states,
-                    u=self.inertia.to_moments(thetas[:, :self.inertia.n]), extra=self.errors_T(thetas))
+                    u=self.inertia.to_moments(thetas[:, :self.inertia.n]))
 
     def begin(self, thetas: np.ndarray, runs: np.ndarray) -> tuple[Pass, tuple]:
         R, P = thetas.shape
         k = self.error_index                          # perturbed: the rest is linear (its columns)
         th = np.repeat(thetas[:, None, :], k + 1, axis=1)
         th[:, 1:, :k] += self.step * np.eye(k)[None]
-        return self.start(th.reshape(-1, P), np.repeat(runs, k + 1)), (runs, R, k)
+        return self.start(th.reshape(-1, P), np.repeat(runs, k + 1)), (runs, R, k, thetas)
 
     def evaluate(self, thetas: np.ndarray, runs: np.ndarray):
         return complete(evaluate_steps(self, thetas, runs, None))
 
     def residuals_jacobian(self, thetas: np.ndarray, runs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The whitened residuals (R, n, 3) and their Jacobian (R, P, n, 3) at ``thetas``."""
-        ps, (runs, R, k) = self.begin(thetas, runs)
+        ps, ctx = self.begin(thetas, runs)
         ps.advance()
-        return self._residuals_jacobian(ps, runs, R, k)
+        return self._residuals_jacobian(ps, *ctx)
 
-    def _residuals_jacobian(self, ps: Pass, runs: np.ndarray, R: int, k: int) -> tuple[np.ndarray, np.ndarray]:
+    def _residuals_jacobian(self, ps: Pass, runs: np.ndarray, R: int, k: int,
+                            thetas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         n = self.n
         pred = ps.pred[:, :n].reshape(R, k + 1, n, 3)
-        J = (pred[:, 1:] - pred[:, :1]) / (self.step * self.sigma)
+        J = (pred[:, 1:] - pred[:, :1]) / (self.step * self.sigma)    # the error terms cancel: not in pred
         if len(self.columns):
             J = np.concatenate([J, np.broadcast_to(self.columns[None], (R,) + self.columns.shape)], axis=1)
-        return (pred[:, 0] - self.b_meas[runs, :n]) / self.sigma, J
+        return (self.predicted_T(pred[:, 0], thetas) - self.b_meas[runs, :n]) / self.sigma, J
 
     def finish(self, ps: Pass, ctx: tuple):
-        runs, R, k = ctx
+        R = ctx[1]
         n = self.n
-        r, Jm = self._residuals_jacobian(ps, runs, R, k)
+        r, Jm = self._residuals_jacobian(ps, *ctx)
         P = Jm.shape[1]
         r, Jm = r.reshape(R, -1), Jm.reshape(R, P, -1)
         bad = ~(np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(Jm), axis=(1, 2)))
@@ -116,7 +151,7 @@ class SingleShooting:
         ps = self.start(theta[None, :], np.array([run]), keep_states=True)
         ps.advance()
         st = ps.states[0, :self.n]
-        return {"b_body_T": ps.pred[0, :self.n], "q": st[:, :4], "omega_radps": st[:, 4:]}
+        return {"b_body_T": self.predicted_T(ps.pred, theta[None, :])[0], "q": st[:, :4], "omega_radps": st[:, 4:]}
 
 
 # --- multiple shooting ----------------------------------------------------------------------------
