@@ -18,7 +18,14 @@ States (values = DEBRIS_MAG_STATE in fsw/telemetry/debris.xml):
   tumbling body) leaves no first-order error in the offset; with only R1 it would be biased by
   half the field change between the two measurements. Every TM_M follows a SET/RESET pulse by
   >= 1 ms. It ends in SET polarity, where the package axis signs hold. S - offset = H is delivered
-  as a sample.
+  as a sample. Each triple measures the bridge offset with 0.6 of a reading's noise per axis; the
+  offset subtracted from the readings (`offset_T`) is the mean of the triples, running over the last
+  `offset_averaging` of them (a mean of all up to that count, then an exponential average with that
+  weight), so that re-measuring it does not step the samples by the triples' noise (at 1.5 uT a
+  reading, 1-2 uT steps). The bridge offset changes slowly (null-field drift 3 mG over the whole
+  temperature range [DS p2]); a triple more than `OFFSET_JUMP_T` away from the mean on any axis (a
+  magnetising disturbance) restarts the mean from it and counts in `offset_jumps`; a new PROBE (the
+  chip may have been replaced) restarts it too. `offset_measured_T` is the latest triple's own offset.
 - MEASURE, single measurement mode: at each sample time write TM_M; from TM_M + t_meas poll
   Status for Meas_M_Done (TM_M clears it [DS p13-16], so no clearing write is needed), read the
   7-byte burst from 0x00, decode, subtract the offset. No data-ready within 4 t_meas + 1 ms
@@ -30,8 +37,9 @@ States (values = DEBRIS_MAG_STATE in fsw/telemetry/debris.xml):
   CALIBRATE runs again every `calibration_interval` samples (0: only after initialisation), and not
   sooner than `calibration_period_s` after the last one: the chip makes no sample while it calibrates
   (about 7 ms), so at a fast rate a count alone would cost a sample in 140 (1 kHz, every 1000 samples).
-  The flight software's period is `RECALIBRATION_PERIOD_S` (10 s, the reference driver's 1000 readings at
-  100 Hz).
+  The flight software re-measures every `RECALIBRATION_PERIOD_S` (10 s, the reference driver's 1000
+  readings at 100 Hz) at any rate (`calibration_interval` 1): at a slow rate a count of 1000 samples
+  would leave the offset unmeasured for 1000 s.
 - BACKOFF: after `max_consecutive_errors` failed transfers in a row, wait 100 ms (doubling up to
   1 s on repeated back-offs, back to 100 ms after a good sample), then PROBE again.
 
@@ -77,7 +85,15 @@ BACKOFF_MAX_S = 1.0
 TIMEOUT_MARGIN_S = 0.001
 """Data-ready timeout = 4 t_meas + 1 ms (SparkFun v1.1.3)."""
 RECALIBRATION_PERIOD_S = 10.0
-"""The flight software's shortest time between two SET/RESET calibrations (`calibration_period_s`)."""
+"""The flight software's time between two SET/RESET calibrations (`calibration_period_s`)."""
+RECALIBRATION_INTERVAL = 1
+"""The flight software's `calibration_interval`: the period alone sets when the offset is re-measured."""
+OFFSET_AVERAGING = 32
+"""Triples in the running mean of the bridge offset: 320 s at the flight software's period, 0.1 of a
+reading's noise per axis."""
+OFFSET_JUMP_T = 10e-6
+"""A triple this far from the running mean on any axis restarts it (11 times the triple's noise at
+1.5 uT a reading, 30 times the datasheet's null-field drift)."""
 
 _TM_M = int(InternalControl0.TM_M)
 _SET = int(InternalControl0.SET)
@@ -112,8 +128,9 @@ class Mmc5983ma:
     """MMC5983MA on a `RegisterBus`; call `update(now_s)` often (at least at the sample rate).
 
     Outputs: `b_body_T` (latest field, tesla, sensor axes = body axes, SET polarity, offset
-    removed; NaN before the first sample), `sample_time_s`, `state`, `offset_T` and the counters
-    `samples`, `bus_errors`, `timeouts`, `bad_id`, `resets`, `calibrations`.
+    removed; NaN before the first sample), `sample_time_s`, `state`, `offset_T` (the running mean
+    subtracted), `offset_measured_T` (the latest triple's) and the counters `samples`, `bus_errors`,
+    `timeouts`, `bad_id`, `resets`, `calibrations`, `offset_jumps`.
     """
 
     def __init__(
@@ -126,6 +143,7 @@ class Mmc5983ma:
         calibration_period_s: float = 0.0,
         continuous: ContinuousFrequency = ContinuousFrequency.OFF,
         max_consecutive_errors: int = 5,
+        offset_averaging: int = OFFSET_AVERAGING,
     ) -> None:
         self.bandwidth = Bandwidth(bandwidth)
         self.continuous = ContinuousFrequency(continuous)
@@ -146,10 +164,11 @@ class Mmc5983ma:
                 )
             period = 1.0 / self.continuous.rate_hz
             self.sample_period_s = period
-        if (probe_retries < 1 or max_consecutive_errors < 1 or calibration_interval < 0
+        if (probe_retries < 1 or max_consecutive_errors < 1 or offset_averaging < 1 or calibration_interval < 0
                 or not calibration_period_s >= 0.0):
-            raise ValueError("probe_retries, max_consecutive_errors >= 1; calibration_interval, "
+            raise ValueError("probe_retries, max_consecutive_errors, offset_averaging >= 1; calibration_interval, "
                              "calibration_period_s >= 0")
+        self.offset_averaging = int(offset_averaging)
         self.calibration_period_s = float(calibration_period_s)
         self._bus = bus
         self.calibration_interval = int(calibration_interval)
@@ -161,6 +180,7 @@ class Mmc5983ma:
 
         self.b_body_T = np.full(3, np.nan)
         self.offset_T = np.zeros(3)
+        self.offset_measured_T = np.zeros(3)
         self.sample_time_s = math.nan
         self.samples = 0
         self.bus_errors = 0
@@ -168,6 +188,8 @@ class Mmc5983ma:
         self.bad_id = 0
         self.resets = 0
         self.calibrations = 0
+        self.offset_jumps = 0
+        self._offset_count = 0  # triples in the running mean (0: none yet, or restarted by a PROBE)
         self.chip_resets_detected = 0
         self.last_error = ""
 
@@ -351,12 +373,14 @@ class Mmc5983ma:
         # FINAL: back to SET polarity, then solve [DS p18]
         self._write_ctrl(0, self._shadow[0] | _SET)
         r1, s, r2 = self._cal_T
-        np.add(r1, r2, out=self.offset_T)
-        self.offset_T *= 0.5  # R, centred on S
-        np.subtract(s, self.offset_T, out=self.b_body_T)
+        measured = self.offset_measured_T
+        np.add(r1, r2, out=measured)
+        measured *= 0.5  # R, centred on S
+        np.subtract(s, measured, out=self.b_body_T)
         self.b_body_T *= 0.5  # H = (S - R) / 2
-        np.add(s, self.offset_T, out=self.offset_T)
-        self.offset_T *= 0.5  # offset = (S + R) / 2
+        np.add(s, measured, out=measured)
+        measured *= 0.5  # offset = (S + R) / 2
+        self._average_offset()
         # The SET reading is a sample too. It is delivered when it does not crowd the previous one
         # (at start-up always, and then the sample grid starts from it); a periodic re-calibration
         # just after a sample would otherwise add an off-grid sample with a tiny time step.
@@ -375,6 +399,16 @@ class Mmc5983ma:
         self._enter(MagState.MEASURE, t_ready)
         self._phase = _Phase.IDLE if self.continuous is ContinuousFrequency.OFF else _Phase.START
         return True
+
+    def _average_offset(self) -> None:
+        measured = self.offset_measured_T
+        if self._offset_count and max(abs(float(measured[i] - self.offset_T[i])) for i in range(3)) > OFFSET_JUMP_T:
+            self.offset_jumps += 1
+            self._offset_count = 0
+        self._offset_count = min(self._offset_count + 1, self.offset_averaging)
+        weight = 1.0 / self._offset_count
+        for i in range(3):
+            self.offset_T[i] += weight * (float(measured[i]) - float(self.offset_T[i]))
 
     def _measure_single(self, now: float) -> bool:
         if self._phase is _Phase.WAIT:
@@ -439,6 +473,7 @@ class Mmc5983ma:
         if now + _EPS_S < self._t_next:
             return False
         self._probe_attempts = 0
+        self._offset_count = 0
         self._enter(MagState.PROBE, now)
         return True
 

@@ -8,6 +8,9 @@ import pytest
 from fsw.bus import BusError
 from fsw.drivers.mmc5983ma import (
     BACKOFF_INITIAL_S,
+    OFFSET_AVERAGING,
+    OFFSET_JUMP_T,
+    RECALIBRATION_INTERVAL,
     RECALIBRATION_PERIOD_S,
     MagState,
     Mmc5983ma,
@@ -316,9 +319,11 @@ SIGMA_T = Bandwidth.BW_100HZ.noise_rms_T
 OFFSET_SIGMA_T = math.sqrt(3 / 8) * SIGMA_T  # offset = (S + (R1 + R2) / 2) / 2
 
 
-def make_emulated(field=lambda t: B_TRUE_T, seed=2, bridge_offset_T=(5e-7, -3e-7, 8e-7), **kwargs):
+def make_emulated(field=lambda t: B_TRUE_T, seed=2, bridge_offset_T=(5e-7, -3e-7, 8e-7), extra_noise_T=0.0,
+                  **kwargs):
     clock = Clock()
-    emu = EmulatedMmc5983ma(field, clock, np.random.default_rng(seed), bridge_offset_T=bridge_offset_T)
+    emu = EmulatedMmc5983ma(field, clock, np.random.default_rng(seed), bridge_offset_T=bridge_offset_T,
+                            extra_noise_T=extra_noise_T)
     return Mmc5983ma(emu, **kwargs), emu, clock
 
 
@@ -476,3 +481,51 @@ def test_the_flight_recalibration_period_keeps_a_1khz_sensor_from_losing_a_sampl
 def test_a_negative_recalibration_period_is_refused():
     with pytest.raises(ValueError, match="calibration_period_s"):
         make_emulated(calibration_period_s=-1.0)
+
+
+def offsets_at_1hz(averaging, duration_s=900.0, jump_at_s=None):
+    """The flight software's schedule at 1 Hz on a noisy host (1.5 uT a reading): the offset subtracted
+    after every calibration, and the samples' own error."""
+    driver, emu, clock = make_emulated(sample_period_s=1.0, extra_noise_T=1.5e-6, offset_averaging=averaging,
+                                       calibration_interval=RECALIBRATION_INTERVAL,
+                                       calibration_period_s=RECALIBRATION_PERIOD_S)
+    offsets = []
+
+    def collect(d):
+        if jump_at_s is not None and clock.t > jump_at_s and emu.bridge_offset_T[0] < 1e-5:
+            emu.bridge_offset_T += [2e-5, 0.0, 0.0]
+        if d.calibrations > len(offsets):
+            offsets.append((clock.t, d.offset_T - emu.bridge_offset_T))
+
+    run(driver, clock, duration_s, dt=0.005, on_sample=collect)
+    return driver, offsets
+
+
+def test_at_a_slow_rate_the_offset_is_remeasured_by_time_and_averaged_so_the_samples_do_not_step():
+    """At 1 Hz the offset used to be re-measured every 1,000 samples (1,000 s), each triple carrying 0.6
+    of a reading's noise: 1-2 uT steps in every later sample. Now a triple every 10 s goes into a mean of
+    the last 32: after it fills, the offset's error is ~0.08 of a reading's noise and moves by ~1/32 of a
+    triple's noise per calibration."""
+    sigma_T = math.hypot(1.5e-6, SIGMA_T)
+    triple_T = math.sqrt(3 / 8) * sigma_T
+    driver, offsets = offsets_at_1hz(OFFSET_AVERAGING)
+    assert driver.calibrations == len(offsets) and driver.offset_jumps == 0
+    assert 80 <= driver.calibrations <= 91  # 10-11 s apart (the first sample after 10 s)
+    settled = np.array([e for t, e in offsets if t > 10.0 * OFFSET_AVERAGING])
+    mean_sigma_T = triple_T / math.sqrt(2 * OFFSET_AVERAGING - 1)  # an exponential mean's spread
+    assert np.abs(settled).max() < 4.5 * mean_sigma_T  # ~0.35 uT
+    assert np.abs(np.diff(settled, axis=0)).max() < 4.5 * triple_T / OFFSET_AVERAGING
+    # the single triple, for comparison: its error and steps are the triple's noise
+    _, single = offsets_at_1hz(1)
+    single = np.array([e for _, e in single])
+    assert 0.8 * triple_T < single.std() < 1.2 * triple_T
+    assert np.abs(np.diff(single, axis=0)).max() > 2.5 * triple_T
+
+
+def test_an_offset_jump_restarts_the_mean_and_is_counted():
+    """A 20 uT change of the bridge's offset (a magnetising disturbance): the next triple is > 10 uT from
+    the mean, the mean restarts from it and the samples are right again from that calibration on."""
+    driver, offsets = offsets_at_1hz(OFFSET_AVERAGING, duration_s=600.0, jump_at_s=400.0)
+    assert driver.offset_jumps == 1
+    after = np.array([e for t, e in offsets if t > 400.0])
+    assert len(after) >= 15 and np.abs(after).max() < 4 * math.sqrt(3 / 8) * 1.5e-6 < OFFSET_JUMP_T
