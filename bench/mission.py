@@ -21,7 +21,15 @@ interval), `stabilised` (STABILISED reached and the true yaw and pitch within 0.
 `energy_J_by_phase` (mean per phase).
 
 `--fault KIND:CH:T` injects a kit fault into the emulator (as `bench.deorbit`: stall, stuck, switch, gpio)
-at true time T.
+at true time T. `--restart T` stops the flight software at true time T and starts it again on the running
+world (`hil.sitl.build` with `sim`): a new driver on the same chip, the kit's applications on the same
+lines, the mission from TUMBLING; what the box keeps comes back from its state directory (`fsw.persist`:
+the host calibration, the kit's field, the inertia estimate, the time), a temporary one per run. The run's
+figures then add up over the flight software's lives (energy, attempts, transitions, with ``restarts``).
+
+The benchmark runs on a null link: after the hand-over at the start (time, orbit, host calibration)
+the box hears nothing from the ground, every phase change is automatic, and its telemetry goes nowhere.
+The whole mission is thus flown as a link lost from the start to the end.
 """
 from __future__ import annotations
 
@@ -30,6 +38,7 @@ import functools
 import json
 import math
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -51,7 +60,8 @@ from hil import sitl
 
 DEFAULT_SCENARIO = "amds_mission"
 DEFAULT_PARAMS = {"scenario": DEFAULT_SCENARIO, "duration_s": None, "rate_hz": 5.0, "rate_filter": "euler",
-                  "faults": (), "tumble_dps": (2.0, 5.0), "score_s": 1800.0, "trace": False, "mission": {}}
+                  "faults": (), "restarts": (), "tumble_dps": (2.0, 5.0), "score_s": 1800.0, "trace": False,
+                  "mission": {}}
 PHASES = tuple(p.name for p in Phase)
 
 
@@ -74,20 +84,33 @@ def run_one(seed: int, params: dict | None = None) -> dict:
     """One mission from a tumble; `params` (see DEFAULT_PARAMS) override the defaults (`mission`: fields of
     `fsw.deorbit.mission.MissionConfig`). A JSON-ready dict."""
     p = {**DEFAULT_PARAMS, **(params or {})}
+    if not p["restarts"]:
+        return _run(seed, p, None)
+    with tempfile.TemporaryDirectory(prefix="mission-state-") as state_dir:
+        return _run(seed, p, state_dir)
+
+
+def _run(seed: int, p: dict, state_dir: str | None) -> dict:
     scn, tumble = seeded_scenario(scenarios.load(p["scenario"]), seed, p["tumble_dps"])
     if scn.mission is None:
         raise ValueError(f"scenario {scn.name!r} has no [mission] table")
     duration = float(p["duration_s"] or scn.mission.duration_s)
     rate_hz = float(p["rate_hz"])
     step = 1.0 / rate_hz
-    box = sitl.build(sitl.SitlConfig(RunConfig(rate_hz=rate_hz, buffer_frames=0, rate_filter=p["rate_filter"]),
-                                      scenario=scn, seed=seed,
-                                      max_step_s=step), link=NullLink(), run_id=0,
-                     mission_options={"config": MissionConfig(**p["mission"])})
+    cfg = sitl.SitlConfig(RunConfig(rate_hz=rate_hz, buffer_frames=0, rate_filter=p["rate_filter"],
+                                    state_dir=state_dir), scenario=scn, seed=seed, max_step_s=step)
+
+    def start(sim=None):
+        return sitl.build(cfg, link=NullLink(), run_id=0, mission_options={"config": MissionConfig(**p["mission"])},
+                          sim=sim)
+
+    box = start()
     sim, fsw = box.sim, box.fsw
     hand_over_calibration(fsw.calibration, sim.host, seed=seed)
     mission, kit = fsw.apps["mission"], fsw.apps["deorbit"]
+    lives = [(mission, kit)]
     faults = sorted((Fault.parse(f) if isinstance(f, str) else f for f in p["faults"]), key=lambda f: f.t_s)
+    restarts = sorted(float(t) for t in p["restarts"])
     trace = {k: [] for k in ("t_s", "phase", "rate_dps", "rate_est_dps", "rate_err_dps", "rate_sigma_dps", "yaw",
                              "pitch", "est_yaw", "est_pitch", "pulse_pitch", "pulse_yaw", "energy_J")}
     yaw_pitch = []
@@ -95,42 +118,55 @@ def run_one(seed: int, params: dict | None = None) -> dict:
     n = int(round(duration * rate_hz))
     every = max(1, int(round(rate_hz)))
     wall0 = time.perf_counter()
-    for k in range(n + 1):
-        t_box = box.t0_s + k * step
-        box.advance(t_box)
-        while faults and faults[0].t_s <= sim.t_s:
-            f = faults.pop(0)
-            sim.kit.inject(f.channel, f.kind, f.value)
-        fsw.tick(t_box)
-        if k % every:
-            continue
-        R_bo, _, _ = sim.attitude_orbital()
-        yaw, pitch, _ = euler_zyx(R_bo)
-        w_true = math.degrees(float(np.linalg.norm(sim.truth().omega_radps)))
-        if mission.phase in (Phase.DETUMBLING, Phase.STABILISING, Phase.STABILISED):
-            rate_after_kit = max(rate_after_kit, w_true)
-        yaw_pitch.append((sim.t_s, yaw, pitch))
-        if p["trace"]:
-            rep = kit.attitude.report() if kit.attitude is not None and hasattr(kit.attitude, "report") else None
-            chs = sim.kit.channels
-            for key, v in (("t_s", sim.t_s), ("phase", int(mission.phase)), ("rate_dps", w_true),
-                           ("rate_est_dps", math.degrees(mission.rate_radps)),
-                           ("rate_err_dps", math.degrees(float(np.linalg.norm(mission.omega_radps
-                                                                              - sim.truth().omega_radps)))
-                            if mission.omega_radps is not None else math.nan),
-                           ("rate_sigma_dps", math.degrees(mission.rate_sigma_radps)), ("yaw", yaw), ("pitch", pitch),
-                           ("est_yaw", rep.yaw_rad if rep else math.nan),
-                           ("est_pitch", rep.pitch_rad if rep else math.nan),
-                           ("pulse_pitch", chs[0].shutter * _sign(chs[0])),
-                           ("pulse_yaw", chs[1].shutter * _sign(chs[1])),
-                           ("energy_J", kit.energy().total_J)):
-                trace[key].append(float(v))
+    try:
+        for k in range(n + 1):
+            t_box = box.t0_s + k * step
+            box.advance(t_box)
+            while faults and faults[0].t_s <= sim.t_s:
+                f = faults.pop(0)
+                sim.kit.inject(f.channel, f.kind, f.value)
+            if restarts and restarts[0] <= sim.t_s:
+                restarts.pop(0)
+                box.close()
+                box = start(sim)
+                fsw = box.fsw
+                mission, kit = fsw.apps["mission"], fsw.apps["deorbit"]
+                lives.append((mission, kit))
+            box.tick(t_box)
+            if k % every:
+                continue
+            R_bo, _, _ = sim.attitude_orbital()
+            yaw, pitch, _ = euler_zyx(R_bo)
+            w_true = math.degrees(float(np.linalg.norm(sim.truth().omega_radps)))
+            if any(m.phase in (Phase.DETUMBLING, Phase.STABILISING, Phase.STABILISED) for m, _ in lives):
+                rate_after_kit = max(rate_after_kit, w_true)
+            yaw_pitch.append((sim.t_s, yaw, pitch))
+            if p["trace"]:
+                rep = kit.attitude.report() if kit.attitude is not None and hasattr(kit.attitude, "report") else None
+                chs = sim.kit.channels
+                for key, v in (("t_s", sim.t_s), ("phase", int(mission.phase)), ("rate_dps", w_true),
+                               ("rate_est_dps", math.degrees(mission.rate_radps)),
+                               ("rate_err_dps", math.degrees(float(np.linalg.norm(mission.omega_radps
+                                                                                  - sim.truth().omega_radps)))
+                                if mission.omega_radps is not None else math.nan),
+                               ("rate_sigma_dps", math.degrees(mission.rate_sigma_radps)), ("yaw", yaw),
+                               ("pitch", pitch), ("est_yaw", rep.yaw_rad if rep else math.nan),
+                               ("est_pitch", rep.pitch_rad if rep else math.nan),
+                               ("pulse_pitch", chs[0].shutter * _sign(chs[0])),
+                               ("pulse_yaw", chs[1].shutter * _sign(chs[1])),
+                               ("energy_J", sum(kt.energy().total_J for _, kt in lives))):
+                    trace[key].append(float(v))
+    finally:
+        box.close()
     wall = time.perf_counter() - wall0
-    return _result(seed, tumble, scn, mission, kit, sim, yaw_pitch, rate_after_kit, duration, p, wall,
+    return _result(seed, tumble, scn, lives, sim, yaw_pitch, rate_after_kit, duration, p, wall,
                    trace if p["trace"] else None)
 
 
-def _result(seed, tumble, scn, mission, kit, sim, yaw_pitch, rate_after_kit, duration, p, wall, trace) -> dict:
+def _result(seed, tumble, scn, lives, sim, yaw_pitch, rate_after_kit, duration, p, wall, trace) -> dict:
+    """The run's figures; `lives`: (mission, kit) of each start of the flight software, the last one's
+    tensor and final phase, the others' energy, attempts and transitions added."""
+    mission, kit = lives[-1]
     J = np.asarray(scn.inertia_kgm2, float)
     true6 = np.array([J[0, 0], J[1, 1], J[2, 2], J[0, 1], J[0, 2], J[1, 2]])
     res = mission.ident.result
@@ -144,31 +180,37 @@ def _result(seed, tumble, scn, mission, kit, sim, yaw_pitch, rate_after_kit, dur
         covered = bool(np.all(np.abs(err) <= ci))
     else:
         id6, ci, err_pct, covered = np.full(6, math.nan), np.full(6, math.nan), math.nan, False
+    transitions = [tr for m, _ in lives for tr in m.transitions]
     entered: dict[str, float] = {}
-    for t, _, new, _ in mission.transitions:
+    for t, _, new, _ in transitions:
         entered.setdefault(Phase(new).name, float(t))
     ypt = np.asarray(yaw_pitch)
     last = ypt[:, 0] >= ypt[-1, 0] - p["score_s"]
     within = bool(np.all(np.abs(ypt[last, 1:]) <= 0.2))
-    led = kit.energy()
+    leds = [kt.energy() for _, kt in lives]
+    by_phase = {ph: sum(m.energy_by_phase()[ph] for m, _ in lives) for ph in PHASES}
     return {
         "seed": seed, "scenario": scn.name, "duration_s": duration, "tumble_dps": tumble,
         "inertia_true": true6.tolist(), "inertia_id": id6.tolist(), "ci95": ci.tolist(),
         "inertia_err_pct": err_pct, "ci95_covered": covered, "ci95_pct": mission.ci95_pct,
-        "ident_attempts": mission.attempts,
-        "time_to_phase_s": entered, "energy_J_by_phase": mission.energy_by_phase(),
-        "energy_J": round(led.total_J, 1), "capsule_openings": sum(c.openings for c in led.channels),
-        "magnet_turns": sum(c.turns for c in led.channels),
+        "ident_attempts": sum(m.attempts for m, _ in lives),
+        "time_to_phase_s": entered, "energy_J_by_phase": by_phase,
+        "energy_J": round(sum(led.total_J for led in leds), 1),
+        "capsule_openings": sum(c.openings for led in leds for c in led.channels),
+        "magnet_turns": sum(c.turns for led in leds for c in led.channels),
         "final_phase": mission.phase.name, "final_reason": mission.reason_text,
         "stabilised": bool(mission.phase is Phase.STABILISED and within),
         "within_0p2_rad_at_end": within,
         "yaw_pitch_end_rad": [float(ypt[-1, 1]), float(ypt[-1, 2])],
         "rate_max_after_kit_dps": rate_after_kit, "spun_up": bool(rate_after_kit > 1.1 * tumble),
-        "interlock_violations": kit.sequencer.interlock_violations + sim.kit.interlock_violations,
-        "safe_entries": kit.sequencer.safe_entries, "faults": [f if isinstance(f, str) else f.__dict__
-                                                                for f in p["faults"]],
-        "detumble_decisions": mission.law.decisions, "detumble_held": mission.law.held,
-        "transitions": [[t, Phase(a).name, Phase(b).name, why] for t, a, b, why in mission.transitions],
+        "interlock_violations": (sum(kt.sequencer.interlock_violations for _, kt in lives)
+                                 + sim.kit.interlock_violations),
+        "safe_entries": sum(kt.sequencer.safe_entries for _, kt in lives),
+        "faults": [f if isinstance(f, str) else f.__dict__ for f in p["faults"]],
+        "restarts": [float(t) for t in p["restarts"]],
+        "detumble_decisions": sum(m.law.decisions for m, _ in lives),
+        "detumble_held": sum(m.law.held for m, _ in lives),
+        "transitions": [[t, Phase(a).name, Phase(b).name, why] for t, a, b, why in transitions],
         "wall_s": round(wall, 1), **({"trace": trace} if trace is not None else {}),
     }
 
@@ -281,6 +323,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="loop rate (default 5 Hz)")
     ap.add_argument("--fault", action="append", default=[], metavar="KIND:CH:T[:VALUE]",
                     help="a kit fault, as bench.deorbit's: stall:pitch:1500, stuck:yaw:900:0.5")
+    ap.add_argument("--restart", action="append", default=[], type=finite_float(0), metavar="T",
+                    help="stop the flight software at true time T s and start it again on the running world")
     ap.add_argument("--json", metavar="FILE", help="write the runs and the aggregate figures (after every run)")
     ap.add_argument("--merge", nargs="+", metavar="JSON", default=None,
                     help="no run: the runs of these JSON files (from this tool) aggregated into --json")
@@ -295,7 +339,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.merge:
         return merge(ap, args.merge, args.json)
     params = {"scenario": args.scenario, "duration_s": args.duration, "rate_hz": args.rate,
-              "faults": tuple(args.fault)}
+              "faults": tuple(args.fault), "restarts": tuple(args.restart)}
     try:
         for f in args.fault:
             Fault.parse(f)

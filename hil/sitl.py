@@ -28,7 +28,7 @@ import argparse  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
-from dataclasses import dataclass, field  # noqa: E402
+from dataclasses import dataclass, field, replace  # noqa: E402
 from datetime import timezone  # noqa: E402
 from pathlib import Path  # noqa: E402
 from types import SimpleNamespace  # noqa: E402
@@ -44,6 +44,8 @@ from fsw.estimation.onboard_field import InterpolatedOrbitField  # noqa: E402
 from fsw.telemetry.dialect import FSW_SYSID  # noqa: E402
 from fsw.timeorbit import TimeOrbit  # noqa: E402
 from fsw.flight import FlightSoftware  # noqa: E402
+from fsw.ident import IdentExperiment  # noqa: E402
+from fsw.persist import BoxState  # noqa: E402
 from fsw.runner import LoopResult, run_loop, run_program  # noqa: E402
 from fsw.runner import status_line as flight_status  # noqa: E402
 from fsw.runner import summary as flight_summary  # noqa: E402
@@ -53,6 +55,8 @@ from . import scenario as scenarios  # noqa: E402
 from .sim import Simulator  # noqa: E402
 from .ident_sitl import build_ident, field_model  # noqa: E402
 
+#: the boot id of the box in SITL: one boot per process (a restart of the flight software keeps the time)
+SITL_BOOT_ID = "sitl"
 #: the chip's bandwidth settings by their nominal bandwidth (scenario key `bandwidth_hz`)
 BANDWIDTH = {100: Bandwidth.BW_100HZ, 200: Bandwidth.BW_200HZ, 400: Bandwidth.BW_400HZ, 800: Bandwidth.BW_800HZ}
 
@@ -86,6 +90,8 @@ class Sitl:
     sigma_b_T: float
     #: the loop rate against the sample rate, when they are equal
     warning: str | None = None
+    #: the box's state directory (`cfg.run.state_dir`), saved after every :meth:`tick`
+    state: BoxState | None = None
 
     @property
     def fsw(self) -> FlightSoftware:
@@ -103,6 +109,22 @@ class Sitl:
         if settle is not None:  # the chip's measurements done by now: the world's work, outside the tick
             settle()
 
+    def tick(self, box_t_s: float) -> float:
+        """One tick of the flight software at the box's time `box_t_s`, then its state saved (as the
+        target's loop does after every tick); the tick's work (s)."""
+        work = self.fsw.tick(box_t_s)
+        if self.state is not None:
+            self.state.tick(box_t_s)
+        return work
+
+    def close(self) -> None:
+        """The state files written (what is pending) and the link closed: the flight software stops."""
+        try:
+            if self.state is not None:
+                self.state.close()
+        finally:
+            self.flight.close()
+
     def run_as_on_target(self, duration_s: float, after_tick=None) -> list[float]:
         """`duration_s` of the box's time in lockstep, ticks timed as on target: a tick starts on its
         period's grid or, when the previous one ran late (its work measured by the scheduler's work timer),
@@ -113,7 +135,7 @@ class Sitl:
         t, k = self.t0_s, 0
         while t < self.t0_s + duration_s:
             self.advance(t)
-            work = self.fsw.tick(t)
+            work = self.tick(t)
             works.append(work)
             k += 1
             t = max(self.t0_s + k * period, t + work)
@@ -202,7 +224,7 @@ def hand_over_time_and_orbit(scn: scenarios.Scenario, sim, r: RunConfig, t0_s: f
 
 def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, clock=None,
           run_id: int | None = None, ident: bool = True, ident_options: dict | None = None,
-          kit_options: dict | None = None, mission_options: dict | None = None) -> Sitl:
+          kit_options: dict | None = None, mission_options: dict | None = None, sim: Simulator | None = None) -> Sitl:
     """The simulator of `cfg.scenario` and the flight software on its emulated magnetometer.
 
     `link`, `uplink`, `key`, `clock`, `run_id`: as `fsw.system.build_flight` (the soak hands in its radio
@@ -210,14 +232,24 @@ def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, 
     field model: SITL has both; `ident_options`: more of its `fsw.ident.IdentConfig`), and in a scenario
     with a [deorbit] table the de-orbit kit on the emulated lines (`kit_options`: for
     `hil.deorbit_sim.build_kit`, e.g. the controller's law); with a [mission] table the mission
-    (`hil.mission_sitl.build_mission`, `mission_options` for it) on the experiment and the kit."""
+    (`hil.mission_sitl.build_mission`, `mission_options` for it) on the experiment and the kit.
+
+    `cfg.run.state_dir`: the box keeps its state there as on target (`fsw.persist.BoxState`, the TLE in
+    ``tle.txt`` unless `cfg.run.tle_file` names another; the box's clock is its monotonic clock, one boot
+    per process), restored at the start and saved after every tick (:meth:`Sitl.tick`). `sim`: the
+    flight software started again on this running world (a restart of the flight software: a new driver on
+    the same chip, the kit's applications on the same lines, nothing handed over — what it knows comes
+    back from its state directory)."""
     r = cfg.run
     scn = cfg.scenario if isinstance(cfg.scenario, scenarios.Scenario) else scenarios.load(cfg.scenario)
     step = cfg.max_step_s or min(0.02, 1.0 / r.rate_hz)
-    if scn.deorbit is not None:  # the de-orbit kit's scenario: environment torques and the kit emulator
+    restart = sim is not None
+    if r.state_dir and not r.tle_file:
+        r = replace(r, tle_file=str(Path(r.state_dir) / "tle.txt"))
+    if sim is None and scn.deorbit is not None:  # the de-orbit kit's scenario: environment torques, kit emulator
         from .deorbit_sim import DeorbitSimulator
         sim = DeorbitSimulator(scn, seed=cfg.seed, max_step_s=step)
-    else:
+    elif sim is None:
         sim = Simulator(scn, seed=cfg.seed, max_step_s=step)
     rate_hz, bw, cm = sitl_sensor(scn.sample_rate_hz, BANDWIDTH[scn.bandwidth_hz], r.sample_rate_hz)
     warning = check_loop_rate(r.rate_hz, rate_hz)
@@ -225,7 +257,8 @@ def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, 
                        calibration_interval=RECALIBRATION_INTERVAL, calibration_period_s=RECALIBRATION_PERIOD_S)
     sigma_b = math.hypot(scn.noise_T, bw.noise_rms_T)
     field = onboard_field(scn)
-    timeorbit = hand_over_time_and_orbit(scn, sim, r, box_t0_s(sim))
+    timeorbit = (TimeOrbit(tle_file=r.tle_file, max_tle_age_d=r.tle_max_age_d) if restart
+                 else hand_over_time_and_orbit(scn, sim, r, box_t0_s(sim)))
     onboard = []
     if ident:
         onboard.append(build_ident(scn, sim, sigma_b, cfg.ident_inertia_guess_kgm2,
@@ -243,7 +276,15 @@ def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, 
                           timeorbit=timeorbit)
     if cfg.work_clock == "cpu":  # a lockstep world loses nothing to the OS's preemption: the loop's own work
         flight.fsw.scheduler.work_timer = time.thread_time
-    return Sitl(cfg, scn, sim, driver, flight, sigma_b, warning)
+    state = None
+    if r.state_dir:
+        fsw = flight.fsw
+        state = BoxState(r.state_dir, monotonic=lambda: sim.clock.box_s(sim.t_s), boot_id=SITL_BOOT_ID)
+        state.restore(fsw.uplink.verifier if fsw.uplink is not None else None, timeorbit)
+        state.restore_apps(r.system_id, calibration=fsw.calibration, kit_field=fsw.kit_field,
+                           ident=next((a for a in onboard if isinstance(a, IdentExperiment)), None))
+        flight.notes.extend(state.notes)
+    return Sitl(cfg, scn, sim, driver, flight, sigma_b, warning, state)
 
 
 # --- scoring against truth ------------------------------------------------------------------------
@@ -375,6 +416,8 @@ def run(cfg: SitlConfig, out: TextIO = sys.stdout, **build_options) -> SitlRun:
         for x in taken:
             score.add(x, truth(x.sample_t_s))
         taken.clear()
+        if s.state is not None:
+            s.state.tick(t)
 
     fsw.sample_listeners.append(keep)
 
@@ -383,7 +426,7 @@ def run(cfg: SitlConfig, out: TextIO = sys.stdout, **build_options) -> SitlRun:
                        before_tick=s.advance, after_tick=after,
                        status=None if cfg.run.quiet else (lambda t: status_line(t, fsw, score.truth)), out=out)
     finally:
-        s.flight.close()
+        s.close()
     return SitlRun(s, res, score)
 
 

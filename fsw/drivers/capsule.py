@@ -19,6 +19,11 @@ States (values = DEBRIS_CAPSULE_STATE): CLOSED, OPENING, OPEN, CLOSING, FAULT.
   spring closes whatever can close) in FAULT until `clear_fault`, which goes back to CLOSED only if the
   switches then say closed.
 
+At start the capsule is taken to be CLOSED, and the first update checks it: a capsule the switches do not
+show closed (the flight software restarted while it was open or moving: the self-locking gear holds the
+shutters where they were) is closed by the spring as by `close` (CLOSING, counted in `found_open`),
+not taken for a switch fault.
+
 The capsule is *closed* (`closed` property) only in state CLOSED with the closed switch closed and the
 open switch open as read at the latest update. The interlocks that use it are in the sequencer.
 """
@@ -66,6 +71,8 @@ class Capsule:
         self.sw_closed = True  # switch levels at the latest update
         self.sw_open = False
         self.openings = 0  # openings started (each costs motor energy)
+        self.found_open = 0  # found not closed at the first update, and closed
+        self._checked = False  # the first update's check done
         self.energy_J = 0.0
         self.io_errors = 0
         self.fault = 0
@@ -145,6 +152,15 @@ class Capsule:
             if st is not CapsuleState.FAULT:
                 self._fail(FAULT_SWITCH_DISAGREE, "closed and open switches both on")
             return
+        if not self._checked:
+            self._checked = True
+            if st is CapsuleState.CLOSED and not c:
+                self.found_open += 1
+                self.last_error = "not closed at start: closing it"
+                self.state = CapsuleState.CLOSING
+                self._t_start = now_s
+                self._set_outputs(drive=False, release=True)
+                return
         if st is CapsuleState.OPENING:
             if not c:
                 self._released_closed = True

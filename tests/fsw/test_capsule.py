@@ -2,6 +2,7 @@
 import pytest
 
 from fsw.drivers.capsule import Capsule, CapsuleState
+from fsw.drivers.gpio import line
 from fsw.drivers.stepper import FAULT_SHUTTER_STUCK, FAULT_SWITCH_DISAGREE, MOTOR_POWER_W
 from hil.deorbit_kit import DeorbitKitEmulator
 
@@ -127,3 +128,27 @@ def test_gpio_failure_never_raises_and_timeouts_still_run():
     kit.inject(1, "gpio")
     t = run_until(kit, cap, 0.0, lambda: cap.state is CapsuleState.FAULT)
     assert cap.fault == FAULT_SHUTTER_STUCK and cap.io_errors > 0 and t < 5.0
+
+
+@pytest.mark.parametrize("shutter", [1.0, 0.4])
+def test_a_capsule_found_open_at_start_is_closed_by_the_spring_not_taken_for_a_fault(shutter):
+    """The flight software restarted with the capsule open (or half-way, the gear holding it): the new
+    driver's first update sees the closed switch off and closes it as `close` does."""
+    kit, old = fresh()
+    emu = kit.channels[1]
+    old.open(0.0)
+    t = run_until(kit, old, 0.0, lambda: emu.shutter >= shutter)
+    kit.write_output(line(1, "shutter_drive"), False)  # the old flight software stops: its motor line drops
+    kit.advance_to(t + 1.0)
+    assert emu.shutter >= shutter - 0.06 and kit.dipole_body_Am2()[1] > 0.3 * 15.0
+    cap = Capsule(kit, 1)  # the new flight software's
+    cap.update(t + 1.0)
+    assert cap.state is CapsuleState.CLOSING and cap.found_open == 1 and cap.fault == 0
+    t2 = run_until(kit, cap, t + 1.0, lambda: cap.state is CapsuleState.CLOSED)
+    assert cap.closed and t2 - (t + 1.0) <= 0.5 + DT + 1e-9 and cap.energy_J == 0.0
+    assert kit.dipole_body_Am2() == pytest.approx([0.0, 0.0, 0.0])
+
+
+def test_a_capsule_closed_at_start_is_left_alone():
+    kit, cap = fresh()
+    assert cap.closed and cap.found_open == 0 and cap.last_error == ""

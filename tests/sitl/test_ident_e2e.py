@@ -115,7 +115,8 @@ def test_ground_refines_from_the_decoded_recording(experiment, tmp_path):
     rep = ground_inertia.run(rec, b_inertial, sigma_b_T=1.5e-6, running_points=0)
     est = rep.estimate
     assert np.all(np.abs(est.p - TRUTH) <= 3 * est.ci95 + 1e-6), (est.p, est.ci95)
-    assert np.all(np.abs(est.p[:3] - TRUTH[:3]) / TRUTH[:3] < 0.02)
+    # the same 300 samples as on board, refitted from their float32 copies: Izz's 95 % half-width is ~1.9 %
+    assert np.all(np.abs(est.p[:3] - TRUTH[:3]) / TRUTH[:3] < 0.025)
     out = tmp_path / "inertia.json"
     ground_inertia.write_json(out, est)
     assert "I_kgm2" in out.read_text()
