@@ -134,6 +134,11 @@ class FitOptions:
     # shooting, each coefficient with prior 1-σ `drift_sigma_T` (None: the calibration taken as constant)
     drift_degree: int | None = None
     drift_sigma_T: float = 2e-6
+    # the whole record's single shooting also starts from the tensor scaled by each of these: a long record
+    # of a tumbling body has local minima a few % apart along the tensor's scale (the free motion does
+    # not depend on it; only the known torque's response does), and the fit ends in the one nearest its
+    # start; the best of all is kept
+    scale_starts: tuple = (0.96, 1.04)
 
 
 def identify(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, action: KnownAction,
@@ -250,6 +255,12 @@ def identify_steps(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, act
     alive = np.arange(V)
     windows = _ss_windows(n, opts.ss_first_window, opts.ss_growth)
     for wi, nw in enumerate(windows):
+        last = wi == len(windows) - 1
+        starts = theta[alive]
+        if last:
+            # the whole record: each start also from its tensor scaled by each of `scale_starts`
+            starts = np.concatenate([starts] + [_scaled(starts, par, k) for k in scale_starts(par, opts)])
+            alive = np.tile(alive, len(starts) // len(alive))
         pv = InertiaParam(opts.mode, I_ref, None if p_shape_v is None else p_shape_v[alive], par.unknown_intervals,
                           par.moment_sigma_Nm)
         ss = SingleShooting(t, bv[alive], b_samples, action, b_inertial, pv, q0[alive], sigma_b_T, n=nw,
@@ -258,14 +269,14 @@ def identify_steps(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, act
         prior = fit_prior(ss.n_params, n_I, th_I0[0], opts, sigma_b_T, pv, cols_sigma)
         # the tensor stays at the multiple-shooting value until the whole record is fitted: a prefix
         # alone determines it less well and would pull it off
-        frozen = np.arange(ss.n_params) < n_I if wi < len(windows) - 1 else None
-        sruns = LMRuns(theta[alive].copy())
+        frozen = None if last else np.arange(ss.n_params) < n_I
+        sruns = LMRuns(starts.copy())
         yield from lm_steps(ss, sruns, prior, opts.ss_iter, frozen=frozen, chunk=chunk)
-        theta[alive] = sruns.theta
         if log:
             log(f"single shooting, {nw} samples, {alive.size} starts: χ²/dof "
                 + " ".join(f"{c / sruns.dof:.3f}" for c in sruns.data_cost[:8]))
-        if wi < len(windows) - 1:
+        if not last:
+            theta[alive] = sruns.theta
             phys = np.delete(theta[alive], np.arange(n_I + 3, n_I + 6), axis=1)
             alive = alive[_distinct_best(vrun[alive], phys, sruns.cost)]
     allres = results(ss, sruns, prior, n_kit)
@@ -283,6 +294,19 @@ def identify_steps(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, act
             if chunk is not None:
                 yield
         out.append(res)
+    return out
+
+
+def scale_starts(par: InertiaParam, opts: FitOptions) -> tuple:
+    """The factors of `FitOptions.scale_starts` where the tensor's parameters scale with it (modes full,
+    diag, scale), else none."""
+    return tuple(opts.scale_starts) if par.mode in ("full", "diag", "scale") else ()
+
+
+def _scaled(theta: np.ndarray, par: InertiaParam, k: float) -> np.ndarray:
+    """Starts with the tensor scaled by `k` (mode scale fits the inverse of the scale), the rest as is."""
+    out = theta.copy()
+    out[:, :par.n_tensor] *= (1.0 / k) if par.mode == "scale" else k
     return out
 
 
