@@ -27,6 +27,27 @@ def test_a_short_mission_identifies_with_the_kits_magnets():
         assert math.isfinite(r["ci95_pct"]) or r["final_phase"] == "SAFE"
 
 
+@pytest.mark.slow
+def test_a_restart_while_detumbling_resumes_with_the_tensor_kept():
+    """The short mission identified by ~2,300 s; the flight software restarted at 2,600 s while the kit
+    pulses: it starts again in TUMBLING on the same world, trusts its rates, takes the tensor it kept in
+    its state directory (no second experiment) and detumbles on; no safe mode, no interlock violation, no
+    spin-up, the energy of both lives added."""
+    short = {"rates_hold_s": 60.0, "ident_free_s": 60.0, "ident_torque_s": 600.0, "ident_after_s": 60.0,
+             "ident_attempts": 1, "ident_ci95_frac": 0.5}
+    r = mission.run_one(0, {"duration_s": 3600.0, "restarts": (2600.0,), "mission": short})
+    tr = r["transitions"]
+    restart = next(i for i, (t, _, new, why) in enumerate(tr) if why == "start" and t > 0)
+    assert tr[restart][0] == pytest.approx(2600.0, abs=0.2)
+    before, after = tr[:restart], tr[restart + 1:]
+    assert [x[2] for x in before][-1] == "DETUMBLING"
+    assert [x[2] for x in after][:2] == ["RATES_KNOWN", "DETUMBLING"] and "tensor kept" in after[1][3]
+    assert r["ident_attempts"] == 1 and r["final_phase"] == "DETUMBLING" and r["safe_entries"] == 0
+    assert r["interlock_violations"] == 0 and not r["spun_up"] and r["restarts"] == [2600.0]
+    assert math.isfinite(r["inertia_err_pct"])
+    assert r["energy_J_by_phase"]["DETUMBLING"] > 0 and r["energy_J"] >= sum(r["energy_J_by_phase"].values()) - 1
+
+
 def test_aggregate_figures():
     base = {"inertia_err_pct": 1.0, "ci95_covered": True, "stabilised": True, "spun_up": False,
             "time_to_phase_s": {"TUMBLING": 0.0, "DETUMBLING": 3000.0}, "interlock_violations": 0,
@@ -41,7 +62,8 @@ def test_aggregate_figures():
     assert a["energy_J_by_phase"]["SAFE"] == 10.0
 
 
-@pytest.mark.parametrize("argv", [["--seeds", "0"], ["--fault", "bogus"], ["--rate", "0"],
+@pytest.mark.parametrize("argv", [["--seeds", "0"], ["--fault", "bogus"], ["--rate", "0"], ["--restart", "-1"],
+                                  ["--restart", "nan"],
                                   ["--scenario", "amds_deorbit", "--seeds", "1", "--duration", "1"]])
 def test_bad_command_lines_exit_2(argv, capsys):
     assert exit_status(mission.main, argv) == 2
