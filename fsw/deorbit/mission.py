@@ -16,7 +16,8 @@ Phases, what the box does in each, and when it leaves (automatic):
   both capsules open at the homed polarity for `ident_torque_s` between free observations, M = p × B
   with p as the sequencer reports it, the output-error fit. → DETUMBLING when the final fit's 95 %
   half-widths are all ≤ `ident_ci95_frac` of the largest moment; else another attempt, SAFE after
-  `ident_attempts`.
+  `ident_attempts`. A later attempt's tensor is combined with the earlier attempts' that agree with it
+  (:func:`combine_estimates`: independent experiments, their information adds), and judged so.
 - DETUMBLING: the kit's pulses on `fsw.deorbit.detumble.DetumbleLaw`. → STABILISING when |ω| stays
   ≤ `detumbled_radps` for `detumbled_hold_s`; SAFE on a spin-up or after `detumble_max_s`.
 - STABILISING: the de-orbit controller (`fsw.deorbit.controller`) on the onboard attitude estimate
@@ -47,6 +48,7 @@ from typing import Callable
 import numpy as np
 
 from fsw.commands import BadParam, int_param
+from fsw.estimation import inertia as inr
 from fsw.ident import ABORTED, DONE, RUNNING
 from fsw.telemetry.dialect import mavlink
 
@@ -152,6 +154,35 @@ def ci95_pct(estimate) -> float:
     return 100.0 * float(np.max(ci)) / big
 
 
+#: two attempts' tensors are combined only when they agree: χ² of their difference below its 99 % point
+#: for 6 degrees of freedom
+AGREE_CHI2 = 16.81
+
+
+def combine_estimates(estimates: list) -> tuple[np.ndarray, np.ndarray, int]:
+    """The tensor of the latest attempt combined with the earlier ones that agree with it: each attempt is
+    an experiment of its own (its own samples, a weak prior), so their information adds — the
+    covariance-weighted mean. An earlier attempt whose difference from the latest is not within
+    `AGREE_CHI2` of their joint covariance is left out (something changed between them). Returns (p (6,),
+    cov (6, 6), attempts used)."""
+    p, cov = estimates[-1]
+    info = np.linalg.pinv(cov)
+    acc_info, acc = info.copy(), info @ p
+    n = 1
+    for q, c in estimates[:-1]:
+        d = q - p
+        if float(d @ np.linalg.pinv(cov + c) @ d) > AGREE_CHI2:
+            continue
+        ic = np.linalg.pinv(c)
+        acc_info += ic
+        acc += ic @ q
+        n += 1
+    if n == 1:
+        return p, cov, 1
+    cov_c = np.linalg.pinv(acc_info)
+    return cov_c @ acc, cov_c, n
+
+
 def tensor_of(p6) -> np.ndarray:
     """(3, 3) from Ixx, Iyy, Izz, Ixy, Ixz, Iyz."""
     xx, yy, zz, xy, xz, yz = (float(v) for v in p6)
@@ -174,6 +205,8 @@ class Mission:
         self.inertia_guess = np.asarray(inertia_guess_kgm2, float)
         self.J_kgm2: np.ndarray | None = None  # the identified tensor (3, 3)
         self.ci95_pct = math.nan
+        self.ci95_kgm2: np.ndarray | None = None  # its 95 % half-widths (6,), when identified here
+        self._estimates: list = []  # (p, cov) of each attempt's final fit
         self.on_phase = on_phase
         # the controller's attitude source waits for STABILISING (its filter needs the identified tensor):
         # taken off the kit at the first tick, after the flight software's composition gave it its field
@@ -298,19 +331,26 @@ class Mission:
         if self.ident.state not in (DONE, ABORTED):
             return
         res = self.ident.result
-        pct = ci95_pct(res.estimate) if res is not None and res.final else math.nan
+        est = res.estimate if res is not None and res.final else None
+        pct, how = math.nan, "tensor"
+        if est is not None and np.all(np.isfinite(est.p)) and np.all(np.isfinite(est.cov)):
+            self._estimates.append((np.asarray(est.p, float), np.asarray(est.cov, float)))
+            p, cov, n = combine_estimates(self._estimates)
+            pct = ci95_pct({"inertia": p, "ci95": inr.half_width(cov, 0.95)})
+            how = "tensor" if n == 1 else f"tensor of {n} attempts"
         if pct <= 100 * self.cfg.ident_ci95_frac:
-            self._identified(res.estimate.p, pct)
-            self._enter(now_s, Phase.DETUMBLING, Reason.AUTOMATIC, f"tensor ci95 {pct:.1f} %")
+            self._identified(p, pct, cov)
+            self._enter(now_s, Phase.DETUMBLING, Reason.AUTOMATIC, f"{how} ci95 {pct:.1f} %")
         elif self.attempts < self.cfg.ident_attempts:
             self._say(f"mission: identification ci95 {pct:.1f} %, again")
             self._enter(now_s, Phase.RATES_KNOWN, Reason.IDENT_FAILED, f"ci95 {pct:.1f} %")
         else:
             self._enter(now_s, Phase.SAFE, Reason.IDENT_FAILED, f"identification ci95 {pct:.1f} %")
 
-    def _identified(self, p6, pct: float) -> None:
+    def _identified(self, p6, pct: float, cov=None) -> None:
         self.J_kgm2 = tensor_of(p6)
         self.ci95_pct = float(pct)
+        self.ci95_kgm2 = None if cov is None else inr.half_width(np.asarray(cov, float), 0.95)
         self.law.J_kgm2 = self.J_kgm2  # the detumbling law predicts ω with it
 
     def _in_detumbling(self, now_s: float) -> None:

@@ -58,8 +58,8 @@ class Ident:
         self.state = ABORTED
         return mavlink.MAV_RESULT_ACCEPTED
 
-    def finish(self, ci95_kgm2):
-        est = InertiaEstimate(TRUE_P.copy(), np.diag(np.full(6, (ci95_kgm2 / 1.96) ** 2)), "test", 3000)
+    def finish(self, ci95_kgm2, shift_kgm2=0.0):
+        est = InertiaEstimate(TRUE_P + shift_kgm2, np.diag(np.full(6, (ci95_kgm2 / 1.96) ** 2)), "test", 3000)
         self.result = SimpleNamespace(estimate=est, final=True)
         self.state = DONE
 
@@ -172,6 +172,33 @@ def test_an_inaccurate_tensor_is_tried_again_then_safe(box):
     box.run(1.0)
     assert box.mission.phase is Phase.SAFE and box.mission.reason is Reason.IDENT_FAILED
     assert box.kit.mode is KitMode.SAFE and box.mission.J_kgm2 is None
+
+
+def test_two_attempts_that_agree_are_combined_and_judged_together(box):
+    """Each attempt alone at 3.4 % (95 %) of the largest moment, their tensors 1 σ apart: combined, their
+    information adds (half-widths / √2: 2.4 %) and the mission detumbles with the mean."""
+    box.to_identifying()
+    box.ident.finish(0.85, shift_kgm2=+0.22)
+    box.run(1.0)
+    assert box.mission.phase is Phase.IDENTIFYING and len(box.ident.started) == 2
+    box.ident.finish(0.85, shift_kgm2=-0.22)
+    box.run(1.0)
+    assert box.mission.phase is Phase.DETUMBLING
+    assert box.mission.transitions[-1][3] == "tensor of 2 attempts ci95 2.4 %"
+    np.testing.assert_allclose(np.diag(box.mission.J_kgm2), TRUE_P[:3], atol=1e-9)
+    np.testing.assert_allclose(box.mission.ci95_kgm2, 0.85 / math.sqrt(2), rtol=1e-4)  # z = 1.95996 vs 1.96
+
+
+def test_two_attempts_that_disagree_are_not_combined(box):
+    """The second tensor 3 kg·m² below the first (more than 4 σ of their difference on every component):
+    something changed between them; judged alone, the second fails and the mission goes to SAFE."""
+    box.to_identifying()
+    box.ident.finish(0.85)
+    box.run(1.0)
+    box.ident.finish(0.85, shift_kgm2=-3.0)
+    box.run(1.0)
+    assert box.mission.phase is Phase.SAFE and box.mission.J_kgm2 is None
+    assert box.mission.transitions[-1][3] == "identification ci95 3.9 %"  # of its own largest moment, 21.9
 
 
 def test_detumbled_hands_over_to_the_controller_with_the_identified_tensor(box):
