@@ -369,6 +369,17 @@ class IdentExperiment:
             return True
         return False
 
+    def adopt(self, estimate: inr.InertiaEstimate) -> None:
+        """An estimate of the same tensor from this experiment and earlier ones (the mission's attempts
+        combined, `fsw.deorbit.mission.combine_estimates`) becomes the result: sent at once in
+        DEBRIS_INERTIA_ESTIMATE and kept across a restart, as the experiment's own final fit would be."""
+        r = self.result
+        if r is None or not r.final:
+            raise ValueError("only a finished experiment's result can be replaced by a combined one")
+        self.result = dataclasses.replace(r, estimate=estimate)
+        self.history.append(self.result)
+        self._state_changed = True
+
     # --- across a restart (`fsw.persist`) ---------------------------------------------------------
     def snapshot(self) -> dict | None:
         """The latest estimate to keep (None before one): DEBRIS_INERTIA_ESTIMATE's fields, its covariance."""

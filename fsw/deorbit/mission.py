@@ -338,6 +338,9 @@ class Mission:
             p, cov, n = combine_estimates(self._estimates)
             pct = ci95_pct({"inertia": p, "ci95": inr.half_width(cov, 0.95)})
             how = "tensor" if n == 1 else f"tensor of {n} attempts"
+            if n > 1:  # what the ground is sent and what a restart keeps
+                self.ident.adopt(inr.InertiaEstimate(p, cov, f"{est.method}, {n} attempts combined",
+                                                     est.samples_used, full=est.full, extra=dict(est.extra)))
         if pct <= 100 * self.cfg.ident_ci95_frac:
             self._identified(p, pct, cov)
             self._enter(now_s, Phase.DETUMBLING, Reason.AUTOMATIC, f"{how} ci95 {pct:.1f} %")

@@ -307,3 +307,32 @@ def test_a_file_of_this_box_with_fields_not_understood_is_ignored(tmp_path, snap
     state.close()
     assert all("not understood" in n for n in state.notes), state.notes
     assert not cal.cal.good and kit.version == 0 and ident.restored is None
+
+
+def test_an_adopted_combined_estimate_is_sent_and_kept(tmp_path):
+    """The mission's attempts combined (`IdentExperiment.adopt`): the experiment's result becomes the
+    combined estimate, sent at once and saved for a restart; refused before a final result."""
+    ident = IdentExperiment(sigma_b_T=1e-7, b_inertial=None)
+    with pytest.raises(ValueError, match="finished"):
+        ident.adopt(estimate())
+    state = BoxState(tmp_path, monotonic=Mono(0.0), boot_id="a")
+    state.restore_apps(SYSID, ident=ident)
+    ident.result = IdentResult(estimate(), None, 900.0, 899.0, True)
+    ident._set_state(DONE)
+    ident.telemetry(900.0, Telemetry(Capture()))
+    combined = InertiaEstimate(estimate().p + 1.0, 0.5 * estimate().cov, "test, 2 attempts combined", 4321)
+    ident.adopt(combined)
+    cap = Capture()
+    ident.telemetry(901.0, Telemetry(cap))        # at once, not at the next period
+    sent = [m for m in cap.messages() if m.get_type() == "DEBRIS_INERTIA_ESTIMATE"]
+    assert len(sent) == 1
+    np.testing.assert_allclose(sent[0].inertia, combined.p, rtol=1e-6)
+    np.testing.assert_allclose(sent[0].ci95, combined.ci95, rtol=1e-6)
+    state.tick(901.0)
+    state.close()
+    after = IdentExperiment(sigma_b_T=1e-7, b_inertial=None)
+    state = BoxState(tmp_path, monotonic=Mono(0.0), boot_id="b")
+    state.restore_apps(SYSID, ident=after)
+    state.close()
+    np.testing.assert_allclose(after.restored["inertia"], combined.p)
+    np.testing.assert_allclose(after.restored["cov"], combined.cov)
