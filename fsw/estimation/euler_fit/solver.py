@@ -236,7 +236,8 @@ def lm_steps(problem, runs: LMRuns, prior: Prior | None, max_iter: int, tol: flo
             runs.dof = dof
             lam[idx] = np.maximum(lam[idx] / 3.0, 1e-9)
             nu[idx] = 2.0
-            done = acc & ~first[act] & (gain < tol + rtol * c)
+            done = acc & ~first[act]
+            done[done] = gain[done] < tol + rtol * c[done]   # accepted: finite costs only
             runs.converged[act[done]] = True
         fail = first[act] & ~ok
         runs.converged[act[fail]] = True
