@@ -226,6 +226,15 @@ def estimate():
     return InertiaEstimate(p, cov, "test", 4321)
 
 
+def ident_after_restart(state_dir, system_id=SYSID):
+    """A new experiment given what `state_dir` kept (boot "b"); (it, the state with its notes)."""
+    ident = IdentExperiment(sigma_b_T=1e-7, b_inertial=None)
+    state = BoxState(state_dir, monotonic=Mono(0.0), boot_id="b")
+    state.restore_apps(system_id, ident=ident)
+    state.close()
+    return ident, state
+
+
 @pytest.mark.parametrize("state_before, state_after", [(DONE, DONE), (TORQUE, ABORTED)])  # cut short: aborted
 def test_the_inertia_estimate_is_restored_and_sent_again(tmp_path, state_before, state_after):
     before = IdentExperiment(sigma_b_T=1e-7, b_inertial=None)
@@ -236,10 +245,7 @@ def test_the_inertia_estimate_is_restored_and_sent_again(tmp_path, state_before,
     before._set_state(state_before)
     state.tick(900.0)
     state.close()
-    after = IdentExperiment(sigma_b_T=1e-7, b_inertial=None)
-    state = BoxState(tmp_path, monotonic=Mono(0.0), boot_id="b")
-    state.restore_apps(SYSID, ident=after)
-    state.close()
+    after, state = ident_after_restart(tmp_path)
     assert state.notes == ["ident: restored from before the restart (applied)"]
     cap = Capture()
     tlm = Telemetry(cap)
@@ -253,10 +259,7 @@ def test_the_inertia_estimate_is_restored_and_sent_again(tmp_path, state_before,
     assert m.samples == 4321 and m.state == state_after and m.flags == est.flags
     np.testing.assert_allclose(after.restored["cov"], est.cov)
     # another box's file: not taken
-    other = IdentExperiment(sigma_b_T=1e-7, b_inertial=None)
-    state = BoxState(tmp_path, monotonic=Mono(0.0), boot_id="b")
-    state.restore_apps(SYSID + 1, ident=other)
-    state.close()
+    other, state = ident_after_restart(tmp_path, SYSID + 1)
     assert other.restored is None and "ignored" in state.notes[0]
 
 
@@ -330,9 +333,6 @@ def test_an_adopted_combined_estimate_is_sent_and_kept(tmp_path):
     np.testing.assert_allclose(sent[0].ci95, combined.ci95, rtol=1e-6)
     state.tick(901.0)
     state.close()
-    after = IdentExperiment(sigma_b_T=1e-7, b_inertial=None)
-    state = BoxState(tmp_path, monotonic=Mono(0.0), boot_id="b")
-    state.restore_apps(SYSID, ident=after)
-    state.close()
+    after, _ = ident_after_restart(tmp_path)
     np.testing.assert_allclose(after.restored["inertia"], combined.p)
     np.testing.assert_allclose(after.restored["cov"], combined.cov)
