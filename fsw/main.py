@@ -140,7 +140,7 @@ def run(cfg: RunConfig, mag: MagBus, kit: KitLines | None = None, out=sys.stdout
     run the loop on the monotonic clock; (flight software, loop result, the bus's failures for the summary).
     Whatever ends the run (its duration, SIGTERM or SIGINT, an exception) leaves the kit's lines at their
     safe levels and released (`fsw.drivers.gpiod_lines`)."""
-    from .drivers.mmc5983ma import RECALIBRATION_INTERVAL, RECALIBRATION_PERIOD_S, Mmc5983ma
+    from .drivers.mmc5983ma import FLIGHT_SCHEDULE, Mmc5983ma
     from .ident import AnnouncedTug, IdentExperiment
     from .system import build_flight
     from .timeorbit import TimeOrbit
@@ -150,8 +150,7 @@ def run(cfg: RunConfig, mag: MagBus, kit: KitLines | None = None, out=sys.stdout
     lines = None
     state = BoxState(cfg.state_dir, monotonic=time.monotonic, boot_id=boot_id()) if cfg.state_dir else None
     try:
-        source = Mmc5983ma(bus, sample_period_s=1.0 / cfg.sample_rate_hz,
-                           calibration_interval=RECALIBRATION_INTERVAL, calibration_period_s=RECALIBRATION_PERIOD_S)
+        source = Mmc5983ma(bus, sample_period_s=1.0 / cfg.sample_rate_hz, **FLIGHT_SCHEDULE)
         timeorbit = TimeOrbit(tle_file=cfg.tle_file, max_tle_age_d=cfg.tle_max_age_d)
         # the identification experiment: its field along the orbit from the TLE and UTC on board (refused
         # without them), the tug commanded on its own (the START command announces its moment)

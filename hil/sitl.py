@@ -38,7 +38,7 @@ import numpy as np  # noqa: E402
 
 from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_range  # noqa: E402
 from fsw.config import RunConfig, add_run_options, check_key_or_exit, check_loop_rate, run_config  # noqa: E402
-from fsw.drivers.mmc5983ma import RECALIBRATION_INTERVAL, RECALIBRATION_PERIOD_S, Mmc5983ma  # noqa: E402
+from fsw.drivers.mmc5983ma import FLIGHT_SCHEDULE, Mmc5983ma  # noqa: E402
 from fsw.drivers.mmc5983ma_regs import Bandwidth, ContinuousFrequency  # noqa: E402
 from fsw.estimation.onboard_field import InterpolatedOrbitField  # noqa: E402
 from fsw.telemetry.dialect import FSW_SYSID  # noqa: E402
@@ -253,8 +253,7 @@ def build(cfg: SitlConfig, *, link=None, uplink=None, key: bytes | None = None, 
         sim = Simulator(scn, seed=cfg.seed, max_step_s=step)
     rate_hz, bw, cm = sitl_sensor(scn.sample_rate_hz, BANDWIDTH[scn.bandwidth_hz], r.sample_rate_hz)
     warning = check_loop_rate(r.rate_hz, rate_hz)
-    driver = Mmc5983ma(sim.sensor, bandwidth=bw, sample_period_s=1.0 / rate_hz, continuous=cm,
-                       calibration_interval=RECALIBRATION_INTERVAL, calibration_period_s=RECALIBRATION_PERIOD_S)
+    driver = Mmc5983ma(sim.sensor, bandwidth=bw, sample_period_s=1.0 / rate_hz, continuous=cm, **FLIGHT_SCHEDULE)
     sigma_b = math.hypot(scn.noise_T, bw.noise_rms_T)
     field = onboard_field(scn)
     timeorbit = (TimeOrbit(tle_file=r.tle_file, max_tle_age_d=r.tle_max_age_d) if restart

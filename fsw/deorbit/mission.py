@@ -205,7 +205,6 @@ class Mission:
         self.inertia_guess = np.asarray(inertia_guess_kgm2, float)
         self.J_kgm2: np.ndarray | None = None  # the identified tensor (3, 3)
         self.ci95_pct = math.nan
-        self.ci95_kgm2: np.ndarray | None = None  # its 95 % half-widths (6,), when identified here
         self._estimates: list = []  # (p, cov) of each attempt's final fit
         self.on_phase = on_phase
         # the controller's attitude source waits for STABILISING (its filter needs the identified tensor):
@@ -336,13 +335,14 @@ class Mission:
         if est is not None and np.all(np.isfinite(est.p)) and np.all(np.isfinite(est.cov)):
             self._estimates.append((np.asarray(est.p, float), np.asarray(est.cov, float)))
             p, cov, n = combine_estimates(self._estimates)
-            pct = ci95_pct({"inertia": p, "ci95": inr.half_width(cov, 0.95)})
-            how = "tensor" if n == 1 else f"tensor of {n} attempts"
-            if n > 1:  # what the ground is sent and what a restart keeps
-                self.ident.adopt(inr.InertiaEstimate(p, cov, f"{est.method}, {n} attempts combined",
-                                                     est.samples_used, full=est.full, extra=dict(est.extra)))
+            if n > 1:  # the experiment's result from now on: what the ground is sent and a restart keeps
+                est = inr.InertiaEstimate(p, cov, f"{est.method}, {n} attempts combined", est.samples_used,
+                                          full=est.full, extra=dict(est.extra))
+                self.ident.adopt(est)
+                how = f"tensor of {n} attempts"
+            pct = ci95_pct(est)
         if pct <= 100 * self.cfg.ident_ci95_frac:
-            self._identified(p, pct, cov)
+            self._identified(est.p, pct)
             self._enter(now_s, Phase.DETUMBLING, Reason.AUTOMATIC, f"{how} ci95 {pct:.1f} %")
         elif self.attempts < self.cfg.ident_attempts:
             self._say(f"mission: identification ci95 {pct:.1f} %, again")
@@ -350,10 +350,9 @@ class Mission:
         else:
             self._enter(now_s, Phase.SAFE, Reason.IDENT_FAILED, f"identification ci95 {pct:.1f} %")
 
-    def _identified(self, p6, pct: float, cov=None) -> None:
+    def _identified(self, p6, pct: float) -> None:
         self.J_kgm2 = tensor_of(p6)
         self.ci95_pct = float(pct)
-        self.ci95_kgm2 = None if cov is None else inr.half_width(np.asarray(cov, float), 0.95)
         self.law.J_kgm2 = self.J_kgm2  # the detumbling law predicts ω with it
 
     def _in_detumbling(self, now_s: float) -> None:

@@ -88,6 +88,8 @@ RECALIBRATION_PERIOD_S = 10.0
 """The flight software's time between two SET/RESET calibrations (`calibration_period_s`)."""
 RECALIBRATION_INTERVAL = 1
 """The flight software's `calibration_interval`: the period alone sets when the offset is re-measured."""
+FLIGHT_SCHEDULE = {"calibration_interval": RECALIBRATION_INTERVAL, "calibration_period_s": RECALIBRATION_PERIOD_S}
+"""The flight software's SET/RESET schedule, as keywords of :class:`Mmc5983ma` (target and SITL alike)."""
 OFFSET_AVERAGING = 32
 """Triples in the running mean of the bridge offset: 320 s at the flight software's period, 0.1 of a
 reading's noise per axis."""

@@ -10,7 +10,7 @@ from fsw.drivers.mmc5983ma import (
     BACKOFF_INITIAL_S,
     OFFSET_AVERAGING,
     OFFSET_JUMP_T,
-    RECALIBRATION_INTERVAL,
+    FLIGHT_SCHEDULE,
     RECALIBRATION_PERIOD_S,
     MagState,
     Mmc5983ma,
@@ -487,8 +487,7 @@ def offsets_at_1hz(averaging, duration_s=900.0, jump_at_s=None):
     """The flight software's schedule at 1 Hz on a noisy host (1.5 uT a reading): the offset subtracted
     after every calibration, and the samples' own error."""
     driver, emu, clock = make_emulated(sample_period_s=1.0, extra_noise_T=1.5e-6, offset_averaging=averaging,
-                                       calibration_interval=RECALIBRATION_INTERVAL,
-                                       calibration_period_s=RECALIBRATION_PERIOD_S)
+                                       **FLIGHT_SCHEDULE)
     offsets = []
 
     def collect(d):
