@@ -164,21 +164,51 @@ def identify_steps(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, act
                    p_shape: np.ndarray | None = None, b_samples: np.ndarray | None = None,
                    unknown_moments=(), log: Callable[[str], None] | None = None, chunk: int | None = None):
     """Generator form of :func:`identify`: yields every ``chunk`` integration steps; its value (the
-    ``StopIteration`` value) is the list of results."""
+    ``StopIteration`` value) is the list of results.
+
+    The segments' length is ``opts.segment_angle_rad`` of the field's turn, at most
+    ``opts.segment_samples``. When that cap shortened them and a run's fit ends with a χ² the noise
+    cannot explain (:func:`implausible`), the fit runs again with segments up to twice as long, and
+    each run keeps the lower χ²: the field's turn misses the rate along B, so on a fast tumble sampled
+    fast the capped segments may turn too little to tell it, and the chain of segments goes wrong."""
     opts = opts or FitOptions()
     t = np.asarray(t_s, float)
     b_meas = np.asarray(b_meas, float)
     if b_meas.ndim == 2:
         b_meas = b_meas[None]
-    R, n, _ = b_meas.shape
     if b_samples is None:
         b_samples = np.asarray(b_inertial(t), float).reshape(-1, 3)
+    args = (t, b_meas, b_inertial, action, sigma_b_T, p_guess, opts)
+    kw = dict(p_shape=p_shape, b_samples=b_samples, unknown_moments=unknown_moments, log=log, chunk=chunk)
+    length = segment_length(t, b_meas[0], opts.segment_samples, opts.segment_angle_rad)
+    out = yield from _identify_once(*args, length, **kw)
+    longer = segment_length(t, b_meas[0], 2 * opts.segment_samples, opts.segment_angle_rad)
+    if longer > length and any(implausible(r) for r in out):
+        if log:
+            log(f"χ²/dof {' '.join(f'{r.s2:.3f}' for r in out)} with {length}-sample segments: again with {longer}")
+        again = yield from _identify_once(*args, longer, **kw)
+        out = [b if np.isfinite(b.chi2) and not (a.chi2 <= b.chi2) else a for a, b in zip(out, again)]
+    return out
+
+
+def implausible(res: "FitResult", z: float = 3.0) -> bool:
+    """The fit's χ² is more than `z` of its standard deviations above its dof (the noise σ_B as given),
+    or not finite: the fit ended away from the best one, or the model misses part of the signal."""
+    return not np.isfinite(res.chi2) or res.chi2 > res.dof + z * math.sqrt(2.0 * max(res.dof, 1))
+
+
+def _identify_once(t: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, action: KnownAction,
+                   sigma_b_T: float, p_guess: np.ndarray, opts: FitOptions, seg_len: int, *,
+                   p_shape: np.ndarray | None, b_samples: np.ndarray, unknown_moments,
+                   log: Callable[[str], None] | None, chunk: int | None):
+    """:func:`identify_steps` with segments of `seg_len` samples."""
+    R, n, _ = b_meas.shape
     I_ref = float(np.mean(np.asarray(p_guess, float)[:3]))
     par = InertiaParam(opts.mode, I_ref, p_shape, *sm.merged(unknown_moments, action.unknown_intervals,
                                                              action.unknown_sigma_Nm))
     if any(b <= t[0] or a >= t[-1] for a, b in par.unknown_intervals):
         raise ValueError("an unknown-moment interval lies outside the record: nothing could fix its moment")
-    bounds = segment_bounds(n, segment_length(t, b_meas[0], opts.segment_samples, opts.segment_angle_rad))
+    bounds = segment_bounds(n, seg_len)
     G = len(bounds) - 1
     n_I = par.n
     th_I0 = np.array([par.from_p(p_guess, r) for r in range(R)])
