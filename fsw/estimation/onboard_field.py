@@ -76,11 +76,14 @@ class KnotField:
     turn_rate_radps = OrbitField.turn_rate_radps
 
     def _ensure(self, ks: np.ndarray) -> None:
+        """Every knot of `ks` in the table; when it would grow past `max_knots`, the knots not asked for now
+        are dropped first (a flight of more than `max_knots` × `knot_step_s`: 5.7 days at 60 s)."""
         missing = [int(k) for k in ks if int(k) not in self._knots]
         if not missing:
             return
         if len(self._knots) + len(missing) > self.max_knots:
-            self._knots.clear()
+            knots = self._knots
+            self._knots = {int(k): knots[int(k)] for k in ks if int(k) in knots}
         b = self.direct_b_eci_T(np.array(missing, float) * self.knot_step_s)
         self._knots.update(zip(missing, b))
         self.knots_evaluated += len(missing)

@@ -81,6 +81,21 @@ def test_interpolation_between_knots_against_direct_evaluation():
     np.testing.assert_allclose(flight.b_eci_T(k), flight.direct_b_eci_T(k), atol=1e-15)
 
 
+def test_a_full_table_of_knots_keeps_the_ones_asked_for():
+    """A flight longer than the table (`max_knots` × `KNOT_STEP_S`, 5.7 days by default) goes on with the
+    same field: when the table is full the knots not asked for are dropped, never the ones in use."""
+    l1, l2 = circular_tle(485.0, 97.5)
+    tle = parse_tle(l1, l2)
+    utc = affine_utc(0.0, tle.epoch_utc_s + 1800.0)
+    small = OnboardOrbitField(tle.satrec(), utc, field=IgrfModel(2026.33, FLIGHT_DEGREE), max_knots=16)
+    large = OnboardOrbitField(tle.satrec(), utc, field=IgrfModel(2026.33, FLIGHT_DEGREE))
+    t = np.arange(0.0, 40 * KNOT_STEP_S, 7.3)
+    got = np.array([small.b_eci_T(x) for x in t])                   # one sample at a time, as a filter asks
+    np.testing.assert_allclose(got, large.b_eci_T(t), rtol=0, atol=1e-15)
+    assert len(small._knots) <= 16
+    np.testing.assert_allclose(small.b_eci_T(t), large.b_eci_T(t), rtol=0, atol=1e-15)   # a span over the table
+
+
 def test_a_time_asked_again_is_the_same_field_and_a_caller_cannot_change_it():
     """A filter bank asks for one sample's time once per member: the answer is the direct interpolation's
     (against the SGP4 and IGRF evaluation at the knots), whoever asked first or wrote into it."""
