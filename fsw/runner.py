@@ -187,6 +187,7 @@ def summary(fsw: FlightSoftware, res: LoopResult, extra: list[str] = ()) -> str:
     rate = tlm.bytes_sent / max(res.t_s, 1e-9)
     lines.append(f"link: {tlm.frames_sent} frames, {tlm.bytes_sent} bytes ({rate:.0f} B/s = "
                  f"{100 * rate / RADIO_BYTES_PER_S:.1f} % of a 57600-baud radio), send errors {tlm.send_errors}"
+                 + (f", {tlm.encode_errors} frames not encoded ({tlm.last_error})" if tlm.encode_errors else "")
                  + (f", {tlm.conn.unaddressed_writes} frames not sent (no ground station known yet)"
                     if getattr(tlm.conn, "unaddressed_writes", 0) else ""))
     sf = tlm.store

@@ -19,6 +19,9 @@ from .signing import SigningClock, setup_outgoing, sign_ready
 from .store_forward import StoreForward
 
 GAUSS_PER_TESLA = 1e4
+#: counters since start go out modulo 2³² in their uint32 fields, as MAVLink's own do (a frame the encoder
+#: refused would be lost for good): a loop at 1 kHz counts past 2³² ticks in 50 days
+U32 = 0xFFFFFFFF
 
 def usec(t_s: float) -> int:
     return int(round(t_s * 1e6))
@@ -245,14 +248,14 @@ class Telemetry:
                     configured_sample_rate_hz: float = 0.0, sample_cost_us: float = 0.0, samples_taken: int = 0,
                     samples_dropped: int = 0, queue_depth: int = 0, queue_max_depth: int = 0) -> None:
         self._send(mavlink.MAVLink_debris_loop_status_message(
-            usec(t_s), ticks, overruns, task_overruns, period_s * 1e6, mean_us, p50_us, p99_us, max_us,
-            sample_rate_hz, configured_sample_rate_hz, sample_cost_us, samples_taken & 0xFFFFFFFF,
-            samples_dropped & 0xFFFFFFFF, min(queue_depth, 65535), min(queue_max_depth, 65535)))
+            usec(t_s), ticks & U32, overruns & U32, task_overruns & U32, period_s * 1e6, mean_us, p50_us, p99_us,
+            max_us, sample_rate_hz, configured_sample_rate_hz, sample_cost_us, samples_taken & U32,
+            samples_dropped & U32, min(queue_depth, 65535), min(queue_max_depth, 65535)))
 
     def mag_status(self, t_s: float, driver) -> None:
         o = driver.offset_T * GAUSS_PER_TESLA
         self._send(mavlink.MAVLink_debris_mag_status_message(
-            usec(t_s), driver.samples, driver.bus_errors, driver.timeouts, driver.bad_id,
+            usec(t_s), driver.samples & U32, driver.bus_errors & U32, driver.timeouts & U32, driver.bad_id & U32,
             min(driver.resets, 65535), int(driver.state), float(o[0]), float(o[1]), float(o[2])))
 
     def inertia_estimate(self, t_s: float, *, samples: int, inertia, ci95, ci99, state: int, flags: int) -> None:

@@ -79,3 +79,24 @@ def test_estimator_matches_pure_function_on_the_same_samples():
     boer = [m for m in by_type(msgs, "DEBRIS_RATE_ESTIMATE") if m.method == mavlink.DEBRIS_RATE_METHOD_BOER]
     np.testing.assert_allclose([[m.wx, m.wy, m.wz] for m in boer], rf.boer_rate(t, b)[1:], rtol=1e-4,
                                atol=1e-6)
+
+
+def test_counters_past_2_to_the_32_go_out_wrapped_and_the_messages_keep_coming():
+    """A loop at 1 kHz counts past 2³² ticks in 50 days, a 1 kHz sensor past 2³² samples too: the uint32
+    fields carry them modulo 2³² (as MAVLink's own counters do), the frames
+    are never refused by the encoder."""
+    from types import SimpleNamespace
+
+    link = Capture()
+    tlm = Telemetry(link)
+    big = 2**32 + 7
+    tlm.loop_status(1.0, ticks=big, overruns=big + 1, task_overruns=2**33 + 2, period_s=0.02, mean_us=1.0,
+                    p50_us=1.0, p99_us=1.0, max_us=1.0)
+    driver = SimpleNamespace(offset_T=np.zeros(3), samples=big, bus_errors=big + 1, timeouts=big + 2,
+                             bad_id=big + 3, resets=70000, state=3)
+    tlm.mag_status(1.0, driver)
+    loop, = by_type(link.messages(), "DEBRIS_LOOP_STATUS")
+    mag, = by_type(link.messages(), "DEBRIS_MAG_STATUS")
+    assert (loop.ticks, loop.overruns, loop.task_overruns) == (7, 8, 2)
+    assert (mag.samples, mag.bus_errors, mag.timeouts, mag.bad_id, mag.resets) == (7, 8, 9, 10, 65535)
+    assert tlm.encode_errors == 0
