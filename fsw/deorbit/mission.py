@@ -91,6 +91,7 @@ class MissionConfig:
     ident_after_s: float = 300.0
     ident_ci95_frac: float = 0.03
     ident_attempts: int = 2
+    ident_retry_s: float = 10.0            # a refused start (no field on board yet) is tried again this often
     detumbled_radps: float = math.radians(0.15)
     detumbled_hold_s: float = 300.0
     detumble_max_s: float = 6 * 3600.0
@@ -227,6 +228,7 @@ class Mission:
         self._smooth_rate, self._smooth_t = math.nan, math.nan
         self._next_status_s = -math.inf
         self._texts: list[str] = []
+        self._refused, self._next_start_s = "", -math.inf   # the last refusal of a start, said once
         self.omega_radps: np.ndarray | None = None
         self.rate_sigma_radps = math.nan
 
@@ -314,14 +316,20 @@ class Mission:
                 if ch.stepper.polarity == 0 and not ch.busy:
                     seq.request_home(i, now_s)
             return
+        if now_s < self._next_start_s:
+            return
         msg = SimpleNamespace(param1=mavlink.DEBRIS_TORQUE_SOURCE_MAGNETS, param2=self.cfg.ident_free_s,
                               param3=self.cfg.ident_torque_s, param4=self.cfg.ident_after_s, param5=0.0,
                               param6=0.0, param7=0.0)
         try:
             result = self.ident.cmd_start(msg, now_s)
-        except BadParam as e:
-            self._say(f"mission: identification refused: {e}")
+        except BadParam as e:  # e.g. no field along the orbit on board: said once, tried again later
+            self._next_start_s = now_s + self.cfg.ident_retry_s
+            if str(e) != self._refused:
+                self._refused = str(e)
+                self._say(f"mission: identification refused: {e}")
             return
+        self._refused = ""
         if result == mavlink.MAV_RESULT_ACCEPTED:
             self.attempts += 1
             self._enter(now_s, Phase.IDENTIFYING, Reason.AUTOMATIC, "magnets homed")

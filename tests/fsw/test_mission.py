@@ -9,6 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from fsw.commands import BadParam
 from fsw.deorbit.detumble import DetumbleLaw, rotate_about
 from fsw.deorbit.kit import DeorbitKit
 from fsw.deorbit.mission import KitMagnets, Mission, MissionConfig, Phase, Reason, ci95_pct
@@ -371,3 +372,25 @@ def test_a_kit_fault_while_detumbling_ends_in_safe_with_the_reason_and_the_magne
     stuck = value if kind == "stuck" else 0.0
     assert np.linalg.norm(box.emu.dipole_body_Am2()) <= 15.0 * stuck + 1e-9
     assert box.kit.sequencer.channels[1].capsule.closed   # the healthy channel screened too
+
+
+def test_a_refused_identification_is_said_once_and_tried_again_every_ten_seconds(box):
+    """The experiment refuses to start (no field along the orbit on board: a stale TLE): the mission says
+    so once, not at every tick (a STATUSTEXT a tick would take half the radio at 50 Hz), tries again every
+    `ident_retry_s`, and starts as soon as it may."""
+    refusals = []
+
+    def refuse(msg, now_s):
+        refusals.append(now_s)
+        raise BadParam("no orbit/field model on board: TLE stale")
+    accept, box.ident.cmd_start = box.ident.cmd_start, refuse
+    box.trusted_rates()
+    box.run(121.0)
+    assert box.mission.phase is Phase.RATES_KNOWN
+    box.run(120.0)
+    texts = [m.text for m in box.cap.messages() if m.get_type() == "STATUSTEXT" and "refused" in m.text]
+    assert len(texts) == 1 and texts[0].startswith("mission: identification refused: no orbit")  # 50 chars
+    assert 8 <= len(refusals) <= 12 and np.all(np.diff(refusals) >= 10.0 - 1e-9)   # after the magnets home
+    box.ident.cmd_start = accept
+    box.run(10.5)
+    assert box.mission.phase is Phase.IDENTIFYING
