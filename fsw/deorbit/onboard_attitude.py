@@ -132,18 +132,30 @@ class EstimatedAttitude:
 
     def attitude(self, now_s: float) -> AttitudeInput | None:
         """The attitude at `now_s` for a decision, or None (reason in `reason`) when it is not trusted."""
-        if self.bank is None or not self.bank.started:
+        bank = self.bank
+        if bank is None or not bank.started:
             self.trusted = False
             return None
-        est = self.bank.orbital(now_s)
-        why = self._check(now_s, est)
+        gap_s = now_s - bank.t_s
+        if gap_s > bank.tuning.max_gap_s:
+            # no sample taken in for longer than the bank bridges (a stale TLE, a dead sensor): not carried
+            # across the gap (a step every 2 s: a day of it is ~0.8 s of work), started again by the next
+            self.trusted, self.reason = False, f"no sample for {gap_s:.0f} s"
+            return None
+        try:
+            est = bank.orbital(now_s)
+            why = self._check(now_s, est)
+            if not why:
+                R_bo, w_rel, _, _, q = est
+                b_body = quat_to_dcm(q).T @ np.asarray(self._field.b_eci_T(now_s), float)
+                forecast = orbital_field_forecast(self._inputs)
+        except ValueError as e:  # the orbit cannot be evaluated now (SGP4): no attitude for this decision
+            why = str(e)
         if why:
             self.trusted, self.reason = False, why
             return None
         self.trusted, self.reason = True, ""
-        R_bo, w_rel, _, _, q = est
-        b_body = quat_to_dcm(q).T @ np.asarray(self._field.b_eci_T(now_s), float)
-        return AttitudeInput(R_bo, w_rel, b_body, orbital_field_forecast(self._inputs))
+        return AttitudeInput(R_bo, w_rel, b_body, forecast)
 
     def report(self) -> AttitudeReport:
         """The estimate at its latest sample, for telemetry (no propagation)."""

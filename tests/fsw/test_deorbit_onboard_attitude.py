@@ -140,6 +140,41 @@ def test_the_trust_gate_needs_time_sigma_fit_and_agreeing_hypotheses():
     assert src.attitude(119.0) is None and "pointing sigma" in src.reason
 
 
+def _trusted_estimate():
+    src, R_oi = _estimate()
+    src.bank.t_start_s = -1e4
+    best = src.bank.best
+    best.q, best.P = quat_from_dcm(R_oi), np.diag([1e-4] * 3 + [1e-10] * 3 + [0.01] * 3)
+    src.bank.members = [best]
+    assert src.attitude(119.0) is not None and src.trusted
+    return src
+
+
+def test_an_estimate_without_samples_for_longer_than_the_bank_bridges_is_not_carried_across_the_gap():
+    """No sample taken in for longer than the bank's `max_gap_s` (a TLE gone stale, a dead sensor): the
+    decision gets no attitude, at once (it was propagated across the whole gap at every decision, a step every
+    2 s: a day of it took ~0.8 s), and the bank is left as it was, to start again with the next sample."""
+    src = _trusted_estimate()
+    gap = src.bank.tuning.max_gap_s
+    assert src.attitude(119.0 + 0.9 * gap) is not None                    # within the gap: carried
+    t_s, q = src.bank.t_s, src.bank.best.q.copy()
+    assert src.attitude(119.0 + 86400.0) is None and not src.trusted
+    assert src.reason == "no sample for 86400 s"
+    assert src.bank.t_s == t_s and np.all(src.bank.best.q == q)
+
+
+def test_an_orbit_that_cannot_be_evaluated_at_a_decision_gives_no_attitude_and_never_raises():
+    """SGP4 failing at the decision's time (a decayed element set): the decision gets no attitude, with the
+    reason, and the flight loop goes on."""
+    src = _trusted_estimate()
+
+    def sgp4_error(t_s):
+        raise ValueError("SGP4 error codes [6]")
+    src._inputs = sgp4_error
+    src.bank.inputs_at = sgp4_error
+    assert src.attitude(120.0) is None and not src.trusted and src.reason == "SGP4 error codes [6]"
+
+
 def test_without_a_field_along_the_orbit_there_is_no_estimate():
     src = EstimatedAttitude(1.5e-6)
     src.observe(0.0, np.array([20e-6, 0.0, 0.0]), np.zeros(3))
