@@ -102,7 +102,7 @@ class IdentConfig:
     update_every_s: float = 120.0            # a new running estimate at most this often (loop time)
     work_per_tick: int = 15000               # fit work per tick (euler_fit.evaluate_steps units, ~3 ms)
     tlm_period_s: float = 5.0                # DEBRIS_INERTIA_ESTIMATE period while not idle
-    max_samples: int = 20000
+    max_samples: int = 20000                 # the record kept: past it, every other sample (again as needed)
     fit: ef.FitOptions = field(default_factory=ef.FitOptions)
     # with the kit's magnets as the torque: prior 1-σ of the offset their compensation may leave while they
     # are open, fitted (`FitOptions.kit_offset_sigma_T`); None: the compensation taken as exact
@@ -148,6 +148,7 @@ class IdentExperiment:
         self.t_start_s = self.t_torque_s = self.t_after_s = self.t_end_s = math.nan
         self.t: list[float] = []
         self.b: list[np.ndarray] = []
+        self._offered, self.thinned = 0, 0
         self.dipoles: list[tuple[float, np.ndarray]] = []   # (time, dipole) whenever it changed (MAGNETS)
         self.result: IdentResult | None = None
         self.history: list[IdentResult] = []
@@ -232,11 +233,18 @@ class IdentExperiment:
             tlm.inertia_estimate(now_s, **self.message_fields())
 
     def on_sample(self, t_s: float, b_T: np.ndarray) -> None:
-        """A magnetometer sample (the flight loop's latched, gated sample)."""
-        if (self.state in RUNNING and t_s <= self.t_end_s and len(self.t) < self.cfg.max_samples
-                and (not self.t or t_s > self.t[-1])):
+        """A magnetometer sample (the flight loop's latched, gated sample). The record spans the whole
+        experiment: when it reaches `max_samples` it keeps every other sample, and every other one from then
+        on (`thinned` times: a 4 h experiment at 10 Hz is kept at 1.25 Hz, not cut after 33 min)."""
+        if self.state in RUNNING and t_s <= self.t_end_s and (not self.t or t_s > self.t[-1]):
+            self._offered += 1
+            if (self._offered - 1) % (1 << self.thinned):
+                return
             self.t.append(float(t_s))
             self.b.append(np.array(b_T, float))
+            if len(self.t) >= self.cfg.max_samples:
+                del self.t[1::2], self.b[1::2]
+                self.thinned += 1
 
     def step(self, now_s: float) -> None:
         """Advance the phases and a slice of the fit (called every loop tick)."""
@@ -342,6 +350,7 @@ class IdentExperiment:
     # --- state and telemetry ------------------------------------------------------------------------
     def _reset(self) -> None:
         self.t, self.b, self.dipoles = [], [], []
+        self._offered, self.thinned = 0, 0     # samples offered to the record; times it kept every other one
         self.result = None
         self.restored = None
         self.history = []

@@ -252,3 +252,20 @@ def test_fit_runs_in_slices_and_finishes_done():
     f = ex.message_fields()
     assert f["state"] == DONE and f["samples"] == len(t) and f["flags"] == 7
     np.testing.assert_allclose(f["ci99"], e.ci99)
+
+
+def test_a_record_longer_than_max_samples_keeps_every_other_sample_and_spans_the_whole_experiment():
+    """4 h at 10 Hz is 144,000 samples against a record of 20,000: the record keeps every other sample
+    each time it fills, so it still spans the experiment (the torque and the observation after it) at a
+    regular rate, instead of stopping after the first 33 min. Here the same at a 100-sample record."""
+    ex, tug, router = make(config=IdentConfig(max_samples=100, min_torque_s=1.0))
+    assert router.handle(start(1, 10, 20, 15.0, 0.2), 0.0) == mavlink.MAV_RESULT_ACCEPTED
+    t = np.arange(1, 451) * 0.1                                   # 45 s at 10 Hz, the experiment's span
+    for tk in t:
+        ex.on_sample(float(tk), np.array([20e-6, -10e-6, 30e-6]))
+        ex.step(float(tk))
+    kept = np.array(ex.t)
+    assert ex.thinned == 3 and len(kept) <= 100                   # 450 → kept every 8th
+    np.testing.assert_allclose(kept, t[::8])
+    assert kept[0] == pytest.approx(0.1) and kept[-1] >= 44.0     # the whole span, torque and after
+    assert len(ex.b) == len(kept)
