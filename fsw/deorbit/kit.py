@@ -212,16 +212,21 @@ class DeorbitKit:
         seq = self.sequencer
         att = self.attitude.attitude(now_s) if self.attitude is not None else None
         self.last_input = att
-        if att is None:
+        why = "" if att is not None else getattr(self.attitude, "reason", "") or "no attitude source"
+        if att is not None:
+            chans = seq.channels
+            try:
+                cmds = self.controller.decide(now_s, att, acting=tuple(c.acting for c in chans),
+                                              polarity=tuple(c.polarity for c in chans))
+            except ValueError as e:  # the field forecast along the orbit failed (SGP4 over the horizon)
+                why = f"field forecast: {e}"
+        if why:
             self.decisions_without_attitude += 1
-            self.hold_reason = getattr(self.attitude, "reason", "") or "no attitude source"
+            self.hold_reason = why
             for i in range(2):
                 seq.end_pulse(i, now_s)
             return
         self.hold_reason = ""
-        chans = seq.channels
-        cmds = self.controller.decide(now_s, att, acting=tuple(c.acting for c in chans),
-                                      polarity=tuple(c.polarity for c in chans))
         for cmd in cmds:
             self._apply(cmd, now_s)
 

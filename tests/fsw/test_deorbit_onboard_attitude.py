@@ -7,6 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from fsw.deorbit.controller import AttitudeInput
 from fsw.deorbit.kit import DeorbitKit
 from fsw.deorbit.onboard_attitude import EstimatedAttitude, TrustGate
 from fsw.estimation.field_motion import CircularOrbitModel, DipoleModel, OrbitField
@@ -63,6 +64,36 @@ def test_no_pulse_on_an_untrusted_attitude_capsules_held_closed_and_reported():
     att = [m for m in msgs if m.get_type() == "DEBRIS_DEORBIT_ATTITUDE"]
     assert att and att[-1].held == 4 and att[-1].source == mavlink.DEBRIS_CONTROLLER_ATTITUDE_NONE
     assert math.isnan(att[-1].yaw)
+
+
+class ForecastFails:
+    """A trusted attitude whose field forecast along the orbit fails (SGP4 over the controller's horizon)."""
+    description = "trusted, forecast failing"
+    reason = ""
+
+    def attitude(self, now_s):
+        def forecast(t_s):
+            raise ValueError("SGP4 error codes [6]")
+        return AttitudeInput(np.eye(3), np.zeros(3), np.array([20e-6, 0.0, 30e-6]), forecast)
+
+
+def test_a_decision_whose_field_forecast_fails_holds_the_capsules_and_says_why():
+    emu = DeorbitKitEmulator()
+    kit = DeorbitKit(emu, ForecastFails())
+    t = 0.0
+    for ch in (0, 1):
+        kit.sequencer.request_home(ch, t)
+    for _ in range(30):
+        t = round(t + DT, 9)
+        emu.advance_to(t)
+        kit.tick(t)
+    assert start_controller(kit, t) == mavlink.MAV_RESULT_ACCEPTED
+    for _ in range(int(250 / DT)):  # three controller periods: the loop goes on
+        t = round(t + DT, 9)
+        emu.advance_to(t)
+        kit.tick(t)
+    assert kit.decisions_without_attitude == 3 and kit.hold_reason == "field forecast: SGP4 error codes [6]"
+    assert all(c.openings == 0 and c.shutter == 0.0 for c in emu.channels)
 
 
 def test_the_known_dipole_follows_the_open_capsules_and_polarity():
