@@ -100,6 +100,7 @@ class TimeOrbit:
         self.last_error = ""
         self.persist_errors = 0
         self.field_errors = 0
+        self.last_field_error = ""
         self.notes: list[str] = []
         self._staged: tuple[str, str] | None = None
         self._field: OnboardOrbitField | None = None
@@ -154,7 +155,7 @@ class TimeOrbit:
             f.b_eci_T(k * self.knot_step_s + self.knot_step_s * 1.5)  # knots k .. k+3
         except ValueError as e:  # SGP4 cannot propagate (decayed, bad elements): reported, not used
             self.field_errors += 1
-            self.last_error = f"field along the orbit: {e}"
+            self.last_error = self.last_field_error = f"field along the orbit: {e}"
 
     def telemetry(self, now_s: float, tlm) -> None:
         tlm.system_time(now_s, self.clock.utc_s(now_s))
@@ -294,7 +295,7 @@ class TimeOrbit:
                                                 utc_ref_s=c.utc_s(now_s))
             except ValueError as e:  # outside IGRF-14's span
                 self.field_errors += 1
-                self.last_error = f"field model: {e}"
+                self.last_error = self.last_field_error = f"field model: {e}"
                 return None, str(e)
         return self._field, ""
 
@@ -309,7 +310,8 @@ class TimeOrbit:
         tle = (f"TLE {self.tle.satnum} epoch {_iso(self.tle.epoch_utc_s)}: {STATE_NAMES[self.tle_state(now_s)]}"
                if self.tle else "no TLE")
         return (f"time and orbit: {utc}; {tle}; refused {self.time_refused} time sets, {self.tle_refused} TLEs"
-                + (f" (last: {self.last_error})" if self.tle_refused or self.time_refused else ""))
+                + (f" (last: {self.last_error})" if self.tle_refused or self.time_refused else "")
+                + (f"; {self.field_errors} field errors (last: {self.last_field_error})" if self.field_errors else ""))
 
     def message_fields(self, now_s: float) -> dict:
         c = self.clock

@@ -268,3 +268,18 @@ def test_the_box_sends_the_tle_in_force_when_loaded_and_every_minute(tmp_path):
     again = Box(tle_file=tmp_path / "tle.txt")              # read back from its file after a restart: said at once
     again.run(1.0)
     assert [(m.msg.line1, m.msg.line2) for m in again.received if m.msg.get_type() == "DEBRIS_TLE"] == [(L1, L2)]
+
+
+def test_a_field_model_outside_its_span_is_counted_refused_to_its_users_and_in_the_summary():
+    """A TLE and a UTC after IGRF-14's span (2030): the field along the orbit cannot be built; whatever asks
+    for it is refused with the reason, and the run's summary line says how often and why."""
+    l1, l2 = circular_tle(485.0, 97.5, epoch="31120.50000000")   # 2031-04-30
+    box = Box()
+    box.send_time(parse_tle(l1, l2).epoch_utc_s + 3600.0)
+    assert box.send_tle(l1, l2) == R.MAV_RESULT_ACCEPTED
+    box.run(1.0)
+    field, why = box.to.field_now(box.now)
+    assert field is None and "2030" in why, why
+    assert box.start_ident() == R.MAV_RESULT_DENIED
+    line = box.to.summary_line(box.now)
+    assert box.to.field_errors >= 1 and f"; {box.to.field_errors} field errors (last: field model:" in line, line
