@@ -37,11 +37,10 @@ def start_controller(kit, t):
     return kit.handle_command(msg, t)
 
 
-def test_no_pulse_on_an_untrusted_attitude_capsules_held_closed_and_reported():
+def run_controller(attitude, seconds, tlm=None):
+    """The kit on `attitude`, its magnets homed and its controller started, run for `seconds`."""
     emu = DeorbitKitEmulator()
-    kit = DeorbitKit(emu, Untrusted())
-    cap = Capture()
-    tlm = Telemetry(cap)
+    kit = DeorbitKit(emu, attitude)
     t = 0.0
     for ch in (0, 1):
         kit.sequencer.request_home(ch, t)
@@ -50,11 +49,18 @@ def test_no_pulse_on_an_untrusted_attitude_capsules_held_closed_and_reported():
         emu.advance_to(t)
         kit.tick(t)
     assert start_controller(kit, t) == mavlink.MAV_RESULT_ACCEPTED
-    for _ in range(int(350 / DT)):  # four controller periods
+    for _ in range(int(seconds / DT)):
         t = round(t + DT, 9)
         emu.advance_to(t)
         kit.tick(t)
-        kit.telemetry(t, tlm)
+        if tlm is not None:
+            kit.telemetry(t, tlm)
+    return emu, kit
+
+
+def test_no_pulse_on_an_untrusted_attitude_capsules_held_closed_and_reported():
+    cap = Capture()
+    emu, kit = run_controller(Untrusted(), 350.0, Telemetry(cap))  # four controller periods
     assert kit.decisions_without_attitude == 4 and kit.controller.decisions == 0
     assert all(c.openings == 0 and c.shutter == 0.0 for c in emu.channels)  # never unscreened
     assert kit.hold_reason == Untrusted.reason
@@ -78,20 +84,7 @@ class ForecastFails:
 
 
 def test_a_decision_whose_field_forecast_fails_holds_the_capsules_and_says_why():
-    emu = DeorbitKitEmulator()
-    kit = DeorbitKit(emu, ForecastFails())
-    t = 0.0
-    for ch in (0, 1):
-        kit.sequencer.request_home(ch, t)
-    for _ in range(30):
-        t = round(t + DT, 9)
-        emu.advance_to(t)
-        kit.tick(t)
-    assert start_controller(kit, t) == mavlink.MAV_RESULT_ACCEPTED
-    for _ in range(int(250 / DT)):  # three controller periods: the loop goes on
-        t = round(t + DT, 9)
-        emu.advance_to(t)
-        kit.tick(t)
+    emu, kit = run_controller(ForecastFails(), 250.0)  # three controller periods: the loop goes on
     assert kit.decisions_without_attitude == 3 and kit.hold_reason == "field forecast: SGP4 error codes [6]"
     assert all(c.openings == 0 and c.shutter == 0.0 for c in emu.channels)
 
