@@ -114,6 +114,16 @@ class IdentConfig:
     drift_rate_T_per_s: float = 2.2e-9
     drift_max_T: float = 2e-6
 
+    def fit_options(self, span_s: float, source: int) -> ef.FitOptions:
+        """`fit` with the terms above for a record of `span_s` seconds of a `source` experiment."""
+        opts = self.fit
+        if source == MAGNETS and opts.kit_offset_sigma_T is None:
+            opts = dataclasses.replace(opts, kit_offset_sigma_T=self.kit_offset_sigma_T)
+        if self.drift and opts.drift_degree is None:
+            opts = dataclasses.replace(opts, drift_degree=field_error.degree_for(span_s),
+                                       drift_sigma_T=min(self.drift_max_T, self.drift_rate_T_per_s * span_s))
+        return opts
+
 
 @dataclass
 class IdentResult:
@@ -334,13 +344,7 @@ class IdentExperiment:
         b = np.array(self.b)
         g = self.cfg.inertia_guess_kgm2
         b_fit = self._b_fit if self._b_fit is not None else self.b_inertial
-        opts = self.cfg.fit
-        if self.source == MAGNETS and opts.kit_offset_sigma_T is None:
-            opts = dataclasses.replace(opts, kit_offset_sigma_T=self.cfg.kit_offset_sigma_T)
-        if self.cfg.drift and opts.drift_degree is None:
-            span = float(t[-1] - t[0])
-            opts = dataclasses.replace(opts, drift_degree=field_error.degree_for(span),
-                                       drift_sigma_T=min(self.cfg.drift_max_T, self.cfg.drift_rate_T_per_s * span))
+        opts = self.cfg.fit_options(float(t[-1] - t[0]), self.source)
         self._job = ef.identify_steps(t, b[None], b_fit, self.known_action(), self.sigma_b_T,
                                       np.array([g, g, g, 0.0, 0.0, 0.0]), opts, chunk=self.cfg.work_per_tick)
         self._job_meta = (len(t), float(t[-1]), final)

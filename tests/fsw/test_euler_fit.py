@@ -232,30 +232,26 @@ def test_a_wrong_chain_only_27_sigma_above_its_dof_is_fitted_again():
     N·m 5 s into a 40 s experiment). On 30-sample segments the chain goes wrong and the fit ends at χ²/dof
     1.112 over ~1,200 dof, 2.7 σ: the tensor (190, 221, 335) kg·m², 9-17 % off, within intervals 2.4 times
     too wide. Past `RETRY_Z` (2 σ) the fit runs again on longer segments, which find the truth. The
-    experiment's start is not in the recording: 0.55 s, the χ² minimum over starts 0.45-0.75 s."""
-    import dataclasses
+    experiment's start is not in the recording: 0.55 s, the χ² minimum over starts 0.45-0.75 s (there the
+    wrong chain ends at 1.121, 2.96 σ)."""
     from pathlib import Path
 
-    from fsw.estimation.euler_fit import field_error
-    from fsw.estimation.euler_fit.identification import RETRY_Z
     from fsw.estimation.onboard_field import field_from_metadata
-    from fsw.ident import IdentConfig
+    from fsw.ident import TUG, IdentConfig
     from ground.recording import read_recording
 
     rec = read_recording(Path(__file__).parent / "data" / "target_ident_wrong_chain.csv")
     t0 = 0.55
     keep = (rec.t_s >= t0) & (rec.t_s <= t0 + 40.0)
     t, b = rec.t_s[keep], rec.b_T[keep]
-    cfg = IdentConfig()                                  # the box's options, as fsw.ident sets them
-    span = float(t[-1] - t[0])
-    opts = dataclasses.replace(cfg.fit, drift_degree=field_error.degree_for(span),
-                               drift_sigma_T=min(cfg.drift_max_T, cfg.drift_rate_T_per_s * span))
+    opts = IdentConfig().fit_options(float(t[-1] - t[0]), TUG)      # the box's options
     lines = []
     fit = ef.identify(t, b[None], field_from_metadata(rec.metadata),
                       ef.KnownAction.pulses([(t0 + 5.01, 11.99, np.array([5.0, 4.0, -3.0]))]), 0.2e-6,
                       np.array([100.0, 100, 100, 0, 0, 0]), opts, log=lines.append)[0]
-    first = next(line for line in lines if "again with 60" in line)
-    assert RETRY_Z < 2.7 and "1.1" in first                          # the first run's χ²/dof, ~1.11
+    first = next(line for line in lines if "again with 60" in line)   # "χ²/dof 1.121 with 30-sample ..."
+    z_first = (float(first.split()[1]) - 1.0) * np.sqrt(fit.dof / 2.0)
+    assert 2.0 < z_first < 3.0, first          # the wrong chain: past 2 σ of χ² above its dof, short of 3 σ
     truth = np.array([175.0, 200.0, 285.0, 0.0, 0.0, 0.0])
     assert fit.chi2 / fit.dof < 1.0
     assert np.all(np.abs(fit.p - truth) <= 0.015 * 285.0), fit.p      # the start's uncertainty: ±0.05 s
