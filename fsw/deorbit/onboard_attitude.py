@@ -145,17 +145,15 @@ class EstimatedAttitude:
         try:
             est = bank.orbital(now_s)
             why = self._check(now_s, est)
-            if not why:
-                R_bo, w_rel, _, _, q = est
-                b_body = quat_to_dcm(q).T @ np.asarray(self._field.b_eci_T(now_s), float)
-                forecast = orbital_field_forecast(self._inputs)
+            b_eci = None if why else np.asarray(self._field.b_eci_T(now_s), float)
         except ValueError as e:  # the orbit cannot be evaluated now (SGP4): no attitude for this decision
             why = str(e)
         if why:
             self.trusted, self.reason = False, why
             return None
         self.trusted, self.reason = True, ""
-        return AttitudeInput(R_bo, w_rel, b_body, forecast)
+        R_bo, w_rel, _, _, q = est
+        return AttitudeInput(R_bo, w_rel, quat_to_dcm(q).T @ b_eci, orbital_field_forecast(self._inputs))
 
     def report(self) -> AttitudeReport:
         """The estimate at its latest sample, for telemetry (no propagation)."""

@@ -184,7 +184,7 @@ def identify_steps(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, act
     length = segment_length(t, b_meas[0], opts.segment_samples, opts.segment_angle_rad)
     out = yield from _identify_once(*args, length, **kw)
     longer = segment_length(t, b_meas[0], 2 * opts.segment_samples, opts.segment_angle_rad)
-    if longer > length and any(implausible(r, RETRY_Z) for r in out):
+    if longer > length and any(implausible(r) for r in out):
         if log:
             log(f"χ²/dof {' '.join(f'{r.s2:.3f}' for r in out)} with {length}-sample segments: again with {longer}")
         again = yield from _identify_once(*args, longer, **kw)
@@ -200,7 +200,7 @@ def identify_steps(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, act
 RETRY_Z = 2.0
 
 
-def implausible(res: "FitResult", z: float = 3.0) -> bool:
+def implausible(res: "FitResult", z: float = RETRY_Z) -> bool:
     """The fit's χ² is more than `z` of its standard deviations above its dof (the noise σ_B as given),
     or not finite: the fit ended away from the best one, or the model misses part of the signal."""
     return not np.isfinite(res.chi2) or res.chi2 > res.dof + z * math.sqrt(2.0 * max(res.dof, 1))
