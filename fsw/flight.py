@@ -281,6 +281,9 @@ class FlightSoftware:
         if self.kit_field is not None:
             self.kit_field.sigma_T = sigma_b_T
             self.kit_field.guard_s = max(self.kit_field.guard_s, 1.0 / rate_hz)
+            if self.driver is not None and hasattr(self.driver, "disturbed"):
+                # the driver's offset measurements are kept from the kit's motions (`Mmc5983ma.disturbed`)
+                self.driver.disturbed = self.kit_field.moved_between
         self.kit_T = np.zeros(3)
         self.kit_skip = False  # the latest sample was taken while the kit moved
         self.kit_skipped = 0

@@ -276,6 +276,13 @@ class KitFieldModel:
         g = self.guard_s
         return any(t0 - g <= t_s <= t1 + g for t0, t1, i in self.intervals if channel is None or i == channel)
 
+    def moved_between(self, t0_s: float, t1_s: float) -> bool:
+        """Whether any channel moved in [t0_s, t1_s] (or within `guard_s` of it): the magnetometer's
+        driver keeps an offset measurement spread over such a span out of its mean (a capsule closing
+        meanwhile steps the field by tens of µT)."""
+        g = self.guard_s
+        return any(t0 - g <= t1_s and t0_s <= t1 + g for t0, t1, _ in self.intervals)
+
     def model_T(self) -> np.ndarray:
         """The modelled field now, the channels at rest in their current (or last) state [T]."""
         return self._model(tuple(r if r is not None else (f or Rest(m.leakage, 0.0))

@@ -23,9 +23,17 @@ States (values = DEBRIS_MAG_STATE in fsw/telemetry/debris.xml):
   `offset_averaging` of them (a mean of all up to that count, then an exponential average with that
   weight), so that re-measuring it does not step the samples by the triples' noise (at 1.5 uT a
   reading, 1-2 uT steps). The bridge offset changes slowly (null-field drift 3 mG over the whole
-  temperature range [DS p2]); a triple more than `OFFSET_JUMP_T` away from the mean on any axis (a
-  magnetising disturbance) restarts the mean from it and counts in `offset_jumps`; a new PROBE (the
-  chip may have been replaced) restarts it too. `offset_measured_T` is the latest triple's own offset.
+  temperature range [DS p2]). A triple more than `OFFSET_JUMP_T` away from the mean on any axis is kept
+  out of it and counted in `offset_outliers`: the field changed while it was measured (the triple's
+  readings are spread over the calls to `update`, 0.8 s on a 5 Hz loop, and a capsule of the de-orbit
+  kit closing meanwhile steps the field by tens of uT; a step Δ between the readings moves the triple's
+  offset by Δ/4). When the next triple agrees with it within `OFFSET_JUMP_T` the offset has really
+  moved (a magnetising disturbance): the mean restarts from the two, counted in `offset_jumps`. A new
+  PROBE (the chip may have been replaced) restarts it too. `offset_measured_T` is the latest triple's
+  own offset. When the host knows what else moves the field (`disturbed(t0_s, t1_s)`: the flight
+  software asks the de-orbit kit whether a capsule or magnet moved in that span), a triple measured
+  across such a motion is kept out too, counted in `offset_disturbed` (once there is a mean). The SET
+  reading of a triple kept out is delivered as a sample with the mean's offset.
 - MEASURE, single measurement mode: at each sample time write TM_M; from TM_M + t_meas poll
   Status for Meas_M_Done (TM_M clears it [DS p13-16], so no clearing write is needed), read the
   7-byte burst from 0x00, decode, subtract the offset. No data-ready within 4 t_meas + 1 ms
@@ -58,6 +66,7 @@ from __future__ import annotations
 
 import math
 from enum import IntEnum
+from typing import Callable
 
 import numpy as np
 
@@ -94,8 +103,9 @@ OFFSET_AVERAGING = 32
 """Triples in the running mean of the bridge offset: 320 s at the flight software's period, 0.1 of a
 reading's noise per axis."""
 OFFSET_JUMP_T = 10e-6
-"""A triple this far from the running mean on any axis restarts it (11 times the triple's noise at
-1.5 uT a reading, 30 times the datasheet's null-field drift)."""
+"""A triple this far from the running mean on any axis is kept out of it, and restarts it when the next
+triple confirms it (11 times the triple's noise at 1.5 uT a reading, 30 times the datasheet's
+null-field drift)."""
 
 _TM_M = int(InternalControl0.TM_M)
 _SET = int(InternalControl0.SET)
@@ -132,7 +142,9 @@ class Mmc5983ma:
     Outputs: `b_body_T` (latest field, tesla, sensor axes = body axes, SET polarity, offset
     removed; NaN before the first sample), `sample_time_s`, `state`, `offset_T` (the running mean
     subtracted), `offset_measured_T` (the latest triple's) and the counters `samples`, `bus_errors`,
-    `timeouts`, `bad_id`, `resets`, `calibrations`, `offset_jumps`.
+    `timeouts`, `bad_id`, `resets`, `calibrations`, `offset_jumps`, `offset_outliers`,
+    `offset_disturbed`. `disturbed`: None, or a callable (t0_s, t1_s) → whether something besides the
+    body's motion changed the field between the two times (the driver's clock, `update`'s `now`).
     """
 
     def __init__(
@@ -146,7 +158,9 @@ class Mmc5983ma:
         continuous: ContinuousFrequency = ContinuousFrequency.OFF,
         max_consecutive_errors: int = 5,
         offset_averaging: int = OFFSET_AVERAGING,
+        disturbed: Callable[[float, float], bool] | None = None,
     ) -> None:
+        self.disturbed = disturbed
         self.bandwidth = Bandwidth(bandwidth)
         self.continuous = ContinuousFrequency(continuous)
         t_meas = self.bandwidth.measurement_time_s
@@ -191,7 +205,11 @@ class Mmc5983ma:
         self.resets = 0
         self.calibrations = 0
         self.offset_jumps = 0
+        self.offset_outliers = 0  # triples kept out of the mean (the field changed while they were measured)
+        self.offset_disturbed = 0  # triples kept out because `disturbed` said the field was moved meanwhile
         self._offset_count = 0  # triples in the running mean (0: none yet, or restarted by a PROBE)
+        self._jump_T = np.zeros(3)  # the latest triple kept out, which the next one may confirm
+        self._jump_pending = False
         self.chip_resets_detected = 0
         self.last_error = ""
 
@@ -382,7 +400,11 @@ class Mmc5983ma:
         self.b_body_T *= 0.5  # H = (S - R) / 2
         np.add(s, measured, out=measured)
         measured *= 0.5  # offset = (S + R) / 2
-        self._average_offset()
+        if self._offset_count and self.disturbed is not None and self.disturbed(self._cal_trigger_s[0], now):
+            self.offset_disturbed += 1
+            np.subtract(s, self.offset_T, out=self.b_body_T)
+        elif not self._average_offset():  # the field changed during the triple: S with the mean's offset
+            np.subtract(s, self.offset_T, out=self.b_body_T)
         # The SET reading is a sample too. It is delivered when it does not crowd the previous one
         # (at start-up always, and then the sample grid starts from it); a periodic re-calibration
         # just after a sample would otherwise add an off-grid sample with a tiny time step.
@@ -402,15 +424,28 @@ class Mmc5983ma:
         self._phase = _Phase.IDLE if self.continuous is ContinuousFrequency.OFF else _Phase.START
         return True
 
-    def _average_offset(self) -> None:
+    def _average_offset(self) -> bool:
+        """The latest triple's offset into the running mean; False when it is kept out (an outlier)."""
         measured = self.offset_measured_T
-        if self._offset_count and max(abs(float(measured[i] - self.offset_T[i])) for i in range(3)) > OFFSET_JUMP_T:
-            self.offset_jumps += 1
-            self._offset_count = 0
+        if self._offset_count and _max_abs_diff(measured, self.offset_T) > OFFSET_JUMP_T:
+            if self._jump_pending and _max_abs_diff(measured, self._jump_T) <= OFFSET_JUMP_T:
+                # confirmed by a second triple: the offset moved; the mean restarts from the two
+                self.offset_jumps += 1
+                self._jump_pending = False
+                for i in range(3):
+                    self.offset_T[i] = 0.5 * (float(self._jump_T[i]) + float(measured[i]))
+                self._offset_count = 2
+                return True
+            self.offset_outliers += 1
+            self._jump_T[:] = measured
+            self._jump_pending = True
+            return False
+        self._jump_pending = False
         self._offset_count = min(self._offset_count + 1, self.offset_averaging)
         weight = 1.0 / self._offset_count
         for i in range(3):
             self.offset_T[i] += weight * (float(measured[i]) - float(self.offset_T[i]))
+        return True
 
     def _measure_single(self, now: float) -> bool:
         if self._phase is _Phase.WAIT:
@@ -476,6 +511,7 @@ class Mmc5983ma:
             return False
         self._probe_attempts = 0
         self._offset_count = 0
+        self._jump_pending = False
         self._enter(MagState.PROBE, now)
         return True
 
@@ -533,3 +569,8 @@ class Mmc5983ma:
         """A requested rate comes into force as the calibration starts (its end sets up the new mode and grid)."""
         if self._rate_request is not None:
             self._apply_rate(self._rate_request)
+
+
+def _max_abs_diff(a: np.ndarray, b: np.ndarray) -> float:
+    """max_i |a_i - b_i| of two 3-vectors, without allocating."""
+    return max(abs(float(a[0]) - float(b[0])), abs(float(a[1]) - float(b[1])), abs(float(a[2]) - float(b[2])))

@@ -7088,22 +7088,22 @@ class MAVLink_debris_mag_status_message(MAVLink_message):
 
     id = MAVLINK_MSG_ID_DEBRIS_MAG_STATUS
     msgname = "DEBRIS_MAG_STATUS"
-    fieldnames = ["time_usec", "samples", "bus_errors", "timeouts", "bad_id", "resets", "state", "offset_x", "offset_y", "offset_z"]
-    ordered_fieldnames = ["time_usec", "samples", "bus_errors", "timeouts", "bad_id", "offset_x", "offset_y", "offset_z", "resets", "state"]
-    fieldtypes = ["uint64_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint16_t", "uint8_t", "float", "float", "float"]
+    fieldnames = ["time_usec", "samples", "bus_errors", "timeouts", "bad_id", "resets", "state", "offset_x", "offset_y", "offset_z", "offset_jumps", "offset_outliers", "offset_disturbed"]
+    ordered_fieldnames = ["time_usec", "samples", "bus_errors", "timeouts", "bad_id", "offset_x", "offset_y", "offset_z", "resets", "state", "offset_jumps", "offset_outliers", "offset_disturbed"]
+    fieldtypes = ["uint64_t", "uint32_t", "uint32_t", "uint32_t", "uint32_t", "uint16_t", "uint8_t", "float", "float", "float", "uint32_t", "uint32_t", "uint32_t"]
     fielddisplays_by_name: Dict[str, str] = {}
     fieldenums_by_name: Dict[str, str] = {"state": "DEBRIS_MAG_STATE"}
     fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "offset_x": "gauss", "offset_y": "gauss", "offset_z": "gauss"}
-    native_format = bytearray(b"<QIIIIfffHB")
-    orders = [0, 1, 2, 3, 4, 8, 9, 5, 6, 7]
-    lengths = [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]
-    array_lengths = [0, 0, 0, 0, 0, 0, 0, 0, 0, 0]
+    native_format = bytearray(b"<QIIIIfffHBIII")
+    orders = [0, 1, 2, 3, 4, 8, 9, 5, 6, 7, 10, 11, 12]
+    lengths = [1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1]
+    array_lengths = [0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0]
     crc_extra = 96
-    unpacker = struct.Struct("<QIIIIfffHB")
+    unpacker = struct.Struct("<QIIIIfffHBIII")
     instance_field = None
     instance_offset = -1
 
-    def __init__(self, time_usec: int, samples: int, bus_errors: int, timeouts: int, bad_id: int, resets: int, state: int, offset_x: float, offset_y: float, offset_z: float):
+    def __init__(self, time_usec: int, samples: int, bus_errors: int, timeouts: int, bad_id: int, resets: int, state: int, offset_x: float, offset_y: float, offset_z: float, offset_jumps: int = 0, offset_outliers: int = 0, offset_disturbed: int = 0):
         MAVLink_message.__init__(self, MAVLink_debris_mag_status_message.id, MAVLink_debris_mag_status_message.msgname)
         self._fieldnames = MAVLink_debris_mag_status_message.fieldnames
         self._instance_field = MAVLink_debris_mag_status_message.instance_field
@@ -7118,9 +7118,12 @@ class MAVLink_debris_mag_status_message(MAVLink_message):
         self.offset_x = offset_x
         self.offset_y = offset_y
         self.offset_z = offset_z
+        self.offset_jumps = offset_jumps
+        self.offset_outliers = offset_outliers
+        self.offset_disturbed = offset_disturbed
 
     def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
-        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.samples, self.bus_errors, self.timeouts, self.bad_id, self.offset_x, self.offset_y, self.offset_z, self.resets, self.state), force_mavlink1=force_mavlink1)
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.samples, self.bus_errors, self.timeouts, self.bad_id, self.offset_x, self.offset_y, self.offset_z, self.resets, self.state, self.offset_jumps, self.offset_outliers, self.offset_disturbed), force_mavlink1=force_mavlink1)
 
 
 # Define name on the class for backwards compatibility (it is now msgname).
@@ -18589,7 +18592,7 @@ class MAVLink(object):
         """
         self.send(self.debris_loop_status_encode(time_usec, ticks, overruns, task_overruns, period_us, cycle_mean_us, cycle_p50_us, cycle_p99_us, cycle_max_us, sample_rate, configured_sample_rate, sample_cost_us, samples_taken, samples_dropped, queue_depth, queue_max_depth), force_mavlink1=force_mavlink1)
 
-    def debris_mag_status_encode(self, time_usec: int, samples: int, bus_errors: int, timeouts: int, bad_id: int, resets: int, state: int, offset_x: float, offset_y: float, offset_z: float) -> MAVLink_debris_mag_status_message:
+    def debris_mag_status_encode(self, time_usec: int, samples: int, bus_errors: int, timeouts: int, bad_id: int, resets: int, state: int, offset_x: float, offset_y: float, offset_z: float, offset_jumps: int = 0, offset_outliers: int = 0, offset_disturbed: int = 0) -> MAVLink_debris_mag_status_message:
         """
         Health of the MMC5983MA driver.
 
@@ -18603,11 +18606,14 @@ class MAVLink(object):
         offset_x                  : Bridge offset from the last SET/RESET calibration, X. [gauss] (type:float)
         offset_y                  : Bridge offset, Y. [gauss] (type:float)
         offset_z                  : Bridge offset, Z. [gauss] (type:float)
+        offset_jumps              : Offset measurements since start that moved the running mean by a jump (two in a row agreeing, far from it). (type:uint32_t)
+        offset_outliers           : Offset measurements since start kept out of the running mean: far from it (the field changed while they were measured). (type:uint32_t)
+        offset_disturbed          : Offset measurements since start kept out of the running mean: measured while a capsule or magnet of the de-orbit kit moved. (type:uint32_t)
 
         """
-        return MAVLink_debris_mag_status_message(time_usec, samples, bus_errors, timeouts, bad_id, resets, state, offset_x, offset_y, offset_z)
+        return MAVLink_debris_mag_status_message(time_usec, samples, bus_errors, timeouts, bad_id, resets, state, offset_x, offset_y, offset_z, offset_jumps, offset_outliers, offset_disturbed)
 
-    def debris_mag_status_send(self, time_usec: int, samples: int, bus_errors: int, timeouts: int, bad_id: int, resets: int, state: int, offset_x: float, offset_y: float, offset_z: float, force_mavlink1: bool = False) -> None:
+    def debris_mag_status_send(self, time_usec: int, samples: int, bus_errors: int, timeouts: int, bad_id: int, resets: int, state: int, offset_x: float, offset_y: float, offset_z: float, offset_jumps: int = 0, offset_outliers: int = 0, offset_disturbed: int = 0, force_mavlink1: bool = False) -> None:
         """
         Health of the MMC5983MA driver.
 
@@ -18621,9 +18627,12 @@ class MAVLink(object):
         offset_x                  : Bridge offset from the last SET/RESET calibration, X. [gauss] (type:float)
         offset_y                  : Bridge offset, Y. [gauss] (type:float)
         offset_z                  : Bridge offset, Z. [gauss] (type:float)
+        offset_jumps              : Offset measurements since start that moved the running mean by a jump (two in a row agreeing, far from it). (type:uint32_t)
+        offset_outliers           : Offset measurements since start kept out of the running mean: far from it (the field changed while they were measured). (type:uint32_t)
+        offset_disturbed          : Offset measurements since start kept out of the running mean: measured while a capsule or magnet of the de-orbit kit moved. (type:uint32_t)
 
         """
-        self.send(self.debris_mag_status_encode(time_usec, samples, bus_errors, timeouts, bad_id, resets, state, offset_x, offset_y, offset_z), force_mavlink1=force_mavlink1)
+        self.send(self.debris_mag_status_encode(time_usec, samples, bus_errors, timeouts, bad_id, resets, state, offset_x, offset_y, offset_z, offset_jumps, offset_outliers, offset_disturbed), force_mavlink1=force_mavlink1)
 
     def debris_inertia_estimate_encode(self, time_usec: int, samples: int, inertia: Sequence[float], ci95: Sequence[float], ci99: Sequence[float], state: int, flags: int) -> MAVLink_debris_inertia_estimate_message:
         """

@@ -140,6 +140,38 @@ def test_samples_are_flagged_while_a_shutter_moves_and_a_magnet_turns():
     assert b.model.rest[0] == Rest(0.015, math.pi)
 
 
+def test_a_span_that_overlaps_a_motion_is_said_to_be_disturbed():
+    """What the magnetometer's driver asks of its offset measurements (`KitFieldModel.moved_between`):
+    any overlap with a motion, within the guard, counts; a span between motions does not."""
+    b = homed()
+    m = b.model
+    t_open = b.t
+    b.send(CAPSULE, 1, 1)  # 2 s opening
+    b.run(0.4)
+    assert m.moved_between(b.t - 0.1, b.t)  # under way (the motion has no end yet)
+    b.run(5.0)
+    t_end = next(t1 for t0, t1, i in m.intervals if i == 1 and t0 >= t_open - 1.0)
+    assert math.isfinite(t_end)
+    assert m.moved_between(t_open - 0.5, t_open + 0.05) and m.moved_between(t_end - 0.1, t_end + 0.5)
+    assert m.moved_between(t_end + m.guard_s - 0.01, t_end + 2.0)
+    assert not m.moved_between(t_end + m.guard_s + 0.01, t_end + 3.0)
+    assert not m.moved_between(t_open - 5.0, t_open - 1.0)
+
+
+def test_the_flight_loop_tells_the_magnetometer_driver_of_the_kits_motions():
+    from fsw.config import RunConfig
+    from fsw.system import NullLink
+    from hil import scenario as scenarios
+    from hil import sitl
+
+    box = sitl.build(sitl.SitlConfig(RunConfig(rate_hz=5.0, buffer_frames=0), scenario=scenarios.load("amds_mission"),
+                                     seed=0, max_step_s=0.2), link=NullLink(), run_id=0)
+    try:
+        assert box.fsw.driver.disturbed == box.fsw.kit_field.moved_between
+    finally:
+        box.close()
+
+
 @pytest.mark.parametrize("rate_dps, every_tick", [(2.0, False), pytest.param(10.0, True, marks=pytest.mark.slow)])
 def test_each_channels_scale_is_calibrated_from_its_steps_on_a_tumbling_body(rate_dps, every_tick):
     # the truth's magnets: pitch 10 % strong and 4 mm closer in y, yaw 7 % weak; a sample a second on a
