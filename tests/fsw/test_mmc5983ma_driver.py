@@ -537,8 +537,9 @@ def steps_during_triples(alternate: bool, disturbed: bool, duration_s=300.0):
     """The flight software's schedule on its 5 Hz loop (a driver call every 0.2 s: a triple's readings
     0.8 s apart) at 1 Hz on a noisy host, the field stepping by 55 uT between S and R2 of every
     calibration from the fifth (a capsule of the de-orbit kit closing; `alternate`: back again at the
-    next one, as closing and opening do; else twice the same way, then twice back). `disturbed`: the driver is told of the steps. Returns the
-    driver, the emulator, the step times and the samples' errors (t, error)."""
+    next one, as closing and opening do; else twice the same way, then twice back). `disturbed`: the
+    driver is told of the steps. Returns the driver, the emulator, the step times and the samples'
+    errors (t, error)."""
     step_T = np.array([0.0, -55e-6, 0.0])
     steps_at = []
 
