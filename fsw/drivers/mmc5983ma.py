@@ -32,7 +32,8 @@ States (values = DEBRIS_MAG_STATE in fsw/telemetry/debris.xml):
   PROBE (the chip may have been replaced) restarts it too. `offset_measured_T` is the latest triple's
   own offset. When the host knows what else moves the field (`disturbed(t0_s, t1_s)`: the flight
   software asks the de-orbit kit whether a capsule or magnet moved in that span), a triple measured
-  across such a motion is kept out too, counted in `offset_disturbed` (once there is a mean). The SET
+  across such a motion is kept out too, counted in `offset_disturbed` (with no mean yet, as after a
+  start while the kit moves, its offset is used until the first undisturbed triple replaces it). The SET
   reading of a triple kept out is delivered as a sample with the mean's offset.
 - MEASURE, single measurement mode: at each sample time write TM_M; from TM_M + t_meas poll
   Status for Meas_M_Done (TM_M clears it [DS p13-16], so no clearing write is needed), read the
@@ -400,8 +401,10 @@ class Mmc5983ma:
         self.b_body_T *= 0.5  # H = (S - R) / 2
         np.add(s, measured, out=measured)
         measured *= 0.5  # offset = (S + R) / 2
-        if self._offset_count and self.disturbed is not None and self.disturbed(self._cal_trigger_s[0], now):
+        if self.disturbed is not None and self.disturbed(self._cal_trigger_s[0], now):
             self.offset_disturbed += 1
+            if not self._offset_count:  # no mean yet: this offset until an undisturbed triple replaces it
+                self.offset_T[:] = measured
             np.subtract(s, self.offset_T, out=self.b_body_T)
         elif not self._average_offset():  # the field changed during the triple: S with the mean's offset
             np.subtract(s, self.offset_T, out=self.b_body_T)

@@ -588,3 +588,23 @@ def test_steps_of_one_sign_in_a_row_pass_for_a_jump_unless_the_driver_is_told_of
     driver, emu, steps_at, errors = steps_during_triples(alternate=False, disturbed=True)
     assert driver.offset_disturbed == len(steps_at) and driver.offset_outliers == 0
     assert_samples_clean(driver, emu, steps_at, errors)
+
+
+def test_a_disturbed_first_triple_is_used_until_an_undisturbed_one_replaces_it():
+    """A start while the kit moves (a restart mid-pulse): the first triple is all there is, so its offset is
+    used; the first undisturbed triple replaces it outright instead of being judged against it."""
+    calls = []
+
+    def disturbed(t0, t1):
+        calls.append((t0, t1))
+        return len(calls) == 1
+
+    driver, emu, clock = make_emulated(sample_period_s=1.0, disturbed=disturbed, **FLIGHT_SCHEDULE)
+    while driver.calibrations < 1:
+        clock.t += 0.2
+        driver.update(clock.t)
+    assert driver.offset_disturbed == 1
+    driver.offset_T += 30e-6  # as if the disturbed triple had been 30 uT off
+    run(driver, clock, 12.0, dt=0.2)
+    assert driver.calibrations == 2 and driver.offset_outliers == 0 and driver.offset_jumps == 0
+    np.testing.assert_allclose(driver.offset_T, emu.bridge_offset_T, atol=5 * OFFSET_SIGMA_T)
