@@ -175,6 +175,8 @@ class Decoder:
         self.requests_sent = 0
         #: the latest DEBRIS_KIT_FIELD per channel (the kit's field at the sensor as modelled on board)
         self.kit_field: dict[int, object] = {}
+        #: the latest DEBRIS_MAG_STATUS (the magnetometer driver's health and its offset's counters)
+        self.mag_status = None
         #: the flown filter's latest attitude and 1-σ (see `_attitude`)
         self.attitude: dict = {}
         #: the de-orbit controller's latest inputs (DEBRIS_DEORBIT_ATTITUDE, see `_deorbit_attitude`)
@@ -220,6 +222,8 @@ class Decoder:
             self._knowledge(kind, msg)
         elif kind == "DEBRIS_KIT_FIELD" and msg.channel in (0, 1):
             self.kit_field[int(msg.channel)] = msg
+        elif kind == "DEBRIS_MAG_STATUS":
+            self.mag_status = msg
         elif kind in ("ATTITUDE_QUATERNION", "DEBRIS_ATTITUDE_SIGMA"):
             self._attitude(kind, msg)
         elif kind == "DEBRIS_DEORBIT_ATTITUDE":
@@ -563,6 +567,15 @@ class Decoder:
                     out.append(f"what the box knew ({who}{run}), in the recording's metadata: {said}")
         if self.requests_sent:
             out.append(f"requests for missing samples sent: {self.requests_sent}")
+        if self.mag_status is not None:
+            m = self.mag_status
+            state = mavlink.enums["DEBRIS_MAG_STATE"].get(m.state)
+            o_uT = [100.0 * v for v in (m.offset_x, m.offset_y, m.offset_z)]  # gauss → µT
+            out.append(f"magnetometer driver: {state.name.removeprefix('DEBRIS_MAG_STATE_') if state else m.state}, "
+                       f"{m.samples} samples, {m.bus_errors} bus errors, {m.timeouts} timeouts, {m.resets} resets; "
+                       f"bridge offset ({', '.join(f'{v:+.2f}' for v in o_uT)}) uT; offset measurements kept out "
+                       f"of its mean: {m.offset_outliers} outliers, {m.offset_disturbed} while the kit moved; "
+                       f"{m.offset_jumps} jumps")
         for ch, m in sorted(self.kit_field.items()):
             out.append(f"kit field on board, {('pitch', 'yaw')[ch]}: scale {m.scale:.3f} ± {m.scale_sigma:.3f}, "
                        f"{m.steps} calibration steps ({m.ill_conditioned} ill-conditioned, {m.outliers} outliers), "

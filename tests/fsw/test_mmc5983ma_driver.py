@@ -608,3 +608,22 @@ def test_a_disturbed_first_triple_is_used_until_an_undisturbed_one_replaces_it()
     run(driver, clock, 12.0, dt=0.2)
     assert driver.calibrations == 2 and driver.offset_outliers == 0 and driver.offset_jumps == 0
     np.testing.assert_allclose(driver.offset_T, emu.bridge_offset_T, atol=5 * OFFSET_SIGMA_T)
+
+
+def test_the_offsets_counters_reach_the_ground():
+    """DEBRIS_MAG_STATUS carries the triples kept out and the jumps; `ground.decode` prints them."""
+    from fsw.telemetry.telemetry import Telemetry
+    from ground.decode import Decoder
+    from support import Capture
+
+    driver, emu, steps_at, _ = steps_during_triples(alternate=True, disturbed=False)
+    driver.offset_disturbed = 7  # as the flight loop's hook would have counted
+    cap = Capture()
+    Telemetry(cap).mag_status(300.0, driver)
+    dec = Decoder()
+    for m in cap.messages():
+        dec.handle(m, 1.7e9)
+    o = driver.offset_T * 1e6
+    assert (f"magnetometer driver: MEASURE, {driver.samples} samples, 0 bus errors, 0 timeouts, 1 resets; bridge "
+            f"offset ({o[0]:+.2f}, {o[1]:+.2f}, {o[2]:+.2f}) uT; offset measurements kept out of its mean: "
+            f"{len(steps_at)} outliers, 7 while the kit moved; 0 jumps") in dec.summary_text()
