@@ -18,7 +18,9 @@ interval), `stabilised` (STABILISED reached and the true yaw and pitch within 0.
 (`spun_up`: above it by 10 %), and the final phase with its reason. The aggregate JSON has `runs`,
 `inertia_err_pct_max`, `ci95_coverage` (the fraction of runs whose six intervals all cover),
 `fraction_stabilised`, `time_to_phase_s` (mean and max per phase over the runs that reached it) and
-`energy_J_by_phase` (mean per phase).
+`energy_J_by_phase` (mean per phase); `kit_residual_uT_rms` per run (per axis, on the samples the box used
+while a magnet was open: the kit's field it took out, `fsw.deorbit.kit_field`, against the truth's) and
+`kit_residual_uT_rms_max` (worst axis of the worst run).
 
 `--fault KIND:CH:T` injects a kit fault into the emulator (as `bench.deorbit`: stall, stuck, switch, gpio)
 at true time T. `--restart T` stops the flight software at true time T and starts it again on the running
@@ -115,6 +117,7 @@ def _run(seed: int, p: dict, state_dir: str | None) -> dict:
                              "pitch", "est_yaw", "est_pitch", "pulse_pitch", "pulse_yaw", "energy_J")}
     yaw_pitch = []
     rate_after_kit = 0.0
+    kit_sq, kit_n = np.zeros(3), 0  # the kit's field the box took out against the truth's, magnets open
     n = int(round(duration * rate_hz))
     every = max(1, int(round(rate_hz)))
     wall0 = time.perf_counter()
@@ -133,6 +136,11 @@ def _run(seed: int, p: dict, state_dir: str | None) -> dict:
                 mission, kit = fsw.apps["mission"], fsw.apps["deorbit"]
                 lives.append((mission, kit))
             box.tick(t_box)
+            kf = fsw.kit_field
+            if (kf is not None and fsw.new_sample and not fsw.kit_skip and kf.unscreened
+                    and not kf.moved_between(fsw.sample_t_s, t_box)):  # the kit as it was for the sample
+                kit_sq += (fsw.kit_T - sim.extra_field_body_T(sim.t_s)) ** 2
+                kit_n += 1
             if k % every:
                 continue
             R_bo, _, _ = sim.attitude_orbital()
@@ -159,8 +167,9 @@ def _run(seed: int, p: dict, state_dir: str | None) -> dict:
     finally:
         box.close()
     wall = time.perf_counter() - wall0
-    return _result(seed, tumble, scn, lives, sim, yaw_pitch, rate_after_kit, duration, p, wall,
-                   trace if p["trace"] else None)
+    kit = (np.sqrt(kit_sq / kit_n) * 1e6).tolist() if kit_n else None
+    return {**_result(seed, tumble, scn, lives, sim, yaw_pitch, rate_after_kit, duration, p, wall,
+                      trace if p["trace"] else None), "kit_residual_uT_rms": kit, "kit_residual_samples": kit_n}
 
 
 def _result(seed, tumble, scn, lives, sim, yaw_pitch, rate_after_kit, duration, p, wall, trace) -> dict:
@@ -235,6 +244,8 @@ def aggregate(runs: list[dict]) -> dict:
         "time_to_phase_s": times, "energy_J_by_phase": energy,
         "energy_J_mean": float(np.mean([r["energy_J"] for r in runs])),
         "interlock_violations": int(sum(r["interlock_violations"] for r in runs)),
+        "kit_residual_uT_rms_max": max((max(r["kit_residual_uT_rms"]) for r in runs
+                                        if r.get("kit_residual_uT_rms")), default=None),
     }
 
 

@@ -46,6 +46,7 @@ def test_a_restart_while_detumbling_resumes_with_the_tensor_kept():
     assert r["interlock_violations"] == 0 and not r["spun_up"] and r["restarts"] == [2600.0]
     assert math.isfinite(r["inertia_err_pct"])
     assert r["energy_J_by_phase"]["DETUMBLING"] > 0 and r["energy_J"] >= sum(r["energy_J_by_phase"].values()) - 1
+    assert r["kit_residual_samples"] > 500 and max(r["kit_residual_uT_rms"]) < 3.0  # µT: measured, not faked
 
 
 def test_aggregate_figures():
@@ -60,6 +61,9 @@ def test_aggregate_figures():
     assert a["ci95_coverage"] == pytest.approx(1 / 3) and a["fraction_stabilised"] == pytest.approx(2 / 3)
     assert a["time_to_phase_s"]["DETUMBLING"] == {"mean": 4000.0, "max": 5000.0, "runs": 2}
     assert a["energy_J_by_phase"]["SAFE"] == 10.0
+    assert a["kit_residual_uT_rms_max"] is None  # no run measured it
+    runs[0]["kit_residual_uT_rms"], runs[1]["kit_residual_uT_rms"] = [0.5, 0.9, 0.2], [0.3, 0.4, 1.1]
+    assert mission.aggregate(runs)["kit_residual_uT_rms_max"] == 1.1
 
 
 @pytest.mark.parametrize("argv", [["--seeds", "0"], ["--fault", "bogus"], ["--rate", "0"], ["--restart", "-1"],
