@@ -46,7 +46,9 @@ def test_a_restart_while_detumbling_resumes_with_the_tensor_kept():
     assert r["interlock_violations"] == 0 and not r["spun_up"] and r["restarts"] == [2600.0]
     assert math.isfinite(r["inertia_err_pct"])
     assert r["energy_J_by_phase"]["DETUMBLING"] > 0 and r["energy_J"] >= sum(r["energy_J_by_phase"].values()) - 1
-    assert r["kit_residual_samples"] > 500 and max(r["kit_residual_uT_rms"]) < 3.0  # µT: measured, not faked
+    # the kit's field taken out while a magnet is open, against the truth's: this short mission's model has
+    # the experiment's two joint steps and a few hundred seconds of pulses (1.1-1.8 µT RMS per axis)
+    assert r["kit_residual_samples"] > 500 and max(r["kit_residual_uT_rms"]) < 3.0
 
 
 def test_aggregate_figures():
