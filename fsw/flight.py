@@ -94,6 +94,9 @@ class SensorDriver(Protocol):
     bad_id: int
     resets: int
     offset_T: np.ndarray
+    offset_jumps: int
+    offset_outliers: int
+    offset_disturbed: int
 
 
 class Estimator(Protocol):

@@ -570,7 +570,7 @@ class Decoder:
         if self.mag_status is not None:
             m = self.mag_status
             state = mavlink.enums["DEBRIS_MAG_STATE"].get(m.state)
-            o_uT = [100.0 * v for v in (m.offset_x, m.offset_y, m.offset_z)]  # gauss → µT
+            o_uT = [v * T_PER_GAUSS * 1e6 for v in (m.offset_x, m.offset_y, m.offset_z)]
             out.append(f"magnetometer driver: {state.name.removeprefix('DEBRIS_MAG_STATE_') if state else m.state}, "
                        f"{m.samples} samples, {m.bus_errors} bus errors, {m.timeouts} timeouts, {m.resets} resets; "
                        f"bridge offset ({', '.join(f'{v:+.2f}' for v in o_uT)}) uT; offset measurements kept out "

@@ -271,17 +271,13 @@ class KitFieldModel:
         samples after. Closed, the leakage's error is a few hundredths of a µT."""
         return any(r is None or r.s >= 1.0 for r in self.rest)
 
-    def moving(self, t_s: float, channel: int | None = None) -> bool:
-        """Whether a sample at `t_s` falls in (or within `guard_s` of) a motion of `channel` (None: any)."""
+    def moved_between(self, t0_s: float, t1_s: float, channel: int | None = None) -> bool:
+        """Whether `channel` (None: any) moved in [t0_s, t1_s] or within `guard_s` of it: a sample at t is
+        flagged when it moved in [t, t]; the magnetometer's driver keeps an offset measurement spread over
+        such a span out of its mean (a capsule closing meanwhile steps the field by tens of µT)."""
         g = self.guard_s
-        return any(t0 - g <= t_s <= t1 + g for t0, t1, i in self.intervals if channel is None or i == channel)
-
-    def moved_between(self, t0_s: float, t1_s: float) -> bool:
-        """Whether any channel moved in [t0_s, t1_s] (or within `guard_s` of it): the magnetometer's
-        driver keeps an offset measurement spread over such a span out of its mean (a capsule closing
-        meanwhile steps the field by tens of µT)."""
-        g = self.guard_s
-        return any(t0 - g <= t1_s and t0_s <= t1 + g for t0, t1, _ in self.intervals)
+        return any(t0 - g <= t1_s and t0_s <= t1 + g for t0, t1, i in self.intervals
+                   if channel is None or i == channel)
 
     def model_T(self) -> np.ndarray:
         """The modelled field now, the channels at rest in their current (or last) state [T]."""
@@ -294,7 +290,7 @@ class KitFieldModel:
         b = self._model(tuple(r if r is not None else f for r, f in zip(self.rest, self._from)))
         skip = False
         for i, m in enumerate(self.models):
-            if self.rest[i] is None or self.moving(t_s, i):
+            if self.rest[i] is None or self.moved_between(t_s, t_s, i):
                 m.flagged += 1
                 skip = True
         self.flagged += skip

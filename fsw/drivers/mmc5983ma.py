@@ -405,8 +405,10 @@ class Mmc5983ma:
             self.offset_disturbed += 1
             if not self._offset_count:  # no mean yet: this offset until an undisturbed triple replaces it
                 self.offset_T[:] = measured
-            np.subtract(s, self.offset_T, out=self.b_body_T)
-        elif not self._average_offset():  # the field changed during the triple: S with the mean's offset
+            taken = False
+        else:
+            taken = self._average_offset()
+        if not taken:  # the field changed during the triple: S with the mean's offset
             np.subtract(s, self.offset_T, out=self.b_body_T)
         # The SET reading is a sample too. It is delivered when it does not crowd the previous one
         # (at start-up always, and then the sample grid starts from it); a periodic re-calibration

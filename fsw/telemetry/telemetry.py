@@ -257,8 +257,7 @@ class Telemetry:
         self._send(mavlink.MAVLink_debris_mag_status_message(
             usec(t_s), driver.samples & U32, driver.bus_errors & U32, driver.timeouts & U32, driver.bad_id & U32,
             min(driver.resets, 65535), int(driver.state), float(o[0]), float(o[1]), float(o[2]),
-            getattr(driver, "offset_jumps", 0) & U32, getattr(driver, "offset_outliers", 0) & U32,
-            getattr(driver, "offset_disturbed", 0) & U32))
+            driver.offset_jumps & U32, driver.offset_outliers & U32, driver.offset_disturbed & U32))
 
     def inertia_estimate(self, t_s: float, *, samples: int, inertia, ci95, ci99, state: int, flags: int) -> None:
         """DEBRIS_INERTIA_ESTIMATE: tensor (Ixx, Iyy, Izz, Ixy, Ixz, Iyz) kg·m² about the centre of mass in
