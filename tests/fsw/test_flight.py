@@ -93,7 +93,8 @@ def test_counters_past_2_to_the_32_go_out_wrapped_and_the_messages_keep_coming()
     tlm.loop_status(1.0, ticks=big, overruns=big + 1, task_overruns=2**33 + 2, period_s=0.02, mean_us=1.0,
                     p50_us=1.0, p99_us=1.0, max_us=1.0)
     driver = SimpleNamespace(offset_T=np.zeros(3), samples=big, bus_errors=big + 1, timeouts=big + 2,
-                             bad_id=big + 3, resets=70000, state=3)
+                             bad_id=big + 3, resets=70000, state=3, offset_jumps=0, offset_outliers=0,
+                             offset_disturbed=0)
     tlm.mag_status(1.0, driver)
     loop, = by_type(link.messages(), "DEBRIS_LOOP_STATUS")
     mag, = by_type(link.messages(), "DEBRIS_MAG_STATUS")
