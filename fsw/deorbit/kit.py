@@ -39,7 +39,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from fsw.drivers.capsule import CapsuleTiming
+from fsw.drivers.capsule import CapsuleState, CapsuleTiming
 from fsw.drivers.gpio import DigitalLines
 from fsw.drivers.stepper import STEP_DEG, StepperLimits
 from fsw.telemetry.dialect import mavlink
@@ -66,8 +66,8 @@ MAX_PERIOD_S = 3600.0
 
 class AttitudeSource(Protocol):
     """Where the controller's attitude comes from; `description` is shown with the results. Optional:
-    ``observe(t_s, b_T, dipole_body_Am2)`` (each calibrated, kit-compensated sample with the kit's
-    dipole from then on), ``report()`` (an `onboard_attitude.AttitudeReport` for telemetry) and
+    ``observe(t_s, b_T, dipole_body_Am2, mean_dipole_body_Am2)`` (each calibrated, kit-compensated sample
+    with the kit's dipole from then on and its mean since the previous sample), ``report()`` (an `onboard_attitude.AttitudeReport` for telemetry) and
     ``reason`` (why there is no attitude)."""
 
     description: str
@@ -155,6 +155,12 @@ class DeorbitKit:
         self.decisions_without_attitude = 0
         self.last_input: AttitudeInput | None = None
         self.hold_reason = ""
+        # the dipole's time integral since the last sample handed to the attitude source (a moving
+        # shutter counted as half open: the mean of its ramp)
+        self._impulse_Am2s = np.zeros(3)
+        self._impulse_t_s: float | None = None
+        self._impulse_from_s: float | None = None
+        self._dipole_now_Am2 = np.zeros(3)
         self._hold_reason_sent = ""
         #: the magnets' build and placement (`MagnetGeometry`, one per channel), for the laws that plan with them
         self.magnets = magnets
@@ -191,8 +197,15 @@ class DeorbitKit:
         """A due controller decision first (so that a pulse ending now can be extended rather than
         closed and reopened), then the sequencer: drivers, plans, interlock monitor."""
         seq = self.sequencer
+        if self._impulse_t_s is not None and now_s > self._impulse_t_s:
+            self._impulse_Am2s += self._dipole_now_Am2 * (now_s - self._impulse_t_s)
+        self._impulse_t_s = now_s
         if sample is not None and hasattr(self.attitude, "observe"):
-            self.attitude.observe(sample.t_s, sample.b_T, self.known_dipole_body_Am2())
+            span = now_s - self._impulse_from_s if self._impulse_from_s is not None else 0.0
+            mean = self._impulse_Am2s / span if span > 0.0 else None
+            self.attitude.observe(sample.t_s, sample.b_T, self.known_dipole_body_Am2(), mean)
+            self._impulse_Am2s = np.zeros(3)
+            self._impulse_from_s = now_s
         if seq.mode is KitMode.RUNNING:
             if math.isinf(self.next_decision_s):
                 self.next_decision_s = now_s
@@ -207,6 +220,7 @@ class DeorbitKit:
         else:
             self.next_decision_s = math.inf
         seq.update(now_s)
+        self._dipole_now_Am2 = self.known_dipole_body_Am2(moving=0.5)
 
     def _decide(self, now_s: float) -> None:
         seq = self.sequencer
@@ -287,14 +301,19 @@ class DeorbitKit:
             fault=pair(lambda c: int(c.fault | c.stepper.fault | c.capsule.fault) & 0xFF),
             controller_state=int(self.sequencer.mode))
 
-    def known_dipole_body_Am2(self) -> np.ndarray:
+    def known_dipole_body_Am2(self, moving: float | None = None) -> np.ndarray:
         """The kit's unscreened dipole in body axes as the sequencer knows it: each channel acting
         (capsule opening or open) with its polarity, along its magnet's home axis (polarity −1: half a
-        turn about the shaft) [A·m²]."""
+        turn about the shaft) [A·m²]. `moving`: the fraction counted for a capsule opening or closing
+        (None: opening counts whole, closing not at all)."""
         p = np.zeros(3)
         for ch, mag in zip(self.sequencer.channels, self.magnets):
-            if ch.acting:
-                p += ch.acting * mag.moment_Am2 * np.asarray(mag.home_axis, float)
+            if moving is not None and ch.capsule.state in (CapsuleState.OPENING, CapsuleState.CLOSING):
+                w = moving * ch.polarity
+            else:
+                w = ch.acting
+            if w:
+                p += w * mag.moment_Am2 * np.asarray(mag.home_axis, float)
         return p
 
     def attitude_report(self):

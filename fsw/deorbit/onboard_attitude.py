@@ -87,8 +87,10 @@ class EstimatedAttitude:
     _field: object = None
     _inputs: OrbitInputs | None = None
 
-    def observe(self, t_s: float, b_T: np.ndarray, dipole_body_Am2: np.ndarray) -> None:
-        """A calibrated, kit-compensated sample and the kit's dipole acting from now on."""
+    def observe(self, t_s: float, b_T: np.ndarray, dipole_body_Am2: np.ndarray,
+                mean_dipole_body_Am2: np.ndarray | None = None) -> None:
+        """A calibrated, kit-compensated sample, the kit's dipole acting from now on and (when known) its
+        mean since the previous sample."""
         fld, why = (None, "no orbit/field model on board") if self.provider is None else self.provider.field_now(t_s)
         if fld is None:
             self.reason = why or "no field along the orbit"
@@ -103,7 +105,7 @@ class EstimatedAttitude:
             self.bank = OrbitalAttitudeBank(self.sigma_b_T, inputs, self.model, self.tuning)
             self.nis_mean = 3.0
         try:
-            self.bank.update(t_s, b_T, dipole_body_Am2)
+            self.bank.update(t_s, b_T, dipole_body_Am2, mean_dipole_body_Am2)
         except ValueError as e:  # the orbit cannot be evaluated (SGP4): no estimate from this sample
             self.reason = str(e)
             return

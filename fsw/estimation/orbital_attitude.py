@@ -99,7 +99,7 @@ class OrbitalAttitudeTuning:
       the channels' states).
     """
 
-    accel_psd: float = (3.5e-7) ** 2 * 100.0
+    accel_psd: float = (1.1e-7) ** 2 * 100.0
     field_sigma_T: float = 0.3e-6
     sigma_bias0_T: float = 2e-6
     bias_psd_T2_per_s: float = (1e-6) ** 2 / 1000.0
@@ -277,8 +277,9 @@ class Member:
 
 @dataclass
 class OrbitalAttitudeBank:
-    """The filter one sample at a time: `update(t_s, b_T, dipole_body_Am2)` with the calibrated, kit-free
-    sample and the kit's dipole since the previous sample; `best` the member of least cumulative NLL.
+    """The filter one sample at a time: `update(t_s, b_T, dipole_body_Am2, mean_dipole_body_Am2)` with the
+    calibrated, kit-free sample, the kit's dipole from now on and its mean since the previous sample (the
+    sequencer's: a shutter's ramp counted); `best` the member of least cumulative NLL.
 
     `inputs_at(t_s)` gives the orbit's position, velocity and field at a time (:class:`OrbitInputs`)."""
 
@@ -309,7 +310,10 @@ class OrbitalAttitudeBank:
         self.members = []
         self.t_s = math.nan
 
-    def update(self, t_s: float, b_T: np.ndarray, dipole_body_Am2: np.ndarray | None = None) -> None:
+    def update(self, t_s: float, b_T: np.ndarray, dipole_body_Am2: np.ndarray | None = None,
+               mean_dipole_body_Am2: np.ndarray | None = None) -> None:
+        """A sample; the kit's dipole acting from now on (held until the next sample when its mean over
+        the step, `mean_dipole_body_Am2`, is not given then)."""
         b = np.asarray(b_T, float)
         if not np.all(np.isfinite(b)):
             return
@@ -322,7 +326,8 @@ class OrbitalAttitudeBank:
             # the inputs held over the step: the orbit at its middle, the dipole that acted since the last sample
             tm = 0.5 * (self.t_s + t_s)
             rm, vm, bm = self.inputs_at(tm)
-            u = Inputs(rm, vm, bm, self._dipole)
+            u = Inputs(rm, vm, bm, self._dipole if mean_dipole_body_Am2 is None
+                       else np.asarray(mean_dipole_body_Am2, float))
             dt = t_s - self.t_s
             for m in self.members:
                 m.q, m.w, m.P = predict(m.q, m.w, m.P, dt, u, self.model, self.tuning)

@@ -116,6 +116,64 @@ def test_the_known_dipole_follows_the_open_capsules_and_polarity():
     assert emu.dipole_body_Am2() == pytest.approx([0.0, 15.0, -15.0], abs=1e-6)
 
 
+
+class Recorder:
+    """An attitude source that only keeps what the kit hands it."""
+
+    description = "records the samples"
+
+    def __init__(self):
+        self.seen = []
+
+    def observe(self, t_s, b_T, dipole_body_Am2, mean_dipole_body_Am2=None):
+        self.seen.append((t_s, np.array(dipole_body_Am2), mean_dipole_body_Am2))
+
+    def attitude(self, now_s):
+        return None
+
+
+def test_the_mean_dipole_between_samples_is_the_emulators_impulse_shutter_ramps_included():
+    """The kit hands the estimate the mean of its dipole since the previous sample, a moving shutter counted
+    as half open: over a capsule's opening (2 s ramp) and closing (0.5 s) its time integral is the emulator's
+    ∫ p dt (what the torque acts with) to a loop tick's worth, where the dipole held from the previous sample
+    is seconds of the full dipole off."""
+    emu = DeorbitKitEmulator()
+    src = Recorder()
+    kit = DeorbitKit(emu, src)
+    t, true_impulse, held_impulse = 0.0, np.zeros(3), np.zeros(3)
+    held = np.zeros(3)
+    seq = kit.sequencer
+
+    def run(seconds):
+        nonlocal t, true_impulse, held_impulse, held
+        for _ in range(int(round(seconds / DT))):
+            p0 = emu.dipole_body_Am2()
+            t = round(t + DT, 9)
+            emu.advance_to(t)
+            true_impulse += 0.5 * (p0 + emu.dipole_body_Am2()) * DT  # the ramp is linear within a tick
+            sample = SimpleNamespace(t_s=t, b_T=np.zeros(3)) if abs(t - round(t)) < 1e-6 else None
+            kit.tick(t, sample)
+            if sample is not None:
+                held_impulse += held * 1.0
+                held = src.seen[-1][1]
+
+    seq.request_home(0, t)
+    seq.request_home(1, t)
+    run(5.0)
+    true_impulse[:], held_impulse[:] = 0.0, 0.0
+    n0 = len(src.seen)
+    assert seq.request_capsule(1, True, t).accepted  # the yaw magnet, +15 A·m² along body y
+    run(10.0)
+    assert emu.dipole_body_Am2() == pytest.approx([0.0, 15.0, 0.0], abs=1e-6)
+    assert seq.request_capsule(1, False, t).accepted
+    run(5.0)
+    assert np.all(emu.dipole_body_Am2() == 0.0)
+    mean_impulse = sum(m * 1.0 for _, _, m in src.seen[n0:])  # one sample a second
+    assert true_impulse[1] == pytest.approx(15.0 * 10.0, abs=15.0 * 2.5)  # about 10 s open
+    assert mean_impulse == pytest.approx(true_impulse, abs=15.0 * 2 * DT)  # A·m²·s: a tick at each end
+    assert abs(held_impulse[1] - true_impulse[1]) > 15.0 * 0.5  # the held dipole misses the ramps
+
+
 def _estimate():
     """An estimate fed 120 samples of a body at rest in the orbital frame (yaw = pitch = roll = 0)."""
     orbit = CircularOrbitModel(600e3, 97.8)
@@ -149,7 +207,8 @@ def test_the_trust_gate_needs_time_sigma_fit_and_agreeing_hypotheses():
     rep = src.report()
     assert rep.source == mavlink.DEBRIS_CONTROLLER_ATTITUDE_TRUSTED and rep.hypotheses == 1
     # once trusted, a σ between the limit and twice the limit keeps the trust (no flapping) ...
-    best.P[1, 1] = 0.15 ** 2
+    limit = src.gate.max_pointing_sigma_rad
+    best.P[1, 1] = (1.5 * limit) ** 2
     assert src.attitude(119.0) is not None and src.trusted
     # ... but is not enough to gain it
     src.trusted = False
@@ -160,7 +219,7 @@ def test_the_trust_gate_needs_time_sigma_fit_and_agreeing_hypotheses():
     src.nis_mean = 50.0
     assert src.attitude(119.0) is None and "do not fit" in src.reason
     src.nis_mean = 3.0
-    best.P[2, 2] = 0.3 ** 2  # pointing σ about body z 0.3 rad
+    best.P[2, 2] = (2.5 * limit) ** 2  # pointing σ about body z beyond even the trusted limit
     assert src.attitude(119.0) is None and "pointing sigma" in src.reason
 
 
