@@ -88,9 +88,10 @@ class OrbitalAttitudeTuning:
     """Noise and start settings (SI).
 
     accel_psd: spectral density of the unmodelled angular acceleration [(rad/s²)²/Hz] (density and
-      inertia errors, the shutters' ramps, the magnets' real moment): (3.5e-7 rad/s²)² over 100 s of
-      correlation by default (chosen on recorded closed-loop runs: smaller values make the estimate
-      overconfident about yaw after the pulses).
+      inertia errors, what the shutters' ramps and the magnets' real moment leave): (1.1e-7 rad/s²)² over
+      100 s of correlation by default, chosen on the de-orbit benchmark's closed loop from its 0° start
+      (yaw error RMS from 3,600 s, against the σ about body z): (3.5e-7)² 0.097 rad, the σ covering 55 %
+      of it; (1.1e-7)² 0.033 rad, 96 %; (3.5e-8)² 0.075 rad, 50 % (overconfident after the pulses).
     field_sigma_T: the onboard field model's error per axis, added to the sensor's noise.
     sigma_bias0_T, bias_psd_T2_per_s: the sample's slowly varying error in body axes (what the host
       calibration leaves, the hard iron's thermal drift, the kit's field the compensation misses), a
