@@ -90,7 +90,8 @@ class OrbitalAttitudeTuning:
     accel_psd: spectral density of the unmodelled angular acceleration [(rad/s²)²/Hz] (density and
       inertia errors, what the shutters' ramps and the magnets' real moment leave): (1.1e-7 rad/s²)² over
       100 s of correlation by default, chosen on the de-orbit benchmark's closed loop from its 0° start
-      (yaw error RMS from 3,600 s, against the σ about body z): (3.5e-7)² 0.097 rad, the σ covering 55 %
+      (yaw error RMS from 3,600 s, with the dipole then held between samples, and how often the σ about
+      body z covered the error): (3.5e-7)² 0.097 rad, the σ covering 55 %
       of it; (1.1e-7)² 0.033 rad, 96 %; (3.5e-8)² 0.075 rad, 50 % (overconfident after the pulses).
     field_sigma_T: the onboard field model's error per axis, added to the sensor's noise.
     sigma_bias0_T, bias_psd_T2_per_s: the sample's slowly varying error in body axes (what the host
