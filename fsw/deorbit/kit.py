@@ -66,9 +66,10 @@ MAX_PERIOD_S = 3600.0
 
 class AttitudeSource(Protocol):
     """Where the controller's attitude comes from; `description` is shown with the results. Optional:
-    ``observe(t_s, b_T, dipole_body_Am2, mean_dipole_body_Am2)`` (each calibrated, kit-compensated sample
-    with the kit's dipole from then on and its mean since the previous sample), ``report()`` (an `onboard_attitude.AttitudeReport` for telemetry) and
-    ``reason`` (why there is no attitude)."""
+    ``observe(t_s, b_T, dipole_body_Am2, mean_dipole_body_Am2, kit_step_cov_T2)`` (each calibrated,
+    kit-compensated sample with the kit's dipole from then on, its mean since the previous sample and how
+    much the kit-field model's error may have stepped since then), ``report()`` (an
+    `onboard_attitude.AttitudeReport` for telemetry) and ``reason`` (why there is no attitude)."""
 
     description: str
 
@@ -161,6 +162,9 @@ class DeorbitKit:
         self._impulse_t_s: float | None = None
         self._impulse_from_s: float | None = None
         self._dipole_now_Am2 = np.zeros(3)
+        # the kit-field model's state at the last sample handed over (coefficients, covariance of F_a)
+        self._kit_c: np.ndarray | None = None
+        self._kit_P: np.ndarray | None = None
         self._hold_reason_sent = ""
         #: the magnets' build and placement (`MagnetGeometry`, one per channel), for the laws that plan with them
         self.magnets = magnets
@@ -203,7 +207,7 @@ class DeorbitKit:
         if sample is not None and hasattr(self.attitude, "observe"):
             span = now_s - self._impulse_from_s if self._impulse_from_s is not None else 0.0
             mean = self._impulse_Am2s / span if span > 0.0 else None
-            self.attitude.observe(sample.t_s, sample.b_T, self.known_dipole_body_Am2(), mean)
+            self.attitude.observe(sample.t_s, sample.b_T, self.known_dipole_body_Am2(), mean, self._kit_step_cov())
             self._impulse_Am2s = np.zeros(3)
             self._impulse_from_s = now_s
         if seq.mode is KitMode.RUNNING:
@@ -221,6 +225,22 @@ class DeorbitKit:
             self.next_decision_s = math.inf
         seq.update(now_s)
         self._dipole_now_Am2 = self.known_dipole_body_Am2(moving=0.5)
+
+    def _kit_step_cov(self) -> np.ndarray | None:
+        """How much the kit-compensated samples' error may have stepped since the previous sample [T², 3×3]:
+        a channel's change of state by the kit-field model's uncertainty of that change, a calibration taken in
+        by the variance it removed from the current state's field; None while a channel moves."""
+        kf = self.sensor_field
+        c = kf.coefficients()
+        if c is None:
+            return None
+        cov = np.zeros((3, 3))
+        if self._kit_c is not None:
+            cov += kf.error_cov_T2(c - self._kit_c)
+            if self._kit_P is not None and not np.array_equal(self._kit_P, kf.P):
+                cov += kf.error_cov_T2(c, self._kit_P) - kf.error_cov_T2(c)
+        self._kit_c, self._kit_P = c, kf.P.copy()
+        return cov
 
     def _decide(self, now_s: float) -> None:
         seq = self.sequencer

@@ -279,6 +279,20 @@ class KitFieldModel:
         return any(t0 - g <= t1_s and t0_s <= t1 + g for t0, t1, i in self.intervals
                    if channel is None or i == channel)
 
+    def coefficients(self) -> np.ndarray | None:
+        """Per channel the coefficient of its F_a in the modelled field now (s cos φ of its rest state);
+        None while a channel is not at rest."""
+        if any(r is None for r in self.rest):
+            return None
+        return np.array([r.s * math.cos(r.phi_rad) for r in self.rest])
+
+    def error_cov_T2(self, c: np.ndarray, P: np.ndarray | None = None) -> np.ndarray:
+        """The covariance [T²] of the model's error in a field c_pitch F_a,pitch + c_yaw F_a,yaw (with the
+        calibration's covariance `P`, default the current one): for the coefficients' change between two
+        states, how much the error of the kit-compensated samples can step there."""
+        H = np.kron(np.asarray(c, float)[None, :], np.eye(3))
+        return H @ (self.P if P is None else P) @ H.T
+
     def model_T(self) -> np.ndarray:
         """The modelled field now, the channels at rest in their current (or last) state [T]."""
         return self._model(tuple(r if r is not None else (f or Rest(m.leakage, 0.0))

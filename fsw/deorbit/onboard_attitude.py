@@ -88,9 +88,10 @@ class EstimatedAttitude:
     _inputs: OrbitInputs | None = None
 
     def observe(self, t_s: float, b_T: np.ndarray, dipole_body_Am2: np.ndarray,
-                mean_dipole_body_Am2: np.ndarray | None = None) -> None:
-        """A calibrated, kit-compensated sample, the kit's dipole acting from now on and (when known) its
-        mean since the previous sample."""
+                mean_dipole_body_Am2: np.ndarray | None = None, kit_step_cov_T2: np.ndarray | None = None) -> None:
+        """A calibrated, kit-compensated sample, the kit's dipole acting from now on and, when known, its
+        mean since the previous sample and the covariance of the step the kit-field model's error may have
+        made since then."""
         fld, why = (None, "no orbit/field model on board") if self.provider is None else self.provider.field_now(t_s)
         if fld is None:
             self.reason = why or "no field along the orbit"
@@ -105,7 +106,7 @@ class EstimatedAttitude:
             self.bank = OrbitalAttitudeBank(self.sigma_b_T, inputs, self.model, self.tuning)
             self.nis_mean = 3.0
         try:
-            self.bank.update(t_s, b_T, dipole_body_Am2, mean_dipole_body_Am2)
+            self.bank.update(t_s, b_T, dipole_body_Am2, mean_dipole_body_Am2, kit_step_cov_T2)
         except ValueError as e:  # the orbit cannot be evaluated (SGP4): no estimate from this sample
             self.reason = str(e)
             return

@@ -96,9 +96,11 @@ class OrbitalAttitudeTuning:
     field_sigma_T: the onboard field model's error per axis, added to the sensor's noise.
     sigma_bias0_T, bias_psd_T2_per_s: the sample's slowly varying error in body axes (what the host
       calibration leaves, the hard iron's thermal drift, the kit's field the compensation misses), a
-      random walk from σ `sigma_bias0_T`; when the kit's dipole changes (a capsule opens or closes, a
-      magnet turns), `kit_change_bias_sigma_T` more per axis (what the kit-field model misses changes with
-      the channels' states).
+      random walk from σ `sigma_bias0_T`. What the kit-field model misses changes with the channels'
+      states: given the model's covariance of a change (the kit's, `fsw.deorbit.kit_field`: ~8 µT per axis
+      before its first calibration steps, a few tenths after), the bias opens by that plus
+      `kit_step_floor_sigma_T` per axis (the leakage and the unobserved F_b, left at the design's); without
+      it, by `kit_change_bias_sigma_T` per axis whenever the kit's dipole changes.
     """
 
     accel_psd: float = (1.1e-7) ** 2 * 100.0
@@ -106,6 +108,7 @@ class OrbitalAttitudeTuning:
     sigma_bias0_T: float = 2e-6
     bias_psd_T2_per_s: float = (1e-6) ** 2 / 1000.0
     kit_change_bias_sigma_T: float = 1e-6
+    kit_step_floor_sigma_T: float = 0.3e-6
     sigma_angle0_rad: float = 0.05  # perpendicular to B at the first sample (plus the sample's noise)
     sigma_about_b0_rad: float = 0.5  # about B, per hypothesis
     sigma_rate0_radps: float = 1e-3
@@ -313,9 +316,12 @@ class OrbitalAttitudeBank:
         self.t_s = math.nan
 
     def update(self, t_s: float, b_T: np.ndarray, dipole_body_Am2: np.ndarray | None = None,
-               mean_dipole_body_Am2: np.ndarray | None = None) -> None:
+               mean_dipole_body_Am2: np.ndarray | None = None, kit_step_cov_T2: np.ndarray | None = None) -> None:
         """A sample; the kit's dipole acting from now on (held until the next sample when its mean over
-        the step, `mean_dipole_body_Am2`, is not given then)."""
+        the step, `mean_dipole_body_Am2`, is not given then); `kit_step_cov_T2`: how much the sample's error
+        may have stepped since the previous one with the kit's state (the kit-field model's covariance of
+        that change, plus `kit_step_floor_sigma_T`² per axis at a change of the dipole); without it a change
+        of the dipole opens the bias by `kit_change_bias_sigma_T`."""
         b = np.asarray(b_T, float)
         if not np.all(np.isfinite(b)):
             return
@@ -344,10 +350,18 @@ class OrbitalAttitudeBank:
         self.samples += 1
         if dipole_body_Am2 is not None:
             p = np.asarray(dipole_body_Am2, float)
-            if np.any(p != self._dipole):  # the kit's field at the sensor changes with it
-                jump = (self.tuning.kit_change_bias_sigma_T * UT_PER_T) ** 2
+            changed = bool(np.any(p != self._dipole))
+            if kit_step_cov_T2 is not None:  # the kit-field model's own uncertainty of the step
+                jump = np.asarray(kit_step_cov_T2, float) * UT_PER_T ** 2
+                if changed:
+                    jump = jump + (self.tuning.kit_step_floor_sigma_T * UT_PER_T) ** 2 * np.eye(3)
+            elif changed:  # the kit's field at the sensor changes with it
+                jump = (self.tuning.kit_change_bias_sigma_T * UT_PER_T) ** 2 * np.eye(3)
+            else:
+                jump = None
+            if jump is not None:
                 for m in self.members:
-                    m.P[6:, 6:] += jump * np.eye(3)
+                    m.P[6:, 6:] += jump
             self._dipole = p.copy()
 
     def spread_rad(self) -> float:

@@ -14,13 +14,14 @@ pytestmark = pytest.mark.bench
 
 @pytest.mark.slow
 def test_the_estimate_follows_the_truth_and_the_controller_waits_for_it():
-    r = run_bench(duration_s=2400.0, settle_s=1800.0, attitude="estimate")
+    r = run_bench(duration_s=4500.0, settle_s=3600.0, attitude="estimate")
     d = r.as_dict()
     assert d["attitude"] == "estimate" and "onboard estimate" in d["attitude_source"]
-    # yaw and pitch of the estimate against the truth, from 1,800 s on
-    assert d["att_err_rms_rad"]["yaw"] < 0.1 and d["att_err_rms_rad"]["pitch"] < 0.1
+    # yaw and pitch of the estimate against the truth after convergence (3,600 s), the targets:
+    # 0.05 rad and 0.01 °/s
+    assert d["att_err_rms_rad"]["yaw"] <= 0.05 and d["att_err_rms_rad"]["pitch"] <= 0.05
     assert d["att_err_rms_rad_max"] == max(d["att_err_rms_rad"].values())
-    assert d["rate_err_rms_dps"] < 0.02
+    assert d["rate_err_rms_dps"] <= 0.01
     # the trust gate's minimum run (900 s): the first nine decisions held the capsules closed
     assert d["decisions_held"] >= 9 and d["trusted_from_s"] >= 900.0
     assert all(p.t_s >= d["trusted_from_s"] - 1.0 for p in r.kit.pulses if p.polarity)

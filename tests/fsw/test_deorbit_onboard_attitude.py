@@ -124,9 +124,11 @@ class Recorder:
 
     def __init__(self):
         self.seen = []
+        self.covs = []
 
-    def observe(self, t_s, b_T, dipole_body_Am2, mean_dipole_body_Am2=None):
+    def observe(self, t_s, b_T, dipole_body_Am2, mean_dipole_body_Am2=None, kit_step_cov_T2=None):
         self.seen.append((t_s, np.array(dipole_body_Am2), mean_dipole_body_Am2))
+        self.covs.append(kit_step_cov_T2)
 
     def attitude(self, now_s):
         return None
@@ -172,6 +174,42 @@ def test_the_mean_dipole_between_samples_is_the_emulators_impulse_shutter_ramps_
     assert true_impulse[1] == pytest.approx(15.0 * 10.0, abs=15.0 * 2.5)  # about 10 s open
     assert mean_impulse == pytest.approx(true_impulse, abs=15.0 * 2 * DT)  # A·m²·s: a tick at each end
     assert abs(held_impulse[1] - true_impulse[1]) > 15.0 * 0.5  # the held dipole misses the ramps
+
+
+
+def test_the_step_the_kit_field_models_error_may_make_is_handed_with_the_sample():
+    """At a capsule's opening the kit hands the estimate the kit-field model's covariance of that change
+    (before any calibration step: its prior, 15 % of the magnet's field per axis, times the change of the
+    screening, 1 − leakage); at rest nothing; while a shutter moves no sample is handed over (the flight loop
+    skips them), and a covariance of None would say the state is not known."""
+    emu = DeorbitKitEmulator()
+    src = Recorder()
+    kit = DeorbitKit(emu, src)
+    t = 0.0
+
+    def run(seconds):
+        nonlocal t
+        for _ in range(int(round(seconds / DT))):
+            t = round(t + DT, 9)
+            emu.advance_to(t)
+            kit.sensor_field.poll(t)  # as the flight loop does every tick
+            moving = any(ch.capsule.state.name in ("OPENING", "CLOSING") for ch in kit.sequencer.channels)
+            kit.tick(t, SimpleNamespace(t_s=t, b_T=np.zeros(3)) if abs(t - round(t)) < 1e-6 and not moving
+                     else None)
+
+    kit.sequencer.request_home(0, t)
+    kit.sequencer.request_home(1, t)
+    run(5.0)
+    n0 = len(src.covs)
+    assert kit.sequencer.request_capsule(1, True, t).accepted  # the yaw magnet opens
+    run(10.0)
+    covs = [c for c in src.covs[n0:] if c is not None]
+    steps = [c for c in covs if np.trace(c) > 0.0]
+    assert len(steps) == 1  # the one change of state; at rest nothing more
+    m = kit.sensor_field.models[1]
+    sigma = 0.15 * float(np.linalg.norm(m.fa_design_T)) * (1.0 - m.leakage)
+    assert np.sqrt(np.diag(steps[0])) == pytest.approx([sigma] * 3, rel=1e-9)
+    assert sigma > 5e-6  # T: five times the 1 µT a change opened the bias by before
 
 
 def _estimate():
