@@ -454,7 +454,7 @@ def _progress(res, t0) -> str:
 
 
 def targets(results: list[dict]) -> dict:
-    """The issue's targets, row by row: onboard ≤ 1/3, ground ≤ 1/10 of Boer⊥ RMS; ground coverage in
+    """The targets, row by row: onboard ≤ 1/3, ground ≤ 1/10 of Boer⊥ RMS; ground coverage in
     [60 %, 80 %]."""
     out = {"onboard_one_third": [], "ground_one_tenth": [], "ground_coverage_60_80": []}
     for r in results:

@@ -458,7 +458,7 @@ def sweep_task(run: Run, *, scenario_name: str, attitude: str, **kwargs) -> dict
 def sweep(scenario_name: str = DEFAULT_SCENARIO, *, starts: int = 8, seeds: int = 5, attitude: str = "estimate",
           out=None, campaign=None, **kwargs) -> dict | int:
     """`starts` starts on the orbit × `seeds` seeds, one line each on `out` (default stdout); the
-    aggregates of the issue. The runs are a campaign (bench.campaign): `campaign` = (parser, arguments) of
+    aggregates of the targets. The runs are a campaign (bench.campaign): `campaign` = (parser, arguments) of
     its options (default: in this process); an exit status instead for --rerun or a failed run."""
     out = out or sys.stdout
     deorbit_scenario(scenario_name)  # refused before a campaign starts, not in each of its runs
@@ -495,7 +495,7 @@ def sweep_row(d: dict) -> dict:
 
 def aggregate(runs: list[dict], scenario_name: str, attitude: str, out=None) -> dict:
     """The sweep's JSON from its rows (:func:`sweep_row`), however they were run (one process, or one
-    run's JSON each), with the aggregates of the issue; the summary line on `out` (default stdout)."""
+    run's JSON each), with the aggregates of the targets; the summary line on `out` (default stdout)."""
     out = out or sys.stdout
     energy = np.array([r["energy_J"] for r in runs])
     est = np.array([r["att_err_rms_rad_max"] for r in runs], float)

@@ -36,7 +36,7 @@ the 95 % / 99 % intervals covered the truth and the mean (error/σ)² (1 for rig
 shape: the errors of the ratios next to their Cramér–Rao bound (the Fisher information of the samples
 at the truth: no unbiased estimator does better with this σ_B, sampling and record) and the fits' own
 σ. Every fit is checked for a local minimum against single shooting started at the truth. Then each
-target of the issue with the papers' numbers beside it; coverages with their binomial interval.
+target with the papers' numbers beside it; coverages with their binomial interval.
 ``--crb`` prints only the bound for several record lengths (no Monte-Carlo). ``--json`` writes all of
 it. The noise-free truth is the simulator's (RK4, 0.5 s); the fit is started from an isotropic guess
 of 0.75 × the mean true moment (prior 1-σ 3 × that).
@@ -570,7 +570,7 @@ def _coverage_target(r: dict) -> str:
 
 
 def targets(results: list[dict]) -> str:
-    """The issue's targets, each with what was measured."""
+    """The targets, each with what was measured."""
     by = {r["scenario"]: r for r in results}
     out = ["== targets"]
     if "aist2d" in by and "full" in by["aist2d"]:
@@ -614,7 +614,7 @@ def crb_table(names: list[str], durations: list[float]) -> dict:
 
 #: Record lengths `--duration auto` chooses from [s]: a quarter, half, three quarters and one orbit.
 RECORD_LADDER_S = (1500.0, 3000.0, 4500.0, 6000.0)
-#: The issue's target on the principal-moment ratios [%] and the margin the design keeps below it: the
+#: The target on the principal-moment ratios [%] and the margin the design keeps below it: the
 #: fits' rms came out at up to 1.15 × the bound, and 20 runs estimate an rms to ±16 % (1σ), so a bound
 #: of 0.5 % / 1.5 ≈ 0.33 % makes a 20-run rms above 0.5 % a two-sigma event.
 SHAPE_TARGET_PCT = 0.5

@@ -7,7 +7,7 @@ the field along the orbit from the first sample (the box's model: IGRF-14 at the
 minute apart) and runs as the loop runs it (a 50 Hz loop, a sample every 0.5 s, the background work of
 every tick). The figure, per filter and seed: the RMS of the filter's full-vector error over the samples
 from 30 s to 90 s against the RMS of the Boer formula's error perpendicular to B over the same samples
-(the issue's target: at most a third).
+(the target: at most a third).
 
     python -m bench.lockon                                  # every filter, seeds 0-5
     python -m bench.lockon --filters euler --seeds 20 --json lockon.json --workers 2

@@ -5,7 +5,7 @@ the sub-directories too; every test marked with its directory (fsw, hil, ground,
 Hypothesis profiles (property-based tests; `support.tiers` makes a property into its two tests):
 
 - ``fast`` (the default): 200 examples a property, so that the fast tier stays fast;
-- ``fuzz``: 10,000 examples a property (the issue's "at scale"). The ``slow``-marked variant of every
+- ``fuzz``: 10,000 examples a property (the "at scale"). The ``slow``-marked variant of every
   fuzz property (``pytest -m slow``) always runs with it; ``HYPOTHESIS_PROFILE=fuzz`` makes every
   property that does not set its own count run with it too.
 

@@ -437,6 +437,6 @@ def physical_checks(J: np.ndarray, rel_tol: float = 1e-9) -> dict:
 
 def relative_errors(p_est: np.ndarray, p_true: np.ndarray) -> np.ndarray:
     """Component errors relative to the largest principal moment of the truth (products of inertia
-    can be zero, so they are scored against the tensor's size, as the issue's targets are)."""
+    can be zero, so they are scored against the tensor's size, as the targets are)."""
     return (np.asarray(p_est) - np.asarray(p_true)) / principal_axes(tensor(p_true))[0][-1]
 

@@ -2,7 +2,7 @@
 
     python tests/bench/report.py bench.json
 
-Medians per benchmark, the issue's targets beside them, the Kalman step against filterpy's and the
+Medians per benchmark, the targets beside them, the Kalman step against filterpy's and the
 ground decoder's throughput in frames per second.
 """
 from __future__ import annotations

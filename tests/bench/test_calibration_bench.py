@@ -1,5 +1,5 @@
 """The host-magnetics calibration benchmark, a smoke run: two seeded hosts over one orbit meet the
-residual target, the JSON has the issue's keys, the command line refuses what it cannot use. The
+residual target, the JSON has the keys, the command line refuses what it cannot use. The
 20 hosts are `python -m bench.calibration`."""
 import json
 

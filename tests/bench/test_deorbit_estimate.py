@@ -17,7 +17,7 @@ def test_the_estimate_follows_the_truth_and_the_controller_waits_for_it():
     r = run_bench(duration_s=4500.0, settle_s=3600.0, attitude="estimate")
     d = r.as_dict()
     assert d["attitude"] == "estimate" and "onboard estimate" in d["attitude_source"]
-    # yaw and pitch of the estimate against the truth after convergence (3,600 s), the targets:
+    # yaw and pitch of the estimate against the truth after convergence (3,600 s), the targets:
     # 0.05 rad and 0.01 °/s
     assert d["att_err_rms_rad"]["yaw"] <= 0.05 and d["att_err_rms_rad"]["pitch"] <= 0.05
     assert d["att_err_rms_rad_max"] == max(d["att_err_rms_rad"].values())

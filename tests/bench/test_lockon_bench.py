@@ -10,7 +10,7 @@ from bench import lockon
 
 def test_lockon_bench_writes_the_ratio_of_each_filter_and_seed(tmp_path):
     """One seed of the Euler filter: its error from 30 s on against the truth, at most a third of Boer's ⊥B
-    error, as the JSON says; and the tumble is the issue's (27 °/s, 0.5 s steps, 1.5 µT)."""
+    error, as the JSON says; and the tumble is the (27 °/s, 0.5 s steps, 1.5 µT)."""
     out = tmp_path / "l.json"
     assert lockon.main(["--filters", "euler", "--seeds", "1", "--json", str(out), "--workers", "1"]) == 0
     d = json.loads(out.read_text())
@@ -30,7 +30,7 @@ def test_lockon_bench_refuses_bad_options(argv):
 
 
 def test_lock_on_of_an_elongated_body_whose_right_shape_lies_near_the_physical_edge():
-    """Seed 14 of the issue's cubesat tumble (J₃/J₁ = 0.19: ln J₂/J₁ only 0.17 from the edge of the physical
+    """Seed 14 of the cubesat tumble (J₃/J₁ = 0.19: ln J₂/J₁ only 0.17 from the edge of the physical
     region, less than the shape prior's σ): the trial's hypotheses next to the right shape were pushed over the
     edge by their first corrections and dropped, the rest scored with their transient from the random-walk
     rate lost to the random-walk filter, and Euler's equations started only at 48 s (error 30–90 s 0.88 of

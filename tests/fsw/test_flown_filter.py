@@ -70,7 +70,7 @@ def test_attitude_of_the_orbit_filter_points_the_field_right():
 
 @pytest.mark.slow
 def test_lock_on_within_30_s_on_a_fast_noisy_cubesat_tumble():
-    """The issue's fast, noisy tumble (`bench.lockon`: a cubesat at 27 °/s, 0.5 s steps, 1.5 µT, the field
+    """The fast, noisy tumble (`bench.lockon`: a cubesat at 27 °/s, 0.5 s steps, 1.5 µT, the field
     along the orbit from the first sample): within 30 s the flown filter is at most a third of Boer's error
     — the RMS of its full-vector error over the samples from 30 s to 90 s against the RMS of Boer's ⊥B
     error over the same samples, against the simulator's truth — on each of six seeded tumbles (random

@@ -453,7 +453,7 @@ def test_rate_model_bank_holds_a_libration_and_keeps_the_random_walk_for_a_tumbl
 
 
 def test_an_euler_filter_on_a_wrong_shape_is_found_lost_and_acquires_again():
-    """The issue's cubesat tumble (27 °/s, 0.5 s, here 0.5 µT; true ln J₂/J₁, ln J₃/J₁ = 0, −1.66): once the bank
+    """The cubesat tumble (27 °/s, 0.5 s, here 0.5 µT; true ln J₂/J₁, ln J₃/J₁ = 0, −1.66): once the bank
     runs Euler's equations, its filter is put on a wrong shape (0.1, −0.5) held with a σ of 0.001. Its
     innovations then stay at NIS 40–90 with the process noise at its cap, below the single filter's reset
     (NIS > 1000 three times): before, it stayed 3–9 °/s off for three minutes. With the watch on

@@ -43,7 +43,7 @@ def test_recovers_the_host_within_sigma_and_the_field_within_target():
         est = np.concatenate((cal.b_T, [cal.D[i, j] for i, j in mc.D_TERMS]))
         assert np.all(np.abs(est - truth_theta(S, h)) <= 4 * cal.sigma)
         resid_uT = np.sqrt(np.mean((mc.apply(cal, clean) - tumble(seed)) ** 2, axis=0)) * 1e6
-        assert np.all(resid_uT <= 0.3)  # the target, per axis RMS
+        assert np.all(resid_uT <= 0.3)  # the target, per axis RMS
 
 
 def test_one_sigma_covers_the_error_at_an_honest_rate():

@@ -20,7 +20,7 @@ from hil.orbit import CircularOrbit
 from support import MAGCAL_EPOCH, MAGCAL_ORBIT, Capture
 
 CHIP_SIGMA_T = 0.04e-6
-TARGET_T = 0.3e-6  # the residual target, per axis RMS
+TARGET_T = 0.3e-6  # the residual target, per axis RMS
 
 
 @functools.lru_cache(maxsize=None)

@@ -67,7 +67,7 @@ def rms_uT(d):
 def test_flight_degree_against_degree_13_and_what_the_dipole_costs():
     t, (flight, full, dipole) = along_the_orbit()
     ref = full.direct_b_eci_T(t)
-    assert rms_uT(flight.direct_b_eci_T(t) - ref) <= 0.2          # the target at the chosen degree
+    assert rms_uT(flight.direct_b_eci_T(t) - ref) <= 0.2          # the target at the chosen degree
     assert 7.0 < rms_uT(dipole.direct_b_eci_T(t) - ref) < 10.0     # ~8.6 µT RMS: the dipole's cost
 
 

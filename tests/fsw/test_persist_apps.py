@@ -132,7 +132,7 @@ def test_the_calibration_is_applied_from_the_first_sample_with_its_drift_phased_
     np.testing.assert_allclose(rows[0][1], before.cal.hard_iron_T(rows[0][0]), atol=1e-12)
     sigma_T = before.cal.calibration.sigma[:3]
     assert np.all(np.abs(err[0]) < 3 * sigma_T)
-    # every sample after it within the target (the drift's terms extrapolated until the first
+    # every sample after it within the target (the drift's terms extrapolated until the first
     # solution from new samples), then as close as before the restart
     assert np.max(np.abs(err)) < TARGET_T
     confirmed = next(i for i, r in enumerate(rows) if r[3] == mc.NOT_RESTORED)

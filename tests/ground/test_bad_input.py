@@ -174,7 +174,7 @@ def test_any_one_flipped_bit_of_a_length_byte_loses_that_record_only(tmp_path):
 
 
 def test_the_report_says_where_and_that_records_follow(tmp_path, capsys):
-    """The issue's case: junk early in a long file was reported as "no record follows" although
+    """The case: junk early in a long file was reported as "no record follows" although
     hundreds did, and the whole file was refused."""
     d = good_tlog(320)
     data = d[:2 * RECORD] + junk(57) + d[2 * RECORD:]

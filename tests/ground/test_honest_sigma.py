@@ -84,7 +84,7 @@ def test_ground_field_with_a_tle_is_the_onboard_igrf_model():
 
 @pytest.fixture(scope="module")
 def slow_heavy(tmp_path_factory):
-    """The issue's slow heavy tumble (~1 °/s, 1 s, 0.3 µT, 10 min) on the realistic world, as a recording."""
+    """The slow heavy tumble of the worst case (~1 °/s, 1 s, 0.3 µT, 10 min) on the realistic world, as a recording."""
     rec = realistic.simulate("slow_heavy", seed=0)
     path = tmp_path_factory.mktemp("honest") / "slow.csv"
     write_recording(path, rec.recording())
@@ -126,7 +126,7 @@ def test_slow_heavy_tumble_auto_without_orbit_covers_its_error(slow_heavy, tmp_p
 @pytest.mark.parametrize("method", ["kalman-orbit", "kalman-euler"])
 def test_orbit_filters_with_the_tle_do_not_diverge(slow_heavy, tmp_path, method):
     """kalman-orbit and kalman-euler with the box's 3-day-old TLE and a UTC 2 s off, on the slow heavy
-    tumble: no divergence (the issue saw 30–90 °/s with the dipole): within 0.5 °/s RMS after the
+    tumble: no divergence (30–90 °/s with the dipole before): within 0.5 °/s RMS after the
     first two minutes, never beyond 15 °/s."""
     rec, path = slow_heavy
     est = _run(path, method, tmp_path, "--tle", *rec.box_tle, "--utc0", rec.utc0.isoformat())
@@ -139,7 +139,7 @@ def test_orbit_filters_with_the_tle_do_not_diverge(slow_heavy, tmp_path, method)
 
 @pytest.fixture(scope="module")
 def host_iron(tmp_path_factory):
-    """The issue's uncalibrated host (hard ≈ 14 µT, soft ≈ 4 %) on the realistic world, as a recording."""
+    """The uncalibrated host (hard ≈ 14 µT, soft ≈ 4 %) on the realistic world, as a recording."""
     rec = realistic.simulate("host_iron", seed=0)
     path = tmp_path_factory.mktemp("honest") / "host.csv"
     write_recording(path, rec.recording())
@@ -338,7 +338,7 @@ def _as_smoothed(w, s, t):
 
 @pytest.mark.slow
 def test_auto_without_orbit_is_excluded_by_no_trustworthy_method(slow_heavy):
-    """The issue's slow heavy tumble without an orbit (seed 0), every other method of `ground.estimate` run on
+    """The slow heavy tumble without an orbit (seed 0), every other method of `ground.estimate` run on
     it: `auto` (which chose the Euler RTS smoother: 0.15 °/s off, its 1-σ covering 75 %) lies within the
     3-σ band (`ground.smoother.EXCLUDE_Z`; "excluded": outside it at more than a quarter of the samples) of
     every method whose own 1-σ covers its error in at least 60 % of the samples against the simulator's truth

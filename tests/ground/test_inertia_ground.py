@@ -94,7 +94,7 @@ def test_sampled_moment_hold():
 
 
 def test_ground_estimate_inertia_is_the_same_fit(recording_csv, tmp_path):
-    """`python -m ground.estimate INPUT.csv --inertia OUT.json` (the issue's interface) = ground.inertia."""
+    """`python -m ground.estimate INPUT.csv --inertia OUT.json` (the documented interface) = ground.inertia."""
     from ground import estimate
 
     a, b = tmp_path / "a.json", tmp_path / "b.json"

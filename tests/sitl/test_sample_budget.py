@@ -157,7 +157,7 @@ def test_a_busy_tick_defers_its_sample_and_a_later_tick_catches_up():
 
 @pytest.mark.slow
 def test_1khz_lockstep_holds_under_0_1_percent_overruns_on_its_own_cpu_time():
-    """The issue's target counted by the loop's own overrun counter: 10 s at 1 kHz, samples at 1 kHz, the
+    """The target counted by the loop's own overrun counter: 10 s at 1 kHz, samples at 1 kHz, the
     work measured as this thread's CPU time (another process's use of the machine is not the loop's
     work). Every sample received reaches the pipeline; the rate is kept."""
     import time

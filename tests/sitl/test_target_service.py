@@ -1,6 +1,6 @@
 """The service: `fsw.main` under a stand-in for systemd (a real unix datagram socket as $NOTIFY_SOCKET)
 says READY once its loop runs, feeds the watchdog from the loop's heartbeat and says STOPPING; the unit
-shipped in deploy/ has what the issue asks of it."""
+shipped in deploy/ has what is asked of it."""
 import configparser
 import shutil
 import socket

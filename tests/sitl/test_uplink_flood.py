@@ -206,7 +206,7 @@ class CaptureLink:
 
 def sitl_flood_ticks(kind: str, k: int) -> list[bytes]:
     """Tick k's share of a 1 MB/s flood (20 KB at 50 Hz)."""
-    if kind == "0xFE 64K":  # the issue's: 64 KB datagrams of 0xFE, one every 64 ms
+    if kind == "0xFE 64K":  # 64 KB datagrams of 0xFE, one every 64 ms
         return [b"\xfe" * 65000] if k % 3 == 0 else []
     if kind == "0xFD 4K":
         return [b"\xfd" * 4000] * 5
