@@ -162,9 +162,11 @@ class DeorbitKit:
         self._impulse_t_s: float | None = None
         self._impulse_from_s: float | None = None
         self._dipole_now_Am2 = np.zeros(3)
-        # the kit-field model's state at the last sample handed over (coefficients, covariance of F_a)
+        # the kit-field model at the last sample handed over: its coefficients, and its calibration (the
+        # model replaces P at every calibration, so the reference and the version are the calibration then)
         self._kit_c: np.ndarray | None = None
         self._kit_P: np.ndarray | None = None
+        self._kit_version = -1
         self._hold_reason_sent = ""
         #: the magnets' build and placement (`MagnetGeometry`, one per channel), for the laws that plan with them
         self.magnets = magnets
@@ -208,7 +210,7 @@ class DeorbitKit:
             span = now_s - self._impulse_from_s if self._impulse_from_s is not None else 0.0
             mean = self._impulse_Am2s / span if span > 0.0 else None
             self.attitude.observe(sample.t_s, sample.b_T, self.known_dipole_body_Am2(), mean, self._kit_step_cov())
-            self._impulse_Am2s = np.zeros(3)
+            self._impulse_Am2s.fill(0.0)
             self._impulse_from_s = now_s
         if seq.mode is KitMode.RUNNING:
             if math.isinf(self.next_decision_s):
@@ -236,10 +238,11 @@ class DeorbitKit:
             return None
         cov = np.zeros((3, 3))
         if self._kit_c is not None:
-            cov += kf.error_cov_T2(c - self._kit_c)
-            if self._kit_P is not None and not np.array_equal(self._kit_P, kf.P):
+            if np.any(c != self._kit_c):
+                cov += kf.error_cov_T2(c - self._kit_c)
+            if kf.version != self._kit_version:
                 cov += kf.error_cov_T2(c, self._kit_P) - kf.error_cov_T2(c)
-        self._kit_c, self._kit_P = c, kf.P.copy()
+        self._kit_c, self._kit_P, self._kit_version = c, kf.P, kf.version
         return cov
 
     def _decide(self, now_s: float) -> None:

@@ -200,7 +200,8 @@ class KitFieldModel:
         self.flagged = 0
         self.polls = 0
         self.restored = False  # the calibration is one from before a restart (`restore`)
-        self.version = 0  # calibrations taken in (the flight loop re-expresses its gate's reference)
+        # calibrations taken in (the flight loop re-expresses its gate's reference); each replaces x_T and P
+        self.version = 0
 
     # --- state ------------------------------------------------------------------------------------
     def _rest(self, i: int) -> Rest | None:

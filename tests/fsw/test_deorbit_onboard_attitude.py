@@ -37,21 +37,35 @@ def start_controller(kit, t):
     return kit.handle_command(msg, t)
 
 
+class Clock:
+    """The loop's time over the emulator: `ticks(seconds)` yields each tick's time `t`, the emulator
+    advanced to it."""
+
+    def __init__(self, emu):
+        self.emu, self.t = emu, 0.0
+
+    def ticks(self, seconds):
+        for _ in range(int(round(seconds / DT))):
+            self.t = round(self.t + DT, 9)
+            self.emu.advance_to(self.t)
+            yield self.t
+
+
+def whole_second(t):
+    return abs(t - round(t)) < 1e-6
+
+
 def run_controller(attitude, seconds, tlm=None):
     """The kit on `attitude`, its magnets homed and its controller started, run for `seconds`."""
     emu = DeorbitKitEmulator()
     kit = DeorbitKit(emu, attitude)
-    t = 0.0
+    clock = Clock(emu)
     for ch in (0, 1):
-        kit.sequencer.request_home(ch, t)
-    for _ in range(30):
-        t = round(t + DT, 9)
-        emu.advance_to(t)
+        kit.sequencer.request_home(ch, clock.t)
+    for t in clock.ticks(3.0):
         kit.tick(t)
-    assert start_controller(kit, t) == mavlink.MAV_RESULT_ACCEPTED
-    for _ in range(int(seconds / DT)):
-        t = round(t + DT, 9)
-        emu.advance_to(t)
+    assert start_controller(kit, clock.t) == mavlink.MAV_RESULT_ACCEPTED
+    for t in clock.ticks(seconds):
         kit.tick(t)
         if tlm is not None:
             kit.telemetry(t, tlm)
@@ -92,23 +106,20 @@ def test_a_decision_whose_field_forecast_fails_holds_the_capsules_and_says_why()
 def test_the_known_dipole_follows_the_open_capsules_and_polarity():
     emu = DeorbitKitEmulator()
     kit = DeorbitKit(emu)
-    t = 0.0
+    clock = Clock(emu)
 
     def run(seconds):
-        nonlocal t
-        for _ in range(int(round(seconds / DT))):
-            t = round(t + DT, 9)
-            emu.advance_to(t)
+        for t in clock.ticks(seconds):
             kit.tick(t)
 
     seq = kit.sequencer
-    seq.request_home(0, t)
-    seq.request_home(1, t)
+    seq.request_home(0, clock.t)
+    seq.request_home(1, clock.t)
     run(3.0)
     assert np.all(kit.known_dipole_body_Am2() == 0.0)  # both screened
-    assert seq.request_turn(0, 100, t).accepted  # the pitch magnet half a turn: polarity −1
+    assert seq.request_turn(0, 100, clock.t).accepted  # the pitch magnet half a turn: polarity −1
     run(10.0)
-    assert seq.request_capsule(0, True, t).accepted and seq.request_capsule(1, True, t).accepted
+    assert seq.request_capsule(0, True, clock.t).accepted and seq.request_capsule(1, True, clock.t).accepted
     run(5.0)
     # pitch magnet along body z (turned: −z), yaw magnet along body y, 15 A·m² each (the design)
     assert kit.known_dipole_body_Am2() == pytest.approx([0.0, 15.0, -15.0])
@@ -142,39 +153,39 @@ def test_the_mean_dipole_between_samples_is_the_emulators_impulse_shutter_ramps_
     emu = DeorbitKitEmulator()
     src = Recorder()
     kit = DeorbitKit(emu, src)
-    t, true_impulse, held_impulse = 0.0, np.zeros(3), np.zeros(3)
+    clock = Clock(emu)
+    true_impulse, held_impulse = np.zeros(3), np.zeros(3)
     held = np.zeros(3)
     seq = kit.sequencer
 
     def run(seconds):
-        nonlocal t, true_impulse, held_impulse, held
-        for _ in range(int(round(seconds / DT))):
-            p0 = emu.dipole_body_Am2()
-            t = round(t + DT, 9)
-            emu.advance_to(t)
-            true_impulse += 0.5 * (p0 + emu.dipole_body_Am2()) * DT  # the ramp is linear within a tick
-            sample = SimpleNamespace(t_s=t, b_T=np.zeros(3)) if abs(t - round(t)) < 1e-6 else None
+        nonlocal held
+        p0 = emu.dipole_body_Am2()
+        for t in clock.ticks(seconds):
+            p1 = emu.dipole_body_Am2()
+            true_impulse[:] += 0.5 * (p0 + p1) * DT  # the ramp is linear within a tick
+            p0 = p1
+            sample = SimpleNamespace(t_s=t, b_T=np.zeros(3)) if whole_second(t) else None
             kit.tick(t, sample)
             if sample is not None:
-                held_impulse += held * 1.0
+                held_impulse[:] += held * 1.0
                 held = src.seen[-1][1]
 
-    seq.request_home(0, t)
-    seq.request_home(1, t)
+    seq.request_home(0, clock.t)
+    seq.request_home(1, clock.t)
     run(5.0)
     true_impulse[:], held_impulse[:] = 0.0, 0.0
     n0 = len(src.seen)
-    assert seq.request_capsule(1, True, t).accepted  # the yaw magnet, +15 A·m² along body y
+    assert seq.request_capsule(1, True, clock.t).accepted  # the yaw magnet, +15 A·m² along body y
     run(10.0)
     assert emu.dipole_body_Am2() == pytest.approx([0.0, 15.0, 0.0], abs=1e-6)
-    assert seq.request_capsule(1, False, t).accepted
+    assert seq.request_capsule(1, False, clock.t).accepted
     run(5.0)
     assert np.all(emu.dipole_body_Am2() == 0.0)
     mean_impulse = sum(m * 1.0 for _, _, m in src.seen[n0:])  # one sample a second
     assert true_impulse[1] == pytest.approx(15.0 * 10.0, abs=15.0 * 2.5)  # about 10 s open
     assert mean_impulse == pytest.approx(true_impulse, abs=15.0 * 2 * DT)  # A·m²·s: a tick at each end
     assert abs(held_impulse[1] - true_impulse[1]) > 15.0 * 0.5  # the held dipole misses the ramps
-
 
 
 def test_the_step_the_kit_field_models_error_may_make_is_handed_with_the_sample():
@@ -185,23 +196,19 @@ def test_the_step_the_kit_field_models_error_may_make_is_handed_with_the_sample(
     emu = DeorbitKitEmulator()
     src = Recorder()
     kit = DeorbitKit(emu, src)
-    t = 0.0
+    clock = Clock(emu)
 
     def run(seconds):
-        nonlocal t
-        for _ in range(int(round(seconds / DT))):
-            t = round(t + DT, 9)
-            emu.advance_to(t)
+        for t in clock.ticks(seconds):
             kit.sensor_field.poll(t)  # as the flight loop does every tick
             moving = any(ch.capsule.state.name in ("OPENING", "CLOSING") for ch in kit.sequencer.channels)
-            kit.tick(t, SimpleNamespace(t_s=t, b_T=np.zeros(3)) if abs(t - round(t)) < 1e-6 and not moving
-                     else None)
+            kit.tick(t, SimpleNamespace(t_s=t, b_T=np.zeros(3)) if whole_second(t) and not moving else None)
 
-    kit.sequencer.request_home(0, t)
-    kit.sequencer.request_home(1, t)
+    kit.sequencer.request_home(0, clock.t)
+    kit.sequencer.request_home(1, clock.t)
     run(5.0)
     n0 = len(src.covs)
-    assert kit.sequencer.request_capsule(1, True, t).accepted  # the yaw magnet opens
+    assert kit.sequencer.request_capsule(1, True, clock.t).accepted  # the yaw magnet opens
     run(10.0)
     covs = [c for c in src.covs[n0:] if c is not None]
     steps = [c for c in covs if np.trace(c) > 0.0]
