@@ -33,6 +33,7 @@ import numpy as np
 from .commands import BadParam, float_param, int_param
 from .estimation import euler_fit as ef
 from .estimation.euler_fit import field_error
+from .estimation.orbital_attitude import orbit_position_fn
 from .estimation import inertia as inr
 from .telemetry.dialect import mavlink
 
@@ -113,6 +114,10 @@ class IdentConfig:
     drift: bool = True
     drift_rate_T_per_s: float = 2.2e-9
     drift_max_T: float = 2e-6
+    # the gravity gradient in the fit's model when the field along the orbit says where the orbit is
+    # (`euler_fit.KnownAction.with_orbit`): on a body of ~20 kg·m² with moments ~10 kg·m² apart it is a few %
+    # of the kit's magnets' moment, and the fit left without it puts up to ~4 % into the tensor
+    gravity_gradient: bool = True
 
     def fit_options(self, span_s: float, source: int) -> ef.FitOptions:
         """`fit` with the terms above for a record of `span_s` seconds of a `source` experiment."""
@@ -309,6 +314,17 @@ class IdentExperiment:
         p = np.array([d[1] for d in self.dipoles])
         return ef.KnownAction(t, np.zeros_like(p), p)
 
+    def _orbit_of(self, field) -> ef.PositionFn | None:
+        """Where the body is along the orbit its fit's field is computed on (None: not known, or not wanted)."""
+        if not self.cfg.gravity_gradient:
+            return None
+        for obj in (field, getattr(field, "__self__", None)):   # the field, or the one whose b_eci_T it is
+            try:
+                return orbit_position_fn(obj)
+            except ValueError:
+                continue
+        return None
+
     # --- the fit ---------------------------------------------------------------------------------------
     def _fit_work(self, now_s: float) -> None:
         if self._job is None:
@@ -345,7 +361,8 @@ class IdentExperiment:
         g = self.cfg.inertia_guess_kgm2
         b_fit = self._b_fit if self._b_fit is not None else self.b_inertial
         opts = self.cfg.fit_options(float(t[-1] - t[0]), self.source)
-        self._job = ef.identify_steps(t, b[None], b_fit, self.known_action(), self.sigma_b_T,
+        action = self.known_action().with_orbit(self._orbit_of(b_fit))
+        self._job = ef.identify_steps(t, b[None], b_fit, action, self.sigma_b_T,
                                       np.array([g, g, g, 0.0, 0.0, 0.0]), opts, chunk=self.cfg.work_per_tick)
         self._job_meta = (len(t), float(t[-1]), final)
         self._last_job_s = now_s

@@ -2,16 +2,20 @@
 
 From an attitude q (body → ECI) and rate ω at a start time (physics-and-seeds.md §2):
 
-    J ω̇ + ω × (J ω) = M(t) + p_m(t) × B_body,     q̇ = ½ q ⊗ [0, ω],     B_body(t) = R(q)ᵀ B_I(t) + b
+    J ω̇ + ω × (J ω) = M(t) + p_m(t) × B_body + 3μ/r³ r̂ × (J r̂),     q̇ = ½ q ⊗ [0, ω],
+    B_body(t) = R(q)ᵀ B_I(t) + b
 
 with M(t) the known applied moment (a tug: M = r × F, sedelnikov2023 eq. 6), p_m(t) the known dipole
 of the box's magnets (M = p × B, lapkhanov2019 eq. 4), B_I(t) the inertial field along the orbit (a
-field model) and b a constant offset (sensor and host magnetisation). :class:`KnownAction` holds M and
-p_m; :class:`InertiaParam` maps the fitted parameters to the tensor J (full, diagonal, shape only or
-scale only) and to the moments of unknown size.
+field model), b a constant offset (sensor and host magnetisation), and the gravity gradient on the
+body when the orbit is known (r̂ = R(q)ᵀ r_I/|r_I| the unit radius vector in body axes, μ the Earth's
+gravitational parameter); without an orbit the motion is taken as free of it. :class:`KnownAction`
+holds M, p_m and the orbit; :class:`InertiaParam` maps the fitted parameters to the tensor J (full,
+diagonal, shape only or scale only) and to the moments of unknown size.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Callable
@@ -22,6 +26,12 @@ from .. import sampled_moment as sm
 
 FieldFn = Callable[[np.ndarray], np.ndarray]
 """B_I(t): inertial (ECI) field [T] at an array of times (m,) → (m, 3)."""
+
+PositionFn = Callable[[np.ndarray], np.ndarray]
+"""r_I(t): the orbit's position [m, inertial axes] at an array of times (m,) → (m, 3)."""
+
+#: the Earth's gravitational parameter [m³/s²] (WGS-84)
+MU_EARTH_M3PS2 = 3.986004418e14
 
 #: Inertia parametrisations and their number of parameters.
 MODES = {"full": 6, "diag": 3, "shape": 5, "shape_diag": 2, "scale": 1}
@@ -34,13 +44,31 @@ class KnownAction:
     """Known applied action, piecewise constant: on [t_k, t_{k+1}) the moment ``moment_Nm[k]`` (body,
     about the centre of mass) and the magnets' dipole ``dipole_Am2[k]`` (body); zero before t_0. On each
     of ``unknown_intervals`` (t0, t1) a constant moment of unknown size (prior 1-σ (3,) in
-    ``unknown_sigma_Nm``, inf or none: free) adds to ``moment_Nm``, fitted by :func:`identify`."""
+    ``unknown_sigma_Nm``, inf or none: free) adds to ``moment_Nm``, fitted by :func:`identify`.
+    ``orbit_position_m``: where the body is (r_I(t)); given, the gravity gradient joins the model
+    (:meth:`with_orbit`). On a body of tens of kg·m² with moments ~10 kg·m² apart at 600 km it is
+    ~2·10⁻⁵ N·m, a few % of the kit's magnets' moment, and acts throughout: left out, the fit puts its
+    effect into the tensor."""
 
     t_s: np.ndarray
     moment_Nm: np.ndarray
     dipole_Am2: np.ndarray
     unknown_intervals: tuple = ()
     unknown_sigma_Nm: tuple = ()
+    orbit_position_m: PositionFn | None = None
+
+    def with_orbit(self, position_m: PositionFn | None) -> "KnownAction":
+        """This action on a body at `position_m` (r_I(t)): the gravity gradient in the model (None: without)."""
+        return dataclasses.replace(self, orbit_position_m=position_m)
+
+    def gravity_vectors(self, t: np.ndarray) -> np.ndarray | None:
+        """g(t) = √(3μ/|r|³) r_I/|r| (m, 3) at times `t` (m,), so that the gravity-gradient moment is
+        g_b × (J g_b) with g_b = R(q)ᵀ g; None without an orbit."""
+        if self.orbit_position_m is None:
+            return None
+        r = np.asarray(self.orbit_position_m(np.asarray(t, float)), float).reshape(-1, 3)
+        n = np.linalg.norm(r, axis=1, keepdims=True)
+        return r * np.sqrt(3.0 * MU_EARTH_M3PS2 / n ** 3) / n
 
     @staticmethod
     def none() -> "KnownAction":

@@ -37,6 +37,7 @@ class Segments:
     n_local: np.ndarray         # (G,)
     steps: np.ndarray           # (G,) real steps per segment
     unknown: np.ndarray | None = None   # (T, G) unknown-moment interval of the step, −1 none
+    g_stage: np.ndarray | None = None   # (T, G, 3, 3) gravity vectors (`KnownAction.gravity_vectors`) at the stages
 
     @property
     def G(self) -> int:
@@ -92,6 +93,12 @@ class Segments:
         if np.any(mag):
             ts = np.stack([T0[mag], mid[mag], T0[mag] + H[mag]], axis=1)
             b_stage[mag] = np.asarray(b_inertial(ts.ravel()), float).reshape(-1, 3, 3)
+        g_stage = None
+        if action.orbit_position_m is not None:
+            g_stage = np.zeros((T, G, 3, 3))
+            on = H > 0
+            ts = np.stack([T0[on], mid[on], T0[on] + H[on]], axis=1)
+            g_stage[on] = action.gravity_vectors(ts.ravel()).reshape(-1, 3, 3)
         b_local = np.zeros((G, L, 3))
         n_local = bounds[1:] - bounds[:-1] + 1
         for g in range(G):
@@ -102,7 +109,8 @@ class Segments:
             unknown = np.full((T, G), -1)
             for k, (u0, u1) in enumerate(ui):
                 unknown[(mid > u0) & (mid < u1) & (H > 0)] = k
-        return Segments(t, bounds, H, moment, dipole, magnetic, b_stage, REC, b_local, n_local, steps, unknown)
+        return Segments(t, bounds, H, moment, dipole, magnetic, b_stage, REC, b_local, n_local, steps, unknown,
+                        g_stage)
 
 
 def segment_bounds(n: int, length: int) -> np.ndarray:
@@ -140,8 +148,9 @@ def body_from_inertial(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     ])
 
 
-def _deriv(y: np.ndarray, J: np.ndarray, K: np.ndarray, M, dip, b_I) -> np.ndarray:
-    """d/dt of y = [q (4), ω (3)] (7, nb); J, K = J⁻¹ as (6, nb) components; M (3,) or (3, nb)."""
+def _deriv(y: np.ndarray, J: np.ndarray, K: np.ndarray, M, dip, b_I, g_I=None) -> np.ndarray:
+    """d/dt of y = [q (4), ω (3)] (7, nb); J, K = J⁻¹ as (6, nb) components; M (3,) or (3, nb); `g_I` the
+    gravity vector (3, nb) in inertial axes (None: no gravity gradient)."""
     qw, qx, qy, qz, p, q, r = y
     J11, J22, J33, J12, J13, J23 = J
     K11, K22, K33, K12, K13, K23 = K
@@ -154,6 +163,14 @@ def _deriv(y: np.ndarray, J: np.ndarray, K: np.ndarray, M, dip, b_I) -> np.ndarr
         Mx = Mx + dip[1] * bz - dip[2] * by
         My = My + dip[2] * bx - dip[0] * bz
         Mz = Mz + dip[0] * by - dip[1] * bx
+    if g_I is not None:   # 3μ/r³ r̂ × (J r̂) = g × (J g)
+        gx, gy, gz = body_from_inertial(y[:4], g_I)
+        G1 = J11 * gx + J12 * gy + J13 * gz
+        G2 = J12 * gx + J22 * gy + J23 * gz
+        G3 = J13 * gx + J23 * gy + J33 * gz
+        Mx = Mx + gy * G3 - gz * G2
+        My = My + gz * G1 - gx * G3
+        Mz = Mz + gx * G2 - gy * G1
     e1 = Mx - (q * H3 - r * H2)
     e2 = My - (r * H1 - p * H3)
     e3 = Mz - (p * H2 - q * H1)
@@ -242,18 +259,23 @@ class Pass:
                         if np.any(on):
                             M = M.copy()
                             M[:, on] += self.u[k[on], :, np.flatnonzero(on)].T
+                if s.g_stage is not None:
+                    gs = s.g_stage[i, g]                                     # (nb, 3, 3)
+                    ga, gm, gb = gs[:, 0].T, gs[:, 1].T, gs[:, 2].T
+                else:
+                    ga = gm = gb = None
                 if s.magnetic[i]:
                     dip = s.dipole[i, g].T
                     bs = s.b_stage[i, g]                                     # (nb, 3, 3)
-                    k1 = _deriv(y, J, K, M, dip, bs[:, 0].T)
-                    k2 = _deriv(y + (0.5 * h) * k1, J, K, M, dip, bs[:, 1].T)
-                    k3 = _deriv(y + (0.5 * h) * k2, J, K, M, dip, bs[:, 1].T)
-                    k4 = _deriv(y + h * k3, J, K, M, dip, bs[:, 2].T)
+                    k1 = _deriv(y, J, K, M, dip, bs[:, 0].T, ga)
+                    k2 = _deriv(y + (0.5 * h) * k1, J, K, M, dip, bs[:, 1].T, gm)
+                    k3 = _deriv(y + (0.5 * h) * k2, J, K, M, dip, bs[:, 1].T, gm)
+                    k4 = _deriv(y + h * k3, J, K, M, dip, bs[:, 2].T, gb)
                 else:
-                    k1 = _deriv(y, J, K, M, None, None)
-                    k2 = _deriv(y + (0.5 * h) * k1, J, K, M, None, None)
-                    k3 = _deriv(y + (0.5 * h) * k2, J, K, M, None, None)
-                    k4 = _deriv(y + h * k3, J, K, M, None, None)
+                    k1 = _deriv(y, J, K, M, None, None, ga)
+                    k2 = _deriv(y + (0.5 * h) * k1, J, K, M, None, None, gm)
+                    k3 = _deriv(y + (0.5 * h) * k2, J, K, M, None, None, gm)
+                    k4 = _deriv(y + h * k3, J, K, M, None, None, gb)
                 y = y + (h / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
                 y[:4] /= np.sqrt(np.sum(y[:4] ** 2, axis=0))
                 self.y = y
