@@ -118,6 +118,9 @@ class IdentConfig:
     # (`euler_fit.KnownAction.with_orbit`): on a body of ~20 kg·m² with moments ~10 kg·m² apart it is a few %
     # of the kit's magnets' moment, and the fit left without it puts up to ~4 % into the tensor
     gravity_gradient: bool = True
+    # with it, the body's drag (`euler_fit.Drag`, e.g. `Drag.of` the kit's spacecraft model): its aerodynamic
+    # moment in the fit's model too (None: left out)
+    drag: ef.Drag | None = None
 
     def fit_options(self, span_s: float, source: int) -> ef.FitOptions:
         """`fit` with the terms above for a record of `span_s` seconds of a `source` experiment."""
@@ -361,7 +364,7 @@ class IdentExperiment:
         g = self.cfg.inertia_guess_kgm2
         b_fit = self._b_fit if self._b_fit is not None else self.b_inertial
         opts = self.cfg.fit_options(float(t[-1] - t[0]), self.source)
-        action = self.known_action().with_orbit(self._orbit_of(b_fit))
+        action = self.known_action().with_orbit(self._orbit_of(b_fit), self.cfg.drag)
         self._job = ef.identify_steps(t, b[None], b_fit, action, self.sigma_b_T,
                                       np.array([g, g, g, 0.0, 0.0, 0.0]), opts, chunk=self.cfg.work_per_tick)
         self._job_meta = (len(t), float(t[-1]), final)

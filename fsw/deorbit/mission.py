@@ -48,6 +48,7 @@ from typing import Callable
 import numpy as np
 
 from fsw.commands import BadParam, int_param
+from fsw.estimation import euler_fit as ef
 from fsw.estimation import inertia as inr
 from fsw.ident import ABORTED, DONE, RUNNING
 from fsw.telemetry.dialect import mavlink
@@ -136,11 +137,15 @@ def over_kit(kit: DeorbitKit, ident, inertia_guess_kgm2, **options) -> "Mission"
     """The mission composed over the kit `kit` and the experiment `ident` (SITL's and the target's one
     composition): the experiment's magnets are the kit's (:class:`KitMagnets`), its fit starts from the box's
     rough guess `inertia_guess_kgm2` (3,) (the mean of its diagonal: a weak prior); `options`:
-    :class:`Mission`'s keywords. Its `rates` is the flown rate filter, handed over by
-    `fsw.system.build_flight`."""
+    :class:`Mission`'s keywords. The experiment's fit takes the body's drag from the spacecraft model of
+    the kit's attitude estimate (its sail, its atmosphere). Its `rates` is the flown rate filter, handed
+    over by `fsw.system.build_flight`."""
     guess = np.asarray(inertia_guess_kgm2, float)
     ident.magnets = KitMagnets(kit)
     ident.cfg.inertia_guess_kgm2 = float(np.mean(guess))
+    model = getattr(kit.attitude, "model", None)   # the spacecraft the kit's attitude estimate knows
+    if model is not None and ident.cfg.drag is None:
+        ident.cfg.drag = ef.Drag.of(model)
     return Mission(kit, ident, inertia_guess_kgm2=tuple(float(x) for x in guess), **options)
 
 

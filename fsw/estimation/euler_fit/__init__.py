@@ -14,9 +14,9 @@ field in body axes closest to the measured samples (least squares weighted by th
 """
 from .cramer_rao import cramer_rao
 from .identification import FitOptions, FitResult, identify, identify_steps, prefix_fits, trajectory
-from .model import FieldFn, InertiaParam, KnownAction, PositionFn
+from .model import Drag, FieldFn, InertiaParam, KnownAction, PositionFn
 from .shooting import SingleShooting
 from .solver import LMRuns, lm
 
-__all__ = ["FieldFn", "FitOptions", "FitResult", "InertiaParam", "KnownAction", "LMRuns", "PositionFn",
+__all__ = ["Drag", "FieldFn", "FitOptions", "FitResult", "InertiaParam", "KnownAction", "LMRuns", "PositionFn",
            "SingleShooting", "cramer_rao", "identify", "identify_steps", "lm", "prefix_fits", "trajectory"]

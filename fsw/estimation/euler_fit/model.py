@@ -2,15 +2,17 @@
 
 From an attitude q (body → ECI) and rate ω at a start time (physics-and-seeds.md §2):
 
-    J ω̇ + ω × (J ω) = M(t) + p_m(t) × B_body + 3μ/r³ r̂ × (J r̂),     q̇ = ½ q ⊗ [0, ω],
-    B_body(t) = R(q)ᵀ B_I(t) + b
+    J ω̇ + ω × (J ω) = M(t) + p_m(t) × B_body + 3μ/r³ r̂ × (J r̂) + r_cp × F_drag,
+    q̇ = ½ q ⊗ [0, ω],     B_body(t) = R(q)ᵀ B_I(t) + b
 
 with M(t) the known applied moment (a tug: M = r × F, sedelnikov2023 eq. 6), p_m(t) the known dipole
 of the box's magnets (M = p × B, lapkhanov2019 eq. 4), B_I(t) the inertial field along the orbit (a
 field model), b a constant offset (sensor and host magnetisation), and the gravity gradient on the
 body when the orbit is known (r̂ = R(q)ᵀ r_I/|r_I| the unit radius vector in body axes, μ the Earth's
-gravitational parameter); without an orbit the motion is taken as free of it. :class:`KnownAction`
-holds M, p_m and the orbit; :class:`InertiaParam` maps the fitted parameters to the tensor J (full,
+gravitational parameter), and with a model of the body's drag (:class:`Drag`) its aerodynamic moment
+(F_drag = −½ρ|v|²C_d(S_sail|n·v̂| + S_body)v̂, v = R(q)ᵀ v_I the orbital velocity in body axes, the air
+at rest in inertial axes as the de-orbit simulator has it); without an orbit the motion is taken as free
+of both. :class:`KnownAction` holds M, p_m, the orbit and the drag; :class:`InertiaParam` maps the fitted parameters to the tensor J (full,
 diagonal, shape only or scale only) and to the moments of unknown size.
 """
 from __future__ import annotations
@@ -40,6 +42,37 @@ MODES = {"full": 6, "diag": 3, "shape": 5, "shape_diag": 2, "scale": 1}
 # --- the known action --------------------------------------------------------------------------------
 
 @dataclass(frozen=True)
+class Drag:
+    """What the box knows of its body's drag (SI, body axes about the centre of mass): a flat plate (the
+    sail, normal `sail_normal_body`) and the body, the centre of pressure at `cp_offset_m`, the density
+    `density_kgm3` along a near-circular orbit. On AMDS with its 5 m² sail at 600 km the moment is
+    ~6·10⁻⁶ N·m, 1–2 % of the kit's magnets' moment; left out of the fit, on a mission record it moved the
+    tensor by ~2 % of the largest moment."""
+
+    sail_area_m2: float
+    body_area_m2: float
+    drag_coefficient: float
+    cp_offset_m: tuple
+    sail_normal_body: tuple
+    density_kgm3: float
+    density_ref_alt_km: float = 600.0
+    density_scale_height_km: float = math.inf   # ρ(h) = ρ0·exp(−(h − h0)/H); inf: constant
+
+    @staticmethod
+    def of(model) -> "Drag":
+        """The drag of a spacecraft model (`fsw.estimation.orbital_attitude.SpacecraftModel`)."""
+        return Drag(float(model.sail_area_m2), float(model.body_area_m2), float(model.drag_coefficient),
+                    tuple(float(x) for x in model.cp_offset_m), tuple(float(x) for x in model.sail_normal_body),
+                    float(model.density_kgm3), float(model.density_ref_alt_km), float(model.density_scale_height_km))
+
+    def density_ratio(self, r_m: np.ndarray) -> np.ndarray:
+        """ρ(|r|)/ρ0 at the orbit's radius |r| [m] (WGS-84 equatorial radius for the altitude)."""
+        h_km = (np.asarray(r_m, float) - 6378137.0) * 1e-3
+        return np.exp(-(h_km - self.density_ref_alt_km) / self.density_scale_height_km)
+
+
+
+@dataclass(frozen=True)
 class KnownAction:
     """Known applied action, piecewise constant: on [t_k, t_{k+1}) the moment ``moment_Nm[k]`` (body,
     about the centre of mass) and the magnets' dipole ``dipole_Am2[k]`` (body); zero before t_0. On each
@@ -48,7 +81,7 @@ class KnownAction:
     ``orbit_position_m``: where the body is (r_I(t)); given, the gravity gradient joins the model
     (:meth:`with_orbit`). On a body of tens of kg·m² with moments ~10 kg·m² apart at 600 km it is
     ~2·10⁻⁵ N·m, a few % of the kit's magnets' moment, and acts throughout: left out, the fit puts its
-    effect into the tensor."""
+    effect into the tensor. ``drag``: the body's drag (:class:`Drag`), its moment in the model too."""
 
     t_s: np.ndarray
     moment_Nm: np.ndarray
@@ -56,10 +89,22 @@ class KnownAction:
     unknown_intervals: tuple = ()
     unknown_sigma_Nm: tuple = ()
     orbit_position_m: PositionFn | None = None
+    drag: Drag | None = None
 
-    def with_orbit(self, position_m: PositionFn | None) -> "KnownAction":
-        """This action on a body at `position_m` (r_I(t)): the gravity gradient in the model (None: without)."""
-        return dataclasses.replace(self, orbit_position_m=position_m)
+    def with_orbit(self, position_m: PositionFn | None, drag: Drag | None = None) -> "KnownAction":
+        """This action on a body at `position_m` (r_I(t)): the gravity gradient in the model, and the
+        aerodynamic moment of `drag` (None: without; both need the orbit)."""
+        return dataclasses.replace(self, orbit_position_m=position_m,
+                                   drag=drag if position_m is not None else None)
+
+    def drag_velocities(self, t: np.ndarray) -> np.ndarray:
+        """v_I(t)·√(ρ(r)/ρ0) (m, 3): the orbital velocity (a central difference of positions 1 s apart)
+        scaled so that ρ0|v|² in the drag is ρ(r)|v|² at the orbit's altitude."""
+        t = np.asarray(t, float)
+        r = np.asarray(self.orbit_position_m(t), float).reshape(-1, 3)
+        v = (np.asarray(self.orbit_position_m(t + 0.5), float).reshape(-1, 3)
+             - np.asarray(self.orbit_position_m(t - 0.5), float).reshape(-1, 3))
+        return v * np.sqrt(self.drag.density_ratio(np.linalg.norm(r, axis=1)))[:, None]
 
     def gravity_vectors(self, t: np.ndarray) -> np.ndarray | None:
         """g(t) = √(3μ/|r|³) r_I/|r| (m, 3) at times `t` (m,), so that the gravity-gradient moment is

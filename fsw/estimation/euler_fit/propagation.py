@@ -38,6 +38,8 @@ class Segments:
     steps: np.ndarray           # (G,) real steps per segment
     unknown: np.ndarray | None = None   # (T, G) unknown-moment interval of the step, −1 none
     g_stage: np.ndarray | None = None   # (T, G, 3, 3) gravity vectors (`KnownAction.gravity_vectors`) at the stages
+    v_stage: np.ndarray | None = None   # (T, G, 3, 3) `KnownAction.drag_velocities` at the stages (with `drag`)
+    drag: object = None                 # `model.Drag` or None
 
     @property
     def G(self) -> int:
@@ -93,12 +95,15 @@ class Segments:
         if np.any(mag):
             ts = np.stack([T0[mag], mid[mag], T0[mag] + H[mag]], axis=1)
             b_stage[mag] = np.asarray(b_inertial(ts.ravel()), float).reshape(-1, 3, 3)
-        g_stage = None
+        g_stage = v_stage = None
         if action.orbit_position_m is not None:
             g_stage = np.zeros((T, G, 3, 3))
             on = H > 0
             ts = np.stack([T0[on], mid[on], T0[on] + H[on]], axis=1)
             g_stage[on] = action.gravity_vectors(ts.ravel()).reshape(-1, 3, 3)
+            if action.drag is not None:
+                v_stage = np.zeros((T, G, 3, 3))
+                v_stage[on] = action.drag_velocities(ts.ravel()).reshape(-1, 3, 3)
         b_local = np.zeros((G, L, 3))
         n_local = bounds[1:] - bounds[:-1] + 1
         for g in range(G):
@@ -110,7 +115,7 @@ class Segments:
             for k, (u0, u1) in enumerate(ui):
                 unknown[(mid > u0) & (mid < u1) & (H > 0)] = k
         return Segments(t, bounds, H, moment, dipole, magnetic, b_stage, REC, b_local, n_local, steps, unknown,
-                        g_stage)
+                        g_stage, v_stage, action.drag if v_stage is not None else None)
 
 
 def segment_bounds(n: int, length: int) -> np.ndarray:
@@ -148,9 +153,23 @@ def body_from_inertial(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     ])
 
 
-def _deriv(y: np.ndarray, J: np.ndarray, K: np.ndarray, M, dip, b_I, g_I=None) -> np.ndarray:
+def _drag_moment(q: np.ndarray, v_I: np.ndarray, d) -> np.ndarray:
+    """r_cp × F of the drag `d` (`model.Drag`) for attitudes q (4, nb) at the velocity v_I (3, nb) → (3, nb)."""
+    v = body_from_inertial(q, v_I)
+    speed = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    n = d.sail_normal_body
+    # a padded step (h = 0) has no velocity: its moment is zero, never 0/0
+    area = d.sail_area_m2 * np.abs(n[0] * v[0] + n[1] * v[1] + n[2] * v[2]) / np.where(speed > 0, speed, 1.0) \
+        + d.body_area_m2
+    f = (-0.5 * d.density_kgm3 * d.drag_coefficient) * area * speed * v      # −½ρ|v|²C_d S v̂
+    rx, ry, rz = d.cp_offset_m
+    return np.array([ry * f[2] - rz * f[1], rz * f[0] - rx * f[2], rx * f[1] - ry * f[0]])
+
+
+def _deriv(y: np.ndarray, J: np.ndarray, K: np.ndarray, M, dip, b_I, g_I=None, v_I=None, drag=None) -> np.ndarray:
     """d/dt of y = [q (4), ω (3)] (7, nb); J, K = J⁻¹ as (6, nb) components; M (3,) or (3, nb); `g_I` the
-    gravity vector (3, nb) in inertial axes (None: no gravity gradient)."""
+    gravity vector (3, nb) in inertial axes (None: no gravity gradient); `v_I` the orbital velocity (3, nb)
+    with `drag` (`model.Drag`; None: no aerodynamic moment)."""
     qw, qx, qy, qz, p, q, r = y
     J11, J22, J33, J12, J13, J23 = J
     K11, K22, K33, K12, K13, K23 = K
@@ -171,6 +190,9 @@ def _deriv(y: np.ndarray, J: np.ndarray, K: np.ndarray, M, dip, b_I, g_I=None) -
         Mx = Mx + gy * G3 - gz * G2
         My = My + gz * G1 - gx * G3
         Mz = Mz + gx * G2 - gy * G1
+    if drag is not None:
+        ax, ay, az = _drag_moment(y[:4], v_I, drag)
+        Mx, My, Mz = Mx + ax, My + ay, Mz + az
     e1 = Mx - (q * H3 - r * H2)
     e2 = My - (r * H1 - p * H3)
     e3 = Mz - (p * H2 - q * H1)
@@ -259,23 +281,26 @@ class Pass:
                         if np.any(on):
                             M = M.copy()
                             M[:, on] += self.u[k[on], :, np.flatnonzero(on)].T
+                ga = gm = gb = va = vm = vb = None
                 if s.g_stage is not None:
                     gs = s.g_stage[i, g]                                     # (nb, 3, 3)
                     ga, gm, gb = gs[:, 0].T, gs[:, 1].T, gs[:, 2].T
-                else:
-                    ga = gm = gb = None
+                if s.drag is not None:
+                    vs = s.v_stage[i, g]
+                    va, vm, vb = vs[:, 0].T, vs[:, 1].T, vs[:, 2].T
+                dr = s.drag
                 if s.magnetic[i]:
                     dip = s.dipole[i, g].T
                     bs = s.b_stage[i, g]                                     # (nb, 3, 3)
-                    k1 = _deriv(y, J, K, M, dip, bs[:, 0].T, ga)
-                    k2 = _deriv(y + (0.5 * h) * k1, J, K, M, dip, bs[:, 1].T, gm)
-                    k3 = _deriv(y + (0.5 * h) * k2, J, K, M, dip, bs[:, 1].T, gm)
-                    k4 = _deriv(y + h * k3, J, K, M, dip, bs[:, 2].T, gb)
+                    k1 = _deriv(y, J, K, M, dip, bs[:, 0].T, ga, va, dr)
+                    k2 = _deriv(y + (0.5 * h) * k1, J, K, M, dip, bs[:, 1].T, gm, vm, dr)
+                    k3 = _deriv(y + (0.5 * h) * k2, J, K, M, dip, bs[:, 1].T, gm, vm, dr)
+                    k4 = _deriv(y + h * k3, J, K, M, dip, bs[:, 2].T, gb, vb, dr)
                 else:
-                    k1 = _deriv(y, J, K, M, None, None, ga)
-                    k2 = _deriv(y + (0.5 * h) * k1, J, K, M, None, None, gm)
-                    k3 = _deriv(y + (0.5 * h) * k2, J, K, M, None, None, gm)
-                    k4 = _deriv(y + h * k3, J, K, M, None, None, gb)
+                    k1 = _deriv(y, J, K, M, None, None, ga, va, dr)
+                    k2 = _deriv(y + (0.5 * h) * k1, J, K, M, None, None, gm, vm, dr)
+                    k3 = _deriv(y + (0.5 * h) * k2, J, K, M, None, None, gm, vm, dr)
+                    k4 = _deriv(y + h * k3, J, K, M, None, None, gb, vb, dr)
                 y = y + (h / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
                 y[:4] /= np.sqrt(np.sum(y[:4] ** 2, axis=0))
                 self.y = y
