@@ -33,7 +33,7 @@ import numpy as np
 from .commands import BadParam, float_param, int_param
 from .estimation import euler_fit as ef
 from .estimation.euler_fit import field_error
-from .estimation.orbital_attitude import orbit_position_fn
+from .estimation.orbital_attitude import SpacecraftModel, orbit_position_fn
 from .estimation import inertia as inr
 from .telemetry.dialect import mavlink
 
@@ -116,11 +116,11 @@ class IdentConfig:
     drift_max_T: float = 2e-6
     # the gravity gradient in the fit's model when the field along the orbit says where the orbit is
     # (`euler_fit.KnownAction.with_orbit`): on a body of ~20 kg·m² with moments ~10 kg·m² apart it is a few %
-    # of the kit's magnets' moment, and the fit left without it puts up to ~4 % into the tensor
+    # of the kit's magnets' moment, and the fit left without it puts ~1 % of scale into the tensor
     gravity_gradient: bool = True
-    # with it, the body's drag (`euler_fit.Drag`, e.g. `Drag.of` the kit's spacecraft model): its aerodynamic
-    # moment in the fit's model too (None: left out)
-    drag: ef.Drag | None = None
+    # with it, the box's model of the spacecraft (`orbital_attitude.SpacecraftModel`, e.g. the kit's
+    # attitude estimate's): its aerodynamic moment in the fit's model too (None: left out)
+    drag: SpacecraftModel | None = None
 
     def fit_options(self, span_s: float, source: int) -> ef.FitOptions:
         """`fit` with the terms above for a record of `span_s` seconds of a `source` experiment."""
@@ -321,12 +321,10 @@ class IdentExperiment:
         """Where the body is along the orbit its fit's field is computed on (None: not known, or not wanted)."""
         if not self.cfg.gravity_gradient:
             return None
-        for obj in (field, getattr(field, "__self__", None)):   # the field, or the one whose b_eci_T it is
-            try:
-                return orbit_position_fn(obj)
-            except ValueError:
-                continue
-        return None
+        try:
+            return orbit_position_fn(field)
+        except ValueError:
+            return None
 
     # --- the fit ---------------------------------------------------------------------------------------
     def _fit_work(self, now_s: float) -> None:

@@ -48,7 +48,6 @@ from typing import Callable
 import numpy as np
 
 from fsw.commands import BadParam, int_param
-from fsw.estimation import euler_fit as ef
 from fsw.estimation import inertia as inr
 from fsw.ident import ABORTED, DONE, RUNNING
 from fsw.telemetry.dialect import mavlink
@@ -145,7 +144,7 @@ def over_kit(kit: DeorbitKit, ident, inertia_guess_kgm2, **options) -> "Mission"
     ident.cfg.inertia_guess_kgm2 = float(np.mean(guess))
     model = getattr(kit.attitude, "model", None)   # the spacecraft the kit's attitude estimate knows
     if model is not None and ident.cfg.drag is None:
-        ident.cfg.drag = ef.Drag.of(model)
+        ident.cfg.drag = model
     return Mission(kit, ident, inertia_guess_kgm2=tuple(float(x) for x in guess), **options)
 
 

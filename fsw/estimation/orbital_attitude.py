@@ -67,9 +67,10 @@ class SpacecraftModel:
         j = np.asarray(self.inertia_kgm2, float)
         return np.diag(j) if j.shape == (3,) else j
 
-    def density_at_kgm3(self, r_m: float) -> float:
-        h_km = (r_m - A_WGS84_M) * 1e-3
-        return self.density_kgm3 * math.exp(-(h_km - self.density_ref_alt_km) / self.density_scale_height_km)
+    def density_at_kgm3(self, r_m):
+        """ρ at the distance `r_m` [m] (a float, or an array of them) from the Earth's centre."""
+        h_km = (np.asarray(r_m, float) - A_WGS84_M) * 1e-3
+        return self.density_kgm3 * np.exp(-(h_km - self.density_ref_alt_km) / self.density_scale_height_km)
 
 
 @dataclass(frozen=True)
@@ -154,7 +155,7 @@ def predict(q: np.ndarray, w: np.ndarray, P: np.ndarray, dt_s: float, u: Inputs,
     Q[3:6, 3:6] = qa * h * np.eye(3)
     Q[6:, 6:] = qb * h * np.eye(3)
     r = np.asarray(u.r_eci_m, float)
-    rho = model.density_at_kgm3(math.sqrt(float(r @ r))) if model.density_kgm3 > 0.0 else 0.0
+    rho = float(model.density_at_kgm3(math.sqrt(float(r @ r)))) if model.density_kgm3 > 0.0 else 0.0
     return _propagate(np.asarray(q, float), np.asarray(w, float), np.asarray(P, float), h, n, r,
                       np.asarray(u.v_eci_mps, float), np.asarray(u.b_eci_T, float),
                       np.asarray(u.dipole_body_Am2, float), J, Jinv, np.asarray(model.cp_offset_m, float),
@@ -420,6 +421,7 @@ class OrbitInputs:
 def orbit_position_fn(field) -> Callable[[np.ndarray], np.ndarray]:
     """Positions (N, 3) [m, inertial] at box times (N,) along the orbit a field is computed on: a TLE's
     (SGP4 at the field's UTC) or a circular orbit's (`field_motion.CircularOrbitModel`)."""
+    field = getattr(field, "__self__", field)   # a field's bound b_eci_T: the field itself
     sat, utc_of = getattr(field, "sat", None), getattr(field, "utc_of", None)
     if sat is not None and utc_of is not None:
         def tle_position(t):

@@ -346,11 +346,13 @@ def test_with_the_orbit_the_fit_takes_the_gravity_gradient_out_of_the_tensor(gra
 
 
 def test_the_models_drag_moment_is_the_simulators():
-    """The fit's aerodynamic moment (`euler_fit.Drag`) against hil.environment's on AMDS's sail at 600 km,
-    for 50 random attitudes: the same to 1e-12 of its size."""
+    """The fit's aerodynamic moment (of the box's `SpacecraftModel`) against hil.environment's on AMDS's
+    sail at 600 km, for 50 random attitudes: the same to 1e-12 of its size."""
     from fsw.estimation.euler_fit.propagation import _drag_moment
+    from fsw.estimation.orbital_attitude import SpacecraftModel
     from hil.environment import aero_torque_Nm
-    drag = ef.Drag(5.0, 0.58, 2.2, (-0.12, 0.01, 0.02), (1.0, 0.0, 0.0), 1.454e-13)
+    drag = SpacecraftModel(sail_area_m2=5.0, body_area_m2=0.58, drag_coefficient=2.2, cp_offset_m=(-0.12, 0.01, 0.02),
+                           sail_normal_body=(1.0, 0.0, 0.0), density_kgm3=1.454e-13)
     rng = np.random.default_rng(7)
     q = rng.standard_normal((4, 50))
     q /= np.linalg.norm(q, axis=0)
@@ -367,7 +369,21 @@ def test_the_models_drag_moment_is_the_simulators():
 
 
 def test_the_drag_density_follows_the_exponential_atmosphere():
-    drag = ef.Drag(5.0, 0.58, 2.2, (-0.12, 0.0, 0.0), (1.0, 0.0, 0.0), 1.454e-13, 600.0, 71.835)
-    r = 6378137.0 + np.array([600e3, 671.835e3])
-    np.testing.assert_allclose(drag.density_ratio(r), [1.0, np.exp(-1.0)], rtol=1e-12)
-    assert ef.Drag(5.0, 0.58, 2.2, (0, 0, 0), (1, 0, 0), 1e-13).density_ratio(7e6) == 1.0
+    """The drag's velocities carry the atmosphere: ρ0|v'|² is ρ(r)|v|², one scale height up e⁻¹ of it."""
+    from fsw.estimation.orbital_attitude import SpacecraftModel
+    drag = SpacecraftModel(density_kgm3=1.454e-13, density_ref_alt_km=600.0, density_scale_height_km=71.835)
+    radius_m = 6378137.0 + np.array([600e3, 671.835e3])
+
+    def circle(r_m):
+        n = np.sqrt(3.986004418e14 / r_m ** 3)
+        return lambda t: r_m * np.column_stack([np.cos(n * t), np.sin(n * t), 0.0 * t])
+    ratios = []
+    for r_m in radius_m:
+        action = ef.KnownAction.none().with_orbit(circle(r_m), drag)
+        _, v = action.environment_vectors(np.array([0.0, 100.0]))
+        speed = r_m * np.sqrt(3.986004418e14 / r_m ** 3)
+        ratios.append(np.sum(v ** 2, axis=1) / speed ** 2)
+    np.testing.assert_allclose(ratios[0], 1.0, rtol=1e-6)   # the 1-s central difference: ~1e-7
+    np.testing.assert_allclose(ratios[1], np.exp(-1.0), rtol=1e-6)
+    g, none = ef.KnownAction.none().with_orbit(circle(radius_m[0])).environment_vectors(np.array([0.0]))
+    assert none is None and np.sum(g ** 2) == pytest.approx(3.0 * 3.986004418e14 / radius_m[0] ** 3, rel=1e-12)

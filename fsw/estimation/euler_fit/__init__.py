@@ -3,8 +3,8 @@
 The tensor J, the initial attitude and rate and the sensor offset are those that make the predicted
 field in body axes closest to the measured samples (least squares weighted by the sensor noise).
 
-- :mod:`.model` — the equations (the gravity gradient with them when the orbit is known), the known
-  applied action, the parametrisation of the tensor;
+- :mod:`.model` — the equations (the gravity gradient and the drag with them when the orbit is known),
+  the known applied action, the parametrisation of the tensor;
 - :mod:`.propagation` — RK4 of a batch of trajectories through their segments;
 - :mod:`.solver` — Levenberg–Marquardt vectorised over runs, dense and block-arrow normal matrices;
 - :mod:`.shooting` — the single- and multiple-shooting least-squares problems;
@@ -14,9 +14,9 @@ field in body axes closest to the measured samples (least squares weighted by th
 """
 from .cramer_rao import cramer_rao
 from .identification import FitOptions, FitResult, identify, identify_steps, prefix_fits, trajectory
-from .model import Drag, FieldFn, InertiaParam, KnownAction, PositionFn
+from .model import FieldFn, InertiaParam, KnownAction, PositionFn
 from .shooting import SingleShooting
 from .solver import LMRuns, lm
 
-__all__ = ["Drag", "FieldFn", "FitOptions", "FitResult", "InertiaParam", "KnownAction", "LMRuns", "PositionFn",
+__all__ = ["FieldFn", "FitOptions", "FitResult", "InertiaParam", "KnownAction", "LMRuns", "PositionFn",
            "SingleShooting", "cramer_rao", "identify", "identify_steps", "lm", "prefix_fits", "trajectory"]

@@ -9,22 +9,27 @@ with M(t) the known applied moment (a tug: M = r × F, sedelnikov2023 eq. 6), p_
 of the box's magnets (M = p × B, lapkhanov2019 eq. 4), B_I(t) the inertial field along the orbit (a
 field model), b a constant offset (sensor and host magnetisation), and the gravity gradient on the
 body when the orbit is known (r̂ = R(q)ᵀ r_I/|r_I| the unit radius vector in body axes, μ the Earth's
-gravitational parameter), and with a model of the body's drag (:class:`Drag`) its aerodynamic moment
+gravitational parameter), and with the box's model of the spacecraft its aerodynamic moment
 (F_drag = −½ρ|v|²C_d(S_sail|n·v̂| + S_body)v̂, v = R(q)ᵀ v_I the orbital velocity in body axes, the air
 at rest in inertial axes as the de-orbit simulator has it); without an orbit the motion is taken as free
-of both. :class:`KnownAction` holds M, p_m, the orbit and the drag; :class:`InertiaParam` maps the fitted parameters to the tensor J (full,
-diagonal, shape only or scale only) and to the moments of unknown size.
+of both. :class:`KnownAction` holds M, p_m, the orbit and the spacecraft; :class:`InertiaParam` maps the
+fitted parameters to the tensor J (full, diagonal, shape only or scale only) and to the moments of
+unknown size.
 """
 from __future__ import annotations
 
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
 from .. import sampled_moment as sm
+from ..field_motion import MU_EARTH_M3S2
+
+if TYPE_CHECKING:
+    from ..orbital_attitude import SpacecraftModel
 
 FieldFn = Callable[[np.ndarray], np.ndarray]
 """B_I(t): inertial (ECI) field [T] at an array of times (m,) → (m, 3)."""
@@ -32,45 +37,11 @@ FieldFn = Callable[[np.ndarray], np.ndarray]
 PositionFn = Callable[[np.ndarray], np.ndarray]
 """r_I(t): the orbit's position [m, inertial axes] at an array of times (m,) → (m, 3)."""
 
-#: the Earth's gravitational parameter [m³/s²] (WGS-84)
-MU_EARTH_M3PS2 = 3.986004418e14
-
 #: Inertia parametrisations and their number of parameters.
 MODES = {"full": 6, "diag": 3, "shape": 5, "shape_diag": 2, "scale": 1}
 
 
 # --- the known action --------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class Drag:
-    """What the box knows of its body's drag (SI, body axes about the centre of mass): a flat plate (the
-    sail, normal `sail_normal_body`) and the body, the centre of pressure at `cp_offset_m`, the density
-    `density_kgm3` along a near-circular orbit. On AMDS with its 5 m² sail at 600 km the moment is
-    ~6·10⁻⁶ N·m, 1–2 % of the kit's magnets' moment; left out of the fit, on a mission record it moved the
-    tensor by ~2 % of the largest moment."""
-
-    sail_area_m2: float
-    body_area_m2: float
-    drag_coefficient: float
-    cp_offset_m: tuple
-    sail_normal_body: tuple
-    density_kgm3: float
-    density_ref_alt_km: float = 600.0
-    density_scale_height_km: float = math.inf   # ρ(h) = ρ0·exp(−(h − h0)/H); inf: constant
-
-    @staticmethod
-    def of(model) -> "Drag":
-        """The drag of a spacecraft model (`fsw.estimation.orbital_attitude.SpacecraftModel`)."""
-        return Drag(float(model.sail_area_m2), float(model.body_area_m2), float(model.drag_coefficient),
-                    tuple(float(x) for x in model.cp_offset_m), tuple(float(x) for x in model.sail_normal_body),
-                    float(model.density_kgm3), float(model.density_ref_alt_km), float(model.density_scale_height_km))
-
-    def density_ratio(self, r_m: np.ndarray) -> np.ndarray:
-        """ρ(|r|)/ρ0 at the orbit's radius |r| [m] (WGS-84 equatorial radius for the altitude)."""
-        h_km = (np.asarray(r_m, float) - 6378137.0) * 1e-3
-        return np.exp(-(h_km - self.density_ref_alt_km) / self.density_scale_height_km)
-
-
 
 @dataclass(frozen=True)
 class KnownAction:
@@ -81,7 +52,10 @@ class KnownAction:
     ``orbit_position_m``: where the body is (r_I(t)); given, the gravity gradient joins the model
     (:meth:`with_orbit`). On a body of tens of kg·m² with moments ~10 kg·m² apart at 600 km it is
     ~2·10⁻⁵ N·m, a few % of the kit's magnets' moment, and acts throughout: left out, the fit puts its
-    effect into the tensor. ``drag``: the body's drag (:class:`Drag`), its moment in the model too."""
+    effect into the tensor. ``drag``: the box's model of the spacecraft (`orbital_attitude.SpacecraftModel`:
+    its sail, body area, C_d, centre of pressure and atmosphere), its aerodynamic moment in the model too.
+    On AMDS with its 5 m² sail at 600 km that is ~6·10⁻⁶ N·m, 1–2 % of the kit's magnets' moment; left out
+    of the fit, on a mission record it moved the tensor by ~2 % of the largest moment."""
 
     t_s: np.ndarray
     moment_Nm: np.ndarray
@@ -89,31 +63,29 @@ class KnownAction:
     unknown_intervals: tuple = ()
     unknown_sigma_Nm: tuple = ()
     orbit_position_m: PositionFn | None = None
-    drag: Drag | None = None
+    drag: SpacecraftModel | None = None
 
-    def with_orbit(self, position_m: PositionFn | None, drag: Drag | None = None) -> "KnownAction":
+    def with_orbit(self, position_m: PositionFn | None, drag: SpacecraftModel | None = None) -> "KnownAction":
         """This action on a body at `position_m` (r_I(t)): the gravity gradient in the model, and the
         aerodynamic moment of `drag` (None: without; both need the orbit)."""
         return dataclasses.replace(self, orbit_position_m=position_m,
                                    drag=drag if position_m is not None else None)
 
-    def drag_velocities(self, t: np.ndarray) -> np.ndarray:
-        """v_I(t)·√(ρ(r)/ρ0) (m, 3): the orbital velocity (a central difference of positions 1 s apart)
-        scaled so that ρ0|v|² in the drag is ρ(r)|v|² at the orbit's altitude."""
+    def environment_vectors(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """At times `t` (m,) with the orbit: g(t) = √(3μ/|r|³) r_I/|r| (m, 3), so that the gravity-gradient
+        moment is g_b × (J g_b) with g_b = R(q)ᵀ g; and with `drag`, v_I(t)·√(ρ(r)/ρ0) (m, 3) — the orbital
+        velocity (a central difference of positions 1 s apart) scaled so that ρ0|v|² in the drag is
+        ρ(r)|v|² at the orbit's altitude (else None)."""
         t = np.asarray(t, float)
         r = np.asarray(self.orbit_position_m(t), float).reshape(-1, 3)
+        n = np.linalg.norm(r, axis=1, keepdims=True)
+        g = r * np.sqrt(3.0 * MU_EARTH_M3S2 / n ** 3) / n
+        if self.drag is None:
+            return g, None
         v = (np.asarray(self.orbit_position_m(t + 0.5), float).reshape(-1, 3)
              - np.asarray(self.orbit_position_m(t - 0.5), float).reshape(-1, 3))
-        return v * np.sqrt(self.drag.density_ratio(np.linalg.norm(r, axis=1)))[:, None]
-
-    def gravity_vectors(self, t: np.ndarray) -> np.ndarray | None:
-        """g(t) = √(3μ/|r|³) r_I/|r| (m, 3) at times `t` (m,), so that the gravity-gradient moment is
-        g_b × (J g_b) with g_b = R(q)ᵀ g; None without an orbit."""
-        if self.orbit_position_m is None:
-            return None
-        r = np.asarray(self.orbit_position_m(np.asarray(t, float)), float).reshape(-1, 3)
-        n = np.linalg.norm(r, axis=1, keepdims=True)
-        return r * np.sqrt(3.0 * MU_EARTH_M3PS2 / n ** 3) / n
+        rho = np.asarray(self.drag.density_at_kgm3(n[:, 0]), float)
+        return g, v * np.sqrt(rho / self.drag.density_kgm3)[:, None]
 
     @staticmethod
     def none() -> "KnownAction":

@@ -37,9 +37,10 @@ class Segments:
     n_local: np.ndarray         # (G,)
     steps: np.ndarray           # (G,) real steps per segment
     unknown: np.ndarray | None = None   # (T, G) unknown-moment interval of the step, −1 none
-    g_stage: np.ndarray | None = None   # (T, G, 3, 3) gravity vectors (`KnownAction.gravity_vectors`) at the stages
-    v_stage: np.ndarray | None = None   # (T, G, 3, 3) `KnownAction.drag_velocities` at the stages (with `drag`)
-    drag: object = None                 # `model.Drag` or None
+    # (T, G, 3, 3) at the stages: gravity vectors and (with `drag`) scaled velocities, `KnownAction.environment_vectors`
+    g_stage: np.ndarray | None = None
+    v_stage: np.ndarray | None = None
+    drag: object = None                 # the spacecraft model whose drag acts (`KnownAction.drag`), or None
 
     @property
     def G(self) -> int:
@@ -97,13 +98,14 @@ class Segments:
             b_stage[mag] = np.asarray(b_inertial(ts.ravel()), float).reshape(-1, 3, 3)
         g_stage = v_stage = None
         if action.orbit_position_m is not None:
-            g_stage = np.zeros((T, G, 3, 3))
             on = H > 0
             ts = np.stack([T0[on], mid[on], T0[on] + H[on]], axis=1)
-            g_stage[on] = action.gravity_vectors(ts.ravel()).reshape(-1, 3, 3)
-            if action.drag is not None:
+            g, v = action.environment_vectors(ts.ravel())
+            g_stage = np.zeros((T, G, 3, 3))
+            g_stage[on] = g.reshape(-1, 3, 3)
+            if v is not None:
                 v_stage = np.zeros((T, G, 3, 3))
-                v_stage[on] = action.drag_velocities(ts.ravel()).reshape(-1, 3, 3)
+                v_stage[on] = v.reshape(-1, 3, 3)
         b_local = np.zeros((G, L, 3))
         n_local = bounds[1:] - bounds[:-1] + 1
         for g in range(G):
@@ -154,7 +156,8 @@ def body_from_inertial(q: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def _drag_moment(q: np.ndarray, v_I: np.ndarray, d) -> np.ndarray:
-    """r_cp × F of the drag `d` (`model.Drag`) for attitudes q (4, nb) at the velocity v_I (3, nb) → (3, nb)."""
+    """r_cp × F of the drag of the spacecraft model `d` (`orbital_attitude.SpacecraftModel`) for attitudes
+    q (4, nb) at the velocity v_I (3, nb) → (3, nb)."""
     v = body_from_inertial(q, v_I)
     speed = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
     n = d.sail_normal_body
@@ -169,7 +172,7 @@ def _drag_moment(q: np.ndarray, v_I: np.ndarray, d) -> np.ndarray:
 def _deriv(y: np.ndarray, J: np.ndarray, K: np.ndarray, M, dip, b_I, g_I=None, v_I=None, drag=None) -> np.ndarray:
     """d/dt of y = [q (4), ω (3)] (7, nb); J, K = J⁻¹ as (6, nb) components; M (3,) or (3, nb); `g_I` the
     gravity vector (3, nb) in inertial axes (None: no gravity gradient); `v_I` the orbital velocity (3, nb)
-    with `drag` (`model.Drag`; None: no aerodynamic moment)."""
+    with `drag` (the spacecraft model; None: no aerodynamic moment)."""
     qw, qx, qy, qz, p, q, r = y
     J11, J22, J33, J12, J13, J23 = J
     K11, K22, K33, K12, K13, K23 = K
