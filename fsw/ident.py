@@ -121,6 +121,16 @@ class IdentConfig:
     # with it, the box's model of the spacecraft (`orbital_attitude.SpacecraftModel`, e.g. the kit's
     # attitude estimate's): its aerodynamic moment in the fit's model too (None: left out)
     drag: SpacecraftModel | None = None
+    # the field model's error along the record fitted and marginalised, as the ground's fit does
+    # (`FitOptions.field_error_degree`, `field_error.degree_for` the record's length), with the soft iron's
+    # error the host's calibration leaves (1-σ per element: it stated 0.2 % at convergence; on the mission's
+    # host it left up to ~0.85 %); and with it the robust covariance (`field_error.robust_cov`). False: the
+    # field model taken as exact, the curvature's covariance
+    field_error: bool = True
+    soft_iron_sigma: float = 0.005
+    # the profile of the cost along the tensor's scale (`FitOptions.scale_profile`): Ixx held at the fit's
+    # times each of these; the tensor's interval along its scale is the profile's where that is wider
+    scale_profile: tuple = (0.98, 1.02, 0.96, 1.04)
 
     def fit_options(self, span_s: float, source: int) -> ef.FitOptions:
         """`fit` with the terms above for a record of `span_s` seconds of a `source` experiment."""
@@ -130,6 +140,11 @@ class IdentConfig:
         if self.drift and opts.drift_degree is None:
             opts = dataclasses.replace(opts, drift_degree=field_error.degree_for(span_s),
                                        drift_sigma_T=min(self.drift_max_T, self.drift_rate_T_per_s * span_s))
+        if self.scale_profile and not opts.scale_profile:
+            opts = dataclasses.replace(opts, scale_profile=tuple(self.scale_profile))
+        if self.field_error and opts.field_error_degree is None:
+            opts = dataclasses.replace(opts, field_error_degree=field_error.degree_for(span_s),
+                                       soft_iron_sigma=self.soft_iron_sigma)
         return opts
 
 

@@ -110,3 +110,35 @@ def test_host_columns_are_a_drift_and_the_soft_iron_acting_on_the_field():
     np.testing.assert_allclose(c[6 + 3 * 1 + 2][:, 1], b[:, 2] / 1e-6)                 # δS_yz · B_z → y
     np.testing.assert_allclose(np.delete(c[6 + 3 * 1 + 2], 1, axis=1), 0.0)
     assert fe.body_columns(t, b, 1, 1e-6, soft_iron=False).shape == (3, 5, 3)
+
+
+def _ar1_record(rho, n=20000, seed=3):
+    """Whitened residuals (n, 3) whose first axis is AR(1) with correlation `rho` per 1-s sample (unit
+    variance), and the Jacobian (2, n, 3) of a constant and a slope on that axis."""
+    rng = np.random.default_rng(seed)
+    e = rng.standard_normal((n, 3))
+    x = np.empty(n)
+    x[0] = e[0, 0]
+    for i in range(1, n):
+        x[i] = rho * x[i - 1] + np.sqrt(1.0 - rho * rho) * e[i, 0]
+    r = e.copy()
+    r[:, 0] = x
+    Ja = np.zeros((2, n, 3))
+    Ja[0, :, 0] = 1.0
+    Ja[1, :, 0] = np.linspace(-1.0, 1.0, n)
+    return np.arange(n, dtype=float), Ja, r
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.8])
+def test_the_robust_covariance_is_the_long_run_variance_of_correlated_residuals(rho):
+    # the mean of an AR(1) series of unit variance has the variance (1 + ρ)/(1 − ρ)/n, not 1/n
+    t, Ja, r = _ar1_record(rho)
+    H = np.einsum("kna,lna->kl", Ja, Ja)
+    Hinv = np.linalg.inv(H)
+    cov = fe.robust_cov(Hinv.copy(), Hinv, Ja, r, t)
+    factor = cov[0, 0] / Hinv[0, 0]
+    expected = (1.0 + rho) / (1.0 - rho)
+    assert factor >= 1.0                                    # never below the curvature
+    assert abs(factor - expected) <= 0.35 * expected + (0.3 if rho == 0 else 0.0)
+    assert cov[0, 1] / np.sqrt(cov[0, 0] * cov[1, 1]) == pytest.approx(
+        Hinv[0, 1] / np.sqrt(Hinv[0, 0] * Hinv[1, 1]), abs=1e-12)   # the correlations stay the curvature's

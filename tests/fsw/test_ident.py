@@ -8,6 +8,7 @@ import pytest
 from fsw.commands import CommandRouter
 from fsw.estimation import euler_fit as ef
 from fsw.estimation import inertia as inr
+from fsw.estimation.euler_fit import field_error
 from fsw.estimation.rotations import quat_to_dcm
 from fsw.ident import (ABORTED, DONE, IDLE, MAGNETS, OBSERVE_FREE, TORQUE, TUG, IdentConfig,
                        IdentExperiment)
@@ -171,14 +172,15 @@ def run_magnets(t, b, p, t_on, t_off, sigma, guess, **cfg):
 def test_magnets_experiment_identifies_the_tensor_from_p_cross_b():
     """MAGNETS: the known moment is p × B, a function of the attitude the fit estimates. A 30 A·m² dipole
     for 240 s on a small body (diag(6, 7, 8.5) kg·m²). The sensor is quiet here (0.05 µT) so that a
-    wrong moment model would show: with the sign of p × B flipped the fit is far off (checked below)."""
+    wrong moment model would show: with the sign of p × B flipped the fit is far off (checked below). The
+    field model is exact here and taken so (no field error, no soft iron fitted: on 240 s those cost ~1 %)."""
     J = np.diag([6.0, 7.0, 8.5])
     p = np.array([0.0, 15.0, 26.0])
     t_on, t_off = 40.0, 280.0
     sigma = 0.05e-6
     t, b = simulate(J, [0.6, -0.4, 0.8], 420.0, dipole_fn=lambda tt: p if t_on <= tt < t_off else np.zeros(3),
                     sigma=sigma)
-    ex = run_magnets(t, b, p, t_on, t_off, sigma, 5.0)
+    ex = run_magnets(t, b, p, t_on, t_off, sigma, 5.0, field_error=False)
     a = ex.known_action()
     assert np.allclose(a.dipole_at(np.array([100.0]))[0], p) and not np.any(a.dipole_at(np.array([300.0])))
     e = ex.result.estimate
@@ -213,7 +215,8 @@ def test_magnets_experiment_fits_what_the_calibrations_leave_in_the_samples():
     b[on] += left
     b += drift
     truth = inr.params(J)
-    taken = run_magnets(t, b, p, t_on, t_off, sigma, 5.0, kit_offset_sigma_T=None, drift=False).result
+    taken = run_magnets(t, b, p, t_on, t_off, sigma, 5.0, kit_offset_sigma_T=None, drift=False,
+                        field_error=False).result
     assert taken.fit.errors is None
     assert np.any(np.abs(taken.estimate.p - truth) > taken.estimate.ci95), (taken.estimate.p, taken.estimate.ci95)
     fitted = run_magnets(t, b, p, t_on, t_off, sigma, 5.0).result
@@ -224,6 +227,20 @@ def test_magnets_experiment_fits_what_the_calibrations_leave_in_the_samples():
     assert terms.drift_T.shape == (2, 3)        # degree_for(1,800 s): linear and quadratic
     assert np.all(np.abs(terms.drift_T - [[0.8e-6, -0.5e-6, 0.3e-6], [-0.3e-6, 0.5e-6, 0.0]])
                   <= 3 * terms.drift_sigma_T), (terms.drift_T, terms.drift_sigma_T)
+
+
+def test_the_experiments_fit_takes_its_field_model_and_calibration_as_inexact():
+    """The experiment's fit marginalises the field model's error, at the degree the record's length asks
+    for, and the soft iron the host's calibration may have left, and profiles its cost along the scale;
+    switched off, it takes both as exact and its curvature as the interval."""
+    cfg = IdentConfig()
+    opts = cfg.fit_options(2100.0, MAGNETS)
+    assert opts.field_error_degree == field_error.degree_for(2100.0) == 2
+    assert opts.soft_iron_sigma == cfg.soft_iron_sigma == 0.005
+    assert opts.kit_offset_sigma_T == cfg.kit_offset_sigma_T and opts.drift_degree == 2
+    assert opts.scale_profile == (0.98, 1.02, 0.96, 1.04)
+    exact = IdentConfig(field_error=False, scale_profile=()).fit_options(2100.0, MAGNETS)
+    assert exact.field_error_degree is None and exact.soft_iron_sigma is None and exact.scale_profile == ()
 
 
 def test_fit_runs_in_slices_and_finishes_done():

@@ -179,33 +179,33 @@ def test_an_inaccurate_tensor_is_tried_again_then_safe(box):
 
 
 def test_two_attempts_that_agree_are_combined_and_judged_together(box):
-    """Each attempt alone at 3.4 % (95 %) of the largest moment, their tensors 1 σ apart: combined, their
-    information adds (half-widths / √2: 2.4 %) and the mission detumbles with the mean."""
+    """Each attempt alone at 6.0 % (95 %) of the largest moment, their tensors 1 σ apart: combined, their
+    information adds (half-widths / √2: 4.3 %) and the mission detumbles with the mean."""
     box.to_identifying()
-    box.ident.finish(0.85, shift_kgm2=+0.22)
+    box.ident.finish(1.5, shift_kgm2=+0.39)
     box.run(1.0)
     assert box.mission.phase is Phase.IDENTIFYING and len(box.ident.started) == 2
-    box.ident.finish(0.85, shift_kgm2=-0.22)
+    box.ident.finish(1.5, shift_kgm2=-0.39)
     box.run(1.0)
     assert box.mission.phase is Phase.DETUMBLING
-    assert box.mission.transitions[-1][3] == "tensor of 2 attempts ci95 2.4 %"
+    assert box.mission.transitions[-1][3] == "tensor of 2 attempts ci95 4.3 %"
     np.testing.assert_allclose(np.diag(box.mission.J_kgm2), TRUE_P[:3], atol=1e-9)
     est = box.ident.result.estimate        # the experiment's result is the combined one: sent and kept
     np.testing.assert_allclose(est.p, TRUE_P, atol=1e-9)
-    np.testing.assert_allclose(est.ci95, 0.85 / math.sqrt(2), rtol=1e-4)  # z = 1.95996 vs 1.96
+    np.testing.assert_allclose(est.ci95, 1.5 / math.sqrt(2), rtol=1e-4)  # z = 1.95996 vs 1.96
     assert "2 attempts combined" in est.method
 
 
 def test_two_attempts_that_disagree_are_not_combined(box):
-    """The second tensor 3 kg·m² below the first (more than 4 σ of their difference on every component):
+    """The second tensor 5 kg·m² below the first (more than 4 σ of their difference on every component):
     something changed between them; judged alone, the second fails and the mission goes to SAFE."""
     box.to_identifying()
-    box.ident.finish(0.85)
+    box.ident.finish(1.5)
     box.run(1.0)
-    box.ident.finish(0.85, shift_kgm2=-3.0)
+    box.ident.finish(1.5, shift_kgm2=-5.0)
     box.run(1.0)
     assert box.mission.phase is Phase.SAFE and box.mission.J_kgm2 is None
-    assert box.mission.transitions[-1][3] == "identification ci95 3.9 %"  # of its own largest moment, 21.9
+    assert box.mission.transitions[-1][3] == "identification ci95 7.5 %"  # of its own largest moment, 19.9
 
 
 def test_detumbled_hands_over_to_the_controller_with_the_identified_tensor(box):

@@ -10,6 +10,9 @@ field in body axes closest to the measured samples (least squares weighted by th
 - :mod:`.shooting` — the single- and multiple-shooting least-squares problems;
 - :mod:`.initial` — starting values from the samples alone;
 - :mod:`.identification` — the pipeline (:func:`identify`, resumable as :func:`identify_steps`);
+- :mod:`.field_error` — the field model's and the calibration's errors fitted and marginalised, the
+  robust covariance;
+- :mod:`.profile` — the profile of the cost along the tensor's scale and its interval;
 - :mod:`.cramer_rao` — the bound the fit's covariance is checked against.
 """
 from .cramer_rao import cramer_rao

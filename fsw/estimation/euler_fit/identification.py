@@ -23,6 +23,7 @@ software advances it once per loop tick, inside the task's budget; :func:`identi
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Callable
@@ -32,7 +33,7 @@ import numpy as np
 from .. import inertia as inr
 from .. import sampled_moment as sm
 from ..rotations import quat_exp, quat_mul, quat_to_dcm
-from . import field_error
+from . import field_error, profile
 from .initial import chain_attitudes, initial_rates, segment_length
 from .model import FieldFn, InertiaParam, KnownAction
 from .propagation import segment_bounds
@@ -85,6 +86,7 @@ class FitResult:
     moment_unknown_samples: int = 0            # samples whose moment was unknown (NaN): fitted
     field_error: object = None                 # field_error.FieldError when fitted (FitOptions.field_error_degree)
     errors: ErrorTerms | None = None           # the samples' error terms fitted (FitOptions' kit and drift)
+    scale_profile: object = None               # profile.ScaleProfile when taken (FitOptions.scale_profile)
 
     @property
     def s2(self) -> float:
@@ -139,6 +141,10 @@ class FitOptions:
     # not depend on it; only the known torque's response does), and the fit ends in the one nearest its
     # start; the best of all is kept
     scale_starts: tuple = (0.96, 1.04)
+    # the profile of the cost along the scale (`profile`): Ixx held at the fit's times each of these, the
+    # rest fitted again; where the profile's 95 % interval is wider than the curvature's, the tensor's
+    # variance along its scale is raised to it (modes full and diag; empty: no profile)
+    scale_profile: tuple = ()
 
 
 def identify(t_s: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, action: KnownAction,
@@ -327,13 +333,52 @@ def _identify_once(t: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, actio
         costs = np.array([allres[j].chi2 + prior.cost(allres[j].theta) for j in idx])
         j = int(idx[int(np.argmin(np.where(np.isfinite(costs), costs, np.inf)))])
         res = allres[j]
+        prof = None
+        if opts.scale_profile and par.mode in ("full", "diag") and np.isfinite(res.chi2):
+            res, prof = yield from _scale_profile(ss, j, sruns.theta[j], res, prior, opts, n_kit, chunk)
+            res.moment_unknown_samples = sm.samples_in(t, action.unknown_intervals)
         if opts.field_error_degree is not None and np.isfinite(res.chi2):
             res = field_error.apply(ss, sruns.theta[j], prior, res, int(opts.field_error_degree), run=j,
                                     soft_iron_sigma=opts.soft_iron_sigma)
             if chunk is not None:
                 yield
+        if prof is not None:
+            res = dataclasses.replace(res, cov_p=profile.widened_cov(res.p, res.cov_p, prof), scale_profile=prof)
         out.append(res)
     return out
+
+
+def _scale_profile(ss: SingleShooting, j: int, theta: np.ndarray, res: FitResult, prior: Prior,
+                   opts: FitOptions, n_kit: int, chunk: int | None):
+    """The profile of run `j` of the whole record's problem `ss` at its minimum `theta` (result `res`):
+    one run per factor of `opts.scale_profile` with Ixx held there (`profile`). A point below the minimum
+    is a better fit: the fit continues from it and the profile is taken about that one. Returns (the
+    result, its ScaleProfile)."""
+    par = ss.inertia
+    k = np.asarray(opts.scale_profile, float)
+    K = len(k)
+    pk = ss.replicated(j, K)
+    starts = np.repeat(theta[None], K, 0)
+    starts[:, :par.n_tensor] *= k[:, None]
+    frozen = np.zeros(pk.n_params, bool)
+    frozen[0] = True                                     # θ_I[0] = Ixx / I_ref in modes full and diag
+    pruns = LMRuns(starts)
+    yield from lm_steps(pk, pruns, prior, opts.ss_iter, frozen=frozen, chunk=chunk)
+    ixx = pk.inertia.to_p(pruns.theta[:, :par.n], np.zeros(K, int))[:, 0]
+    cost = pruns.cost.copy()
+    cost_min = float(res.chi2 + prior.cost(theta))
+    i = int(np.argmin(np.where(np.isfinite(cost), cost, np.inf)))
+    if cost[i] < cost_min - res.s2:                      # a better fit than the minimum: go on from it
+        better = LMRuns(pruns.theta[i:i + 1].copy())
+        yield from lm_steps(pk, better, prior, opts.ss_iter, chunk=chunk)
+        new = results(pk, better, prior, n_kit)[0]
+        new_cost = float(new.chi2 + prior.cost(better.theta[0]))
+        if np.isfinite(new_cost) and new_cost < cost_min:
+            ixx = np.append(np.delete(ixx, i), res.p[0])
+            cost = np.append(np.delete(cost, i), cost_min)
+            res, cost_min = new, new_cost
+    curv = 1.959963984540054 * math.sqrt(max(float(res.cov_p[0, 0]), 0.0)) / float(res.p[0])
+    return res, profile.profile_of(ixx, cost, float(res.p[0]), cost_min, res.s2, curv)
 
 
 def scale_starts(par: InertiaParam, opts: FitOptions) -> tuple:

@@ -8,6 +8,8 @@ together by continuity defects whose weights the caller tightens from loose to t
 """
 from __future__ import annotations
 
+import copy
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -61,6 +63,14 @@ class SingleShooting:
                                   unknown_intervals=inertia.unknown_intervals)
         cols = np.zeros((0, len(self.t), 3)) if error_columns is None else np.asarray(error_columns, float)
         self.columns = cols[:, :self.n]
+
+    def replicated(self, run: int, k: int) -> "SingleShooting":
+        """The same problem with `k` runs, each run `run`'s samples and reference attitude (one record
+        fitted from `k` starts; modes whose tensor has no per-run shape)."""
+        out = copy.copy(self)
+        out.b_meas = np.repeat(self.b_meas[run][None], k, axis=0)
+        out.q_ref = np.repeat(self.q_ref[run][None], k, axis=0)
+        return out
 
     @property
     def error_index(self) -> int:

@@ -1,0 +1,51 @@
+"""The profile of the fit's cost along the tensor's scale (fsw.estimation.euler_fit.profile): its 95 %
+interval against the parabola's, and the covariance it widens."""
+import numpy as np
+import pytest
+
+from fsw.estimation.euler_fit import profile
+
+X0 = 22.0
+
+
+def parabola(sigma_rel, factors=(0.98, 1.02, 0.96, 1.04)):
+    x = X0 * np.asarray(factors)
+    return x, ((x - X0) / (sigma_rel * X0)) ** 2
+
+
+@pytest.mark.parametrize("sigma_rel", [0.01, 0.02, 0.05])
+def test_a_parabolas_profile_gives_its_own_interval(sigma_rel):
+    # Δχ² = (δ/σ)² reaches 3.84 at 1.96 σ: between the points linearly (within 2.5 %), beyond them exactly
+    x, d = parabola(sigma_rel)
+    for side in (-1, 1):
+        h = profile.half_width(x, d, X0, side)
+        assert h == pytest.approx(1.959964 * sigma_rel, rel=0.025)
+    prof = profile.profile_of(x, d * 0.9, X0, 0.0, 0.9, 1.959964 * sigma_rel)
+    assert prof.ratio == pytest.approx(1.0, abs=0.025)
+
+
+def test_a_flat_profile_is_wider_and_widens_the_scale_only():
+    x = X0 * np.array([0.98, 1.02, 0.96, 1.04])
+    d = np.array([2.5, 0.7, 11.2, 6.9])                      # seed 4's first experiment (χ² units of s²)
+    p = np.array([X0, 24.0, 12.0, 0.3, -0.2, 0.3])
+    cov = np.diag((0.008 * p / 1.96) ** 2 + 1e-6)
+    curv = 1.96 * np.sqrt(cov[0, 0]) / X0                      # the curvature's half-width, ~0.8 %
+    prof = profile.profile_of(x, d, X0, 0.0, 1.0, curv)
+    lo, hi = prof.half_widths
+    assert lo == pytest.approx(0.02 + 0.02 * (profile.CHI2_1_95 - 2.5) / (11.2 - 2.5), rel=1e-12)
+    assert hi == pytest.approx(0.02 + 0.02 * (profile.CHI2_1_95 - 0.7) / (6.9 - 0.7), rel=1e-12)
+    assert prof.ratio == pytest.approx(hi / curv)
+    wide = profile.widened_cov(p, cov, prof)
+    assert 1.96 * np.sqrt(wide[0, 0]) / X0 == pytest.approx(hi, rel=1e-6)   # Ixx's interval is the profile's
+    extra = wide - cov
+    np.testing.assert_allclose(extra, extra[0, 0] * np.outer(p, p) / X0 ** 2, rtol=1e-12)   # along p pᵀ
+    narrow = profile.profile_of(x, 100 * d, X0, 0.0, 1.0, curv)
+    assert narrow.ratio < 1 and profile.widened_cov(p, cov, narrow) is cov   # never narrower
+
+
+def test_a_profile_that_never_rises_is_unbounded_and_left_to_the_curvature():
+    x = X0 * np.array([0.98, 1.02])
+    prof = profile.profile_of(x, np.zeros(2), X0, 0.0, 1.0, 0.01)
+    assert prof.half_widths == (np.inf, np.inf)
+    cov = np.eye(6)
+    assert profile.widened_cov(np.ones(6), cov, prof) is cov
