@@ -144,7 +144,7 @@ class IdentConfig:
             opts = dataclasses.replace(opts, scale_profile=tuple(self.scale_profile))
         if self.field_error and opts.field_error_degree is None:
             opts = dataclasses.replace(opts, field_error_degree=field_error.degree_for(span_s),
-                                       soft_iron_sigma=self.soft_iron_sigma)
+                                       soft_iron_sigma=self.soft_iron_sigma, robust_cov=True)
         return opts
 
 

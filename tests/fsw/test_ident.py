@@ -236,11 +236,12 @@ def test_the_experiments_fit_takes_its_field_model_and_calibration_as_inexact():
     cfg = IdentConfig()
     opts = cfg.fit_options(2100.0, MAGNETS)
     assert opts.field_error_degree == field_error.degree_for(2100.0) == 2
-    assert opts.soft_iron_sigma == cfg.soft_iron_sigma == 0.005
+    assert opts.soft_iron_sigma == cfg.soft_iron_sigma == 0.005 and opts.robust_cov
     assert opts.kit_offset_sigma_T == cfg.kit_offset_sigma_T and opts.drift_degree == 2
     assert opts.scale_profile == (0.98, 1.02, 0.96, 1.04)
     exact = IdentConfig(field_error=False, scale_profile=()).fit_options(2100.0, MAGNETS)
     assert exact.field_error_degree is None and exact.soft_iron_sigma is None and exact.scale_profile == ()
+    assert not exact.robust_cov
 
 
 def test_fit_runs_in_slices_and_finishes_done():

@@ -34,8 +34,9 @@ most as much wider as estimating them costs (the price of not assuming the model
 
 What the samples still carry besides white noise is correlated over minutes (the driver's bridge offset is
 a running mean over 320 s; the field's and calibration's errors beyond the polynomials), and the
-curvature's covariance counts it as white. The joint covariance is therefore the robust one
-(:func:`robust_cov`): each variance at least the Newey–West sandwich's over 200 s of lags. On the
+curvature's covariance counts it as white. The joint covariance can therefore be the robust one
+(:func:`robust_cov`, `FitOptions.robust_cov`; the onboard experiment's): each variance at least the
+Newey–West sandwich's over 200 s of lags. On the
 mission's ten first experiments (seeds 0-9, 2,100 samples each) that raised the scale's variance by up to
 2.4 times, and without the soft iron's terms by up to 2.7 times.
 """
@@ -213,11 +214,12 @@ def _accepted_step(ss, theta: np.ndarray, prior, r: np.ndarray, Jc: np.ndarray, 
     return np.zeros_like(step), float(np.sum(r * r))
 
 
-def apply(ss, theta: np.ndarray, prior, result, degree: int, run: int = 0, soft_iron_sigma: float | None = None):
+def apply(ss, theta: np.ndarray, prior, result, degree: int, run: int = 0, soft_iron_sigma: float | None = None,
+          robust: bool = False):
     """`result` (a FitResult of run `run` of the single-shooting problem `ss` at `theta`) with the field
     error of `degree` fitted by one Gauss–Newton step and marginalised (see the module's docstring): a new
-    FitResult with the tensor, motion, offset, χ², dof and covariances of the joint problem, and
-    ``field_error`` set."""
+    FitResult with the tensor, motion, offset, χ², dof and covariances of the joint problem (with
+    `robust`, :func:`robust_cov`'s), and ``field_error`` set."""
     k = len(theta)
     r, J = ss.residuals_jacobian(theta[None], np.array([run]))
     r, J = r[0], J[0]                                          # (n, 3), (k, n, 3)
@@ -242,7 +244,9 @@ def apply(ss, theta: np.ndarray, prior, result, degree: int, run: int = 0, soft_
     step = -Hinv @ g
     delta, chi2 = _accepted_step(ss, theta, prior, r, Jc, w_c, step, run)
     dof = max(3 * ss.n - k - m, 1)
-    cov = robust_cov(chi2 / dof * Hinv, Hinv, Ja, r + np.einsum("kna,k->na", Ja, delta), t)
+    cov = chi2 / dof * Hinv
+    if robust:
+        cov = robust_cov(cov, Hinv, Ja, r + np.einsum("kna,k->na", Ja, delta), t)
     th = theta + delta[:k]
     par = ss.inertia
     n_I = par.n

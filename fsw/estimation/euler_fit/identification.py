@@ -125,6 +125,9 @@ class FitOptions:
     field_error_degree: int | None = None
     # with it, the soft iron's error left by the host's calibration: its 1-σ per element (None: not fitted)
     soft_iron_sigma: float | None = None
+    # with it, the joint covariance the robust one (`field_error.robust_cov`: each variance at least the
+    # Newey-West sandwich's); False: the curvature's
+    robust_cov: bool = False
     # the field at the sensor of the magnets that make the known dipole, left by their compensation: an
     # offset of its own (body axes, constant) per dipole state, fitted by single shooting with this prior
     # 1-σ [T] (None: the samples taken as compensated exactly). The compensation is calibrated from the
@@ -339,7 +342,7 @@ def _identify_once(t: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, actio
             res.moment_unknown_samples = sm.samples_in(t, action.unknown_intervals)
         if opts.field_error_degree is not None and np.isfinite(res.chi2):
             res = field_error.apply(ss, sruns.theta[j], prior, res, int(opts.field_error_degree), run=j,
-                                    soft_iron_sigma=opts.soft_iron_sigma)
+                                    soft_iron_sigma=opts.soft_iron_sigma, robust=opts.robust_cov)
             if chunk is not None:
                 yield
         if prof is not None:
