@@ -49,3 +49,31 @@ def test_a_profile_that_never_rises_is_unbounded_and_left_to_the_curvature():
     assert prof.half_widths == (np.inf, np.inf)
     cov = np.eye(6)
     assert profile.widened_cov(np.ones(6), cov, prof) is cov
+
+
+def test_a_profile_point_below_the_minimum_is_where_the_fit_goes_on():
+    """Started 4 % off the minimum along the scale, the profile's 0.96 point is a better fit: the result,
+    and the θ handed on (to the field error's step), are the fit from there, back at the minimum."""
+    from fsw.estimation import euler_fit as ef
+    from fsw.estimation.euler_fit import identification as idn
+    from fsw.estimation.euler_fit.solver import LMRuns, complete, lm
+    from test_euler_fit import ASYM, FIELD, M_PULSE, PULSE, simulate
+
+    sigma = 0.5e-6
+    action = ef.KnownAction.pulses([(PULSE[0], PULSE[1] - PULSE[0], M_PULSE)])
+    t, b, _ = simulate(ASYM, [1.0, 0.6, -0.9], 300.0, lambda tt: M_PULSE if PULSE[0] <= tt < PULSE[1] else 0 * M_PULSE,
+                       sigma=sigma)
+    guess = np.array([200.0] * 3 + [0.0] * 3)
+    opts = ef.FitOptions(scale_profile=(0.96, 1.04), ss_iter=15)
+    fit = ef.identify(t, b[None], FIELD.b_eci_T, action, sigma, guess, ef.FitOptions())[0]
+    ss, theta = idn.single_shooting_for(t, b, FIELD.b_eci_T, action, sigma, fit, opts)
+    prior = idn.fit_prior(ss.n_params, ss.inertia.n, ss.inertia.from_p(guess), opts, sigma, ss.inertia)
+    off = theta.copy()
+    off[:6] *= 1.04
+    runs = lm(ss, LMRuns(off[None].copy()), prior, 1, frozen=np.ones(ss.n_params, bool))   # the cost there
+    res_off = idn.results(ss, runs, prior)[0]
+    res, prof, (problem, th, run) = complete(idn._scale_profile(ss, 0, off, res_off, prior, opts, 0, None))
+    assert res.chi2 < res_off.chi2 - 10 * res_off.s2
+    np.testing.assert_allclose(res.p, fit.p, rtol=2e-3)                          # back at the minimum
+    np.testing.assert_allclose(problem.inertia.to_p(th[None, :6], np.array([run]))[0], res.p, rtol=1e-12)
+    assert prof.ixx_min_kgm2 == res.p[0] and np.min(prof.delta_chi2) >= 0.0

@@ -336,12 +336,12 @@ def _identify_once(t: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, actio
         costs = np.array([allres[j].chi2 + prior.cost(allres[j].theta) for j in idx])
         j = int(idx[int(np.argmin(np.where(np.isfinite(costs), costs, np.inf)))])
         res = allres[j]
-        prof = None
+        prof, at = None, (ss, sruns.theta[j], j)         # the problem, θ and run of the result
         if opts.scale_profile and par.mode in ("full", "diag") and np.isfinite(res.chi2):
-            res, prof = yield from _scale_profile(ss, j, sruns.theta[j], res, prior, opts, n_kit, chunk)
+            res, prof, at = yield from _scale_profile(ss, j, sruns.theta[j], res, prior, opts, n_kit, chunk)
             res.moment_unknown_samples = sm.samples_in(t, action.unknown_intervals)
         if opts.field_error_degree is not None and np.isfinite(res.chi2):
-            res = field_error.apply(ss, sruns.theta[j], prior, res, int(opts.field_error_degree), run=j,
+            res = field_error.apply(at[0], at[1], prior, res, int(opts.field_error_degree), run=at[2],
                                     soft_iron_sigma=opts.soft_iron_sigma, robust=opts.robust_cov)
             if chunk is not None:
                 yield
@@ -356,7 +356,7 @@ def _scale_profile(ss: SingleShooting, j: int, theta: np.ndarray, res: FitResult
     """The profile of run `j` of the whole record's problem `ss` at its minimum `theta` (result `res`):
     one run per factor of `opts.scale_profile` with Ixx held there (`profile`). A point below the minimum
     is a better fit: the fit continues from it and the profile is taken about that one. Returns (the
-    result, its ScaleProfile)."""
+    result, its ScaleProfile, (the problem, θ and run the result is at))."""
     par = ss.inertia
     k = np.asarray(opts.scale_profile, float)
     K = len(k)
@@ -370,6 +370,7 @@ def _scale_profile(ss: SingleShooting, j: int, theta: np.ndarray, res: FitResult
     ixx = pk.inertia.to_p(pruns.theta[:, :par.n], np.zeros(K, int))[:, 0]
     cost = pruns.cost.copy()
     cost_min = float(res.chi2 + prior.cost(theta))
+    at = (ss, theta, j)
     i = int(np.argmin(np.where(np.isfinite(cost), cost, np.inf)))
     if cost[i] < cost_min - res.s2:                      # a better fit than the minimum: go on from it
         better = LMRuns(pruns.theta[i:i + 1].copy())
@@ -379,9 +380,9 @@ def _scale_profile(ss: SingleShooting, j: int, theta: np.ndarray, res: FitResult
         if np.isfinite(new_cost) and new_cost < cost_min:
             ixx = np.append(np.delete(ixx, i), res.p[0])
             cost = np.append(np.delete(cost, i), cost_min)
-            res, cost_min = new, new_cost
+            res, cost_min, at = new, new_cost, (pk, better.theta[0].copy(), 0)
     curv = 1.959963984540054 * math.sqrt(max(float(res.cov_p[0, 0]), 0.0)) / float(res.p[0])
-    return res, profile.profile_of(ixx, cost, float(res.p[0]), cost_min, res.s2, curv)
+    return res, profile.profile_of(ixx, cost, float(res.p[0]), cost_min, res.s2, curv), at
 
 
 def scale_starts(par: InertiaParam, opts: FitOptions) -> tuple:
