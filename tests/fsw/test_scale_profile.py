@@ -32,8 +32,10 @@ def test_a_flat_profile_is_wider_and_widens_the_scale_only():
     curv = 1.96 * np.sqrt(cov[0, 0]) / X0                      # the curvature's half-width, ~0.8 %
     prof = profile.profile_of(x, d, X0, 0.0, 1.0, curv)
     lo, hi = prof.half_widths
-    assert lo == pytest.approx(0.02 + 0.02 * (profile.CHI2_1_95 - 2.5) / (11.2 - 2.5), rel=1e-12)
-    assert hi == pytest.approx(0.02 + 0.02 * (profile.CHI2_1_95 - 0.7) / (6.9 - 0.7), rel=1e-12)
+    # where the profile, drawn through its points, crosses χ²₁(0.95) = 1.96²: between the 2 % and 4 % points
+    assert 0.02 < lo < 0.04 and 0.02 < hi < 0.04
+    assert np.interp(lo, [0.0, 0.02, 0.04], [0.0, 2.5, 11.2]) == pytest.approx(1.959964 ** 2, rel=1e-6)
+    assert np.interp(hi, [0.0, 0.02, 0.04], [0.0, 0.7, 6.9]) == pytest.approx(1.959964 ** 2, rel=1e-6)
     assert prof.ratio == pytest.approx(hi / curv)
     wide = profile.widened_cov(p, cov, prof)
     assert 1.96 * np.sqrt(wide[0, 0]) / X0 == pytest.approx(hi, rel=1e-6)   # Ixx's interval is the profile's

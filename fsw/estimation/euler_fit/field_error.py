@@ -180,7 +180,8 @@ def robust_cov(cov: np.ndarray, Hinv: np.ndarray, Ja: np.ndarray, r: np.ndarray,
         om += (1.0 - lag / (L + 1.0)) * (c + c.T)
     sand = np.einsum("ij,jk,ki->i", Hinv, om, Hinv)
     var = np.diag(cov)
-    d = np.sqrt(np.where(var > 0, np.maximum(sand / np.where(var > 0, var, 1.0), 1.0), 1.0))
+    ratio = np.divide(sand, var, out=np.ones_like(var), where=var > 0)
+    d = np.sqrt(np.maximum(ratio, 1.0))
     return cov * d[:, None] * d[None, :]
 
 

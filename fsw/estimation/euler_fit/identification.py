@@ -86,7 +86,6 @@ class FitResult:
     moment_unknown_samples: int = 0            # samples whose moment was unknown (NaN): fitted
     field_error: object = None                 # field_error.FieldError when fitted (FitOptions.field_error_degree)
     errors: ErrorTerms | None = None           # the samples' error terms fitted (FitOptions' kit and drift)
-    scale_profile: object = None               # profile.ScaleProfile when taken (FitOptions.scale_profile)
 
     @property
     def s2(self) -> float:
@@ -346,7 +345,7 @@ def _identify_once(t: np.ndarray, b_meas: np.ndarray, b_inertial: FieldFn, actio
             if chunk is not None:
                 yield
         if prof is not None:
-            res = dataclasses.replace(res, cov_p=profile.widened_cov(res.p, res.cov_p, prof), scale_profile=prof)
+            res = dataclasses.replace(res, cov_p=profile.widened_cov(res.p, res.cov_p, prof))
         out.append(res)
     return out
 
@@ -381,7 +380,7 @@ def _scale_profile(ss: SingleShooting, j: int, theta: np.ndarray, res: FitResult
             ixx = np.append(np.delete(ixx, i), res.p[0])
             cost = np.append(np.delete(cost, i), cost_min)
             res, cost_min, at = new, new_cost, (pk, better.theta[0].copy(), 0)
-    curv = 1.959963984540054 * math.sqrt(max(float(res.cov_p[0, 0]), 0.0)) / float(res.p[0])
+    curv = float(inr.half_width(res.cov_p, 0.95)[0]) / float(res.p[0])
     return res, profile.profile_of(ixx, cost, float(res.p[0]), cost_min, res.s2, curv), at
 
 

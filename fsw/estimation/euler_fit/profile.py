@@ -20,8 +20,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: χ²₁ at 95 %
-CHI2_1_95 = 3.841458820694124
+from .. import inertia as inr
+
+#: χ²₁ at 95 %: the square of the two-sided normal quantile
+CHI2_1_95 = inr.z_value(0.95) ** 2
 
 
 @dataclass(frozen=True)
@@ -41,11 +43,6 @@ class ScaleProfile:
         if not self.curvature_half_width > 0:
             return 1.0
         return max(self.half_widths) / self.curvature_half_width
-
-    def as_dict(self) -> dict:
-        return {"ixx_kgm2": self.ixx_kgm2.tolist(), "delta_chi2": self.delta_chi2.tolist(),
-                "ixx_min_kgm2": self.ixx_min_kgm2, "half_widths": list(self.half_widths),
-                "curvature_half_width": self.curvature_half_width}
 
 
 def half_width(x: np.ndarray, d: np.ndarray, x0: float, side: int, threshold: float = CHI2_1_95) -> float:
