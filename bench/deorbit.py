@@ -20,7 +20,9 @@ The host-magnetics calibration. A spacecraft held to the flow does not turn enou
 calibration (`fsw.host_calibration`) to solve the host's iron (its solutions are ill-conditioned), so the
 box starts with the calibration an earlier phase of the mission (the tumble) would have left it
 (:func:`hand_over_calibration`: the host's hard and soft iron with seeded errors, 0.3 µT and 0.3 %, its
-thermal drift not included), applied as the box's own last good calibration.
+thermal drift not included), applied as the box's own last good calibration. Likewise the kit-field
+model starts with the calibration the mission's openings before this phase leave (:func:`hand_over_kit_field`,
+`--kit-calibration none` for the design's prior instead).
 
 `--sweep`: the 8 starts on the orbit (argument of latitude 0°, 45°, ..., 315°) × 5 seeds (the sensor's
 noise, the handed-over calibration's errors), 40 runs of `--duration`; the JSON then has `runs` (one row
@@ -71,6 +73,8 @@ PAPER = {
     "magnet_turns": {"pitch": PAPER_TURNS["pitch"], "yaw": PAPER_TURNS["yaw"], "total": sum(PAPER_TURNS.values())},
     "energy_J": {"capsules": PAPER_CAPSULES_J, "magnets": PAPER_MAGNETS_J, "total": PAPER_TOTAL_J},
 }
+#: the kit-field calibration handed over (:func:`hand_over_kit_field`): 1-σ per axis, a fraction of |F_a|
+KIT_HAND_OVER_FRAC = 0.01
 FAULT_KINDS = ("stall", "stuck", "switch", "gpio")
 CHANNELS = {"pitch": 0, "yaw": 1, "0": 0, "1": 1}
 
@@ -144,6 +148,8 @@ class BenchResult:
     faults: list
     attitude: str = "truth"
     seed: int = 0
+    #: the kit-field calibration the box started with: "handed-over" (:func:`hand_over_kit_field`) or "none"
+    kit_calibration: str = "none"
 
     # --- the numbers ----------------------------------------------------------------------------
     def _window(self) -> np.ndarray:
@@ -207,7 +213,7 @@ class BenchResult:
             "settle_s": self.settle_s, "loop_rate_hz": self.rate_hz, "dynamics_step_s": self.step_s,
             "arg_lat0_deg": self.sim.orbit.arg_lat0_deg,
             "attitude": self.attitude, "attitude_source": self.attitude_source, "density_model": self.density,
-            "seed": self.seed,
+            "seed": self.seed, "kit_calibration": self.kit_calibration,
             "att_err_rms_rad": {"yaw": self.att_err_rms_rad[0], "pitch": self.att_err_rms_rad[1]},
             "att_err_rms_rad_max": max(self.att_err_rms_rad) if self.attitude == "estimate" else math.nan,
             "rate_err_rms_dps": self.rate_err_rms_dps,
@@ -245,7 +251,8 @@ def deorbit_scenario(scenario_name: str):
 def run_bench(scenario_name: str = DEFAULT_SCENARIO, *, duration_s: float | None = None, rate_hz: float = 10.0,
               law: str = "mpc", faults: list[Fault] | tuple = (), seed: int = 0,
               settle_s: float | None = None, controller: ControllerConfig | None = None,
-              arg_lat0_deg: float | None = None, attitude: str = "estimate") -> BenchResult:
+              arg_lat0_deg: float | None = None, attitude: str = "estimate",
+              hand_over_kit: bool = True) -> BenchResult:
     scn = deorbit_scenario(scenario_name)
     if arg_lat0_deg is not None:  # start elsewhere on the same orbit
         scn = dataclasses.replace(scn, arg_lat0_deg=float(arg_lat0_deg))
@@ -260,6 +267,9 @@ def run_bench(scenario_name: str = DEFAULT_SCENARIO, *, duration_s: float | None
                                   "attitude": attitude})
     sim, fsw = box.sim, box.fsw
     hand_over_calibration(fsw.calibration, sim.host, seed=seed)
+    kit_cal = "handed-over" if attitude == "estimate" and hand_over_kit else "none"
+    if kit_cal == "handed-over":
+        hand_over_kit_field(fsw.kit_field, sim, seed=seed)
     kit = fsw.apps["deorbit"]
     cfg, source = kit.controller.config, kit.attitude
     # start the controller through its ground command handler
@@ -300,7 +310,7 @@ def run_bench(scenario_name: str = DEFAULT_SCENARIO, *, duration_s: float | None
     density = (f"exponential, {spec.density_kgm3:.4g} kg/m3 at {spec.density_ref_alt_km:g} km, scale height "
                f"{spec.density_scale_height_km:g} km (Vallado Table 8-4)")
     return BenchResult(scn.name, cfg.law, duration, settle, rate_hz, sim.max_step_s, wall, source.description,
-                       density, tr, kit, sim, list(faults), attitude, seed)
+                       density, tr, kit, sim, list(faults), attitude, seed, kit_cal)
 
 
 def hand_over_calibration(calibration, host, *, seed: int = 0, hard_sigma_T: float = 0.3e-6,
@@ -321,6 +331,28 @@ def hand_over_calibration(calibration, host, *, seed: int = 0, hard_sigma_T: flo
     snap = {"theta_uT": [*(b * 1e6), *(D[i, j] for i, j in D_TERMS)], "b_T": list(b), "D": D.tolist(),
             "cov": None, "published_at_s": 0.0, "drift_period_s": None, "state": 1}
     return calibration.restore(snap, None, 0.0, restart=False)  # the box's own: not dropped at the first misfit
+
+
+def hand_over_kit_field(kit_field, sim, *, seed: int = 0, sigma_frac: float = KIT_HAND_OVER_FRAC) -> None:
+    """Give the box's kit-field model (`fsw.deorbit.kit_field.KitFieldModel`) the calibration the earlier
+    phases of the mission (the identification's openings, the detumbling's pulses: dozens of steps per
+    channel) would have left it: each channel's F_a as the truth's magnet makes it at the sensor, with a
+    seeded error of `sigma_frac` of |F_a| per axis and that covariance; restored as after a restart (the
+    steps of this run still judge and refine it)."""
+    from hil.deorbit_kit import HOME_AXIS
+    from hil.kit_field import dipole_field_T
+
+    rng = np.random.default_rng(20_000 + seed)
+    truth = sim.kit_field
+    fa, var = [], []
+    for ch, pos in zip(sim.kit.channels, truth.positions_m):
+        f = dipole_field_T(ch.dipole_Am2 * HOME_AXIS[ch.index], -pos)
+        s = sigma_frac * float(np.linalg.norm(f))
+        fa.append(f + rng.normal(0.0, s, 3))
+        var += [s * s] * 3
+    design = [float(x) for m in kit_field.models for x in m.fa_design_T]
+    kit_field.restore({"fa_T": [float(x) for f in fa for x in f], "P": np.diag(var).tolist(), "fa_design_T": design,
+                       "steps": [0] * len(fa)})
 
 
 def _score_estimate(tr: Trace, src, sim) -> None:
@@ -483,7 +515,10 @@ def sweep(scenario_name: str = DEFAULT_SCENARIO, *, starts: int = 8, seeds: int 
             return runs
     for spec, r in zip(specs, runs):
         r["wall_s"] = round(elapsed[spec.id], 2)
-    return aggregate(runs, scenario_name, attitude, out)
+    res = aggregate(runs, scenario_name, attitude, out)
+    if attitude == "estimate":
+        res["kit_calibration"] = "handed-over" if kwargs.get("hand_over_kit", True) else "none"
+    return res
 
 
 def sweep_row(d: dict) -> dict:
@@ -528,6 +563,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="the controller's attitude: the box's own estimate (default) or the simulation truth")
     ap.add_argument("--seed", type=int_range(0, 2**31 - 1), default=0,
                     help="sensor noise and handed-over calibration errors (default 0)")
+    ap.add_argument("--kit-calibration", choices=("handed-over", "none"), default="handed-over",
+                    help="on the estimate: the kit-field calibration the box starts with, the one the mission's "
+                         "earlier phases leave (default: the truth's magnets, 1 %% errors) or none (the design's, "
+                         "15 %% prior)")
     ap.add_argument("--sweep", action="store_true",
                     help="the starts on the orbit x seeds (default 8 x 5 = 40 runs); JSON: runs and aggregates")
     ap.add_argument("--starts", type=int_range(1, 8), default=8, metavar="N",
@@ -550,12 +589,14 @@ def main(argv: list[str] | None = None) -> int:
         faults = [Fault.parse(f) for f in args.fault]
         if args.sweep:
             out = sweep(args.scenario, duration_s=args.duration, rate_hz=args.rate, law=args.law, faults=faults,
-                        attitude=args.attitude, starts=args.starts, seeds=args.seeds, campaign=(ap, args))
+                        attitude=args.attitude, starts=args.starts, seeds=args.seeds, campaign=(ap, args),
+                        hand_over_kit=args.kit_calibration == "handed-over")
             if isinstance(out, int):
                 return out
         else:
             r = run_bench(args.scenario, duration_s=args.duration, rate_hz=args.rate, law=args.law, faults=faults,
-                          arg_lat0_deg=args.arg_lat0, attitude=args.attitude, seed=args.seed)
+                          arg_lat0_deg=args.arg_lat0, attitude=args.attitude, seed=args.seed,
+                          hand_over_kit=args.kit_calibration == "handed-over")
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
