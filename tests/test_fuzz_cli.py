@@ -562,6 +562,7 @@ SPECS: list[Tool] = [
         "--arg-lat0": Opt(floats()),
         "--law": Opt(choices(["mpc", "paper"])),
         "--attitude": Opt(choices(["estimate", "truth"])),
+        "--kit-calibration": Opt(choices(["handed-over", "none"])),
         "--seed": Opt(ints(0, 2**31 - 1)),
         "--sweep": flag(),
         "--starts": Opt(ints(1, 8)),
