@@ -75,6 +75,8 @@ PAPER = {
 }
 #: the kit-field calibration handed over (:func:`hand_over_kit_field`): 1-σ per axis, a fraction of |F_a|
 KIT_HAND_OVER_FRAC = 0.01
+#: what the kit-field model starts with on the estimate: that calibration, or none (the design's 15 % prior)
+KIT_CALIBRATIONS = ("handed-over", "none")
 FAULT_KINDS = ("stall", "stuck", "switch", "gpio")
 CHANNELS = {"pitch": 0, "yaw": 1, "0": 0, "1": 1}
 
@@ -252,7 +254,9 @@ def run_bench(scenario_name: str = DEFAULT_SCENARIO, *, duration_s: float | None
               law: str = "mpc", faults: list[Fault] | tuple = (), seed: int = 0,
               settle_s: float | None = None, controller: ControllerConfig | None = None,
               arg_lat0_deg: float | None = None, attitude: str = "estimate",
-              hand_over_kit: bool = True) -> BenchResult:
+              kit_calibration: str = "handed-over") -> BenchResult:
+    if kit_calibration not in KIT_CALIBRATIONS:
+        raise ValueError(f"kit_calibration must be one of {KIT_CALIBRATIONS}, got {kit_calibration!r}")
     scn = deorbit_scenario(scenario_name)
     if arg_lat0_deg is not None:  # start elsewhere on the same orbit
         scn = dataclasses.replace(scn, arg_lat0_deg=float(arg_lat0_deg))
@@ -267,7 +271,7 @@ def run_bench(scenario_name: str = DEFAULT_SCENARIO, *, duration_s: float | None
                                   "attitude": attitude})
     sim, fsw = box.sim, box.fsw
     hand_over_calibration(fsw.calibration, sim.host, seed=seed)
-    kit_cal = "handed-over" if attitude == "estimate" and hand_over_kit else "none"
+    kit_cal = kit_calibration if attitude == "estimate" else "none"  # the truth needs no kit-field model
     if kit_cal == "handed-over":
         hand_over_kit_field(fsw.kit_field, sim, seed=seed)
     kit = fsw.apps["deorbit"]
@@ -517,7 +521,7 @@ def sweep(scenario_name: str = DEFAULT_SCENARIO, *, starts: int = 8, seeds: int 
         r["wall_s"] = round(elapsed[spec.id], 2)
     res = aggregate(runs, scenario_name, attitude, out)
     if attitude == "estimate":
-        res["kit_calibration"] = "handed-over" if kwargs.get("hand_over_kit", True) else "none"
+        res["kit_calibration"] = kwargs.get("kit_calibration", "handed-over")
     return res
 
 
@@ -563,7 +567,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="the controller's attitude: the box's own estimate (default) or the simulation truth")
     ap.add_argument("--seed", type=int_range(0, 2**31 - 1), default=0,
                     help="sensor noise and handed-over calibration errors (default 0)")
-    ap.add_argument("--kit-calibration", choices=("handed-over", "none"), default="handed-over",
+    ap.add_argument("--kit-calibration", choices=KIT_CALIBRATIONS, default="handed-over",
                     help="on the estimate: the kit-field calibration the box starts with, the one the mission's "
                          "earlier phases leave (default: the truth's magnets, 1 %% errors) or none (the design's, "
                          "15 %% prior)")
@@ -590,13 +594,13 @@ def main(argv: list[str] | None = None) -> int:
         if args.sweep:
             out = sweep(args.scenario, duration_s=args.duration, rate_hz=args.rate, law=args.law, faults=faults,
                         attitude=args.attitude, starts=args.starts, seeds=args.seeds, campaign=(ap, args),
-                        hand_over_kit=args.kit_calibration == "handed-over")
+                        kit_calibration=args.kit_calibration)
             if isinstance(out, int):
                 return out
         else:
             r = run_bench(args.scenario, duration_s=args.duration, rate_hz=args.rate, law=args.law, faults=faults,
                           arg_lat0_deg=args.arg_lat0, attitude=args.attitude, seed=args.seed,
-                          hand_over_kit=args.kit_calibration == "handed-over")
+                          kit_calibration=args.kit_calibration)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
