@@ -21,14 +21,22 @@ calibration, the estimators and the applications; they are still sent and stored
 Calibration on orbit (:meth:`KitFieldModel.record` with the accepted samples): every motion of a
 channel between two rest states A → B is a known change of its field, Δ = c_a F_a + c_b F_b with
 c_a = s_B cos φ_B − s_A cos φ_A (c_b likewise with sin). The body turns meanwhile, so the step is
-estimated against the field's trend: one least-squares fit of the raw samples, compensated with the
+estimated against the field's motion: one least-squares fit of the raw samples, compensated with the
 current model, on both sides of the motion (up to ``window_s`` each, cut at the neighbouring steps of an
 open field before and any motion after; halved while the residual exceeds ``misfit`` times the noise)
-to a shared polynomial in time (``degree``) plus a step at the motion, per axis. The fitted step d is
-what the model missed. Motions of several channels that overlap (the controller closes one capsule
-as it opens the other) are one step, so the channels' F_a are estimated jointly: x = (F_a,pitch,
+to the Earth's field turning with the body plus a step at the motion (:func:`rotating_step_fit`)::
+
+    y(τ) = exp(−[θ(τ)]×) (B0 + B1 τ) + d·[τ > 0],   θ(τ) = Σ_k a_k τ^k (k = 1 … ``degree``)
+
+τ the time from the motion's middle in units of the window. The rotation keeps the field's magnitude
+(only B1, the field's change along the orbit, prior 1-σ ``field_rate_T_per_s``, changes it), so the
+fit has 3·degree + 9 unknowns shared by the three axes where a polynomial per axis has 12 + 3 that
+follow a turning field only so far and are biased by what they miss: on a free body tumbling at
+4–8 °/s the step's error is ~30 % below a cubic's, and its σ covers it. The fitted step d is what the
+model missed. Motions of several channels that overlap (the controller closes one capsule as it opens
+the other) are one step, so the channels' F_a are estimated jointly: x = (F_a,pitch,
 F_a,yaw) with its covariance P, the observation d = H (x_true − x) with H = (c_a,pitch I, c_a,yaw I)
-and R the covariance of d (the fit's residual variance, at least the sensor's, times (XᵀX)⁻¹); a
+and R the covariance of d (the fit's, scaled by its χ² per degree of freedom when above 1); a
 Kalman update of a constant, prior: the design value with ``prior_frac`` of |F_a| per axis. A step is
 not taken in when it is
 
@@ -95,6 +103,119 @@ def dipole_field_T(m_Am2: np.ndarray, position_m: np.ndarray) -> np.ndarray:
     rh = r / d
     m = np.asarray(m_Am2, dtype=float)
     return MU0_4PI / d**3 * (3.0 * float(m @ rh) * rh - m)
+
+
+def _rodrigues(theta: np.ndarray) -> np.ndarray:
+    """exp([θ]×) for rotation vectors `theta` (..., 3): (..., 3, 3)."""
+    a = np.linalg.norm(theta, axis=-1)
+    k = theta / np.where(a > 1e-12, a, 1.0)[..., None]
+    K = np.zeros(theta.shape + (3,))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -k[..., 2], k[..., 1], -k[..., 0]
+    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = k[..., 2], -k[..., 1], k[..., 0]
+    return np.eye(3) + np.sin(a)[..., None, None] * K + (1.0 - np.cos(a))[..., None, None] * (K @ K)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+#: prior 1-σ of the rotation polynomial's coefficients [rad per window^k]: the first a rate of up to
+#: ~20 rad a window (a weak bound, it keeps the rotation about the field regular on a slow body), the
+#: others the rate's change
+ROTATION_PRIOR_RAD = (20.0, 0.5)
+
+
+def rotating_step_fit(tau: np.ndarray, after: np.ndarray, y_T: np.ndarray, sigma_T: float,
+                      b1_sigma_T: float, degree: int = 3, iterations: int = 12
+                      ) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """The step `d` [T] in samples `y_T` (n, 3) at times `tau` (n,) (−1 … 1, 0 at the motion; `after`:
+    the samples after it) of the Earth's field turning with the body (the module's model), by
+    Levenberg-Marquardt from the rate the samples' own derivatives give (ẏ = y × θ̇ on each side).
+    Returns (d, its covariance [T²] — the fit's, scaled by the residual's χ² per degree of freedom when
+    above 1 —, the residual RMS per axis [T], at least `sigma_T`), or None (too few samples, singular)."""
+    n, na = len(tau), 3 * degree
+    if n < na + 9 or np.count_nonzero(after) < 4 or np.count_nonzero(~after) < 4:
+        return None
+    # the rate at the start: ẏ = y × θ̇ = [y]× θ̇ from a cubic per axis on each side
+    rows, rhs = [], []
+    for side in (~after, after):
+        ts = tau[side]
+        X = np.column_stack([ts ** k for k in range(4)])
+        c, *_ = np.linalg.lstsq(X, y_T[side], rcond=None)
+        for t in ts[:: max(1, len(ts) // 8)]:
+            rows.append(_skew(np.array([1.0, t, t * t, t ** 3]) @ c))
+            rhs.append(np.array([0.0, 1.0, 2 * t, 3 * t * t]) @ c)
+    q = np.zeros(na + 9)
+    q[:3] = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0]
+    powers = np.column_stack([tau ** (k + 1) for k in range(degree)])  # (n, degree)
+    step = after.astype(float)
+
+    def rotations(qa):  # (..., na) -> (..., n, 3, 3)
+        theta = np.einsum("nk,...kj->...nj", powers, qa.reshape(qa.shape[:-1] + (degree, 3)))
+        return _rodrigues(-theta)
+
+    def predict(q, R):
+        v = q[na:na + 3] + tau[:, None] * q[na + 3:na + 6]
+        return np.einsum("nij,nj->ni", R, v) + step[:, None] * q[na + 6:]
+
+    def linear_columns(R):  # ∂y/∂(B0, B1, d): (3n, 9)
+        L = np.empty((n, 3, 9))
+        L[:, :, 0:3], L[:, :, 3:6] = R, R * tau[:, None, None]
+        L[:, :, 6:9] = step[:, None, None] * np.eye(3)
+        return L.reshape(3 * n, 9)
+
+    R = rotations(q[:na])
+    q[na:] = np.linalg.lstsq(linear_columns(R), y_T.ravel(), rcond=None)[0]
+    prior = np.zeros(na + 9)
+    prior[0:3] = 1.0 / ROTATION_PRIOR_RAD[0]
+    prior[3:na] = 1.0 / ROTATION_PRIOR_RAD[1]
+    prior[na + 3:na + 6] = 1.0 / b1_sigma_T
+    keep = prior > 0
+
+    def cost(q, R):
+        r = (y_T - predict(q, R)).ravel() / sigma_T
+        return r, float(r @ r + np.sum((prior * q)[keep] ** 2))
+
+    r, c0 = cost(q, R)
+    lam, eps = 1e-3, 1e-6
+    J = np.empty((3 * n, na + 9))
+    for it in range(iterations + 1):
+        v = q[na:na + 3] + tau[:, None] * q[na + 3:na + 6]
+        dq = q[:na] + eps * np.eye(na)  # every coefficient perturbed at once
+        yp = np.einsum("mnij,nj->mni", rotations(dq), v) - np.einsum("nij,nj->ni", R, v)[None]
+        J[:, :na] = (yp / eps).reshape(na, 3 * n).T
+        J[:, na:] = linear_columns(R)
+        J /= sigma_T
+        Jf = np.vstack([J, np.diag(prior)[keep]])
+        H = Jf.T @ Jf
+        if it == iterations:  # the Jacobian at the solution: its covariance
+            break
+        g = Jf.T @ np.concatenate([r, -(prior * q)[keep]])
+        try:
+            dx = np.linalg.solve(H + lam * np.diag(np.diag(H)), g)
+        except np.linalg.LinAlgError:
+            return None
+        q1 = q + dx
+        R1 = rotations(q1[:na])
+        r1, c1 = cost(q1, R1)
+        if c1 <= c0:
+            converged = c0 - c1 < 1e-9 * c0
+            q, R, r, c0, lam = q1, R1, r1, c1, max(lam / 3.0, 1e-7)
+            if converged:
+                iterations = it + 1
+        else:
+            lam *= 10.0
+    try:
+        cov = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(cov)):
+        return None
+    dof = max(3 * n - (na + 9), 1)
+    resid = (y_T - predict(q, R))
+    var = np.maximum(np.sum(resid ** 2, axis=0) / (dof / 3.0), sigma_T ** 2)
+    scale = max(float(r @ r) / dof, 1.0)
+    return q[na + 6:].copy(), cov[na + 6:, na + 6:] * scale, float(np.sqrt(np.mean(var)))
 
 
 @dataclass(frozen=True)
@@ -166,7 +287,7 @@ class KitFieldModel:
     def __init__(self, channels, geometry=DESIGN, *, sigma_T: float = 1.5e-6, guard_s: float = 0.1,
                  window_s: float = 30.0, degree: int = 3, max_samples: int = 1024, prior_frac: float = 0.15,
                  max_sigma_frac: float = 0.05, chi2_max: float = CHI2_3_999, min_window_s: float = 3.0,
-                 misfit: float = 1.3, max_fit_samples: int = 160) -> None:
+                 misfit: float = 1.1, max_fit_samples: int = 320, field_rate_T_per_s: float = 0.1e-6) -> None:
         if len(geometry) != len(channels):
             raise ValueError("one magnet geometry per kit channel")
         self.channels = channels
@@ -177,6 +298,7 @@ class KitFieldModel:
         self.min_window_s = float(min_window_s)
         self.misfit = float(misfit)
         self.max_fit_samples = int(max_fit_samples)
+        self.field_rate_T_per_s = float(field_rate_T_per_s)
         self.degree = int(degree)
         self.max_sigma_frac = float(max_sigma_frac)
         self.chi2_max = float(chi2_max)
@@ -368,19 +490,13 @@ class KitFieldModel:
         if len(rows) > self.max_fit_samples:  # fast sampling: every k-th sample is plenty (CPU budget)
             rows = rows[::-(-len(rows) // self.max_fit_samples)]
         n_pre = sum(1 for t, _, _ in rows if t < c.t0_s)
-        need = self.degree + 2
+        need = self.degree + 5
         if n_pre < need or len(rows) - n_pre < need:
             return None
         t_m = 0.5 * (c.t0_s + c.t1_s)
         tau = np.array([(t - t_m) / w for t, _, _ in rows])
-        X = np.column_stack([tau ** k for k in range(self.degree + 1)] + [(tau > 0).astype(float)])
         y = np.array([raw - self._model(st) for _, raw, st in rows])
-        coef, _, rank, _ = np.linalg.lstsq(X, y, rcond=None)
-        if rank < X.shape[1]:
-            return None
-        resid = y - X @ coef
-        var = np.maximum(np.sum(resid ** 2, axis=0) / max(len(rows) - X.shape[1], 1), self.sigma_T ** 2)
-        return coef[-1], np.diag(var * np.linalg.inv(X.T @ X)[-1, -1]), float(np.sqrt(np.mean(var)))
+        return rotating_step_fit(tau, tau > 0, y, self.sigma_T, self.field_rate_T_per_s * w, self.degree)
 
     def _model(self, states: tuple) -> np.ndarray:
         """The modelled field of the channels in `states` (a channel whose state is None: none)."""

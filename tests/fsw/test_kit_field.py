@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from fsw.deorbit.kit import DeorbitKit
-from fsw.deorbit.kit_field import DESIGN, MagnetGeometry, Rest
+from fsw.deorbit.kit_field import DESIGN, MagnetGeometry, Rest, rotating_step_fit
 from fsw.telemetry.dialect import mavlink
 from fsw.telemetry.telemetry import Telemetry
 from hil.deorbit_kit import DeorbitKitEmulator
@@ -234,6 +234,74 @@ def test_each_channels_scale_is_calibrated_from_its_steps_on_a_tumbling_body(rat
     assert not skip
     assert np.max(np.abs(field - b.truth.b_body_T())) < 1.5e-6  # of 82 µT uncompensated (the target)
     assert np.linalg.norm(b.truth.b_body_T()) > 80e-6
+
+
+def free_body_field(rate_dps, seed, t_s, inertia=(22.49, 24.85, 12.22)):
+    """The Earth's field (40 µT, turning in inertial space at twice the orbit rate) seen from a free rigid
+    body of `inertia` tumbling at `rate_dps` about a random axis, at the times `t_s` (from −30 s): Euler's
+    equations and the attitude integrated by RK4 in 0.05-s steps, independently of the fit's model."""
+    rng = np.random.default_rng(seed)
+    J = np.array(inertia)
+    w = rng.normal(size=3)
+    w *= math.radians(rate_dps) / np.linalg.norm(w)
+    b_in = rng.normal(size=3)
+    b_in *= 40e-6 / np.linalg.norm(b_in)
+
+    def deriv(state):
+        C, w = state[:9].reshape(3, 3), state[9:]
+        wx = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+        return np.concatenate([(-wx @ C).ravel(), np.cross(J * w, w) / J])
+
+    state, t, out, h = np.concatenate([np.eye(3).ravel(), w]), -30.0, [], 0.05
+    for ts in t_s:
+        while t < ts - 1e-9:
+            k1 = deriv(state)
+            k2 = deriv(state + h / 2 * k1)
+            k3 = deriv(state + h / 2 * k2)
+            k4 = deriv(state + h * k3)
+            state, t = state + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4), t + h
+        a = 2 * 2 * math.pi / 5700 * t
+        turn = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+        out.append(state[:9].reshape(3, 3) @ turn @ b_in)
+    return np.array(out)
+
+
+def cubic_step_fit(t, y, sigma_T, misfit=1.3):
+    """The reference: a cubic per axis plus a step by linear least squares, over the widest window (30 s
+    either side, halved down to 3.75 s) whose residual is within `misfit` times the noise."""
+    for w in (30.0, 15.0, 7.5, 3.75):
+        m = np.abs(t) <= w
+        tau = t[m] / w
+        X = np.column_stack([tau ** k for k in range(4)] + [(tau > 0).astype(float)])
+        coef, *_ = np.linalg.lstsq(X, y[m], rcond=None)
+        rms = math.sqrt(np.mean((y[m] - X @ coef) ** 2) * len(tau) / (len(tau) - X.shape[1]))
+        if rms <= misfit * sigma_T:
+            break
+    return coef[-1]
+
+
+@pytest.mark.parametrize("rate_dps, window_s", [(0.05, 30.0), (2.0, 30.0), (4.0, 30.0), (8.0, 15.0)])
+def test_the_step_is_fitted_against_the_field_turning_with_the_body(rate_dps, window_s):
+    # 5 Hz either side of a 2-s motion, 1.5 µT of noise, a step of (3, −2, 1) µT on a free asymmetric body:
+    # the fitted step within 3 σ of the truth on every seed, its σ below 1.1 µT, the residual the noise's;
+    # on a fast tumble its RMS error over the seeds below a cubic per axis's (which follows the turning
+    # field only so far and is biased by what it misses: measured 0.48 against 0.70 µT at 4 °/s, 0.88
+    # against 1.21 µT at 8 °/s)
+    t = np.concatenate([np.arange(-window_s, -1.0, 0.2), np.arange(1.2, window_s, 0.2)])
+    tau, after = t / window_s, t > 0
+    step = np.array([3e-6, -2e-6, 1e-6])
+    err, err_cubic = [], []
+    for seed in range(8):
+        rng = np.random.default_rng(100 + seed)
+        y = free_body_field(rate_dps, seed, t) + after[:, None] * step + rng.normal(0.0, SIGMA_T, (len(t), 3))
+        d, cov, rms = rotating_step_fit(tau, after, y, SIGMA_T, 0.1e-6 * window_s)
+        sd = np.sqrt(np.diag(cov))
+        assert np.all(np.abs(d - step) < 3 * sd), (seed, d, sd)
+        assert np.max(sd) < 1.1e-6 and rms < 1.1 * SIGMA_T
+        err.append(d - step)
+        err_cubic.append(cubic_step_fit(t, y, SIGMA_T) - step)
+    if rate_dps >= 4.0:
+        assert np.sqrt(np.mean(np.square(err))) < 0.8 * np.sqrt(np.mean(np.square(err_cubic)))
 
 
 def test_without_samples_on_a_side_a_step_is_ill_conditioned_and_an_outlier_is_refused():
