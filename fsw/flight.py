@@ -284,6 +284,7 @@ class FlightSoftware:
         if self.kit_field is not None:
             self.kit_field.sigma_T = sigma_b_T
             self.kit_field.guard_s = max(self.kit_field.guard_s, 1.0 / rate_hz)
+            self.kit_field.host = self._host_calibration_at  # its step fits on the host-calibrated field
             if self.driver is not None and hasattr(self.driver, "disturbed"):
                 # the driver's offset measurements are kept from the kit's motions (`Mmc5983ma.disturbed`)
                 self.driver.disturbed = self.kit_field.moved_between
@@ -433,6 +434,12 @@ class FlightSoftware:
             self.estimator_resets += 1
             for est in self.estimators.values():  # history too old to difference against
                 est.reset()
+
+    def _host_calibration_at(self, t_s: float):
+        """The host's calibration applied at `t_s` (`fsw.estimation.magcal.Calibration`: b, D), None before
+        a good one."""
+        cal = self.calibration.cal
+        return cal.calibration_at(t_s) if cal.good else None
 
     def _calibrate(self, now_s: float) -> None:
         if self.new_sample:

@@ -26,11 +26,14 @@ current model, on both sides of the motion (up to ``window_s`` each, cut at the 
 open field before and any motion after; halved while the residual exceeds ``misfit`` times the noise)
 to the Earth's field turning with the body plus a step at the motion (:func:`rotating_step_fit`)::
 
-    y(τ) = exp(−[θ(τ)]×) (B0 + B1 τ) + d·[τ > 0],   θ(τ) = Σ_k a_k τ^k (k = 1 … ``degree``)
+    y(τ) = exp(−[θ(τ)]×) (B0 + B1 τ) + h + d·[τ > 0],   θ(τ) = Σ_k a_k τ^k (k = 1 … ``degree``)
 
-τ the time from the motion's middle in units of the window. The rotation keeps the field's magnitude
-(only B1, the field's change along the orbit, prior 1-σ ``field_rate_T_per_s``, changes it), so the
-fit has 3·degree + 9 unknowns shared by the three axes where a polynomial per axis has 12 + 3 that
+τ the time from the motion's middle in units of the window, y the samples with the host's calibration
+applied (``host``: the flight loop's, when it has a good one; the step is mapped back to the sensor's
+axes through its soft iron), h what stays fixed in the body (the host's iron the calibration left, the
+kit's model error before the motion). The rotation keeps the Earth's field's magnitude (only B1, its
+change along the orbit, prior 1-σ ``field_rate_T_per_s``, changes it), so the fit has 3·degree + 12
+unknowns shared by the three axes where a polynomial per axis has 12 + 3 that
 follow a turning field only so far and are biased by what they miss: on a free body tumbling at
 4–8 °/s the step's error is ~30 % below a cubic's, and its σ covers it. The fitted step d is what the
 model missed. Motions of several channels that overlap (the controller closes one capsule as it opens
@@ -123,6 +126,9 @@ def _skew(v: np.ndarray) -> np.ndarray:
 #: ~20 rad a window (a weak bound, it keeps the rotation about the field regular on a slow body), the
 #: others the rate's change
 ROTATION_PRIOR_RAD = (20.0, 0.5)
+#: prior 1-σ of what stays fixed in the body [T]: the host's hard iron before its calibration (a weak
+#: bound; on a slow body it keeps B0 and h apart)
+OFFSET_PRIOR_T = 50e-6
 
 
 def rotating_step_fit(tau: np.ndarray, after: np.ndarray, y_T: np.ndarray, sigma_T: float,
@@ -134,7 +140,8 @@ def rotating_step_fit(tau: np.ndarray, after: np.ndarray, y_T: np.ndarray, sigma
     Returns (d, its covariance [T²] — the fit's, scaled by the residual's χ² per degree of freedom when
     above 1 —, the residual RMS per axis [T], at least `sigma_T`), or None (too few samples, singular)."""
     n, na = len(tau), 3 * degree
-    if n < na + 9 or np.count_nonzero(after) < 4 or np.count_nonzero(~after) < 4:
+    nq = na + 12  # θ's coefficients, B0, B1, h, d
+    if n < nq or np.count_nonzero(after) < 4 or np.count_nonzero(~after) < 4:
         return None
     # the rate at the start: ẏ = y × θ̇ = [y]× θ̇ from a cubic per axis on each side
     rows, rhs = [], []
@@ -145,7 +152,7 @@ def rotating_step_fit(tau: np.ndarray, after: np.ndarray, y_T: np.ndarray, sigma
         for t in ts[:: max(1, len(ts) // 8)]:
             rows.append(_skew(np.array([1.0, t, t * t, t ** 3]) @ c))
             rhs.append(np.array([0.0, 1.0, 2 * t, 3 * t * t]) @ c)
-    q = np.zeros(na + 9)
+    q = np.zeros(nq)
     q[:3] = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0]
     powers = np.column_stack([tau ** (k + 1) for k in range(degree)])  # (n, degree)
     step = after.astype(float)
@@ -156,20 +163,22 @@ def rotating_step_fit(tau: np.ndarray, after: np.ndarray, y_T: np.ndarray, sigma
 
     def predict(q, R):
         v = q[na:na + 3] + tau[:, None] * q[na + 3:na + 6]
-        return np.einsum("nij,nj->ni", R, v) + step[:, None] * q[na + 6:]
+        return np.einsum("nij,nj->ni", R, v) + q[na + 6:na + 9] + step[:, None] * q[na + 9:]
 
-    def linear_columns(R):  # ∂y/∂(B0, B1, d): (3n, 9)
-        L = np.empty((n, 3, 9))
+    def linear_columns(R):  # ∂y/∂(B0, B1, h, d): (3n, 12)
+        L = np.empty((n, 3, 12))
         L[:, :, 0:3], L[:, :, 3:6] = R, R * tau[:, None, None]
-        L[:, :, 6:9] = step[:, None, None] * np.eye(3)
-        return L.reshape(3 * n, 9)
+        L[:, :, 6:9] = np.eye(3)
+        L[:, :, 9:12] = step[:, None, None] * np.eye(3)
+        return L.reshape(3 * n, 12)
 
     R = rotations(q[:na])
     q[na:] = np.linalg.lstsq(linear_columns(R), y_T.ravel(), rcond=None)[0]
-    prior = np.zeros(na + 9)
+    prior = np.zeros(nq)
     prior[0:3] = 1.0 / ROTATION_PRIOR_RAD[0]
     prior[3:na] = 1.0 / ROTATION_PRIOR_RAD[1]
     prior[na + 3:na + 6] = 1.0 / b1_sigma_T
+    prior[na + 6:na + 9] = 1.0 / OFFSET_PRIOR_T
     keep = prior > 0
 
     def cost(q, R):
@@ -178,7 +187,7 @@ def rotating_step_fit(tau: np.ndarray, after: np.ndarray, y_T: np.ndarray, sigma
 
     r, c0 = cost(q, R)
     lam, eps = 1e-3, 1e-6
-    J = np.empty((3 * n, na + 9))
+    J = np.empty((3 * n, nq))
     for it in range(iterations + 1):
         v = q[na:na + 3] + tau[:, None] * q[na + 3:na + 6]
         dq = q[:na] + eps * np.eye(na)  # every coefficient perturbed at once
@@ -211,11 +220,11 @@ def rotating_step_fit(tau: np.ndarray, after: np.ndarray, y_T: np.ndarray, sigma
         return None
     if not np.all(np.isfinite(cov)):
         return None
-    dof = max(3 * n - (na + 9), 1)
+    dof = max(3 * n - nq, 1)
     resid = (y_T - predict(q, R))
     var = np.maximum(np.sum(resid ** 2, axis=0) / (dof / 3.0), sigma_T ** 2)
     scale = max(float(r @ r) / dof, 1.0)
-    return q[na + 6:].copy(), cov[na + 6:, na + 6:] * scale, float(np.sqrt(np.mean(var)))
+    return q[na + 9:].copy(), cov[na + 9:, na + 9:] * scale, float(np.sqrt(np.mean(var)))
 
 
 @dataclass(frozen=True)
@@ -299,6 +308,9 @@ class KitFieldModel:
         self.misfit = float(misfit)
         self.max_fit_samples = int(max_fit_samples)
         self.field_rate_T_per_s = float(field_rate_T_per_s)
+        #: t_s -> the host's calibration then (`fsw.estimation.magcal.Calibration`: b_T, D) or None: the
+        #: step fits see the field the host's iron leaves undistorted (set by the flight loop)
+        self.host = None
         self.degree = int(degree)
         self.max_sigma_frac = float(max_sigma_frac)
         self.chi2_max = float(chi2_max)
@@ -496,7 +508,16 @@ class KitFieldModel:
         t_m = 0.5 * (c.t0_s + c.t1_s)
         tau = np.array([(t - t_m) / w for t, _, _ in rows])
         y = np.array([raw - self._model(st) for _, raw, st in rows])
-        return rotating_step_fit(tau, tau > 0, y, self.sigma_T, self.field_rate_T_per_s * w, self.degree)
+        cal = self.host(t_m) if self.host is not None else None
+        if cal is not None:  # (I + D)(y − b): the step d in it is (I + D) times the sensor's
+            A = np.eye(3) + cal.D
+            y = (y - cal.b_T) @ A.T
+        fit = rotating_step_fit(tau, tau > 0, y, self.sigma_T, self.field_rate_T_per_s * w, self.degree)
+        if fit is None or cal is None:
+            return fit
+        d, R, rms = fit
+        Ai = np.linalg.inv(A)
+        return Ai @ d, Ai @ R @ Ai.T, rms
 
     def _model(self, states: tuple) -> np.ndarray:
         """The modelled field of the channels in `states` (a channel whose state is None: none)."""

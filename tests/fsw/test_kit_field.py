@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from fsw.deorbit.kit import DeorbitKit
+from fsw.estimation.magcal import Calibration
 from fsw.deorbit.kit_field import DESIGN, MagnetGeometry, Rest, rotating_step_fit
 from fsw.telemetry.dialect import mavlink
 from fsw.telemetry.telemetry import Telemetry
@@ -32,8 +33,10 @@ class Box:
     the design the box knows; a sample a second of a rotating Earth field plus the truth's kit field."""
 
     def __init__(self, moments=(15.0, 15.0), leakage=0.015, shift_m=(0.0, 0.0, 0.0), seed=0, rate_dps=2.0,
-                 every_tick=False):
+                 every_tick=False, soft=None, hard_T=(0.0, 0.0, 0.0)):
         self.every_tick = every_tick
+        self.soft = np.eye(3) if soft is None else np.asarray(soft, float)  # the host's iron: S b + h
+        self.hard_T = np.asarray(hard_T, float)
         self.emu = DeorbitKitEmulator()
         for ch, p in zip(self.emu.channels, moments):
             ch.dipole_Am2 = p
@@ -66,7 +69,7 @@ class Box:
             sample = None
             if self.every_tick or abs(self.t - round(self.t)) < 1e-6:  # a sample a second (or every tick)
                 truth_kit = self.truth.b_body_T()
-                raw = self.earth(self.t) + truth_kit + self.rng.normal(0.0, SIGMA_T, 3)
+                raw = self.soft @ self.earth(self.t) + self.hard_T + truth_kit + self.rng.normal(0.0, SIGMA_T, 3)
                 kit_T, skip = self.model.field_at(self.t)
                 if skip:
                     self.flagged += 1
@@ -208,6 +211,8 @@ def test_the_flight_loop_keeps_the_magnetometers_offset_from_the_kits_motions():
         box.close()
     assert max(errors) < 1.5e-6  # the offset's own noise (a mean of triples of 1.5 µT readings)
     assert drv.offset_disturbed - disturbed0 >= 3 and drv.offset_jumps == 0
+    # the kit's step fits are handed the host's calibration the flight loop applies (none good yet here)
+    assert box.fsw.kit_field.host == box.fsw._host_calibration_at and box.fsw.kit_field.host(box.t0_s) is None
 
 
 @pytest.mark.parametrize("rate_dps, every_tick", [(2.0, False), pytest.param(10.0, True, marks=pytest.mark.slow)])
@@ -282,18 +287,20 @@ def cubic_step_fit(t, y, sigma_T, misfit=1.3):
 
 @pytest.mark.parametrize("rate_dps, window_s", [(0.05, 30.0), (2.0, 30.0), (4.0, 30.0), (8.0, 15.0)])
 def test_the_step_is_fitted_against_the_field_turning_with_the_body(rate_dps, window_s):
-    # 5 Hz either side of a 2-s motion, 1.5 µT of noise, a step of (3, −2, 1) µT on a free asymmetric body:
-    # the fitted step within 3 σ of the truth on every seed, its σ below 1.1 µT, the residual the noise's;
-    # on a fast tumble its RMS error over the seeds below a cubic per axis's (which follows the turning
-    # field only so far and is biased by what it misses: measured 0.48 against 0.70 µT at 4 °/s, 0.88
-    # against 1.21 µT at 8 °/s)
+    # 5 Hz either side of a 2-s motion, 1.5 µT of noise, a step of (3, −2, 1) µT on a free asymmetric body,
+    # a field fixed in the body besides (what the host's calibration left, the kit model's error before the
+    # motion): the fitted step within 3 σ of the truth on every seed, its σ below 1.1 µT, the residual the
+    # noise's; its RMS error over the seeds no worse than a cubic per axis's (which follows the turning
+    # field only so far and is biased by what it misses), and below it on a fast tumble (measured 0.64
+    # against 0.70 µT at 4 °/s, 0.93 against 1.21 µT at 8 °/s)
     t = np.concatenate([np.arange(-window_s, -1.0, 0.2), np.arange(1.2, window_s, 0.2)])
     tau, after = t / window_s, t > 0
     step = np.array([3e-6, -2e-6, 1e-6])
     err, err_cubic = [], []
     for seed in range(8):
         rng = np.random.default_rng(100 + seed)
-        y = free_body_field(rate_dps, seed, t) + after[:, None] * step + rng.normal(0.0, SIGMA_T, (len(t), 3))
+        y = (free_body_field(rate_dps, seed, t) + np.array([10e-6, -5e-6, 3e-6]) + after[:, None] * step
+             + rng.normal(0.0, SIGMA_T, (len(t), 3)))
         d, cov, rms = rotating_step_fit(tau, after, y, SIGMA_T, 0.1e-6 * window_s)
         sd = np.sqrt(np.diag(cov))
         assert np.all(np.abs(d - step) < 3 * sd), (seed, d, sd)
@@ -301,7 +308,38 @@ def test_the_step_is_fitted_against_the_field_turning_with_the_body(rate_dps, wi
         err.append(d - step)
         err_cubic.append(cubic_step_fit(t, y, SIGMA_T) - step)
     if rate_dps >= 4.0:
-        assert np.sqrt(np.mean(np.square(err))) < 0.8 * np.sqrt(np.mean(np.square(err_cubic)))
+        ratio = 0.9 if rate_dps >= 8.0 else 1.0
+        assert np.sqrt(np.mean(np.square(err))) < ratio * np.sqrt(np.mean(np.square(err_cubic)))
+
+
+def test_the_steps_are_fitted_on_the_host_calibrated_field():
+    # the host's iron distorts the turning field (soft iron 6 %, hard iron 30 µT) and the truth's magnets
+    # are 10 % strong and 7 % weak: with the flight loop's calibration handed to the model the one
+    # opening's step is fitted on the field the iron leaves undistorted and mapped back to the sensor's
+    # axes. The open field against the truth's after one opening at 4 °/s, worst over 4 seeds: 0.88 µT
+    # (without the calibration the fit's body-fixed offset and its window absorb this much soft iron too:
+    # 0.77 µT)
+    soft = np.array([[1.06, 0.03, -0.02], [0.03, 0.95, 0.04], [-0.02, 0.04, 1.02]])
+    hard = np.array([30e-6, -12e-6, 8e-6])
+    asked = []
+    for seed in range(4):
+        b = homed(seed=seed, rate_dps=4.0, every_tick=True, soft=soft, hard_T=hard, moments=(16.5, 13.95))
+
+        def host(t_s):
+            asked.append(t_s)
+            return Calibration(b_T=hard, D=np.linalg.inv(soft) - np.eye(3))
+
+        b.model.host = host
+        for ch in (0, 1):
+            b.send(POLARITY, ch, 1)
+        b.run(35.0)
+        b.send(CAPSULE, 0, 1)
+        b.send(CAPSULE, 1, 1)
+        b.run(40.0)
+        assert [m.steps for m in b.model.models] == [1, 1] and asked
+        field, skip = b.model.field_at(b.t)
+        assert not skip
+        assert np.max(np.abs(field - b.truth.b_body_T())) < 1.0e-6  # of ~90 µT
 
 
 def test_without_samples_on_a_side_a_step_is_ill_conditioned_and_an_outlier_is_refused():
