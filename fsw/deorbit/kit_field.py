@@ -45,7 +45,8 @@ not taken in when it is
 
 - weak: every |c_a| < 0.5 (a turn while closed moves only the 1-2 % leakage) — ``weak_steps``;
 - ill-conditioned: too few samples on a side (the next motion came too soon, the first step of a
-  run) or a σ of d over |c_a| above ``max_sigma_frac`` of |F_a| — counted ``ill_conditioned``;
+  run), a σ of d over |c_a| above ``max_sigma_frac`` of |F_a|, or left waiting behind ``max_jobs``
+  others — counted ``ill_conditioned``;
 - an outlier: a χ² of d against H P Hᵀ + R above ``chi2_max`` (3 degrees of freedom, 99.9 %), or an
   updated |F_a| outside [0.5, 1.5] of the design's — counted ``outliers``;
 
@@ -131,6 +132,15 @@ ROTATION_PRIOR_RAD = (20.0, 0.5)
 OFFSET_PRIOR_T = 50e-6
 
 
+def _finish(steps):
+    """Run a generator of work steps to its end; its return value."""
+    while True:
+        try:
+            next(steps)
+        except StopIteration as done:
+            return done.value
+
+
 def rotating_step_fit(tau: np.ndarray, after: np.ndarray, y_T: np.ndarray, sigma_T: float,
                       b1_sigma_T: float, degree: int = 3, iterations: int = 12
                       ) -> tuple[np.ndarray, np.ndarray, float] | None:
@@ -138,7 +148,14 @@ def rotating_step_fit(tau: np.ndarray, after: np.ndarray, y_T: np.ndarray, sigma
     the samples after it) of the Earth's field turning with the body (the module's model), by
     Levenberg-Marquardt from the rate the samples' own derivatives give (ẏ = y × θ̇ on each side).
     Returns (d, its covariance [T²] — the fit's, scaled by the residual's χ² per degree of freedom when
-    above 1 —, the residual RMS per axis [T], at least `sigma_T`), or None (too few samples, singular)."""
+    above 1 —, the residual RMS per axis [T], at least `sigma_T`), or None (too few samples, singular).
+    At once: :func:`rotating_step_fit_steps` is the same fit an iteration at a time."""
+    return _finish(rotating_step_fit_steps(tau, after, y_T, sigma_T, b1_sigma_T, degree, iterations))
+
+
+def rotating_step_fit_steps(tau, after, y_T, sigma_T, b1_sigma_T, degree=3, iterations=12):
+    """:func:`rotating_step_fit` as a generator: it yields after each iteration (~1-3 ms at 320 samples)
+    and returns the fit, so that the flight loop spreads it over its ticks."""
     n, na = len(tau), 3 * degree
     nq = na + 12  # θ's coefficients, B0, B1, h, d
     if n < nq or np.count_nonzero(after) < 4 or np.count_nonzero(~after) < 4:
@@ -189,6 +206,8 @@ def rotating_step_fit(tau: np.ndarray, after: np.ndarray, y_T: np.ndarray, sigma
     lam, eps = 1e-3, 1e-6
     J = np.empty((3 * n, nq))
     for it in range(iterations + 1):
+        if it:
+            yield
         v = q[na:na + 3] + tau[:, None] * q[na + 3:na + 6]
         dq = q[:na] + eps * np.eye(na)  # every coefficient perturbed at once
         yp = np.einsum("mnij,nj->mni", rotations(dq), v) - np.einsum("nij,nj->ni", R, v)[None]
@@ -296,7 +315,8 @@ class KitFieldModel:
     def __init__(self, channels, geometry=DESIGN, *, sigma_T: float = 1.5e-6, guard_s: float = 0.1,
                  window_s: float = 30.0, degree: int = 3, max_samples: int = 1024, prior_frac: float = 0.15,
                  max_sigma_frac: float = 0.05, chi2_max: float = CHI2_3_999, min_window_s: float = 3.0,
-                 misfit: float = 1.1, max_fit_samples: int = 320, field_rate_T_per_s: float = 0.1e-6) -> None:
+                 misfit: float = 1.1, max_fit_samples: int = 320, field_rate_T_per_s: float = 0.1e-6,
+                 fit_steps_per_sample: int = 2, max_jobs: int = 3) -> None:
         if len(geometry) != len(channels):
             raise ValueError("one magnet geometry per kit channel")
         self.channels = channels
@@ -308,6 +328,9 @@ class KitFieldModel:
         self.misfit = float(misfit)
         self.max_fit_samples = int(max_fit_samples)
         self.field_rate_T_per_s = float(field_rate_T_per_s)
+        self.fit_steps_per_sample = int(fit_steps_per_sample)
+        self.max_jobs = int(max_jobs)
+        self._jobs: deque = deque()  # (evaluation generator, channels) of the steps, the first under way
         #: t_s -> the host's calibration then (`fsw.estimation.magcal.Calibration`: b_T, D) or None: the
         #: step fits see the field the host's iron leaves undistorted (set by the flight loop)
         self.host = None
@@ -448,7 +471,11 @@ class KitFieldModel:
     # --- calibration ------------------------------------------------------------------------------
     def record(self, t_s: float, raw_T: np.ndarray) -> None:
         """An accepted, unflagged sample (the sensor's own): kept for the step fits; a step whose
-        after-side is complete (`window_s`, or cut by the next motion) is evaluated."""
+        after-side is complete (`window_s`, or cut by the next motion) is queued for its evaluation, and
+        the evaluation under way advanced by `fit_steps_per_sample` iterations per step queued (a fit of
+        a few hundred samples takes 5-20 of ~1-3 ms each: spread over the ticks, it never holds the loop;
+        a new calibration is taken in when it ends). Past `max_jobs` + 1 queued, the oldest waiting step
+        is dropped (counted ``ill_conditioned``)."""
         if any(r is None for r in self.rest):
             return
         self._samples.append((float(t_s), np.array(raw_T, dtype=float), tuple(self.rest)))
@@ -456,15 +483,32 @@ class KitFieldModel:
         for c in self.clusters:
             nxt = min((t0 for t0, _, _ in self.intervals if t0 > c.t1_s), default=math.inf)
             if t_s >= min(c.t1_s + self.window_s, nxt):
-                self._evaluate(c, nxt)
+                if len(self._jobs) > self.max_jobs:  # behind: the oldest waiting step is not evaluated
+                    for i in self._jobs[1][1]:
+                        self.models[i].ill_conditioned += 1
+                    del self._jobs[1]
+                self._jobs.append((self._evaluate(c, nxt), c.channels))
             else:
                 keep.append(c)
         self.clusters = keep
+        for _ in range(self.fit_steps_per_sample * len(self._jobs)):  # more while steps wait
+            if not self._jobs:
+                break
+            try:
+                next(self._jobs[0][0])
+            except StopIteration:
+                self._jobs.popleft()
 
-    def _evaluate(self, c: _Cluster, t_next_s: float) -> None:
-        """The step of the field across the motions of `c`, from a fit on both sides: over `window_s`
-        each side, halved while the fit's residual exceeds `misfit` times the sensor's noise (a
-        polynomial follows a fast tumble's field only so far), down to `min_window_s`."""
+    @property
+    def evaluating(self) -> int:
+        """Steps queued or being evaluated."""
+        return len(self._jobs)
+
+    def _evaluate(self, c: _Cluster, t_next_s: float):
+        """The step of the field across the motions of `c`, from a fit on both sides (a generator of the
+        fit's iterations): over `window_s` each side, halved while the fit's residual exceeds `misfit`
+        times the sensor's noise (the rotation's polynomial follows a fast tumble only so far), down to
+        `min_window_s`."""
         involved = [self.models[i] for i in c.channels]
         if float(np.max(np.abs(c.c_a))) < 0.5:  # no step of the open field (a turn while closed)
             for m in involved:
@@ -472,7 +516,7 @@ class KitFieldModel:
             return
         w, fit = self.window_s, None
         while True:
-            trial = self._fit(c, t_next_s, w)
+            trial = yield from self._fit(c, t_next_s, w)
             if trial is not None:
                 fit = trial
             if trial is None or trial[2] <= self.misfit * self.sigma_T or w / 2 < self.min_window_s:
@@ -487,9 +531,10 @@ class KitFieldModel:
             m.last_fit_rms_T = rms
         self._update(c, d, R)
 
-    def _fit(self, c: _Cluster, t_next_s: float, w: float) -> tuple[np.ndarray, np.ndarray, float] | None:
-        """(the step d the model missed, its covariance, the residual RMS per axis) from the samples
-        within `w` of the motions, or None (too few samples on a side, rank-deficient).
+    def _fit(self, c: _Cluster, t_next_s: float, w: float):
+        """A generator of the fit's iterations returning (the step d the model missed, its covariance, the
+        residual RMS per axis) from the samples within `w` of the motions, or None (too few samples on a
+        side, singular).
 
         d = Σ c_a,i (F_a,i true − F_a,i) + noise."""
         g = self.guard_s
@@ -512,7 +557,8 @@ class KitFieldModel:
         if cal is not None:  # (I + D)(y − b): the step d in it is (I + D) times the sensor's
             A = np.eye(3) + cal.D
             y = (y - cal.b_T) @ A.T
-        fit = rotating_step_fit(tau, tau > 0, y, self.sigma_T, self.field_rate_T_per_s * w, self.degree)
+        fit = yield from rotating_step_fit_steps(tau, tau > 0, y, self.sigma_T, self.field_rate_T_per_s * w,
+                                                 self.degree)
         if fit is None or cal is None:
             return fit
         d, R, rms = fit

@@ -342,6 +342,26 @@ def test_the_steps_are_fitted_on_the_host_calibrated_field():
         assert np.max(np.abs(field - b.truth.b_body_T())) < 1.0e-6  # of ~90 µT
 
 
+def test_a_steps_fit_is_spread_over_the_samples_and_a_backlog_is_bounded():
+    # the fit advances two iterations per sample and step queued (never a whole fit in one tick); the
+    # calibration changes when it ends
+    b = homed(every_tick=True, moments=(16.5, 15.0))
+    b.send(CAPSULE, 0, 1)
+    busy, version = 0, b.model.version
+    while b.model.version == version and b.t < 120.0:
+        b.run(DT)
+        busy += b.model.evaluating > 0
+    assert b.model.models[0].steps == 1 and busy >= 3
+    # behind (no fit advancing), at most max_jobs + 1 steps wait; the oldest waiting ones are dropped
+    b.model.fit_steps_per_sample = 0
+    ill = b.model.models[0].ill_conditioned
+    for k in range(6):
+        b.send(CAPSULE, 0, 0 if k % 2 == 0 else 1)
+        b.run(35.0)
+    assert b.model.evaluating == b.model.max_jobs + 1
+    assert b.model.models[0].ill_conditioned - ill == 6 - (b.model.max_jobs + 1)
+
+
 def test_without_samples_on_a_side_a_step_is_ill_conditioned_and_an_outlier_is_refused():
     b = homed()
     m = b.model
