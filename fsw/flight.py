@@ -146,6 +146,9 @@ OUTBOX_WAIT = 16
 #: have no sample and room, at a sample every tick there may be none (the update then overruns its tick)
 TAKE_WAIT_S = 0.1
 
+#: the longest the kit-field model's step fits wait for a tick with room for an iteration (s)
+KIT_FIT_WAIT_S = 1.0
+
 #: filter updates of an estimator's background work per tick (`FlownFilter.work`): the Euler filter's shape
 #: trial, 34 hypotheses a sample, spread over the ticks between samples (about 1 ms each on the target)
 ESTIMATOR_WORK_PER_TICK = 2
@@ -223,6 +226,8 @@ class FlightSoftware:
         self._frame_cost_s = 0.0
         self._take_cost_s = 0.0
         self._take_costs: deque = deque(maxlen=5)  # the last takes' measured costs (a knot's or a solve's are rare)
+        self._kit_fit_cost_s, self._kit_fit_idle_s = 0.0, 0.0
+        self._kit_fit_costs: deque = deque(maxlen=5)  # the kit-field fit's last iterations' measured costs
         #: called after each sample's pass through the pipeline (a tick may take more than one): e.g. SITL's
         #: scoring, which copies the estimates there; keep them cheap, their time counts in the tick's
         self.sample_listeners: list[Callable[[], None]] = []
@@ -426,7 +431,8 @@ class FlightSoftware:
             self._kit_skips_in_gap = 0
             if self.kit_field is not None:
                 version = self.kit_field.version
-                self.kit_field.record(self.sample_t_s, self.sample_b_T)
+                self.kit_field.record(self.sample_t_s, self.sample_b_T, advance=False)
+                self._kit_fit(now_s)
                 if self.kit_field.version != version:  # a new calibration: this sample and the gate's
                     self.kit_T[:] = self.kit_field.model_T()  # reference re-expressed in it
                     self.gate.rebase(self.calibration.for_gate(self.sample_b_T - self.kit_T)[0])
@@ -434,6 +440,26 @@ class FlightSoftware:
             self.estimator_resets += 1
             for est in self.estimators.values():  # history too old to difference against
                 est.reset()
+
+    def _kit_fit(self, now_s: float) -> None:
+        """The kit-field model's step fits advanced by the iterations due for this sample
+        (`KitFieldModel.due`), each in the tick's room for an iteration's measured cost; an iteration is
+        done all the same when none has been for `KIT_FIT_WAIT_S` (the fit then overruns its tick)."""
+        kf, sched = self.kit_field, self.scheduler
+        if not kf.evaluating:
+            self._kit_fit_idle_s = now_s
+            return
+        for _ in range(kf.due()):
+            if not (sched.elapsed_s() + self._kit_fit_cost_s <= ROOM * sched.period_s
+                    or now_s - self._kit_fit_idle_s > KIT_FIT_WAIT_S):
+                return
+            t0 = sched.elapsed_s()
+            kf.advance(1)
+            self._kit_fit_costs.append(sched.elapsed_s() - t0)
+            self._kit_fit_cost_s = sorted(self._kit_fit_costs)[len(self._kit_fit_costs) // 2]
+            self._kit_fit_idle_s = now_s
+            if not kf.evaluating:
+                return
 
     def _host_calibration_at(self, t_s: float):
         """The host's calibration applied at `t_s` (`fsw.estimation.magcal.Calibration`: b, D), None before

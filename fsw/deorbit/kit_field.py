@@ -469,13 +469,13 @@ class KitFieldModel:
         return b, skip
 
     # --- calibration ------------------------------------------------------------------------------
-    def record(self, t_s: float, raw_T: np.ndarray) -> None:
+    def record(self, t_s: float, raw_T: np.ndarray, advance: bool = True) -> None:
         """An accepted, unflagged sample (the sensor's own): kept for the step fits; a step whose
         after-side is complete (`window_s`, or cut by the next motion) is queued for its evaluation, and
-        the evaluation under way advanced by `fit_steps_per_sample` iterations per step queued (a fit of
-        a few hundred samples takes 5-20 of ~1-3 ms each: spread over the ticks, it never holds the loop;
-        a new calibration is taken in when it ends). Past `max_jobs` + 1 queued, the oldest waiting step
-        is dropped (counted ``ill_conditioned``)."""
+        (`advance`) the evaluation under way advanced by :meth:`due` iterations (a fit of a few hundred
+        samples takes 5-20 of ~1-3 ms each: spread over the samples, it never holds the loop; a new
+        calibration is taken in when it ends). Past `max_jobs` + 1 queued, the oldest waiting step is
+        dropped (counted ``ill_conditioned``). The flight loop advances it itself, in ticks with room."""
         if any(r is None for r in self.rest):
             return
         self._samples.append((float(t_s), np.array(raw_T, dtype=float), tuple(self.rest)))
@@ -491,7 +491,17 @@ class KitFieldModel:
             else:
                 keep.append(c)
         self.clusters = keep
-        for _ in range(self.fit_steps_per_sample * len(self._jobs)):  # more while steps wait
+        if advance:
+            self.advance(self.due())
+
+    def due(self) -> int:
+        """Iterations of the step fits due for a sample: `fit_steps_per_sample` per step queued (more
+        while steps wait)."""
+        return self.fit_steps_per_sample * len(self._jobs)
+
+    def advance(self, iterations: int = 1) -> None:
+        """The queued evaluations advanced by up to `iterations` iterations of their fits."""
+        for _ in range(iterations):
             if not self._jobs:
                 break
             try:

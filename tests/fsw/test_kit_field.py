@@ -362,6 +362,45 @@ def test_a_steps_fit_is_spread_over_the_samples_and_a_backlog_is_bounded():
     assert b.model.models[0].ill_conditioned - ill == 6 - (b.model.max_jobs + 1)
 
 
+def test_the_flight_loop_advances_the_fits_in_ticks_with_room():
+    # the iterations due for a sample run while the tick has room for one's measured cost; in a full tick
+    # they wait, and after KIT_FIT_WAIT_S without one an iteration runs all the same
+    from collections import deque
+
+    from fsw import flight
+
+    class Fits:
+        def __init__(self):
+            self.evaluating, self.done = 1, 0
+
+        def due(self):
+            return 2
+
+        def advance(self, n):
+            self.done += n
+
+    class Clock:
+        period_s, busy_s = 0.2, 0.0
+
+        def elapsed_s(self):
+            return self.busy_s
+
+    loop = SimpleNamespace(kit_field=Fits(), scheduler=Clock(), _kit_fit_cost_s=0.003, _kit_fit_idle_s=0.0,
+                           _kit_fit_costs=deque(maxlen=5))
+    fit = flight.FlightSoftware._kit_fit
+    fit(loop, 0.2)
+    assert loop.kit_field.done == 2  # room: both
+    loop.scheduler.busy_s = 0.19  # a full tick
+    fit(loop, 0.4)
+    fit(loop, 0.6)
+    assert loop.kit_field.done == 2
+    fit(loop, 0.2 + flight.KIT_FIT_WAIT_S + 0.1)
+    assert loop.kit_field.done == 3  # waited long enough: one, then the tick's room decides again
+    loop.kit_field.evaluating = 0
+    fit(loop, 2.0)
+    assert loop._kit_fit_idle_s == 2.0 and loop.kit_field.done == 3
+
+
 def test_without_samples_on_a_side_a_step_is_ill_conditioned_and_an_outlier_is_refused():
     b = homed()
     m = b.model
