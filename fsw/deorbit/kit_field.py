@@ -67,6 +67,7 @@ import numpy as np
 
 from fsw.drivers.capsule import CapsuleState
 from fsw.drivers.stepper import STEPS_PER_TURN, MagnetState
+from fsw.estimation.euler_fit.solver import complete
 
 MU0_4PI = 1e-7  # μ0 / 4π [T·m/A]
 #: χ² of a 3-vector at 99.9 %
@@ -133,15 +134,6 @@ ROTATION_PRIOR_RAD = (20.0, 0.5)
 OFFSET_PRIOR_T = 50e-6
 
 
-def _finish(steps):
-    """Run a generator of work steps to its end; its return value."""
-    while True:
-        try:
-            next(steps)
-        except StopIteration as done:
-            return done.value
-
-
 def rotating_step_fit(tau: np.ndarray, after: np.ndarray, y_T: np.ndarray, sigma_T: float,
                       b1_sigma_T: float, degree: int = 3, iterations: int = 12
                       ) -> tuple[np.ndarray, np.ndarray, float] | None:
@@ -151,7 +143,7 @@ def rotating_step_fit(tau: np.ndarray, after: np.ndarray, y_T: np.ndarray, sigma
     Returns (d, its covariance [T²] — the fit's, scaled by the residual's χ² per degree of freedom when
     above 1 —, the residual RMS per axis [T], at least `sigma_T`), or None (too few samples, singular).
     At once: :func:`rotating_step_fit_steps` is the same fit an iteration at a time."""
-    return _finish(rotating_step_fit_steps(tau, after, y_T, sigma_T, b1_sigma_T, degree, iterations))
+    return complete(rotating_step_fit_steps(tau, after, y_T, sigma_T, b1_sigma_T, degree, iterations))
 
 
 def rotating_step_fit_steps(tau, after, y_T, sigma_T, b1_sigma_T, degree=3, iterations=12):

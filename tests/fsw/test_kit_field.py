@@ -91,6 +91,16 @@ class Box:
         self.run(rest_s)
 
 
+def open_both(b, settle_s, hold_s):
+    """Both magnets turned to polarity +1, `settle_s` later both capsules opened, `hold_s` on."""
+    for ch in (0, 1):
+        b.send(POLARITY, ch, 1)
+    b.run(settle_s)
+    b.send(CAPSULE, 0, 1)
+    b.send(CAPSULE, 1, 1)
+    b.run(hold_s)
+
+
 def homed(**kw):
     b = Box(**kw)
     b.send(HOME, 0)
@@ -229,12 +239,7 @@ def test_each_channels_scale_is_calibrated_from_its_steps_on_a_tumbling_body(rat
     assert abs(pitch.scale - true_pitch) < max(3 * pitch.scale_sigma, 0.01) and pitch.scale_sigma < 0.01
     assert abs(yaw.scale - 0.93) < max(3 * yaw.scale_sigma, 0.01) and yaw.scale_sigma < 0.01
     # the open field as calibrated against the truth's, now with both open at polarity +1
-    for ch in (0, 1):
-        b.send(POLARITY, ch, 1)
-    b.run(3.0)
-    b.send(CAPSULE, 0, 1)
-    b.send(CAPSULE, 1, 1)
-    b.run(5.0)
+    open_both(b, 3.0, 5.0)
     field, skip = b.model.field_at(b.t)
     assert not skip
     assert np.max(np.abs(field - b.truth.b_body_T())) < 1.5e-6  # of 82 µT uncompensated (the target)
@@ -330,12 +335,7 @@ def test_the_steps_are_fitted_on_the_host_calibrated_field():
             return Calibration(b_T=hard, D=np.linalg.inv(soft) - np.eye(3))
 
         b.model.host = host
-        for ch in (0, 1):
-            b.send(POLARITY, ch, 1)
-        b.run(35.0)
-        b.send(CAPSULE, 0, 1)
-        b.send(CAPSULE, 1, 1)
-        b.run(40.0)
+        open_both(b, 35.0, 40.0)
         assert [m.steps for m in b.model.models] == [1, 1] and asked
         field, skip = b.model.field_at(b.t)
         assert not skip
