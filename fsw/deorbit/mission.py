@@ -29,10 +29,12 @@ Phases, what the box does in each, and when it leaves (automatic):
 
 Spin-up guard: while the kit detumbles, |ω| (smoothed over `spin_up_smoothing_s`: the estimate's own
 noise is a few tenths of a °/s on a tumble) above `spin_up_factor` × its lowest value since the phase began
-(and above that lowest value by `spin_up_margin_radps`) sends the mission to SAFE: the kit never spins the
-tumble up for long. The kit going to its own safe mode (a latched fault) sends the mission to SAFE with the
-kit's reason. After a restart the mission starts again in TUMBLING; an identified tensor kept across the
-restart (`fsw.persist`) that meets the accuracy is used without a new experiment.
+(and above that lowest value by `spin_up_margin_radps` plus `SPIN_UP_SIGMAS` times the rate estimate's σ:
+an estimate still settling after a restart, locked ~1 °/s low with a σ of 0.2 °/s, moves up by its own
+error as it converges) sends the mission to SAFE: the kit never spins the tumble up for long. The kit
+going to its own safe mode (a latched fault) sends the mission to SAFE with the kit's reason. After a
+restart the mission starts again in TUMBLING; an identified tensor kept across the restart
+(`fsw.persist`) that meets the accuracy is used without a new experiment.
 
 Rates: `rates` is the flown rate filter (``omega_radps``, ``sigma_radps``, ``flags``), handed over by
 `fsw.system.build_flight`. Time is the loop's `now_s`.
@@ -162,6 +164,9 @@ def ci95_pct(estimate) -> float:
         return math.nan
     return 100.0 * float(np.max(ci)) / big
 
+
+#: the spin-up guard's rise beyond its margin, in σ of the rate estimate
+SPIN_UP_SIGMAS = 3.0
 
 #: two attempts' tensors are combined only when they agree: χ² of their difference below its 99 % point
 #: for 6 degrees of freedom
@@ -386,7 +391,8 @@ class Mission:
             self._smooth_t = now_s
             ws = self._smooth_rate
             self._min_rate = min(self._min_rate, ws)
-            if not quiet and ws > c.spin_up_factor * self._min_rate and ws > self._min_rate + c.spin_up_margin_radps:
+            rise = c.spin_up_margin_radps + SPIN_UP_SIGMAS * self.rate_sigma_radps  # beyond the estimate's own error
+            if not quiet and ws > c.spin_up_factor * self._min_rate and ws > self._min_rate + rise:
                 self._enter(now_s, Phase.SAFE, Reason.SPIN_UP,
                             f"rate {math.degrees(ws):.2f} dps up from {math.degrees(self._min_rate):.2f}")
                 return

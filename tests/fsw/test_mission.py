@@ -282,6 +282,23 @@ def test_while_detumbling_the_attitude_estimate_starts_and_hands_over_once_trust
     assert box.emu.interlock_violations == 0
 
 
+def test_an_estimate_settling_by_its_own_error_is_no_spin_up(box):
+    # after a restart the flown filter may lock on ~1 °/s low with a σ of 0.2-0.3 °/s and then settle on
+    # the truth: a rise of 0.6 °/s is within 0.5 °/s + 3 σ; a real spin-up still goes beyond it
+    box.to_detumbling()
+    box.trusted_rates(0.25)
+    axis = np.ones(3) / math.sqrt(3.0)
+    box.rates.omega_radps = np.radians(2.0 * axis)
+    box.run(400.0)
+    box.trusted_rates(0.2)
+    box.rates.omega_radps = np.radians(2.63 * axis)
+    box.run(600.0)
+    assert box.mission.phase is Phase.DETUMBLING
+    box.rates.omega_radps = np.radians(4.0 * axis)
+    box.run(600.0)
+    assert box.mission.phase is Phase.SAFE and box.mission.reason is Reason.SPIN_UP
+
+
 def test_a_growing_tumble_sends_the_mission_to_safe(box):
     box.to_detumbling()
     box.rates.omega_radps = np.radians([1.0, 1.0, 1.0])
