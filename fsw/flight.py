@@ -139,6 +139,26 @@ SPREAD_STATUS_HZ = 200.0
 
 #: the share of the period a tick may fill with deferrable work (a frame, the calibration's update)
 ROOM = 0.9
+
+
+class DeferredCost:
+    """The measured cost of a piece of deferrable work [s]: the median of its last few runs (a rare slow
+    one does not count), and whether the tick has room for it."""
+
+    def __init__(self, last: int = 5) -> None:
+        self._runs: deque = deque(maxlen=last)
+        self.s = 0.0
+
+    def fits(self, sched) -> bool:
+        return sched.elapsed_s() + self.s <= ROOM * sched.period_s
+
+    def run(self, sched, work: Callable[[], object]) -> None:
+        t0 = sched.elapsed_s()
+        work()
+        self._runs.append(sched.elapsed_s() - t0)
+        self.s = sorted(self._runs)[len(self._runs) // 2]
+
+
 #: frames the outbox holds before a busy tick sends one all the same
 OUTBOX_WAIT = 16
 
@@ -224,10 +244,9 @@ class FlightSoftware:
         #: the live samples' frames waiting for `_downlink` (a handful: one sample's every `_tlm_every`)
         self.outbox: deque = deque()
         self._frame_cost_s = 0.0
-        self._take_cost_s = 0.0
-        self._take_costs: deque = deque(maxlen=5)  # the last takes' measured costs (a knot's or a solve's are rare)
-        self._kit_fit_cost_s, self._kit_fit_idle_s = 0.0, 0.0
-        self._kit_fit_costs: deque = deque(maxlen=5)  # the kit-field fit's last iterations' measured costs
+        self._take_cost = DeferredCost()  # a calibration take's (a knot's or a solve's are rare)
+        self._kit_fit_cost = DeferredCost()  # an iteration of the kit-field model's step fit
+        self._kit_fit_idle_s = 0.0
         #: called after each sample's pass through the pipeline (a tick may take more than one): e.g. SITL's
         #: scoring, which copies the estimates there; keep them cheap, their time counts in the tick's
         self.sample_listeners: list[Callable[[], None]] = []
@@ -450,13 +469,9 @@ class FlightSoftware:
             self._kit_fit_idle_s = now_s
             return
         for _ in range(kf.due()):
-            if not (sched.elapsed_s() + self._kit_fit_cost_s <= ROOM * sched.period_s
-                    or now_s - self._kit_fit_idle_s > KIT_FIT_WAIT_S):
+            if not (self._kit_fit_cost.fits(sched) or now_s - self._kit_fit_idle_s > KIT_FIT_WAIT_S):
                 return
-            t0 = sched.elapsed_s()
-            kf.advance(1)
-            self._kit_fit_costs.append(sched.elapsed_s() - t0)
-            self._kit_fit_cost_s = sorted(self._kit_fit_costs)[len(self._kit_fit_costs) // 2]
+            self._kit_fit_cost.run(sched, kf.advance)
             self._kit_fit_idle_s = now_s
             if not kf.evaluating:
                 return
@@ -488,12 +503,9 @@ class FlightSoftware:
         if held is None:
             return
         sched = self.scheduler
-        if not (sched.elapsed_s() + self._take_cost_s <= ROOM * sched.period_s or now_s - held[0] > TAKE_WAIT_S):
+        if not (self._take_cost.fits(sched) or now_s - held[0] > TAKE_WAIT_S):
             return
-        t0 = sched.elapsed_s()
-        self.calibration.take_step()
-        self._take_costs.append(sched.elapsed_s() - t0)
-        self._take_cost_s = sorted(self._take_costs)[len(self._take_costs) // 2]  # the median of the last few
+        self._take_cost.run(sched, self.calibration.take_step)
 
     def _estimate(self, now_s: float) -> None:
         for name, est in self.estimators.items():

@@ -68,6 +68,7 @@ import numpy as np
 from fsw.drivers.capsule import CapsuleState
 from fsw.drivers.stepper import STEPS_PER_TURN, MagnetState
 from fsw.estimation.euler_fit.solver import complete
+from fsw.estimation.rotations import quat_exp, quat_to_dcm, skew
 
 MU0_4PI = 1e-7  # μ0 / 4π [T·m/A]
 #: χ² of a 3-vector at 99.9 %
@@ -111,20 +112,6 @@ def dipole_field_T(m_Am2: np.ndarray, position_m: np.ndarray) -> np.ndarray:
     return MU0_4PI / d**3 * (3.0 * float(m @ rh) * rh - m)
 
 
-def _rodrigues(theta: np.ndarray) -> np.ndarray:
-    """exp([θ]×) for rotation vectors `theta` (..., 3): (..., 3, 3)."""
-    a = np.linalg.norm(theta, axis=-1)
-    k = theta / np.where(a > 1e-12, a, 1.0)[..., None]
-    K = np.zeros(theta.shape + (3,))
-    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -k[..., 2], k[..., 1], -k[..., 0]
-    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = k[..., 2], -k[..., 1], k[..., 0]
-    return np.eye(3) + np.sin(a)[..., None, None] * K + (1.0 - np.cos(a))[..., None, None] * (K @ K)
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 #: prior 1-σ of the rotation polynomial's coefficients [rad per window^k]: the first a rate of up to
 #: ~20 rad a window (a weak bound, it keeps the rotation about the field regular on a slow body), the
 #: others the rate's change
@@ -160,7 +147,7 @@ def rotating_step_fit_steps(tau, after, y_T, sigma_T, b1_sigma_T, degree=3, iter
         X = np.column_stack([ts ** k for k in range(4)])
         c, *_ = np.linalg.lstsq(X, y_T[side], rcond=None)
         for t in ts[:: max(1, len(ts) // 8)]:
-            rows.append(_skew(np.array([1.0, t, t * t, t ** 3]) @ c))
+            rows.append(skew(np.array([1.0, t, t * t, t ** 3]) @ c))
             rhs.append(np.array([0.0, 1.0, 2 * t, 3 * t * t]) @ c)
     q = np.zeros(nq)
     q[:3] = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0]
@@ -169,7 +156,7 @@ def rotating_step_fit_steps(tau, after, y_T, sigma_T, b1_sigma_T, degree=3, iter
 
     def rotations(qa):  # (..., na) -> (..., n, 3, 3)
         theta = np.einsum("nk,...kj->...nj", powers, qa.reshape(qa.shape[:-1] + (degree, 3)))
-        return _rodrigues(-theta)
+        return quat_to_dcm(quat_exp(-theta))
 
     def predict(q, R):
         v = q[na:na + 3] + tau[:, None] * q[na + 3:na + 6]
@@ -198,6 +185,7 @@ def rotating_step_fit_steps(tau, after, y_T, sigma_T, b1_sigma_T, degree=3, iter
     r, c0 = cost(q, R)
     lam, eps = 1e-3, 1e-6
     J = np.empty((3 * n, nq))
+    last = iterations  # the pass that only takes the Jacobian at the solution
     for it in range(iterations + 1):
         if it:
             yield
@@ -209,7 +197,7 @@ def rotating_step_fit_steps(tau, after, y_T, sigma_T, b1_sigma_T, degree=3, iter
         J /= sigma_T
         Jf = np.vstack([J, np.diag(prior)[keep]])
         H = Jf.T @ Jf
-        if it == iterations:  # the Jacobian at the solution: its covariance
+        if it == last:  # the Jacobian at the solution: its covariance
             break
         g = Jf.T @ np.concatenate([r, -(prior * q)[keep]])
         try:
@@ -223,7 +211,7 @@ def rotating_step_fit_steps(tau, after, y_T, sigma_T, b1_sigma_T, degree=3, iter
             converged = c0 - c1 < 1e-9 * c0
             q, R, r, c0, lam = q1, R1, r1, c1, max(lam / 3.0, 1e-7)
             if converged:
-                iterations = it + 1
+                last = it + 1
         else:
             lam *= 10.0
     try:
@@ -233,8 +221,7 @@ def rotating_step_fit_steps(tau, after, y_T, sigma_T, b1_sigma_T, degree=3, iter
     if not np.all(np.isfinite(cov)):
         return None
     dof = max(3 * n - nq, 1)
-    resid = (y_T - predict(q, R))
-    var = np.maximum(np.sum(resid ** 2, axis=0) / (dof / 3.0), sigma_T ** 2)
+    var = np.maximum(np.sum(r.reshape(n, 3) ** 2, axis=0) * sigma_T ** 2 / (dof / 3.0), sigma_T ** 2)
     scale = max(float(r @ r) / dof, 1.0)
     return q[na + 9:].copy(), cov[na + 9:, na + 9:] * scale, float(np.sqrt(np.mean(var)))
 

@@ -29,7 +29,7 @@ Phases, what the box does in each, and when it leaves (automatic):
 
 Spin-up guard: while the kit detumbles, |ω| (smoothed over `spin_up_smoothing_s`: the estimate's own
 noise is a few tenths of a °/s on a tumble) above `spin_up_factor` × its lowest value since the phase began
-(and above that lowest value by `spin_up_margin_radps` plus `SPIN_UP_SIGMAS` times the rate estimate's σ:
+(and above that lowest value by `spin_up_margin_radps` plus `spin_up_sigmas` times the rate estimate's σ:
 an estimate still settling after a restart, locked ~1 °/s low with a σ of 0.2 °/s, moves up by its own
 error as it converges) sends the mission to SAFE: the kit never spins the tumble up for long. The kit
 going to its own safe mode (a latched fault) sends the mission to SAFE with the kit's reason. After a
@@ -103,6 +103,7 @@ class MissionConfig:
     detumble_max_s: float = 6 * 3600.0
     spin_up_factor: float = 1.3
     spin_up_margin_radps: float = math.radians(0.5)
+    spin_up_sigmas: float = 3.0            # and beyond that margin by this many σ of the rate estimate
     spin_up_smoothing_s: float = 300.0     # the guard watches |ω| smoothed over this (the estimate's noise)
     #: while detumbling, the controller's attitude estimate (identified tensor, the kit's p × B in its
     #: dynamics) starts once the smoothed |ω| is below this, the kit's pulses held meanwhile (a slow body,
@@ -164,9 +165,6 @@ def ci95_pct(estimate) -> float:
         return math.nan
     return 100.0 * float(np.max(ci)) / big
 
-
-#: the spin-up guard's rise beyond its margin, in σ of the rate estimate
-SPIN_UP_SIGMAS = 3.0
 
 #: two attempts' tensors are combined only when they agree: χ² of their difference below its 99 % point
 #: for 6 degrees of freedom
@@ -391,7 +389,7 @@ class Mission:
             self._smooth_t = now_s
             ws = self._smooth_rate
             self._min_rate = min(self._min_rate, ws)
-            rise = c.spin_up_margin_radps + SPIN_UP_SIGMAS * self.rate_sigma_radps  # beyond the estimate's own error
+            rise = c.spin_up_margin_radps + c.spin_up_sigmas * self.rate_sigma_radps  # beyond the estimate's own error
             if not quiet and ws > c.spin_up_factor * self._min_rate and ws > self._min_rate + rise:
                 self._enter(now_s, Phase.SAFE, Reason.SPIN_UP,
                             f"rate {math.degrees(ws):.2f} dps up from {math.degrees(self._min_rate):.2f}")

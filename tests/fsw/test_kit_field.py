@@ -221,8 +221,15 @@ def test_the_flight_loop_keeps_the_magnetometers_offset_from_the_kits_motions():
         box.close()
     assert max(errors) < 1.5e-6  # the offset's own noise (a mean of triples of 1.5 µT readings)
     assert drv.offset_disturbed - disturbed0 >= 3 and drv.offset_jumps == 0
-    # the kit's step fits are handed the host's calibration the flight loop applies (none good yet here)
-    assert box.fsw.kit_field.host == box.fsw._host_calibration_at and box.fsw.kit_field.host(box.t0_s) is None
+    # the kit's step fits are handed the host's calibration the flight loop applies: none before a good one,
+    # then the one handed over, which undoes the emulated host's soft iron (0.3 % seeded errors)
+    assert box.fsw.kit_field.host(box.t0_s) is None
+    from bench.deorbit import hand_over_calibration
+    hand_over_calibration(box.fsw.calibration, box.sim.host, seed=0)
+    cal = box.fsw.kit_field.host(box.t0_s)
+    S = np.asarray(box.sim.host.soft_iron, float)
+    assert np.max(np.abs((np.eye(3) + cal.D) @ S - np.eye(3))) < 0.01
+    assert np.max(np.abs(cal.b_T - box.sim.host.hard_iron_T)) < 2e-6
 
 
 @pytest.mark.parametrize("rate_dps, every_tick", [(2.0, False), pytest.param(10.0, True, marks=pytest.mark.slow)])
@@ -248,31 +255,23 @@ def test_each_channels_scale_is_calibrated_from_its_steps_on_a_tumbling_body(rat
 
 def free_body_field(rate_dps, seed, t_s, inertia=(22.49, 24.85, 12.22)):
     """The Earth's field (40 µT, turning in inertial space at twice the orbit rate) seen from a free rigid
-    body of `inertia` tumbling at `rate_dps` about a random axis, at the times `t_s` (from −30 s): Euler's
-    equations and the attitude integrated by RK4 in 0.05-s steps, independently of the fit's model."""
+    body of `inertia` tumbling at `rate_dps` about a random axis, at the times `t_s` (from −30 s): the
+    simulator's rigid body (`hil.dynamics.RigidBody`, RK4 in 0.05-s steps), not the fit's model."""
+    from hil.dynamics import RigidBody
+
     rng = np.random.default_rng(seed)
-    J = np.array(inertia)
     w = rng.normal(size=3)
     w *= math.radians(rate_dps) / np.linalg.norm(w)
     b_in = rng.normal(size=3)
     b_in *= 40e-6 / np.linalg.norm(b_in)
-
-    def deriv(state):
-        C, w = state[:9].reshape(3, 3), state[9:]
-        wx = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
-        return np.concatenate([(-wx @ C).ravel(), np.cross(J * w, w) / J])
-
-    state, t, out, h = np.concatenate([np.eye(3).ravel(), w]), -30.0, [], 0.05
+    body, t, out, h = RigidBody(np.diag(inertia), np.array([1.0, 0.0, 0.0, 0.0]), w), -30.0, [], 0.05
     for ts in t_s:
         while t < ts - 1e-9:
-            k1 = deriv(state)
-            k2 = deriv(state + h / 2 * k1)
-            k3 = deriv(state + h / 2 * k2)
-            k4 = deriv(state + h * k3)
-            state, t = state + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4), t + h
+            body.step(h, np.zeros(3))
+            t += h
         a = 2 * 2 * math.pi / 5700 * t
         turn = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
-        out.append(state[:9].reshape(3, 3) @ turn @ b_in)
+        out.append(body.dcm.T @ turn @ b_in)
     return np.array(out)
 
 
@@ -318,17 +317,18 @@ def test_the_step_is_fitted_against_the_field_turning_with_the_body(rate_dps, wi
 
 
 def test_the_steps_are_fitted_on_the_host_calibrated_field():
-    # the host's iron distorts the turning field (soft iron 6 %, hard iron 30 µT) and the truth's magnets
-    # are 10 % strong and 7 % weak: with the flight loop's calibration handed to the model the one
-    # opening's step is fitted on the field the iron leaves undistorted and mapped back to the sensor's
-    # axes. The open field against the truth's after one opening at 4 °/s, worst over 4 seeds: 0.88 µT
-    # (without the calibration the fit's body-fixed offset and its window absorb this much soft iron too:
-    # 0.77 µT)
-    soft = np.array([[1.06, 0.03, -0.02], [0.03, 0.95, 0.04], [-0.02, 0.04, 1.02]])
+    # the host's iron distorts the turning field (soft iron up to 10 %, hard iron 30 µT) and the truth's
+    # magnets are 20 % strong and 20 % weak: with the flight loop's calibration handed to the model the
+    # one opening's step is fitted on the field the iron leaves undistorted and mapped back to the
+    # sensor's axes through the soft iron. The open field against the truth's after one opening at 4 °/s,
+    # RMS over 4 seeds: 0.54 µT (0.16-0.87); taken as fitted, without the mapping back, it is 1.29 µT
+    # (0.86-1.57). (Without the calibration the fit's body-fixed offset and its window absorb this much
+    # soft iron too: 0.26-0.70 µT.)
+    soft = np.array([[1.10, 0.03, -0.02], [0.03, 0.92, 0.04], [-0.02, 0.04, 1.02]])
     hard = np.array([30e-6, -12e-6, 8e-6])
-    asked = []
+    asked, errs = [], []
     for seed in range(4):
-        b = homed(seed=seed, rate_dps=4.0, every_tick=True, soft=soft, hard_T=hard, moments=(16.5, 13.95))
+        b = homed(seed=seed, rate_dps=4.0, every_tick=True, soft=soft, hard_T=hard, moments=(18.0, 12.0))
 
         def host(t_s):
             asked.append(t_s)
@@ -339,7 +339,8 @@ def test_the_steps_are_fitted_on_the_host_calibrated_field():
         assert [m.steps for m in b.model.models] == [1, 1] and asked
         field, skip = b.model.field_at(b.t)
         assert not skip
-        assert np.max(np.abs(field - b.truth.b_body_T())) < 1.0e-6  # of ~90 µT
+        errs.append(field - b.truth.b_body_T())  # of ~90 µT
+    assert np.sqrt(np.mean(np.max(np.abs(errs), axis=1) ** 2)) < 0.8e-6
 
 
 def test_a_steps_fit_is_spread_over_the_samples_and_a_backlog_is_bounded():
@@ -365,8 +366,6 @@ def test_a_steps_fit_is_spread_over_the_samples_and_a_backlog_is_bounded():
 def test_the_flight_loop_advances_the_fits_in_ticks_with_room():
     # the iterations due for a sample run while the tick has room for one's measured cost; in a full tick
     # they wait, and after KIT_FIT_WAIT_S without one an iteration runs all the same
-    from collections import deque
-
     from fsw import flight
 
     class Fits:
@@ -376,7 +375,7 @@ def test_the_flight_loop_advances_the_fits_in_ticks_with_room():
         def due(self):
             return 2
 
-        def advance(self, n):
+        def advance(self, n=1):
             self.done += n
 
     class Clock:
@@ -385,8 +384,9 @@ def test_the_flight_loop_advances_the_fits_in_ticks_with_room():
         def elapsed_s(self):
             return self.busy_s
 
-    loop = SimpleNamespace(kit_field=Fits(), scheduler=Clock(), _kit_fit_cost_s=0.003, _kit_fit_idle_s=0.0,
-                           _kit_fit_costs=deque(maxlen=5))
+    cost = flight.DeferredCost()
+    cost.s = 0.003
+    loop = SimpleNamespace(kit_field=Fits(), scheduler=Clock(), _kit_fit_cost=cost, _kit_fit_idle_s=0.0)
     fit = flight.FlightSoftware._kit_fit
     fit(loop, 0.2)
     assert loop.kit_field.done == 2  # room: both
