@@ -322,8 +322,9 @@ def hand_over_calibration(calibration, host, *, seed: int = 0, hard_sigma_T: flo
     """Give the box's host-magnetics calibration (`fsw.host_calibration.HostCalibration`) the host's iron
     as an earlier phase of the mission would have left it: hard iron (its mean: the thermal drift is not
     in it) and the inverse of the soft iron, with seeded errors of `hard_sigma_T` per axis and
-    `soft_sigma` per element; taken as the box's own last good calibration (kept applied while the new
-    samples cannot solve a better one). Returns how it was taken."""
+    `soft_sigma` per element and that covariance; taken as the box's own last good calibration (kept
+    applied while the new samples cannot solve a better one, and their fits fused with it). Returns how
+    it was taken."""
     from fsw.estimation.magcal import D_TERMS
 
     rng = np.random.default_rng(10_000 + seed)
@@ -332,8 +333,10 @@ def hand_over_calibration(calibration, host, *, seed: int = 0, hard_sigma_T: flo
     E = rng.normal(0.0, soft_sigma, (3, 3))
     D = D + 0.5 * (E + E.T)
     b = np.asarray(host.hard_iron_T, float) + rng.normal(0.0, hard_sigma_T, 3)
+    # its covariance as seeded: σ² per diagonal term, half that per off-diagonal one (symmetrised)
+    var = [hard_sigma_T ** 2] * 3 + [soft_sigma ** 2 * (1.0 if i == j else 0.5) for i, j in D_TERMS]
     snap = {"theta_uT": [*(b * 1e6), *(D[i, j] for i, j in D_TERMS)], "b_T": list(b), "D": D.tolist(),
-            "cov": None, "published_at_s": 0.0, "drift_period_s": None, "state": 1}
+            "cov": np.diag(var).tolist(), "published_at_s": 0.0, "drift_period_s": None, "state": 1}
     return calibration.restore(snap, None, 0.0, restart=False)  # the box's own: not dropped at the first misfit
 
 

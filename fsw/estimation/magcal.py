@@ -59,7 +59,7 @@ Units: interfaces in tesla and seconds; inside, µT (well-scaled numbers).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -243,6 +243,16 @@ def centred_estimate(st: Stats, drift_uT: float | None = None) -> np.ndarray | N
 
 
 @dataclass(frozen=True)
+class Prior:
+    """What was known of p = A θ before these samples (a calibration restored with its covariance):
+    the cost (A θ − m)ᵀ L (A θ − m) added to the fit's, µT units (see :func:`current` for A)."""
+
+    A: np.ndarray   #: (9, len θ)
+    m: np.ndarray   #: (9,)
+    L: np.ndarray   #: (9, 9) information
+
+
+@dataclass(frozen=True)
 class Solution:
     theta: np.ndarray        #: (b [µT], D's unique terms, β_k [µT])
     fisher: np.ndarray       #: in those units, the prior on β_k included
@@ -252,15 +262,29 @@ class Solution:
 
 
 def refine(st: Stats, theta0: np.ndarray, max_iter: int = 20, tol: float = 1e-6,
-           drift_uT: float | None = None) -> Solution:
+           drift_uT: float | None = None, prior: Prior | None = None) -> Solution:
     """Step two: Gauss–Newton (Fisher scoring) on θ from `theta0` over the adjusted statistics (plus the
-    prior on the drift's terms, of σ `drift_uT`), the step halved while it does not lower the cost."""
+    prior on the drift's terms, of σ `drift_uT`, and `prior`), the step halved while it does not lower
+    the cost."""
     N, y, zz = normal_equations(st)
     theta = np.array(theta0, float)
     lam = _prior(len(theta), drift_uT)
+    F_prior = np.diag(lam)
+    if prior is not None:
+        F_prior = F_prior + prior.A.T @ prior.L @ prior.A
 
     def total(phi, th):
-        return cost(N, y, zz, phi) + float(np.sum(lam * th * th))
+        c = cost(N, y, zz, phi) + float(np.sum(lam * th * th))
+        if prior is not None:
+            r = prior.A @ th - prior.m
+            c += float(r @ prior.L @ r)
+        return c
+
+    def prior_gradient(th):
+        g = -lam * th
+        if prior is not None:
+            g = g - prior.A.T @ (prior.L @ (prior.A @ th - prior.m))
+        return g
 
     phi, G = phi_of_theta(theta)
     c = total(phi, theta)
@@ -268,8 +292,8 @@ def refine(st: Stats, theta0: np.ndarray, max_iter: int = 20, tol: float = 1e-6,
     it = 0
     while it < max_iter:
         it += 1
-        F = G.T @ N @ G + np.diag(lam)
-        g = G.T @ (y - N @ phi) - lam * theta
+        F = G.T @ N @ G + F_prior
+        g = G.T @ (y - N @ phi) + prior_gradient(theta)
         try:
             step = np.linalg.solve(F, g)
         except np.linalg.LinAlgError:
@@ -289,7 +313,7 @@ def refine(st: Stats, theta0: np.ndarray, max_iter: int = 20, tol: float = 1e-6,
         if float(step @ F @ step) < tol:
             done = True
             break
-    F = G.T @ N @ G + np.diag(lam)
+    F = G.T @ N @ G + F_prior
     dof = max(st.weight - len(theta), 1.0)
     raw = cost(*normal_equations(st, raw=True), phi)
     return Solution(theta, F, max(raw, 0.0) / dof, it, done)
@@ -427,14 +451,15 @@ def estimate(b_meas_T: np.ndarray, b_model_T: np.ndarray, sigma_T: float, sigma_
 
 def _solve(st: Stats, last_good: np.ndarray | None, lim: Limits,
            last_sigma: np.ndarray | None = None, insisted: int = 0, recent: Stats | None = None,
-           tau: np.ndarray | None = None, drift_uT: float | None = None, theta_good: np.ndarray | None = None):
+           tau: np.ndarray | None = None, drift_uT: float | None = None, theta_good: np.ndarray | None = None,
+           prior: Prior | None = None):
     if st.n < 2 * n_phi(st.n_tau):
         return None, "too few samples", None
     theta0 = centred_estimate(st, drift_uT)
     starts = [t for t in (theta0, theta_good, np.zeros(n_theta(st.n_tau))) if t is not None]
     sol = None
     for t0 in starts:
-        sol = refine(st, t0, drift_uT=drift_uT)
+        sol = refine(st, t0, drift_uT=drift_uT, prior=prior)
         if sol.converged:
             break
     why, cov = check(sol, last_good, lim, last_sigma, insisted, recent, tau)
@@ -506,6 +531,9 @@ class MagCal:
         self._relearning = False
         self.restored = NOT_RESTORED
         self.restored_dropped = 0
+        #: what a calibration restored with its covariance knew (`Prior`), fused with the new samples
+        #: until the host is found to have changed
+        self.prior: Prior | None = None
 
     @property
     def n_tau(self) -> int:
@@ -536,6 +564,8 @@ class MagCal:
                          self.sigma_model_uT, None if self.n_tau == 1 else self._tau(t_s)[None])
         self.stats.add(c, forget)
         self.recent.add(c, forget)
+        if self.prior is not None and forget < 1.0:
+            self.prior = replace(self.prior, L=self.prior.L * forget)
         if self._t_solve is None:
             self._t_solve = t_s
         if self.stats.n < self.min_samples or t_s - self._t_solve < self.solve_every_s:
@@ -559,7 +589,7 @@ class MagCal:
                 and window_chi2(recent, self._good) > self.limits.max_window_chi2):
             if self.restored == RESTORED:  # the calibration from before a restart does not fit: dropped
                 self.restored, self.restored_dropped = RESTORED_DROPPED, self.restored_dropped + 1
-                self._good = self._good_p = None
+                self._good = self._good_p = self.prior = None
                 self.calibration, self.published_at_s, self.rate_T_per_s = IDENTITY, None, np.zeros(3)
                 self.published += 1
                 self.rejections += 1
@@ -573,6 +603,7 @@ class MagCal:
                 self.stats, self.misfits = recent, 0
                 self.restarts += 1
                 self._relearning = True
+                self.prior = None
             self.rejections += 1
             self.reason = f"{WINDOW_RESIDUAL} for the last good calibration: {recent.n} samples left out"
             self.state = REJECTED
@@ -581,7 +612,7 @@ class MagCal:
         last_sigma = None if self._good is None else self.calibration.sigma * _UT_SCALE
         tau = self._tau(t_s)
         cal, why, sol = _solve(self.stats, self._good_p, self.limits, last_sigma, self._insisted, recent,
-                               None if self.n_tau == 1 else tau, self.drift_uT, self._good)
+                               None if self.n_tau == 1 else tau, self.drift_uT, self._good, self.prior)
         self.chi2_dof = sol.chi2_dof if sol is not None else math.nan
         self._insisted = self._insisted + 1 if why == CHANGE_TOO_LARGE else 0
         if cal is None:
@@ -650,7 +681,10 @@ class MagCal:
         """Take a :meth:`snapshot` from before a restart as the last good calibration, applied from the
         next sample (`t_s`: the loop's time now) and judged like a new one: the first stretch of new
         samples it does not fit drops it (`restored` 2, counted in `restored_dropped`), a solution from
-        the new samples that passes the checks replaces it. The loop's time restarted at 0: `shift_s` is
+        the new samples that passes the checks replaces it — with a covariance in the snapshot, that
+        solution is the new samples' fit fused with the snapshot as a prior (`prior`: what was known is not
+        forgotten for a noisier fresh fit; dropped when the snapshot is, or when the host is found to have
+        changed). The loop's time restarted at 0: `shift_s` is
         the old time base's value at the new one's 0 (from the UTC on board before and after), with which
         the drift's terms keep their phase; None: the drift's terms are dropped (a constant hard iron, b
         as published, its σ grown by the drift's amplitude per axis: the hard iron may be anywhere on its
@@ -693,6 +727,17 @@ class MagCal:
         b_now = current(th, self._tau(t_s))[0][:3] if phased else b * UT_PER_T
         self._good_p = np.concatenate([b_now, th[3:N_THETA]])
         self.calibration = Calibration(b_now / UT_PER_T, D, cov)
+        if cov is not None:
+            # what it knew stays known: a prior on p now, fused with the new samples' fit
+            try:
+                L = np.linalg.inv(cov * _UT_SCALE[:, None] * _UT_SCALE[None, :])
+            except np.linalg.LinAlgError:
+                L = None
+            if L is not None and np.all(np.isfinite(L)) and np.all(np.linalg.eigvalsh(0.5 * (L + L.T)) > 0):
+                # on b(t) now; a constant host's snapshot knew b as the constant term
+                tau = self._tau(t_s) if len(theta) > N_THETA else np.eye(1, self.n_tau)[0]
+                A = current(th, tau)[1]
+                self.prior = Prior(A, A @ th, 0.5 * (L + L.T))
         self.rate_T_per_s = rate(th, t_s, self.drift_period_s) / UT_PER_T
         self.published += 1
         self.state = int(snap["state"]) if snap.get("state") in (CONVERGED, UNCERTAIN) else UNCERTAIN

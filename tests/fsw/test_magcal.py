@@ -153,3 +153,50 @@ def test_a_calibration_handed_over_within_the_mission_is_the_boxs_own_not_a_rest
         # applied: the host's hard iron and soft iron taken out of a sample measured through them
         b_true = np.array([20e-6, -5e-6, 40e-6])
         np.testing.assert_allclose(cal.apply(np.linalg.solve(np.eye(3) + D, b_true) + b_T), b_true, atol=1e-12)
+
+
+def test_a_calibration_restored_with_its_covariance_is_a_prior_the_new_samples_refine():
+    """A calibration handed over with its covariance (0.3 µT, 0.3 % per term, errors drawn from it) and a
+    third of an orbit of new samples: the published calibration is the fusion — closer to the host than
+    the fit of those samples alone (which replaces a snapshot without a covariance), its σ below both,
+    its error within 3 σ; a host that changed (restart of the sums) drops the prior."""
+    t, _, b_mag = orbit()
+    n = len(t) // 3
+    errs, sigmas = {}, {}
+    for seed in range(4):
+        S, h = host(300 + seed)
+        _, meas = measure(tumble(seed % 4), S, h, 400 + seed)
+        truth = truth_theta(S, h)
+        sig = np.array([0.3e-6] * 3 + [0.003 if i == j else 0.003 / np.sqrt(2) for i, j in mc.D_TERMS])
+        th = truth + np.random.default_rng(500 + seed).normal(0.0, sig)
+        D = np.zeros((3, 3))
+        for k, (i, j) in enumerate(mc.D_TERMS):
+            D[i, j] = D[j, i] = th[3 + k]
+        snap = {"theta_uT": [*(th[:3] * 1e6), *th[3:]], "b_T": list(th[:3]), "D": D.tolist(),
+                "cov": np.diag(sig ** 2).tolist(), "published_at_s": 0.0, "drift_period_s": None,
+                "state": mc.UNCERTAIN}
+        for with_cov in (True, False):
+            cal = mc.MagCal(SIGMA_T, drift_period_s=None)
+            cal.restore({**snap, "cov": snap["cov"] if with_cov else None}, None, 0.0, restart=False)
+            assert (cal.prior is not None) == with_cov
+            published = sum(cal.update(meas[k], b_mag[k], t[k]) for k in range(n))
+            assert published > 0
+            c = cal.calibration
+            est = np.concatenate((c.b_T, [c.D[i, j] for i, j in mc.D_TERMS]))
+            errs[with_cov] = errs.get(with_cov, []) + list((est - truth) / sig)
+            sigmas[with_cov] = c.sigma
+        assert np.all(sigmas[True] <= np.minimum(sig, sigmas[False]) * 1.001)
+        assert np.all(np.abs(errs[True][-9:]) * sig <= 3 * sigmas[True])
+    fused, fresh = np.array(errs[True]), np.array(errs[False])
+    assert np.sqrt(np.mean(fused ** 2)) < 0.9 * np.sqrt(np.mean(fresh ** 2))
+    cal.restore({**snap}, None, 0.0, restart=False)
+    cal.limits = mc.Limits(restart_after=1)
+    jump = meas + np.array([40e-6, 0.0, 0.0])
+    for k in range(n, 2 * n):
+        cal.update(jump[k], b_mag[k], t[k])
+    assert cal.restarts >= 1 and cal.prior is None
+    # with the drift's terms solved, the constant-host snapshot's prior is on their constant b
+    drifting = mc.MagCal(SIGMA_T)
+    drifting.restore(snap, None, 0.0, restart=False)
+    assert drifting.prior.A.shape == (9, 15) and np.array_equal(drifting.prior.A[:, :9], np.eye(9))
+    assert not np.any(drifting.prior.A[:, 9:])
