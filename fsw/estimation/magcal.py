@@ -459,7 +459,8 @@ def _solve(st: Stats, last_good: np.ndarray | None, lim: Limits,
     starts = [t for t in (theta0, theta_good, np.zeros(n_theta(st.n_tau))) if t is not None]
     sol = None
     for t0 in starts:
-        sol = refine(st, t0, drift_uT=drift_uT, prior=prior)
+        # a prior slows Fisher scoring to a linear rate along what the few new samples hardly see
+        sol = refine(st, t0, max_iter=20 if prior is None else 80, drift_uT=drift_uT, prior=prior)
         if sol.converged:
             break
     why, cov = check(sol, last_good, lim, last_sigma, insisted, recent, tau)
