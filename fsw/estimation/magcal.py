@@ -535,6 +535,7 @@ class MagCal:
         #: what a calibration restored with its covariance knew (`Prior`), fused with the new samples
         #: until the host is found to have changed
         self.prior: Prior | None = None
+        self._prior_weight = 1.0  # its information forgotten as the samples' is (`memory_s`)
 
     @property
     def n_tau(self) -> int:
@@ -565,8 +566,7 @@ class MagCal:
                          self.sigma_model_uT, None if self.n_tau == 1 else self._tau(t_s)[None])
         self.stats.add(c, forget)
         self.recent.add(c, forget)
-        if self.prior is not None and forget < 1.0:
-            self.prior = replace(self.prior, L=self.prior.L * forget)
+        self._prior_weight *= forget
         if self._t_solve is None:
             self._t_solve = t_s
         if self.stats.n < self.min_samples or t_s - self._t_solve < self.solve_every_s:
@@ -613,7 +613,8 @@ class MagCal:
         last_sigma = None if self._good is None else self.calibration.sigma * _UT_SCALE
         tau = self._tau(t_s)
         cal, why, sol = _solve(self.stats, self._good_p, self.limits, last_sigma, self._insisted, recent,
-                               None if self.n_tau == 1 else tau, self.drift_uT, self._good, self.prior)
+                               None if self.n_tau == 1 else tau, self.drift_uT, self._good,
+                               None if self.prior is None else replace(self.prior, L=self.prior.L * self._prior_weight))
         self.chi2_dof = sol.chi2_dof if sol is not None else math.nan
         self._insisted = self._insisted + 1 if why == CHANGE_TOO_LARGE else 0
         if cal is None:
@@ -730,11 +731,13 @@ class MagCal:
         self.calibration = Calibration(b_now / UT_PER_T, D, cov)
         if cov is not None:
             # what it knew stays known: a prior on p now, fused with the new samples' fit
+            cov_uT = cov * _UT_SCALE[:, None] * _UT_SCALE[None, :]
             try:
-                L = np.linalg.inv(cov * _UT_SCALE[:, None] * _UT_SCALE[None, :])
+                np.linalg.cholesky(cov_uT)  # positive definite, or no prior
+                L = np.linalg.inv(cov_uT)
             except np.linalg.LinAlgError:
                 L = None
-            if L is not None and np.all(np.isfinite(L)) and np.all(np.linalg.eigvalsh(0.5 * (L + L.T)) > 0):
+            if L is not None:
                 # on b(t) now; a constant host's snapshot knew b as the constant term
                 tau = self._tau(t_s) if len(theta) > N_THETA else np.eye(1, self.n_tau)[0]
                 A = current(th, tau)[1]
