@@ -17,6 +17,7 @@ interval), `stabilised` (STABILISED reached and the true yaw and pitch within 0.
 `score_s`), the largest true |ω| after the kit first acted against the tumble at the start
 (`spun_up`: above it by 10 %), and the final phase with its reason. The aggregate JSON has `runs`,
 `inertia_err_pct_max`, `ci95_coverage` (the fraction of runs whose six intervals all cover),
+`error_sigma_rms` (each component's error in its own σ, RMS over the runs: ≈ 1 when the intervals are right),
 `fraction_stabilised`, `time_to_phase_s` (mean and max per phase over the runs that reached it) and
 `energy_J_by_phase` (mean per phase); `kit_residual_uT_rms` per run (per axis, on the samples the box used
 while a magnet was open: the kit's field it took out, `fsw.deorbit.kit_field`, against the truth's) and
@@ -52,6 +53,7 @@ from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_
 from fsw.config import RunConfig
 from fsw.deorbit.controller import euler_zyx
 from fsw.deorbit.mission import MissionConfig, Phase
+from fsw.estimation.inertia import z_value
 from fsw.files import write_atomic
 from fsw.system import NullLink
 from ground.plot import check_plot_path_or_exit, save_figure
@@ -239,6 +241,7 @@ def aggregate(runs: list[dict]) -> dict:
         "inertia_err_pct_mean": float(np.nanmean(errs)) if np.isfinite(errs).any() else math.nan,
         "identified": int(np.isfinite(errs).sum()),
         "ci95_coverage": float(np.mean([r["ci95_covered"] for r in runs])),
+        "error_sigma_rms": error_sigma_rms(runs),
         "fraction_stabilised": float(np.mean([r["stabilised"] for r in runs])),
         "spun_up": int(sum(r["spun_up"] for r in runs)),
         "time_to_phase_s": times, "energy_J_by_phase": energy,
@@ -247,6 +250,21 @@ def aggregate(runs: list[dict]) -> dict:
         "kit_residual_uT_rms_max": max((max(r["kit_residual_uT_rms"]) for r in runs
                                         if r.get("kit_residual_uT_rms")), default=None),
     }
+
+
+def error_sigma_rms(runs: list[dict]) -> list[float] | None:
+    """Each component's error in units of its own σ (the 95 % half-width over z₀.₉₅), RMS over the runs
+    that identified a tensor (Ixx, Iyy, Izz, Ixy, Ixz, Iyz): 1 for intervals of the right width, a finer
+    measure than the coverage of ten runs. None when no run has one."""
+    z = []
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for r in runs:
+            if all(k in r for k in ("inertia_id", "inertia_true", "ci95")):
+                v = (np.asarray(r["inertia_id"], float) - np.asarray(r["inertia_true"], float)) \
+                    / (np.asarray(r["ci95"], float) / z_value(0.95))
+                if v.shape == (6,) and np.all(np.isfinite(v)):
+                    z.append(v)
+    return np.sqrt(np.mean(np.square(z), axis=0)).tolist() if z else None
 
 
 def line(r: dict) -> str:

@@ -441,6 +441,9 @@ def mission_results(docs: Path) -> str:
         ["tensor error, worst run / mean [% of the largest moment]",
          f"{num(d['inertia_err_pct_max'])} / {num(d['inertia_err_pct_mean'])}", "≤ 3"],
         ["runs whose six 95 % intervals all cover the truth", pct(d["ci95_coverage"]), "≈ 95 %"],
+        ["error in its own σ, RMS over the runs (Ixx, Iyy, Izz / Ixy, Ixz, Iyz)",
+         " / ".join(", ".join(num(v, 2) for v in z[i:i + 3]) for i in (0, 3)) if (z := d.get("error_sigma_rms"))
+         else "–", "≈ 1"],
         [f"stabilised (STABILISED, the true yaw and pitch within 0.2 rad over the last "
          f"{num(d['params'].get('score_s', 1800.0), 0)} s)", pct(d["fraction_stabilised"]), ""],
         ["STABILISED reached (the mission's own criterion: its trusted estimate within 0.2 rad for 1,800 s)",

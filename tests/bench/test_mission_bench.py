@@ -68,6 +68,22 @@ def test_aggregate_figures():
     assert mission.aggregate(runs)["kit_residual_uT_rms_max"] == 1.1
 
 
+def test_the_error_in_its_own_sigma_is_one_for_intervals_of_the_right_width():
+    """Two runs off by 1 σ and 3 σ in Ixx (σ = half-width / 1.96) and by 2 σ in Ixz: RMS √5 and √4; a run
+    without a tensor (NaN) does not count."""
+    true = [20.0, 25.0, 12.0, 0.1, -0.2, 0.3]
+    hw = [1.96 * 0.5] * 6
+
+    def run(z):
+        return {"inertia_true": true, "ci95": hw, "inertia_id": [t + 0.5 * k for t, k in zip(true, z)]}
+
+    runs = [run([1, 0, 0, 0, 2, 0]), run([-3, 0, 0, 0, 2, 0]),
+            {"inertia_true": true, "ci95": [math.nan] * 6, "inertia_id": [math.nan] * 6}]
+    z = mission.error_sigma_rms(runs)
+    assert z == pytest.approx([math.sqrt(5), 0, 0, 0, 2, 0], rel=1e-3)
+    assert mission.error_sigma_rms(runs[2:]) is None and mission.error_sigma_rms([{"seed": 1}]) is None
+
+
 @pytest.mark.parametrize("argv", [["--seeds", "0"], ["--fault", "bogus"], ["--rate", "0"], ["--restart", "-1"],
                                   ["--restart", "nan"],
                                   ["--scenario", "amds_deorbit", "--seeds", "1", "--duration", "1"]])
