@@ -185,7 +185,13 @@ def _result(seed, tumble, scn, lives, sim, yaw_pitch, rate_after_kit, duration, 
     if mission.J_kgm2 is not None:
         Ji = mission.J_kgm2
         id6 = np.array([Ji[0, 0], Ji[1, 1], Ji[2, 2], Ji[0, 1], Ji[0, 2], Ji[1, 2]])
-        ci = np.asarray(est.ci95, float) if est is not None else np.full(6, math.nan)   # attempts combined
+        kept = getattr(mission.ident, "restored", None)   # the estimate kept across a restart
+        if est is not None:
+            ci = np.asarray(est.ci95, float)   # attempts combined
+        elif kept is not None and np.allclose(id6, kept["inertia"]):
+            ci = np.asarray(kept["ci95"], float)
+        else:
+            ci = np.full(6, math.nan)
         err = id6 - true6
         err_pct = float(100 * np.max(np.abs(err)) / np.max(true6[:3]))
         covered = bool(np.all(np.abs(err) <= ci))

@@ -45,6 +45,10 @@ def test_a_restart_while_detumbling_resumes_with_the_tensor_kept():
     assert r["ident_attempts"] == 1 and r["final_phase"] == "DETUMBLING" and r["safe_entries"] == 0
     assert r["interlock_violations"] == 0 and not r["spun_up"] and r["restarts"] == [2600.0]
     assert math.isfinite(r["inertia_err_pct"])
+    # the kept tensor is scored with the intervals kept with it
+    assert all(math.isfinite(c) and c > 0 for c in r["ci95"])
+    err = [abs(a - b) for a, b in zip(r["inertia_id"], r["inertia_true"])]
+    assert r["ci95_covered"] == all(e <= c for e, c in zip(err, r["ci95"]))
     assert r["energy_J_by_phase"]["DETUMBLING"] > 0 and r["energy_J"] >= sum(r["energy_J_by_phase"].values()) - 1
     # the kit's field taken out while a magnet is open, against the truth's: this short mission's model has
     # the experiment's two joint steps and a few hundred seconds of pulses (1.1-1.8 µT RMS per axis)
