@@ -53,7 +53,7 @@ from fsw.argtypes import ArgumentParser, check_paths_or_exit, finite_float, int_
 from fsw.config import RunConfig
 from fsw.deorbit.controller import euler_zyx
 from fsw.deorbit.mission import MissionConfig, Phase
-from fsw.estimation.inertia import z_value
+from fsw.estimation.inertia import params, z_value
 from fsw.files import write_atomic
 from fsw.system import NullLink
 from ground.plot import check_plot_path_or_exit, save_figure
@@ -178,20 +178,10 @@ def _result(seed, tumble, scn, lives, sim, yaw_pitch, rate_after_kit, duration, 
     """The run's figures; `lives`: (mission, kit) of each start of the flight software, the last one's
     tensor and final phase, the others' energy, attempts and transitions added."""
     mission, kit = lives[-1]
-    J = np.asarray(scn.inertia_kgm2, float)
-    true6 = np.array([J[0, 0], J[1, 1], J[2, 2], J[0, 1], J[0, 2], J[1, 2]])
-    res = mission.ident.result
-    est = res.estimate if res is not None and res.final else None
+    true6 = params(scn.inertia_kgm2)
     if mission.J_kgm2 is not None:
-        Ji = mission.J_kgm2
-        id6 = np.array([Ji[0, 0], Ji[1, 1], Ji[2, 2], Ji[0, 1], Ji[0, 2], Ji[1, 2]])
-        kept = getattr(mission.ident, "restored", None)   # the estimate kept across a restart
-        if est is not None:
-            ci = np.asarray(est.ci95, float)   # attempts combined
-        elif kept is not None and np.allclose(id6, kept["inertia"]):
-            ci = np.asarray(kept["ci95"], float)
-        else:
-            ci = np.full(6, math.nan)
+        id6 = params(mission.J_kgm2)
+        ci = mission.ci95_kgm2   # of the tensor the mission took: its attempts combined, or kept over a restart
         err = id6 - true6
         err_pct = float(100 * np.max(np.abs(err)) / np.max(true6[:3]))
         covered = bool(np.all(np.abs(err) <= ci))

@@ -155,11 +155,18 @@ def over_kit(kit: DeorbitKit, ident, inertia_guess_kgm2, **options) -> "Mission"
     return Mission(kit, ident, inertia_guess_kgm2=tuple(float(x) for x in guess), **options)
 
 
+def tensor_and_ci95(estimate) -> tuple[np.ndarray, np.ndarray]:
+    """(Ixx, Iyy, Izz, Ixy, Ixz, Iyz) and their 95 % half-widths of a tensor estimate
+    (`fsw.estimation.inertia.InertiaEstimate` or the fields of DEBRIS_INERTIA_ESTIMATE)."""
+    if isinstance(estimate, dict):
+        return np.asarray(estimate["inertia"], float), np.asarray(estimate["ci95"], float)
+    return np.asarray(estimate.p, float), np.asarray(estimate.ci95, float)
+
+
 def ci95_pct(estimate) -> float:
-    """The worst 95 % half-width of a tensor estimate (`fsw.estimation.inertia.InertiaEstimate` or the
-    fields of DEBRIS_INERTIA_ESTIMATE) in % of its largest moment."""
-    p = np.asarray(estimate["inertia"] if isinstance(estimate, dict) else estimate.p, float)
-    ci = np.asarray(estimate["ci95"] if isinstance(estimate, dict) else estimate.ci95, float)
+    """The worst 95 % half-width of a tensor estimate (as :func:`tensor_and_ci95` takes) in % of its
+    largest moment."""
+    p, ci = tensor_and_ci95(estimate)
     big = float(np.max(p[:3]))
     if not (big > 0 and np.all(np.isfinite(ci))) or not np.any(ci):
         return math.nan
@@ -195,12 +202,6 @@ def combine_estimates(estimates: list) -> tuple[np.ndarray, np.ndarray, int]:
     return cov_c @ acc, cov_c, n
 
 
-def tensor_of(p6) -> np.ndarray:
-    """(3, 3) from Ixx, Iyy, Izz, Ixy, Ixz, Iyz."""
-    xx, yy, zz, xy, xz, yz = (float(v) for v in p6)
-    return np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
-
-
 class Mission:
     """The mission's phases over the kit `kit` and the experiment `ident`; `inertia_guess_kgm2` the
     box's rough guess (3,) until the tensor is identified."""
@@ -216,6 +217,7 @@ class Mission:
         self.law = DetumbleLaw(detumble or DetumbleConfig(), kit.magnets, np.diag(inertia_guess_kgm2))
         self.inertia_guess = np.asarray(inertia_guess_kgm2, float)
         self.J_kgm2: np.ndarray | None = None  # the identified tensor (3, 3)
+        self.ci95_kgm2: np.ndarray | None = None  # its 95 % half-widths (Ixx, Iyy, Izz, Ixy, Ixz, Iyz)
         self.ci95_pct = math.nan
         self._estimates: list = []  # (p, cov) of each attempt's final fit
         self.on_phase = on_phase
@@ -317,7 +319,7 @@ class Mission:
     def _in_rates_known(self, now_s: float) -> None:
         restored = getattr(self.ident, "restored", None)
         if self.J_kgm2 is None and restored is not None and ci95_pct(restored) <= 100 * self.cfg.ident_ci95_frac:
-            self._identified(restored["inertia"], ci95_pct(restored))
+            self._identified(restored)
             self._enter(now_s, Phase.DETUMBLING, Reason.AUTOMATIC, f"tensor kept, ci95 {self.ci95_pct:.1f} %")
             return
         seq = self.kit.sequencer
@@ -361,7 +363,7 @@ class Mission:
                 how = f"tensor of {n} attempts"
             pct = ci95_pct(est)
         if pct <= 100 * self.cfg.ident_ci95_frac:
-            self._identified(est.p, pct)
+            self._identified(est)
             self._enter(now_s, Phase.DETUMBLING, Reason.AUTOMATIC, f"{how} ci95 {pct:.1f} %")
         elif self.attempts < self.cfg.ident_attempts:
             self._say(f"mission: identification ci95 {pct:.1f} %, again")
@@ -369,9 +371,11 @@ class Mission:
         else:
             self._enter(now_s, Phase.SAFE, Reason.IDENT_FAILED, f"identification ci95 {pct:.1f} %")
 
-    def _identified(self, p6, pct: float) -> None:
-        self.J_kgm2 = tensor_of(p6)
-        self.ci95_pct = float(pct)
+    def _identified(self, estimate) -> None:
+        """The tensor of `estimate` (as :func:`tensor_and_ci95` takes) taken, with its intervals."""
+        p6, self.ci95_kgm2 = tensor_and_ci95(estimate)
+        self.J_kgm2 = inr.tensor(p6)
+        self.ci95_pct = ci95_pct(estimate)
         self.law.J_kgm2 = self.J_kgm2  # the detumbling law predicts ω with it
 
     def _in_detumbling(self, now_s: float) -> None:
