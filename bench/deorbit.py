@@ -254,7 +254,7 @@ def run_bench(scenario_name: str = DEFAULT_SCENARIO, *, duration_s: float | None
               law: str = "mpc", faults: list[Fault] | tuple = (), seed: int = 0,
               settle_s: float | None = None, controller: ControllerConfig | None = None,
               arg_lat0_deg: float | None = None, attitude: str = "estimate",
-              kit_calibration: str = "handed-over") -> BenchResult:
+              kit_calibration: str = "handed-over", controller_overrides: dict | None = None) -> BenchResult:
     if kit_calibration not in KIT_CALIBRATIONS:
         raise ValueError(f"kit_calibration must be one of {KIT_CALIBRATIONS}, got {kit_calibration!r}")
     scn = deorbit_scenario(scenario_name)
@@ -268,7 +268,7 @@ def run_bench(scenario_name: str = DEFAULT_SCENARIO, *, duration_s: float | None
                                       max_step_s=step),
                      link=NullLink(), run_id=0, ident=False,
                      kit_options={"controller": controller, "law": law, "keep_pulses": True,
-                                  "attitude": attitude})
+                                  "attitude": attitude, "controller_overrides": controller_overrides})
     sim, fsw = box.sim, box.fsw
     hand_over_calibration(fsw.calibration, sim.host, seed=seed)
     kit_cal = kit_calibration if attitude == "estimate" else "none"  # the truth needs no kit-field model
@@ -552,6 +552,30 @@ def aggregate(runs: list[dict], scenario_name: str, attitude: str, out=None) -> 
     return res
 
 
+def controller_overrides(items: list[str]) -> dict:
+    """`FIELD=VALUE` strings as replacements of `ControllerConfig`'s fields, each parsed as its default's type
+    (numbers and names only); ValueError with what is wrong."""
+    defaults = {f.name: f.default for f in dataclasses.fields(ControllerConfig)}
+    out: dict = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        name = name.strip()
+        if not sep or name not in defaults:
+            raise ValueError(f"--controller {item!r}: need FIELD=VALUE with FIELD one of ControllerConfig's fields")
+        kind = type(defaults[name])
+        if kind not in (int, float, str):
+            raise ValueError(f"--controller {name}: only numbers and names can be set here, not a {kind.__name__}")
+        try:
+            value = kind(text)
+        except ValueError:
+            raise ValueError(f"--controller {name}: {text!r} is not a {kind.__name__}") from None
+        if kind is float and not math.isfinite(value):
+            raise ValueError(f"--controller {name}: {text!r} is not finite")
+        out[name] = value
+    ControllerConfig(**out)  # its own checks (ranges, names)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = ArgumentParser(prog="python -m bench.deorbit", description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default=DEFAULT_SCENARIO, metavar="NAME|FILE")
@@ -574,6 +598,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="on the estimate: the kit-field calibration the box starts with, the one the mission's "
                          "earlier phases leave (default: the truth's magnets, 1 %% errors) or none (the design's, "
                          "15 %% prior)")
+    ap.add_argument("--controller", action="append", default=[], metavar="FIELD=VALUE",
+                    help="replace a number or name of the controller's configuration (fsw.deorbit.controller."
+                         "ControllerConfig), e.g. continuation_reweight=2; repeatable")
     ap.add_argument("--sweep", action="store_true",
                     help="the starts on the orbit x seeds (default 8 x 5 = 40 runs); JSON: runs and aggregates")
     ap.add_argument("--starts", type=int_range(1, 8), default=8, metavar="N",
@@ -594,16 +621,18 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--plot is for one run, not --sweep")
     try:
         faults = [Fault.parse(f) for f in args.fault]
+        overrides = controller_overrides(args.controller)
         if args.sweep:
+            more = {"controller_overrides": overrides} if overrides else {}  # the default's campaign unchanged
             out = sweep(args.scenario, duration_s=args.duration, rate_hz=args.rate, law=args.law, faults=faults,
                         attitude=args.attitude, starts=args.starts, seeds=args.seeds, campaign=(ap, args),
-                        kit_calibration=args.kit_calibration)
+                        kit_calibration=args.kit_calibration, **more)
             if isinstance(out, int):
                 return out
         else:
             r = run_bench(args.scenario, duration_s=args.duration, rate_hz=args.rate, law=args.law, faults=faults,
                           arg_lat0_deg=args.arg_lat0, attitude=args.attitude, seed=args.seed,
-                          kit_calibration=args.kit_calibration)
+                          kit_calibration=args.kit_calibration, controller_overrides=overrides)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -144,18 +144,19 @@ ATTITUDE_SOURCES = ("truth", "estimate")
 
 
 def build_kit(sim: DeorbitSimulator, controller=None, law: str = "mpc", attitude: str = "truth",
-              sigma_b_T: float = 1.5e-6, **kit_options):
+              sigma_b_T: float = 1.5e-6, controller_overrides: dict | None = None, **kit_options):
     """The flight software's de-orbit kit for a SITL run: the emulator's lines, the controller's attitude
     from `attitude` ("truth": :class:`TruthAttitude`; "estimate": the box's own,
     `fsw.deorbit.onboard_attitude.EstimatedAttitude` with the sensor's σ `sigma_b_T` and the spacecraft as
     the box knows it, :func:`box_spacecraft`), and a controller configured for the scenario with `law`
-    (:func:`controller_config`) unless `controller` is given."""
+    (:func:`controller_config`, with `controller_overrides` replacing any of its fields) unless `controller`
+    is given."""
     from fsw.deorbit.kit import DeorbitKit
     from fsw.deorbit.onboard_attitude import EstimatedAttitude
 
     if attitude not in ATTITUDE_SOURCES:
         raise ValueError(f"attitude source must be one of {ATTITUDE_SOURCES}, got {attitude!r}")
-    controller = controller or controller_config(sim, law=law)
+    controller = controller or controller_config(sim, **{"law": law, **(controller_overrides or {})})
     source = (TruthAttitude(sim) if attitude == "truth" else
               EstimatedAttitude(sigma_b_T, box_spacecraft(sim.spec, controller.inertia_kgm2)))
     kit_options.setdefault("magnets", box_magnets(sim.spec))

@@ -40,6 +40,13 @@ What produces M_theor (the moment the regulator asks for in each channel) is `la
   turn 11.7 J) wins. M_theor is then the chosen width × M_ctrl / T (eq. 6 read backwards), so the
   pulses still obey eq. 5 and eq. 6.
 
+  The continuation's price (`continuation_reweight`, off by default). Per unit of duty, λ makes a small
+  trim later look almost free (a duty of 0.05 costs λ/20), while the kit pays an opening for any pulse and
+  cannot open for less than the minimum impulse: the plan then keeps deferring the trim of a swing of
+  0.1–0.2 rad, period after period, and the libration coasts. With `continuation_reweight` passes of a
+  reweighted ℓ1 (:meth:`DiscreteController.reweighted`) the price of each later pulse is about
+  `continuation_pulse_price` whatever its width, the fixed price an opening has.
+
   The energy guard (`energy_guard_rad`, off by default). With 80-s pulses of 15 A·m², one pulse changes
   a rate by ~1·10⁻³ rad/s, as much as a whole swing: a pulse takes energy out of the libration only when
   the rate along its angular impulse ΔL exceeds |ΔL|/2J (ΔE = ω·ΔL + ½ΔLᵀJ⁻¹ΔL), i.e. at high rates or
@@ -267,6 +274,35 @@ def impulse_responses(Rs, ws, dw, J, n, ka, sail_share, h, substeps, periods):
 
 
 @njit(cache=True)
+def box_lasso_weighted(H: np.ndarray, B: np.ndarray, Lam: np.ndarray, V0: np.ndarray, sweeps: int,
+                       tol: float = 1e-9) -> np.ndarray:
+    """:func:`box_lasso` with a price per unknown and column, min vᵀHv − 2bᵀv + Σ_i Λ_ic |v_i| for each column c
+    (Lam (n, C)), started from V0 (n, C): the passes of a reweighted ℓ1 (:meth:`DiscreteController._mpc`)."""
+    n, C = B.shape
+    V = V0.copy()
+    HV = H @ V
+    for _ in range(sweeps):
+        moved = 0.0
+        for i in range(n):
+            d = H[i, i]
+            for c in range(C):
+                t = B[i, c] - HV[i, c] + d * V[i, c]
+                a = abs(t) - 0.5 * Lam[i, c]
+                new = 0.0
+                if a > 0.0:
+                    new = min(1.0, max(-1.0, math.copysign(a, t) / d))
+                delta = new - V[i, c]
+                if delta != 0.0:
+                    for j in range(n):
+                        HV[j, c] += H[j, i] * delta
+                    V[i, c] = new
+                    moved = max(moved, abs(delta))
+        if moved < tol:
+            break
+    return V
+
+
+@njit(cache=True)
 def box_lasso(H: np.ndarray, B: np.ndarray, lam: float, sweeps: int, tol: float = 1e-9) -> np.ndarray:
     """min over v ∈ [−1, 1]ⁿ of vᵀHv − 2bᵀv + λ‖v‖₁, for each column b of B (n, C); H = MᵀM (n×n) with a
     positive diagonal. Cyclic coordinate descent: per coordinate the 1-D minimiser is the soft-threshold
@@ -329,6 +365,13 @@ class ControllerConfig:
     terminal_weight: float = 10.0  # w: weight of the amplitude left after the horizon
     energy_price_per_J: float = 1e-3
     lasso_sweeps: int = 40
+    #: the continuation's pulses priced per pulse, as the kit pays (an opening whatever the width), not per
+    #: unit of duty: this many passes of a reweighted ℓ1 after the lasso, each unknown's price
+    #: `continuation_pulse_price`·(1 + ε)/(|u| + ε) at the previous pass (ε `reweight_eps`), so that a pulse
+    #: of any width costs about `continuation_pulse_price`; 0 (the default): the ℓ1 price alone
+    continuation_reweight: int = 0
+    continuation_pulse_price: float = 0.06
+    reweight_eps: float = 0.05
     #: the motion the plan starts from: "nonlinear" (:func:`free_motion`, the field turned with the attitude
     #: along it) or "linear" (the LVLH model from the attitude now, the field at the attitude frozen)
     prediction: str = "linear"
@@ -383,6 +426,8 @@ class ControllerConfig:
                 and self.lasso_sweeps >= 1):
             raise ValueError("need r_duty > 0, continuation_l1 >= 0, terminal_weight >= 0, horizon >= 2, "
                              "lasso_sweeps >= 1")
+        if not (self.continuation_reweight >= 0 and self.continuation_pulse_price >= 0 and self.reweight_eps > 0):
+            raise ValueError("need continuation_reweight >= 0, continuation_pulse_price >= 0, reweight_eps > 0")
 
 
 @dataclass
@@ -418,6 +463,8 @@ class DiscreteController:
         self._q_sqrt = np.sqrt(np.array(list(c.q_angle) + [c.q_rate] * 3))
         self._terminal = math.sqrt(c.terminal_weight) * coast_amplitude_sqrt(self.A, c.q_angle)
         box_lasso(np.eye(2), np.ones((2, 1)), 0.0, 1)  # load (or compile) the kernels now, not at a decision
+        if config.continuation_reweight:
+            box_lasso_weighted(np.eye(2), np.ones((2, 1)), np.zeros((2, 1)), np.zeros((2, 1)), 1)
         free_motion(np.eye(3), np.zeros(3), self.J, c.mean_motion_radps, 0.0, 0.0, 1.0, 1)
         self.decisions = 0
         self.guarded = 0  # "mpc" first moves replaced by the nonlinear guard
@@ -488,7 +535,11 @@ class DiscreteController:
         R = rhs[:, None] - M0 @ U0.T  # (rows, C): what the continuation has to answer
         H, Bm = Mr.T @ Mr, Mr.T @ R
         V = box_lasso(H, Bm, c.continuation_l1, c.lasso_sweeps)
-        cost = (V * (H @ V)).sum(0) - 2.0 * (Bm * V).sum(0) + (R * R).sum(0) + c.continuation_l1 * np.abs(V).sum(0)
+        if c.continuation_reweight:
+            V, price = self.reweighted(H, Bm, V)
+        else:
+            price = c.continuation_l1 * np.abs(V).sum(0)
+        cost = (V * (H @ V)).sum(0) - 2.0 * (Bm * V).sum(0) + (R * R).sum(0) + price
         joules = np.array([self._move_joules(0, a, acting, polarity) + self._move_joules(1, b, acting, polarity)
                            for a, b in U0])
         total = cost + c.energy_price_per_J * joules
@@ -518,6 +569,19 @@ class DiscreteController:
             m_theor = abs(u) * m_ctrl * pol * float(np.sign(bx)) * (1.0 if ch == 0 else -1.0)
             out.append(ChannelCommand(ch, pol, abs(u) * T, m_theor, m_ctrl))
         return out
+
+    def reweighted(self, H: np.ndarray, Bm: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The continuations V (n, C) after `continuation_reweight` passes of the reweighted ℓ1, and each
+        column's price of its pulses, Σ k·|u|/(|u| + ε) with k = `continuation_pulse_price`·(1 + ε): about k
+        a pulse whatever its width (a full one exactly k), the fixed price of an opening the ℓ1 price per
+        unit of duty misses. With it a small trim later is no longer nearly free, so the plan does not keep
+        deferring it (see the module docstring)."""
+        c = self.config
+        eps = c.reweight_eps
+        k = c.continuation_pulse_price * (1.0 + eps)
+        for _ in range(c.continuation_reweight):
+            V = box_lasso_weighted(H, Bm, k / (np.abs(V) + eps), V, c.lasso_sweeps)
+        return V, k * (np.abs(V) / (np.abs(V) + eps)).sum(0)
 
     def _energy(self, now_s: float, att: AttitudeInput, acting: tuple[int, int],
                 polarity: tuple[int, int], switch: bool = True) -> list[ChannelCommand]:

@@ -10,6 +10,7 @@ from fsw.deorbit.sequencer import KitMode
 from fsw.drivers.stepper import FAULT_SHUTTER_STUCK, FAULT_STALL, MOTOR_POWER_W
 from bench import deorbit
 from bench.deorbit import Fault, run_bench
+from fsw.deorbit.controller import ControllerConfig
 
 KEYS = ("yaw_err_max_rad", "pitch_err_max_rad", "capsule_openings", "magnet_turns", "energy_J",
         "interlock_violations")
@@ -146,3 +147,19 @@ def test_the_225_degree_start_holds_within_0p2_rad_on_the_degree_13_field():
     d = run_bench(arg_lat0_deg=225.0, attitude="truth", law="energy").as_dict()
     assert d["yaw_err_max_rad"] < 0.2 and d["pitch_err_max_rad"] < 0.2
     assert d["interlock_violations"] == 0 and d["safe_entries"] == 0
+
+
+def test_controller_fields_replaced_from_the_command_line():
+    from bench.deorbit import controller_overrides
+
+    got = controller_overrides(["continuation_reweight=2", "energy_price_per_J=3e-3", "law=paper"])
+    assert got == {"continuation_reweight": 2, "energy_price_per_J": 3e-3, "law": "paper"}
+    for bad in ("bogus=1", "horizon", "horizon=abc", "horizon=1", "energy_price_per_J=nan", "widths_s=80",
+                "law=bang"):
+        with pytest.raises(ValueError):
+            controller_overrides([bad])
+    # on top of the scenario's configuration, not instead of it
+    r = run_bench(duration_s=5.0, attitude="truth", controller_overrides={"continuation_reweight": 2})
+    cfg = r.kit.controller.config
+    assert cfg.continuation_reweight == 2
+    assert cfg.aero_stiffness_Nm_per_rad != ControllerConfig().aero_stiffness_Nm_per_rad

@@ -12,6 +12,7 @@ from fsw.deorbit.controller import (
     DiscreteController,
     aero_stiffness_Nm_per_rad,
     box_lasso,
+    box_lasso_weighted,
     coast_amplitude_sqrt,
     discrete_moment_Nm,
     euler_zyx,
@@ -178,6 +179,10 @@ def test_config_is_validated():
         ControllerConfig(continuation_l1=-1.0)
     with pytest.raises(ValueError):
         ControllerConfig(r_duty=0.0)
+    with pytest.raises(ValueError):
+        ControllerConfig(continuation_reweight=-1)
+    with pytest.raises(ValueError):
+        ControllerConfig(reweight_eps=0.0)
 
 
 def _lasso_objective(H, b, lam, v):
@@ -207,6 +212,55 @@ def test_box_lasso_reaches_the_optimum_of_a_box_constrained_lasso(lam):
         trials = np.clip(v + rng.normal(scale=0.05, size=(200, len(v))), -1.0, 1.0)
         best = _lasso_objective(H, b, lam, v)
         assert all(_lasso_objective(H, b, lam, t) >= best - 1e-9 for t in trials)
+
+
+def test_box_lasso_weighted_reaches_the_optimum_with_a_price_per_unknown():
+    rng = np.random.default_rng(8)
+    M = rng.normal(size=(30, 8))
+    H = M.T @ M
+    B = rng.normal(scale=8.0, size=(8, 3))
+    Lam = rng.uniform(0.0, 20.0, size=(8, 3))
+    V = box_lasso_weighted(H, B, Lam, rng.uniform(-1, 1, size=(8, 3)), sweeps=2000, tol=1e-14)
+    for c in range(3):
+        v, g, lam = V[:, c], 2.0 * (H @ V[:, c] - B[:, c]), Lam[:, c]
+        for i in range(8):
+            if abs(v[i]) < 1e-12:
+                assert abs(g[i]) <= lam[i] + 1e-8
+            elif abs(v[i]) < 1.0 - 1e-12:
+                assert g[i] + lam[i] * np.sign(v[i]) == pytest.approx(0.0, abs=1e-7)
+            else:
+                assert (g[i] + lam[i] * np.sign(v[i])) * np.sign(v[i]) <= 1e-8
+    # one price for all: the plain lasso's optimum, from any start
+    same = box_lasso_weighted(H, B, np.full((8, 3), 0.5), np.zeros((8, 3)), sweeps=2000, tol=1e-14)
+    assert same == pytest.approx(box_lasso(H, B, 0.5, sweeps=2000, tol=1e-14), abs=1e-9)
+
+
+def test_the_reweighted_continuation_prices_a_pulse_not_its_duty():
+    """Each pass is the majorise-minimise step of the log price Σ k·log(|u| + ε): it never raises it; the
+    price reported is k·|u|/(|u| + ε) per pulse, `continuation_pulse_price` for a full one; and the plan's
+    small trims (the ℓ1's duties of a few per cent, nearly free at λ per unit duty) go."""
+    cfg = ControllerConfig(continuation_reweight=3, continuation_pulse_price=0.06, lasso_sweeps=2000)
+    ctl = DiscreteController(cfg)
+    rng = np.random.default_rng(9)
+    M = rng.normal(size=(60, 12))
+    H = M.T @ M
+    B = rng.normal(scale=0.4, size=(12, 5))
+    eps, k = cfg.reweight_eps, cfg.continuation_pulse_price * (1 + cfg.reweight_eps)
+
+    def log_objective(V):
+        return (V * (H @ V)).sum(0) - 2.0 * (B * V).sum(0) + k * np.log(np.abs(V) + eps).sum(0)
+
+    V = box_lasso(H, B, cfg.continuation_l1, 2000, 1e-14)
+    small_l1 = int(np.sum((np.abs(V) > 1e-9) & (np.abs(V) < 0.05)))
+    for _ in range(3):
+        V1 = box_lasso_weighted(H, B, k / (np.abs(V) + eps), V, 2000, 1e-14)
+        assert np.all(log_objective(V1) <= log_objective(V) + 1e-9)
+        V = V1
+    W, price = ctl.reweighted(H, B, box_lasso(H, B, cfg.continuation_l1, 2000, 1e-14))
+    assert W == pytest.approx(V, abs=1e-9)
+    assert price == pytest.approx(k * (np.abs(W) / (np.abs(W) + eps)).sum(0), rel=1e-12)
+    assert k * 1.0 / (1.0 + eps) == pytest.approx(0.06, rel=1e-12)
+    assert small_l1 >= 5 and int(np.sum((np.abs(W) > 1e-9) & (np.abs(W) < 0.05))) < small_l1
 
 
 def test_box_lasso_without_box_or_l1_is_least_squares():
