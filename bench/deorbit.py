@@ -28,7 +28,8 @@ model starts with the calibration the mission's openings before this phase leave
 noise, the handed-over calibration's errors), 40 runs of `--duration`; the JSON then has `runs` (one row
 each), `fraction_within_0p2_rad` (yaw and pitch within 0.2 rad from `settle_s` on), `energy_J_mean`,
 `energy_J_max` and `att_err_rms_rad_max` (the worst run's yaw/pitch estimation RMS). `--starts` and
-`--seeds` make it smaller.
+`--seeds` make it smaller. `--controller FIELD=VALUE` (repeatable) replaces a number or name of the
+controller's configuration (`fsw.deorbit.controller.ControllerConfig`) on top of the scenario's.
 
 Printed: yaw and pitch errors after convergence (from `settle_s`), capsule openings, magnet turns and
 energy per channel, next to the paper's figures (≤ 0.2 rad; 15 + 30 openings, 35 + 25 turns;
