@@ -156,6 +156,8 @@ def build_kit(sim: DeorbitSimulator, controller=None, law: str = "mpc", attitude
 
     if attitude not in ATTITUDE_SOURCES:
         raise ValueError(f"attitude source must be one of {ATTITUDE_SOURCES}, got {attitude!r}")
+    if controller is not None and controller_overrides:
+        raise ValueError("give a controller configuration or overrides of the scenario's, not both")
     controller = controller or controller_config(sim, **{"law": law, **(controller_overrides or {})})
     source = (TruthAttitude(sim) if attitude == "truth" else
               EstimatedAttitude(sigma_b_T, box_spacecraft(sim.spec, controller.inertia_kgm2)))

@@ -441,9 +441,7 @@ class DiscreteController:
         self._Phi_stack = np.array(powers)  # Φ^0 .. Φ^N
         self._q_sqrt = np.sqrt(np.array(list(c.q_angle) + [c.q_rate] * 3))
         self._terminal = math.sqrt(c.terminal_weight) * coast_amplitude_sqrt(self.A, c.q_angle)
-        box_lasso(np.eye(2), np.ones((2, 1)), 0.0, 1)  # load (or compile) the kernels now, not at a decision
-        if config.continuation_reweight:
-            box_lasso_weighted(np.eye(2), np.ones((2, 1)), np.zeros((2, 1)), np.zeros((2, 1)), 1)
+        box_lasso(np.eye(2), np.ones((2, 1)), 0.0, 1)  # load (or compile) the kernels now (the weighted one with it)
         free_motion(np.eye(3), np.zeros(3), self.J, c.mean_motion_radps, 0.0, 0.0, 1.0, 1)
         self.decisions = 0
         self.guarded = 0  # "mpc" first moves replaced by the nonlinear guard

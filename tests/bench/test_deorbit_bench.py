@@ -163,3 +163,6 @@ def test_controller_fields_replaced_from_the_command_line():
     cfg = r.kit.controller.config
     assert cfg.continuation_reweight == 2
     assert cfg.aero_stiffness_Nm_per_rad != ControllerConfig().aero_stiffness_Nm_per_rad
+    with pytest.raises(ValueError):
+        run_bench(duration_s=5.0, attitude="truth", controller=ControllerConfig(),
+                  controller_overrides={"continuation_reweight": 2})
