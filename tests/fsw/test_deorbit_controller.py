@@ -261,7 +261,8 @@ def test_the_reweighted_continuation_prices_a_pulse_not_its_duty():
     # a pulse of any width costs at most the price of a full one, a full one exactly that
     nonzero = (np.abs(W) > 1e-12).sum(0)
     assert nonzero.sum() >= 3 and np.all(price <= 0.06 * nonzero + 1e-12)
-    W, price = ctl.reweighted(H, 1000.0 * B, box_lasso(H, 1000.0 * B, cfg.continuation_l1, 2000, 1e-14))  # the box binds
+    big = 1000.0 * B  # the box binds
+    W, price = ctl.reweighted(H, big, box_lasso(H, big, cfg.continuation_l1, 2000, 1e-14))
     full = (np.abs(W) >= 1.0 - 1e-12).sum(0)
     assert full.sum() >= 5 and np.all(price >= 0.06 * full - 1e-12)
     assert np.all(price <= 0.06 * (np.abs(W) > 1e-12).sum(0) + 1e-12)
