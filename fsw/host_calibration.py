@@ -101,6 +101,12 @@ class HostCalibration:
         self._left_for = -1
         self._left_T = self._left_per_T = 0.0
         self._t_tlm: float | None = None
+        #: the steps a change of the calibration applied made in the corrected samples, summed [T] (body axes;
+        #: each taken at the sample that made it, and counted from the first sample corrected after it): a
+        #: filter that estimates what the calibration leaves in the samples moves its estimate by the
+        #: difference of this sum between two of its samples instead of meeting the step as an error
+        self.steps_T = np.zeros(3)
+        self._step_pending_T: np.ndarray | None = None
 
     @property
     def state(self) -> int:
@@ -152,6 +158,9 @@ class HostCalibration:
         only corrected. `hold`: a sample due is copied into `held` instead (the field along the orbit and
         the calibration's update, about 0.3 ms, left to :meth:`take_held` in a tick with room: the flight
         loop's choice)."""
+        if self._step_pending_T is not None:  # a change made since the last sample: this one is corrected by it
+            self.steps_T = self.steps_T + self._step_pending_T
+            self._step_pending_T = None
         if extra_T is not None:
             b_meas_T = b_meas_T - extra_T
         if skip:
@@ -197,8 +206,19 @@ class HostCalibration:
             if self._held_mag_T is not None:
                 return
         if self._held_mag_T is not None:
-            self.cal.update(b_meas_T, self._held_mag_T, t_s)
+            self._update(t_s, b_meas_T, self._held_mag_T)
         self.held = self._held_mag_T = None
+
+    def _update(self, t_s: float, b_meas_T: np.ndarray, mag_T: float) -> None:
+        """The calibration's update with a sample; a change of the calibration applied adds the step it makes
+        in that sample's correction to `steps_T`, from the next sample on."""
+        c, published = self.cal, self.cal.published
+        before = c.apply(b_meas_T, t_s) if c.good else None
+        c.update(b_meas_T, mag_T, t_s)
+        if c.published != published and before is not None:
+            step = (c.apply(b_meas_T, t_s) if c.good else b_meas_T) - before
+            if np.all(np.isfinite(step)):
+                self._step_pending_T = step if self._step_pending_T is None else self._step_pending_T + step
 
     def _model_mag_T(self, t_s: float) -> float | None:
         """|B| of the field along the orbit at `t_s`; None (counted in `field_errors`) when it has none."""
@@ -215,7 +235,7 @@ class HostCalibration:
     def _take(self, t_s: float, b_meas_T: np.ndarray) -> None:
         mag_T = self._model_mag_T(t_s)
         if mag_T is not None:
-            self.cal.update(b_meas_T, mag_T, t_s)
+            self._update(t_s, b_meas_T, mag_T)
 
     def telemetry(self, now_s: float, tlm: Telemetry) -> None:
         """DEBRIS_MAGCAL every `tlm_every_s`."""

@@ -86,6 +86,7 @@ class EstimatedAttitude:
     nis_mean: float = 3.0
     _field: object = None
     _inputs: OrbitInputs | None = None
+    _steps_seen_T: np.ndarray | None = None
 
     def observe(self, t_s: float, b_T: np.ndarray, dipole_body_Am2: np.ndarray,
                 mean_dipole_body_Am2: np.ndarray | None = None, kit_step_cov_T2: np.ndarray | None = None) -> None:
@@ -105,6 +106,14 @@ class EstimatedAttitude:
             self._field, self._inputs = fld, inputs
             self.bank = OrbitalAttitudeBank(self.sigma_b_T, inputs, self.model, self.tuning)
             self.nis_mean = 3.0
+            self._steps_seen_T = None
+        # the host calibration's changes since the last sample, a known step of what it leaves in the samples
+        steps = getattr(self.provider, "calibration_steps_T", None)
+        if steps is not None:
+            steps = np.array(steps, float)
+            if self._steps_seen_T is not None:
+                self.bank.shift_bias(steps - self._steps_seen_T)
+            self._steps_seen_T = steps
         try:
             self.bank.update(t_s, b_T, dipole_body_Am2, mean_dipole_body_Am2, kit_step_cov_T2)
         except ValueError as e:  # the orbit cannot be evaluated (SGP4): no estimate from this sample

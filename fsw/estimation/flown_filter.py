@@ -65,6 +65,11 @@ class CalibratedField:
         self.provider = provider
         self.calibration = calibration
 
+    @property
+    def calibration_steps_T(self) -> np.ndarray:
+        """The steps the calibration's changes made in the corrected samples, summed (`HostCalibration.steps_T`)."""
+        return self.calibration.steps_T
+
     def field_now(self, now_s: float):
         if self.provider is None:
             return None, "no orbit/field model on board"
