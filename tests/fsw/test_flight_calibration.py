@@ -128,3 +128,33 @@ def test_the_calibration_takes_five_samples_a_second_of_a_faster_magnetometer():
     b = np.array([20e-6, -5e-6, 30e-6])
     out = [step.process(k / 20.0, b) for k in range(200)]
     assert step.cal.samples == 50 and len(out) == 200
+
+
+def test_a_change_of_the_calibration_is_summed_as_the_step_it_makes_in_the_corrected_samples():
+    """`steps_T` moves, at the first sample corrected after a change of the calibration, by what that change
+    did to the correction (the same raw sample corrected by the new calibration and by the old): an estimate
+    of what the calibration leaves in the samples moves by it instead of meeting it as an error."""
+    import copy
+
+    S, h = magcal_host(21)
+    t, _, _ = magcal_orbit()
+    meas = HostSource(magcal_tumble(3), S, h).meas
+    step = HostCalibration(SIGMA_T, FixedField(onboard_field()))
+    changes, before = 0, None
+    for k in range(len(t)):
+        sum_before, published = step.steps_T.copy(), step.cal.published
+        old = copy.deepcopy(step.cal)
+        out = step.process(float(t[k]), meas[k])
+        if before is not None:  # the sample after a change: corrected by the new calibration, the step counted
+            assert old.good
+            moved = step.steps_T - sum_before
+            assert np.linalg.norm(moved) > 0.0
+            # what the change did to this sample's correction, to the ~0.01 µT the sample's own D term moves it
+            np.testing.assert_allclose(moved, out - before.apply(meas[k], float(t[k])), atol=0.05e-6)
+            changes += 1
+            before = None
+        else:
+            np.testing.assert_array_equal(step.steps_T, sum_before)  # no change: nothing moves
+        if step.cal.published != published and old.good:
+            before = old  # changed by this sample: counted from the next one on
+    assert changes >= 10  # a calibration converging over an orbit changes every solution or so
