@@ -211,11 +211,12 @@ class HostCalibration:
 
     def _update(self, t_s: float, b_meas_T: np.ndarray, mag_T: float) -> None:
         """The calibration's update with a sample; a change of the calibration applied adds the step it makes
-        in that sample's correction to `steps_T`, from the next sample on."""
+        in that sample's correction to `steps_T`, from the next sample on (the first calibration's and a
+        dropped one's too: what is applied before and after, none counted as the sample itself)."""
         c, published = self.cal, self.cal.published
-        before = c.apply(b_meas_T, t_s) if c.good else None
+        before = c.apply(b_meas_T, t_s) if c.good else b_meas_T  # none applied: the sample as it is
         c.update(b_meas_T, mag_T, t_s)
-        if c.published != published and before is not None:
+        if c.published != published:
             step = (c.apply(b_meas_T, t_s) if c.good else b_meas_T) - before
             if np.all(np.isfinite(step)):
                 self._step_pending_T = step if self._step_pending_T is None else self._step_pending_T + step
