@@ -6,7 +6,9 @@ kit-compensated sample with the dipole its sequencer has unscreened (`observe`);
 attitude at each controller decision (`attitude`). The field along the orbit comes from the flight
 software's provider (`field_now`: the time-and-orbit application's, or a field fixed for the run) once the
 host-magnetics calibration is applied to the samples (`fsw.estimation.flown_filter.CalibratedField`);
-until then there is no estimate.
+until then there is no estimate. A change of that calibration is a known step of what it leaves in the
+samples (`HostCalibration.steps_T`): the filter's bias is moved by it before the next sample, not left to
+take it as an error of the attitude.
 
 Trust (:class:`TrustGate`). The controller gets an attitude only when the estimate has run at least
 `min_run_s`, its pointing σ about body y and z and its rate σ are within their limits (`hysteresis` times

@@ -97,7 +97,8 @@ class OrbitalAttitudeTuning:
     field_sigma_T: the onboard field model's error per axis, added to the sensor's noise.
     sigma_bias0_T, bias_psd_T2_per_s: the sample's slowly varying error in body axes (what the host
       calibration leaves, the hard iron's thermal drift, the kit's field the compensation misses), a
-      random walk from σ `sigma_bias0_T`. What the kit-field model misses changes with the channels'
+      random walk from σ `sigma_bias0_T`; a change of the host calibration, known on board, moves it
+      (`OrbitalAttitudeBank.shift_bias`). What the kit-field model misses changes with the channels'
       states: given the model's covariance of a change (the kit's, `fsw.deorbit.kit_field`: ~8 µT per axis
       before its first calibration steps, a few tenths after), the bias opens by that plus
       `kit_step_floor_sigma_T` per axis (the leakage and the unobserved F_b, left at the design's); without
