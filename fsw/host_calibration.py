@@ -104,7 +104,8 @@ class HostCalibration:
         #: the steps a change of the calibration applied made in the corrected samples, summed [T] (body axes;
         #: each taken at the sample that made it, and counted from the first sample corrected after it): a
         #: filter that estimates what the calibration leaves in the samples moves its estimate by the
-        #: difference of this sum between two of its samples instead of meeting the step as an error
+        #: difference of this sum between two of its samples instead of meeting the step as an error (a new
+        #: array at each change, never changed in place)
         self.steps_T = np.zeros(3)
         self._step_pending_T: np.ndarray | None = None
 

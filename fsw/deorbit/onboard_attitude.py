@@ -110,9 +110,9 @@ class EstimatedAttitude:
             self.nis_mean = 3.0
             self._steps_seen_T = None
         # the host calibration's changes since the last sample, a known step of what it leaves in the samples
+        # (a new array at each change, never changed in place: the one seen is kept, not copied)
         steps = getattr(self.provider, "calibration_steps_T", None)
-        if steps is not None:
-            steps = np.array(steps, float)
+        if steps is not None and steps is not self._steps_seen_T:
             if self._steps_seen_T is not None:
                 self.bank.shift_bias(steps - self._steps_seen_T)
             self._steps_seen_T = steps

@@ -371,9 +371,8 @@ class OrbitalAttitudeBank:
         to them, known on board. Each member's bias moves by it, so that the step is not met as an error of
         the attitude (the bias's σ is unchanged: what the member knew of the error left is still known)."""
         d = np.asarray(step_T, float) * UT_PER_T
-        if d.shape == (3,) and np.all(np.isfinite(d)):
-            for m in self.members:
-                m.beta_uT = m.beta_uT + d
+        for m in self.members:
+            m.beta_uT = m.beta_uT + d
 
     def spread_rad(self) -> float:
         """The largest angle between the best hypothesis's sail normal (body x) and another's [rad]."""

@@ -342,7 +342,7 @@ class SteppedField(FixedField):
 
     @property
     def calibration_steps_T(self):
-        return self.steps.copy() if self.report else None
+        return self.steps if self.report else None
 
 
 @pytest.mark.parametrize("seed", [0, 1])
